@@ -1,0 +1,1 @@
+"""motorbus: asyncio buses of serial motion devices."""

@@ -1,0 +1,89 @@
+"""The ``motorbus`` command line.
+
+Each command lives in its own module under ``motorbus.cli`` with a ``register``
+function that adds its sub-parser; commands are imported when the parser is built,
+so one command's optional dependency never breaks another.
+
+Exit codes (documented in README):
+    0  success
+    1  the command ran but failed (device error, timeout, bad reply)
+    2  usage error: bad arguments or bad input (nothing was sent)
+    130 interrupted (Ctrl-C)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from motorbus.errors import LocalProtocolError, MotorbusError
+
+__all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "main"]
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130
+
+#: Modules that each contribute one or more commands, in help order.
+COMMAND_MODULES = ("demo", "sim", "decode")
+
+
+class UsageError(MotorbusError):
+    """Bad command-line input; reported as one line with exit code 2."""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The top-level parser with every command registered."""
+    parser = argparse.ArgumentParser(
+        prog="motorbus",
+        description="Drive buses of serial motion devices (Inspire LA actuators, FF AA steppers).",
+    )
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(f"motorbus.cli.{name}")
+        except ModuleNotFoundError as err:
+            if err.name and err.name.startswith("motorbus.cli"):
+                continue  # command not built yet in this checkout
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line; return the exit code."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.debug else logging.WARNING,
+        format="%(levelname)s %(name)s: %(message)s",
+    )
+    func = getattr(args, "func", None)
+    if func is None:
+        parser.print_help()
+        return EXIT_USAGE
+    try:
+        code: int = func(args)
+        return code
+    except KeyboardInterrupt:
+        print("motorbus: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (LocalProtocolError, UsageError, ValueError) as err:
+        if args.debug:
+            raise
+        print(f"motorbus {args.command}: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except (MotorbusError, OSError) as err:
+        if args.debug:
+            raise
+        print(f"motorbus {args.command}: {err}", file=sys.stderr)
+        return EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

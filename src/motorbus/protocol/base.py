@@ -1,0 +1,199 @@
+"""Building blocks shared by the three device protocols.
+
+Pure code: no asyncio, no clock, no I/O.  Everything here is small and used by
+``la``, ``project_stepper``, ``quad_stepper`` and ``reassembler``.
+"""
+
+from __future__ import annotations
+
+import abc
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+from motorbus.errors import LocalProtocolError, RemoteProtocolError
+
+__all__ = [
+    "FF_AA",
+    "LA_REPLY_HEADER",
+    "LA_REQUEST_HEADER",
+    "PROJECT_FINISHED_BYTES",
+    "Command",
+    "Direction",
+    "Family",
+    "FrameShape",
+    "check_choice",
+    "check_int",
+    "format_hex",
+    "parse_hex",
+    "sum8",
+]
+
+#: Header of every stepper request and reply (docs 000 and 001, "FF AA").
+FF_AA = b"\xff\xaa"
+#: Header of an LA request, host -> actuator (doc 002 section 3.3).
+LA_REQUEST_HEADER = b"\x55\xaa"
+#: Header of an LA reply, actuator -> host (doc 002 section 3.4).
+LA_REPLY_HEADER = b"\xaa\x55"
+#: The bare completion marker the project stepper sends when a project ends (doc 000, 0x4E).
+PROJECT_FINISHED_BYTES = b"\xee\xdd"
+
+
+class Family(enum.Enum):
+    """The three device families motorbus speaks."""
+
+    LA = "la"
+    PROJECT_STEPPER = "project_stepper"
+    QUAD_STEPPER = "quad_stepper"
+
+
+class Direction(enum.Enum):
+    """Which way a frame travels."""
+
+    REQUEST = "request"  # host -> device
+    REPLY = "reply"  # device -> host
+
+
+def sum8(data: bytes | bytearray | memoryview) -> int:
+    """Return the low 8 bits of the sum of ``data`` (the checksum of all three manuals)."""
+    return sum(data) & 0xFF
+
+
+def check_int(field: str, value: object, lo: int, hi: int) -> int:
+    """Return ``value`` if it is an ``int`` in ``lo..hi``; else raise ``LocalProtocolError``.
+
+    The error names the field, the value and the allowed range, so a user can fix the
+    call without reading the source.  ``bool`` is refused: ``True`` is not a position.
+    """
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise LocalProtocolError(
+            f"{field} must be an integer in {lo}..{hi}, got {value!r} ({type(value).__name__})",
+            field=field,
+            value=value,
+        )
+    if not lo <= value <= hi:
+        raise LocalProtocolError(
+            f"{field}={value} is out of range: allowed {lo}..{hi}", field=field, value=value
+        )
+    return value
+
+
+def check_choice(field: str, value: object, allowed: Sequence[int], meaning: str = "") -> int:
+    """Return ``value`` if it is one of ``allowed``; else raise ``LocalProtocolError``."""
+    if isinstance(value, bool) or not isinstance(value, int) or value not in allowed:
+        shown = ", ".join(str(a) for a in allowed)
+        extra = f" ({meaning})" if meaning else ""
+        raise LocalProtocolError(
+            f"{field}={value!r} is not allowed: choose one of {shown}{extra}",
+            field=field,
+            value=value,
+        )
+    return value
+
+
+def parse_hex(text: str) -> bytes:
+    """Parse hex text such as ``"55 AA 03 01"`` or ``"55aa0301"`` (spaces, commas, ``0x`` ok).
+
+    Raises ``ValueError`` naming the first offending token.
+    """
+    cleaned = text.replace(",", " ").replace("0x", " ").replace("0X", " ")
+    tokens = cleaned.split()
+    out = bytearray()
+    for token in tokens:
+        if len(token) % 2:
+            raise ValueError(f"hex input: {token!r} has an odd number of digits")
+        try:
+            out += bytes.fromhex(token)
+        except ValueError:
+            raise ValueError(f"hex input: {token!r} is not hexadecimal") from None
+    return bytes(out)
+
+
+def format_hex(data: bytes | bytearray | memoryview) -> str:
+    """Format bytes as space-separated upper-case hex, the notation of the manuals."""
+    return bytes(data).hex(" ").upper()
+
+
+@dataclass(frozen=True, slots=True)
+class FrameShape:
+    """What an unframed stepper reply must look like (it has no length and no checksum).
+
+    ``pattern[i]`` is the set of values allowed at byte ``i`` (``None`` = any byte);
+    positions past the end of ``pattern`` accept anything.  ``length`` is the total size.
+    The reassembler uses shapes to cut stepper replies out of the stream and to refuse
+    look-alike garbage; the bus derives them from the request it sent.
+    """
+
+    length: int
+    pattern: tuple[frozenset[int] | None, ...]
+
+    def matches(self, raw: bytes | bytearray | memoryview) -> bool:
+        """Return True if the first ``len(raw)`` bytes fit this shape (a prefix may match)."""
+        for i, allowed in enumerate(self.pattern[: len(raw)]):
+            if allowed is not None and raw[i] not in allowed:
+                return False
+        return True
+
+    @classmethod
+    def exact(cls, length: int, *prefix: int | frozenset[int] | None) -> FrameShape:
+        """Build a shape from per-byte values: an int, a set of ints, or ``None`` for any."""
+        pattern: list[frozenset[int] | None] = []
+        for p in prefix:
+            if p is None or isinstance(p, frozenset):
+                pattern.append(p)
+            else:
+                pattern.append(frozenset((p,)))
+        return cls(length, tuple(pattern))
+
+
+class Command(abc.ABC):
+    """A request to a device, as a value: build it, encode it, know its reply.
+
+    Subclasses are frozen dataclasses that validate their fields on construction
+    (raising ``LocalProtocolError``), so a ``Command`` that exists can always be sent.
+    """
+
+    __slots__ = ()
+
+    #: Which device family understands this command.
+    family: ClassVar[Family]
+    #: True for commands that start motion: the bus never retries them blindly.
+    starts_motion: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def encode(self) -> bytes:
+        """Return the exact request bytes, checksum included."""
+
+    @abc.abstractmethod
+    def reply_lengths(self) -> tuple[int, ...]:
+        """Every total length the (first) reply may have; ``()`` if the device stays silent."""
+
+    @abc.abstractmethod
+    def matches_reply(self, raw: bytes) -> bool:
+        """Return True if the complete frame ``raw`` is a reply to this request."""
+
+    @abc.abstractmethod
+    def decode_reply(self, raw: bytes) -> object:
+        """Decode a frame for which ``matches_reply`` is True into a typed value."""
+
+    def reply_shapes(self) -> tuple[FrameShape, ...]:
+        """Shapes of the reply for unframed (stepper) protocols; ``()`` for LA frames."""
+        return ()
+
+    def done_shapes(self) -> tuple[FrameShape, ...]:
+        """Shapes of a later "done" reply (quad stepper run and LED commands), else ``()``."""
+        return ()
+
+    @property
+    def expects_reply(self) -> bool:
+        """True if the device answers this request."""
+        return bool(self.reply_lengths())
+
+
+def require_reply(cmd: Command, raw: bytes) -> None:
+    """Raise ``RemoteProtocolError`` unless ``raw`` is a reply to ``cmd``."""
+    if not cmd.matches_reply(raw):
+        raise RemoteProtocolError(
+            f"{format_hex(raw)} is not a reply to {type(cmd).__name__}", raw=raw
+        )
