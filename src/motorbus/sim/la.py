@@ -1,0 +1,609 @@
+"""A simulated Inspire LA linear actuator (doc 002, PROTOCOLS.md part C).
+
+Pure: no clock, no I/O.  Every entry point takes ``now`` in seconds on the host's clock.
+
+What the model does (behaviour from the manual; the numbers marked "model choice" are ours):
+
+* A control table (256 bytes, one per index value) in RAM and a simulated flash (C.5).
+  ``SAVE`` copies RAM to flash; :meth:`LAModel.power_cycle` reloads RAM from flash.  An ID
+  write takes effect at once; a baud write becomes the active rate (``model.baud``) only
+  after save and a power cycle (manual 3.6, index 12).  Writes to the read-only registers
+  and the table header are ignored; an ID write outside 1..254 is ignored.
+* Positioning (0x21, 0x03, a write of the target register, F2 broadcast) moves toward the
+  target with a trapezoidal profile (``stroke_speed`` units/s, ``accel`` units/s^2).  Follow
+  (0x20, 0x19, F3) tracks the latest streamed target at up to ``stroke_speed``.
+* Work / e-stop / pause as manual 3.5.4: after ESTOP position commands are ignored (target
+  not adopted, no motion) until WORK; PAUSE stops the motor and the next position command
+  resumes directly.  Power-on state: working.
+* Faults as manual 3.8, injected with :meth:`LAModel.trigger_fault`: stall and over-current
+  stop the motor and auto-clear after 5 s; the third trip in a row latches until
+  CLEAR_FAULT; over-temperature stops the motor until the temperature (cooling at
+  ``cooling_rate``) falls below the recovery temperature, and CLEAR_FAULT cannot clear it.
+  While stall, over-current or over-temperature is active, position commands are ignored.
+* Motor abnormal is a *notice* (manual 3.8: "提示"): it does not stop the motor.  It clears
+  on CLEAR_FAULT or once the motor draws more than 30 mA, i.e. when the model moves.
+* Nothing answers ID 255, broadcasts, 0x03 or 0x19; a frame ``decode_request`` refuses is
+  ignored and counted in ``ignored``.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+import random
+from typing import ClassVar, Literal
+
+from motorbus.errors import LocalProtocolError, RemoteProtocolError
+from motorbus.protocol.base import LA_REPLY_HEADER, Family, check_int
+from motorbus.protocol.la import (
+    BROADCAST_ID,
+    CMD_CONTROL,
+    CMD_READ,
+    CMD_WRITE,
+    ID_MAX,
+    ID_MIN,
+    POSITION_MAX,
+    POSITION_MIN,
+    REPORTED_POSITION_MAX,
+    REPORTED_POSITION_MIN,
+    BaudCode,
+    Broadcast,
+    BroadcastMode,
+    Control,
+    ControlAction,
+    ErrorFlags,
+    Follow,
+    MoveTo,
+    ReadRegister,
+    ReadTable,
+    Register,
+    Status,
+    WriteRegister,
+    WriteTable,
+    build_frame,
+    decode_request,
+)
+from motorbus.sim.model import DeviceModel
+
+__all__ = [
+    "AUTO_CLEAR_S",
+    "CONSECUTIVE_WINDOW_S",
+    "FAULT_KINDS",
+    "LAModel",
+    "PowerState",
+]
+
+#: Stall and over-current auto-clear 5 s after they trip (manual 3.6 index 32, 3.8).
+AUTO_CLEAR_S = 5.0
+#: After this many auto-clears in a row, the next stall/over-current latches (manual 3.8:
+#: "the third fault can only be cleared with 0x1E").
+AUTO_CLEARS_BEFORE_LATCH = 2
+#: Model choice: a trip counts as "consecutive" when it occurs within this many seconds
+#: after the previous auto-clear.  The manual does not give a window (C.7, A2-18).
+CONSECUTIVE_WINDOW_S = 10.0
+#: Motor abnormal clears once the measured current exceeds 30 mA (manual 3.8).
+MOTOR_ABNORMAL_CLEAR_MA = 30
+#: Model choice: current drawn while moving, holding and disabled, in mA.
+MOVING_CURRENT_MA = 300
+HOLDING_CURRENT_MA = 20
+#: Model choice: how far above the limit an injected over-temperature puts the motor, degC.
+OVER_TEMPERATURE_OVERSHOOT_C = 5.0
+#: Model choice: raw force ADC reading at zero load, and grams per ADC count (12-bit, A2-07).
+RAW_FORCE_ZERO_COUNTS = 2048
+GRAMS_PER_COUNT = 10
+RAW_FORCE_MAX = 4095
+#: Model choice: integration step of the motion profile, seconds.
+SIM_STEP_S = 1e-3
+#: Model choice: default speed (full 2000-unit stroke in 1.0 s at cruise) and acceleration.
+DEFAULT_STROKE_SPEED = 2000.0
+DEFAULT_ACCEL = 20000.0
+#: Model choice: default cooling rate of the motor, degC per second.
+DEFAULT_COOLING_RATE = 1.0
+#: Reply latency: 120 us typical, up to 800 us when a control task interrupts (manual 3.4.2).
+TURNAROUND_TYPICAL_S = 120e-6
+TURNAROUND_MAX_S = 800e-6
+#: One RAM/flash byte per possible index value (the index byte is 0..255).
+TABLE_BYTES = 256
+#: Table header bytes (C.5 index 0..1), reserved: writes are ignored.
+TABLE_HEADER = b"\xaa\x55"
+
+#: Fault kinds accepted by :meth:`LAModel.trigger_fault`.
+FAULT_KINDS = ("stall", "over_current", "over_temperature", "motor_abnormal")
+_TRIP_FLAGS = {"stall": ErrorFlags.STALL, "over_current": ErrorFlags.OVER_CURRENT}
+
+WriteReply = Literal["status", "ack"]
+IdChangeReply = Literal["old", "new"]
+
+
+class PowerState(enum.Enum):
+    """The power-stage state of manual 3.5.4."""
+
+    WORKING = "working"  # enabled (power-on state, and after WORK)
+    ESTOPPED = "estopped"  # disabled; position commands ignored until WORK
+    PAUSED = "paused"  # disabled; the next position command resumes
+
+
+def _choice(field: str, value: object, allowed: tuple[object, ...]) -> object:
+    if value not in allowed:
+        shown = ", ".join(repr(a) for a in allowed)
+        raise LocalProtocolError(
+            f"{field}={value!r} is not allowed: choose one of {shown}", field=field, value=value
+        )
+    return value
+
+
+def _positive(field: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+        raise LocalProtocolError(
+            f"{field} must be a positive number, got {value!r}", field=field, value=value
+        )
+    return float(value)
+
+
+class LAModel(DeviceModel):
+    """One simulated LA actuator on the bus (see the module docstring for its behaviour).
+
+    Attributes:
+        received: every target addressed to this actuator, ``(time, cmd code, target)``,
+            including targets it ignored (cmd code 0x02 for a target-register write,
+            0xF2/0xF3 for broadcasts).
+        ignored: number of frames refused by ``decode_request``.
+        load_g: the load on the force sensor in grams (tests set it).
+        ambient: the temperature the motor cools toward, degC.
+        temperature: the present motor temperature, degC.
+    """
+
+    family: ClassVar[Family] = Family.LA
+
+    def __init__(
+        self,
+        id: int = 1,
+        *,
+        stroke_speed: float = DEFAULT_STROKE_SPEED,
+        accel: float = DEFAULT_ACCEL,
+        write_reply: str = "status",
+        status_cmd_echo: str = "0x04",
+        id_change_reply: str = "old",
+        turnaround_typical: float = TURNAROUND_TYPICAL_S,
+        turnaround_max: float = TURNAROUND_MAX_S,
+        slow_turnaround_probability: float = 0.02,
+        baud_code: int = BaudCode.B921600,
+        temperature: float = 25.0,
+        force_sensor: bool = True,
+        cooling_rate: float = DEFAULT_COOLING_RATE,
+        position: float = 0.0,
+    ) -> None:
+        """Create an actuator in its power-on state with the factory control table.
+
+        Args:
+            id: actuator ID 1..254.
+            stroke_speed: top speed in position units per second.
+            accel: acceleration of positioning moves in units per second squared.
+            write_reply: answer writes with the 22-byte ``"status"`` or the short ``"ack"``
+                (A2-03).
+            status_cmd_echo: status B4 is ``"0x04"`` (also accepted: 4) or the
+                ``"request"``'s command (A2-04).
+            id_change_reply: an ID write is answered from the ``"old"`` or ``"new"`` ID (A2-12).
+            turnaround_typical: usual reply latency, seconds.
+            turnaround_max: worst reply latency, seconds.
+            slow_turnaround_probability: chance (0..1) that a reply takes a random latency up
+                to ``turnaround_max``.
+            baud_code: the ``BaudCode`` in the factory table (0..3).
+            temperature: ambient and initial motor temperature, degC.
+            force_sensor: LAF/LASF model with a force sensor (else force reads 0).
+            cooling_rate: cooling of an overheated motor, degC per second.
+            position: initial position, 0..2000.
+
+        Raises:
+            LocalProtocolError: a value out of range or not one of the choices.
+        """
+        check_int("id", id, ID_MIN, ID_MAX)
+        self._vmax = _positive("stroke_speed", stroke_speed)
+        self._accel = _positive("accel", accel)
+        self._write_reply_kind = _choice("write_reply", write_reply, ("status", "ack"))
+        echo = _choice("status_cmd_echo", status_cmd_echo, ("0x04", CMD_CONTROL, "request"))
+        self._echo_request = echo == "request"
+        self._id_change_reply = _choice("id_change_reply", id_change_reply, ("old", "new"))
+        self._turnaround_typical = _positive("turnaround_typical", turnaround_typical)
+        self._turnaround_max = max(
+            self._turnaround_typical, _positive("turnaround_max", turnaround_max)
+        )
+        if not 0.0 <= slow_turnaround_probability <= 1.0:
+            raise LocalProtocolError(
+                f"slow_turnaround_probability={slow_turnaround_probability!r} is out of range: "
+                "allowed 0..1",
+                field="slow_turnaround_probability",
+                value=slow_turnaround_probability,
+            )
+        self._slow_probability = float(slow_turnaround_probability)
+        check_int("baud_code", baud_code, BaudCode.B19200, BaudCode.B921600)
+        self._cooling_rate = _positive("cooling_rate", cooling_rate)
+        if not POSITION_MIN <= position <= POSITION_MAX:
+            raise LocalProtocolError(
+                f"position={position!r} is out of range: allowed {POSITION_MIN}..{POSITION_MAX}",
+                field="position",
+                value=position,
+            )
+        self.force_sensor = bool(force_sensor)
+        self.ambient = float(temperature)
+        self.temperature = float(temperature)
+        self.load_g = 0
+        self.received: list[tuple[float, int, int]] = []
+        self.ignored = 0
+
+        self._ram = bytearray(TABLE_BYTES)
+        self._ram[0:2] = TABLE_HEADER
+        for reg in Register:
+            if reg.value.default is not None:
+                self._put(reg, reg.value.default)
+        self._put(Register.ID, id)
+        self._put(Register.BAUD, baud_code)
+        self._position = float(position)
+        self._put(Register.TARGET, round(position))
+        self._flash = bytearray(self._ram)
+        self._active_baud = BaudCode(baud_code)
+
+        self._velocity = 0.0
+        self._goal: int | None = None
+        self._follow = False
+        self._time: float | None = None
+        self._power = PowerState.WORKING
+        self._force_offset = 0
+        self._trips: dict[ErrorFlags, tuple[float, bool]] = {}  # flag -> (since, latched)
+        self._auto_clears = 0
+        self._last_auto_clear: float | None = None
+        self._over_temperature = False
+        self._motor_abnormal = False
+
+    # --- public view ---------------------------------------------------------------------
+
+    @property
+    def id(self) -> int:
+        """The ID the actuator answers to now (RAM index 2)."""
+        return self._get(Register.ID)
+
+    @property
+    def baud(self) -> int:
+        """The active bit rate in bit/s (changes only after save and a power cycle)."""
+        return self._active_baud.baud
+
+    @property
+    def power_state(self) -> PowerState:
+        """Working, e-stopped or paused (manual 3.5.4)."""
+        return self._power
+
+    @property
+    def position(self) -> int:
+        """The position as the status reports it, -20..2020."""
+        return min(REPORTED_POSITION_MAX, max(REPORTED_POSITION_MIN, round(self._position)))
+
+    @property
+    def target(self) -> int:
+        """The target register (index 55)."""
+        return self._get(Register.TARGET)
+
+    @property
+    def moving(self) -> bool:
+        """True while the motor is driving toward a target."""
+        return self._goal is not None and (
+            self._velocity != 0.0 or self._position != float(self._goal)
+        )
+
+    @property
+    def errors(self) -> ErrorFlags:
+        """The fault flags the status reports (B15)."""
+        flags = ErrorFlags(0)
+        for flag in self._trips:
+            flags |= flag
+        if self._over_temperature:
+            flags |= ErrorFlags.OVER_TEMPERATURE
+        if self._motor_abnormal:
+            flags |= ErrorFlags.MOTOR_ABNORMAL
+        return flags
+
+    @property
+    def current(self) -> int:
+        """The motor current in mA the status reports."""
+        if self.moving:
+            return MOVING_CURRENT_MA
+        if self._power is PowerState.WORKING and not self._blocked and not self._motor_abnormal:
+            return HOLDING_CURRENT_MA
+        return 0
+
+    @property
+    def force(self) -> int:
+        """The force in grams the status reports (0 without a force sensor)."""
+        if not self.force_sensor:
+            return 0
+        return max(-0x8000, min(0x7FFF, self.load_g - self._force_offset))
+
+    def register(self, reg: Register) -> int:
+        """Return the value of ``reg`` as a read would return it."""
+        self._refresh_live()
+        return self._get(reg)
+
+    def set_register(self, reg: Register, value: int) -> None:
+        """Put ``value`` into RAM directly, bypassing every check and side effect (tests).
+
+        Raises:
+            LocalProtocolError: ``value`` does not fit the register's size.
+        """
+        self._put(reg, value)
+
+    def status(self, now: float) -> Status:
+        """Advance to ``now`` and return the status the actuator would report."""
+        self._advance(now)
+        return self._status_value(self.id, CMD_CONTROL, ControlAction.QUERY_STATUS)
+
+    def trigger_fault(self, kind: str, now: float) -> None:
+        """Make a fault occur at ``now`` (manual 3.8).
+
+        Args:
+            kind: ``"stall"``, ``"over_current"``, ``"over_temperature"`` or
+                ``"motor_abnormal"``.
+            now: time in seconds.
+
+        Raises:
+            LocalProtocolError: unknown kind.
+        """
+        _choice("kind", kind, FAULT_KINDS)
+        self._advance(now)
+        if kind in _TRIP_FLAGS:
+            recent = (
+                self._last_auto_clear is not None
+                and now - self._last_auto_clear <= CONSECUTIVE_WINDOW_S
+            )
+            if not recent:
+                self._auto_clears = 0
+            latched = self._auto_clears >= AUTO_CLEARS_BEFORE_LATCH
+            self._trips[_TRIP_FLAGS[kind]] = (now, latched)
+            self._stop()
+        elif kind == "over_temperature":
+            limit = self._get(Register.OVER_TEMPERATURE_LIMIT) / 10
+            self.temperature = max(self.temperature, limit + OVER_TEMPERATURE_OVERSHOOT_C)
+            self._check_temperature()
+        else:
+            self._motor_abnormal = True
+
+    # --- DeviceModel -----------------------------------------------------------------------
+
+    def handle(self, request: bytes, now: float) -> list[bytes]:
+        """Process one request frame received at ``now``; return the reply frames.
+
+        Refused frames are counted in ``ignored``; frames for other IDs, broadcasts and the
+        no-reply commands return ``[]``.
+        """
+        try:
+            cmd = decode_request(request)
+        except RemoteProtocolError:
+            self.ignored += 1
+            return []
+        self._advance(now)
+        if isinstance(cmd, Broadcast):
+            follow = cmd.mode is BroadcastMode.FOLLOW
+            for ident, pos in cmd.entries:
+                if ident == self.id:
+                    self._position_command(now, int(cmd.mode), pos, follow=follow)
+            return []
+        addressed = (MoveTo, Follow, Control, ReadRegister, ReadTable, WriteRegister, WriteTable)
+        if not isinstance(cmd, addressed):  # pragma: no cover - decode_request gives no other
+            return []
+        if cmd.id not in (self.id, BROADCAST_ID):
+            return []
+        answer = cmd.id != BROADCAST_ID
+        if isinstance(cmd, MoveTo | Follow):
+            self._position_command(now, cmd.cmd, cmd.position, follow=isinstance(cmd, Follow))
+            return (
+                [self._status(cmd.cmd, ControlAction.QUERY_STATUS)] if cmd.reply and answer else []
+            )
+        if isinstance(cmd, Control):
+            self._control(cmd.action)
+            return [self._status(CMD_CONTROL, cmd.action)] if answer else []
+        if isinstance(cmd, ReadRegister | ReadTable):
+            read = cmd.as_table if isinstance(cmd, ReadRegister) else cmd
+            return [self._read(read)]
+        if isinstance(cmd, WriteRegister | WriteTable):
+            write = cmd.as_table if isinstance(cmd, WriteRegister) else cmd
+            reply_id = self._write(now, write)
+            return [self._write_reply(reply_id, write.index)] if answer else []
+        return []  # pragma: no cover - unreachable, every addressed type is handled above
+
+    def poll(self, now: float) -> list[bytes]:
+        """Advance the motion and fault timers to ``now``; the LA sends nothing unsolicited."""
+        self._advance(now)
+        return []
+
+    def turnaround(self, rng: random.Random) -> float:
+        """Reply latency: typical, or with ``slow_turnaround_probability`` up to the max."""
+        if rng.random() < self._slow_probability:
+            return rng.uniform(self._turnaround_typical, self._turnaround_max)
+        return self._turnaround_typical
+
+    def power_cycle(self, now: float) -> None:
+        """Power off and on: RAM reloads from flash, the new baud becomes active, the motor
+        stops, faults reset (an overheated motor stays hot and faulted)."""
+        self._advance(now)
+        self._ram[:] = self._flash
+        if not ID_MIN <= self._get(Register.ID) <= ID_MAX:
+            self._put(Register.ID, ID_MIN)
+        code = self._get(Register.BAUD)
+        if code in {c.value for c in BaudCode}:
+            self._active_baud = BaudCode(code)
+        self._power = PowerState.WORKING
+        self._stop()
+        # The actuator does not run to a stale saved target at power-on.
+        self._put(Register.TARGET, min(POSITION_MAX, max(POSITION_MIN, self.position)))
+        self._trips.clear()
+        self._auto_clears = 0
+        self._last_auto_clear = None
+        self._motor_abnormal = False
+        self._force_offset = 0
+
+    # --- internals -----------------------------------------------------------------------
+
+    def _get(self, reg: Register) -> int:
+        return reg.decode_value(bytes(self._ram[reg.index : reg.index + reg.size]))
+
+    def _put(self, reg: Register, value: int) -> None:
+        self._ram[reg.index : reg.index + reg.size] = reg.encode_value(value)
+
+    @property
+    def _blocked(self) -> bool:
+        """True while a fault forbids motion (stall, over-current, over-temperature)."""
+        return bool(self._trips) or self._over_temperature
+
+    def _stop(self) -> None:
+        self._goal = None
+        self._velocity = 0.0
+
+    def _raw_force(self) -> int:
+        if not self.force_sensor:
+            return 0
+        return min(RAW_FORCE_MAX, max(0, RAW_FORCE_ZERO_COUNTS + self.load_g // GRAMS_PER_COUNT))
+
+    def _refresh_live(self) -> None:
+        self._put(Register.POSITION, self.position)
+        self._put(Register.FORCE, self.force)
+        self._put(Register.RAW_FORCE, self._raw_force())
+
+    def _status(self, request_cmd: int, action: int) -> bytes:
+        echo = request_cmd if self._echo_request else CMD_CONTROL
+        return self._status_from(self.id, echo, action)
+
+    def _status_from(self, ident: int, echo: int, param2: int) -> bytes:
+        return self._status_value(ident, echo, param2).encode()
+
+    def _status_value(self, ident: int, echo: int, param2: int) -> Status:
+        return Status(
+            id=ident,
+            cmd_echo=echo,
+            param2=param2,
+            target=self.target,
+            position=self.position,
+            temperature=max(-128, min(127, round(self.temperature))),
+            current=self.current,
+            force=self.force,
+            errors=self.errors,
+            internal1=self._raw_force(),
+        )
+
+    def _read(self, cmd: ReadTable) -> bytes:
+        self._refresh_live()
+        data = bytes(self._ram[cmd.index : cmd.index + cmd.count])
+        return build_frame(LA_REPLY_HEADER, bytes((self.id, CMD_READ, cmd.index)) + data)
+
+    def _write_reply(self, ident: int, index: int) -> bytes:
+        if self._write_reply_kind == "ack":
+            return build_frame(LA_REPLY_HEADER, bytes((ident, CMD_WRITE, index, 0x00)))
+        echo = CMD_WRITE if self._echo_request else CMD_CONTROL
+        return self._status_from(ident, echo, ControlAction.QUERY_STATUS)
+
+    def _write(self, now: float, cmd: WriteTable) -> int:
+        """Apply a table write; return the ID the reply should carry."""
+        old_id = self.id
+        end = cmd.index + len(cmd.data)
+        protected = {0, 1}
+        for reg in Register:
+            if not reg.writable:
+                protected.update(range(reg.index, reg.index + reg.size))
+        target = Register.TARGET
+        before_target = bytes(self._ram[target.index : target.index + target.size])
+        for offset, byte in enumerate(cmd.data):
+            at = cmd.index + offset
+            if at not in protected:
+                self._ram[at] = byte
+        if not ID_MIN <= self._get(Register.ID) <= ID_MAX:
+            self._put(Register.ID, old_id)  # the actuator keeps an address it can answer to
+        if cmd.index <= Register.FORCE_ZERO.index < end:
+            if self._get(Register.FORCE_ZERO) == 1:
+                self._force_offset = self.load_g
+            self._put(Register.FORCE_ZERO, 0)
+        if cmd.index < target.index + target.size and end > target.index:
+            wanted = self._get(target)
+            self._ram[target.index : target.index + target.size] = before_target
+            self._position_command(now, CMD_WRITE, wanted, follow=False)
+        return old_id if self._id_change_reply == "old" else self.id
+
+    def _position_command(self, now: float, cmd_code: int, target: int, *, follow: bool) -> None:
+        self.received.append((now, cmd_code, target))
+        if self._power is PowerState.ESTOPPED or self._blocked:
+            return
+        if not POSITION_MIN <= target <= POSITION_MAX:
+            return  # model choice: an out-of-range target is not adopted
+        self._power = PowerState.WORKING
+        self._put(Register.TARGET, target)
+        self._goal = target
+        self._follow = follow
+
+    def _control(self, action: ControlAction) -> None:
+        if action is ControlAction.WORK:
+            self._power = PowerState.WORKING
+        elif action is ControlAction.ESTOP:
+            self._power = PowerState.ESTOPPED
+            self._stop()
+        elif action is ControlAction.PAUSE:
+            self._power = PowerState.PAUSED
+            self._stop()
+        elif action is ControlAction.SAVE:
+            self._refresh_live()
+            self._flash[:] = self._ram
+        elif action is ControlAction.CLEAR_FAULT:
+            self._trips.clear()
+            self._auto_clears = 0
+            self._last_auto_clear = None
+            self._motor_abnormal = False
+
+    def _advance(self, now: float) -> None:
+        if self._time is None or now <= self._time:
+            self._time = now if self._time is None else self._time
+            return
+        start = self._time
+        self._time = now
+        if self._goal is not None and self.moving:
+            self._integrate(float(self._goal), now - start)
+            if self._motor_abnormal and MOVING_CURRENT_MA > MOTOR_ABNORMAL_CLEAR_MA:
+                self._motor_abnormal = False
+        for flag, (since, latched) in list(self._trips.items()):
+            cleared_at = since + AUTO_CLEAR_S
+            if not latched and now >= cleared_at:
+                del self._trips[flag]
+                self._auto_clears += 1
+                self._last_auto_clear = cleared_at
+        if self.temperature > self.ambient:
+            self.temperature = max(
+                self.ambient, self.temperature - self._cooling_rate * (now - start)
+            )
+        self._check_temperature()
+
+    def _check_temperature(self) -> None:
+        limit = self._get(Register.OVER_TEMPERATURE_LIMIT) / 10
+        recovery = self._get(Register.RECOVERY_TEMPERATURE) / 10
+        if not self._over_temperature and self.temperature > limit:
+            self._over_temperature = True
+            self._stop()
+        elif self._over_temperature and self.temperature < recovery:
+            self._over_temperature = False
+
+    def _integrate(self, goal: float, duration: float) -> None:
+        """Move toward ``goal`` for ``duration`` seconds in steps of at most SIM_STEP_S."""
+        steps = max(1, math.ceil(duration / SIM_STEP_S))
+        dt = duration / steps
+        for _ in range(steps):
+            distance = goal - self._position
+            if self._follow:
+                step = max(-self._vmax * dt, min(self._vmax * dt, distance))
+                self._position += step
+                self._velocity = step / dt
+            else:
+                # Fastest speed from which we can still brake to a stop at the goal.
+                v_wanted = math.copysign(
+                    min(self._vmax, math.sqrt(2.0 * self._accel * abs(distance))), distance
+                )
+                dv = max(-self._accel * dt, min(self._accel * dt, v_wanted - self._velocity))
+                self._velocity += dv
+                self._position += self._velocity * dt
+                if (goal - self._position) * distance <= 0.0:  # reached or passed the goal
+                    self._position = goal
+            if self._position == goal:
+                self._velocity = 0.0
+                return
