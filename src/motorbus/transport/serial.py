@@ -1,0 +1,384 @@
+"""Serial ports through one of three asyncio serial backends.
+
+All three backends share the asyncio Protocol API
+``create_serial_connection(loop, protocol_factory, url, baudrate=...)``:
+
+* ``"fast"``: pyserial-asyncio-fast (``serial_asyncio_fast``), the default: the lowest
+  round-trip latency measured on a pty.
+* ``"serialx"``: serialx, its own termios code; low-latency mode and an exclusive lock by
+  default.  RS-485 is refused with this backend: it exposes no pyserial object to set
+  ``rs485_mode`` on (use ``"fast"``).
+* ``"pyserial-asyncio"``: the original ``serial_asyncio``, unmaintained since 2021.
+
+A backend is imported only when chosen, so a missing optional package fails at
+:func:`open_transport` / :class:`SerialTransport` time, naming the pip extra to install.
+
+Any pyserial URL works: a device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...``),
+``socket://host:port`` (a raw TCP serial server such as ser2net), ``rfc2217://host:port``.
+RFC 2217 does not work with the two pyserial-family backends (a known upstream bug), and
+serialx waits for a modem-state acknowledgement that ser2net does not send for a pty;
+prefer ``socket://`` with a raw-TCP ser2net port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import importlib
+import logging
+import os
+from collections.abc import Callable, Coroutine
+from typing import Any, cast
+
+from motorbus.errors import BusClosedError, LocalProtocolError
+from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
+from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
+
+__all__ = [
+    "BACKENDS",
+    "DEFAULT_BACKEND",
+    "SerialTransport",
+    "available_backends",
+    "open_transport",
+]
+
+_log = logging.getLogger("motorbus.transport")
+
+#: Backend names, default first.
+BACKENDS: tuple[str, ...] = ("fast", "serialx", "pyserial-asyncio")
+#: The backend used unless another is chosen (lowest measured latency, maintained).
+DEFAULT_BACKEND = "fast"
+#: backend name -> (importable module, pip extra that installs it).
+_BACKEND_MODULES: dict[str, tuple[str, str]] = {
+    "fast": ("serial_asyncio_fast", "motorbus"),
+    "serialx": ("serialx", "motorbus[serialx]"),
+    "pyserial-asyncio": ("serial_asyncio", "motorbus[pyserial-asyncio]"),
+}
+#: Read size for serialx: its default 256 KiB buffer costs ~15 µs a read (PLATFORM.md §2)
+#: while a bus reply is tens of bytes.
+SERIALX_MAX_READ = 4096
+#: How long close() waits for the backend to release the port before aborting it.
+CLOSE_TIMEOUT_S = 1.0
+#: Where the Linux usb-serial drivers publish an adapter's receive latency timer (ms).
+USB_SERIAL_SYSFS = "/sys/bus/usb-serial/devices"
+
+_ConnectionFactory = Callable[..., Coroutine[Any, Any, tuple[asyncio.BaseTransport, Any]]]
+
+
+def _check_backend(backend: object) -> str:
+    if not isinstance(backend, str) or backend not in BACKENDS:
+        raise LocalProtocolError(
+            f"backend={backend!r} is not a serial backend: choose one of {', '.join(BACKENDS)}",
+            field="backend",
+            value=backend,
+        )
+    return backend
+
+
+def _load_backend(backend: str) -> _ConnectionFactory:
+    """Import ``backend`` and return its ``create_serial_connection``.
+
+    Raises:
+        LocalProtocolError: unknown backend name.
+        ImportError: the backend's package is not installed (the message names the extra).
+    """
+    module_name, extra = _BACKEND_MODULES[_check_backend(backend)]
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ImportError(
+            f"serial backend {backend!r} needs the {module_name!r} package: pip install {extra}"
+        ) from err
+    return cast(_ConnectionFactory, module.create_serial_connection)
+
+
+def available_backends() -> list[str]:
+    """Return the names of the backends whose package can be imported, default first."""
+    found = []
+    for name in BACKENDS:
+        try:
+            _load_backend(name)
+        except ImportError:
+            continue
+        found.append(name)
+    return found
+
+
+def usb_serial_name(url: str) -> str | None:
+    """Return ``ttyUSBn`` if ``url`` is (a link to) a USB serial adapter, else None.
+
+    ``/dev/serial/by-id/...`` links are resolved, so the right sysfs entry is found after
+    a replug renumbered the adapter.
+    """
+    if "://" in url:
+        return None
+    name = os.path.basename(os.path.realpath(url))
+    return name if name.startswith("ttyUSB") else None
+
+
+def read_latency_timer_ms(tty_name: str) -> int | None:
+    """Return the receive latency timer of a usb-serial adapter in ms, or None if unknown."""
+    path = os.path.join(USB_SERIAL_SYSFS, tty_name, "latency_timer")
+    try:
+        with open(path, encoding="ascii") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+class _Adapter(asyncio.Protocol):
+    """Bridges one backend connection to the owner's callbacks; one per open."""
+
+    def __init__(self, owner: SerialTransport) -> None:
+        self.owner = owner
+        self.active = True  # False once the owner closed or lost this connection
+        self.lost: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+
+    def data_received(self, data: bytes) -> None:
+        if self.active:
+            self.owner._data_received(data)
+
+    def eof_received(self) -> bool | None:
+        return None  # let the backend close; connection_lost reports it
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.lost.done():
+            self.lost.set_result(None)
+        if self.active:
+            self.active = False
+            self.owner._connection_lost(exc)
+
+
+class SerialTransport(CountingTransport):
+    """A serial port (or serial-over-TCP URL) through an asyncio serial backend.
+
+    Attributes:
+        latency_timer_ms: the adapter's receive latency timer read back from sysfs after
+            opening a USB serial adapter, else None.  The adapter holds received bytes up
+            to this long, so it bounds every reply timeout from below.
+    """
+
+    def __init__(
+        self,
+        url: str,
+        *,
+        baudrate: int,
+        backend: str = DEFAULT_BACKEND,
+        rs485: bool = False,
+        remove_echo: bool = False,
+        low_latency: bool = True,
+    ) -> None:
+        """Describe a port; nothing is opened until :meth:`open`.
+
+        Args:
+            url: a device path or pyserial URL (``socket://host:port``, ...).
+            baudrate: line speed in bits per second (passed to every backend).
+            backend: one of :data:`BACKENDS`.
+            rs485: let the kernel drive the RS-485 direction line (TIOCSRS485).
+            remove_echo: drop the local echo of a half-duplex adapter.
+            low_latency: ask a USB serial driver for its shortest latency timer.
+
+        Raises:
+            LocalProtocolError: unknown backend, bad baudrate, or RS-485 with serialx.
+            ImportError: the backend's package is missing (names the pip extra).
+        """
+        if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0:
+            raise LocalProtocolError(
+                f"baudrate must be a positive integer (bits per second), got {baudrate!r}",
+                field="baudrate",
+                value=baudrate,
+            )
+        self._connect = _load_backend(backend)
+        if rs485 and backend == "serialx":
+            raise LocalProtocolError(
+                "rs485=True is not supported with backend='serialx' (it has no pyserial "
+                "rs485_mode); use backend='fast'",
+                field="rs485",
+                value=rs485,
+            )
+        super().__init__(url, baudrate, remove_echo=remove_echo)
+        self.backend = backend
+        self.rs485 = rs485
+        self.low_latency = low_latency
+        self.latency_timer_ms: int | None = None
+        self._transport: asyncio.Transport | None = None
+        self._adapter: _Adapter | None = None
+        self._on_data: DataCallback | None = None
+        self._on_lost: LostCallback | None = None
+
+    def __repr__(self) -> str:
+        state = "open" if self.is_open else "closed"
+        return f"SerialTransport({self.url!r}, baudrate={self.baudrate}, {self.backend}, {state})"
+
+    @property
+    def is_open(self) -> bool:
+        """True between a successful :meth:`open` and :meth:`close` or loss of the port."""
+        return self._transport is not None
+
+    async def open(self, on_data: DataCallback, on_lost: LostCallback) -> None:
+        """Open the port, apply RS-485 and low-latency settings, start reading.
+
+        Raises:
+            LocalProtocolError: already open.
+            OSError: the port cannot be opened or configured (``serial.SerialException``
+                is an ``OSError``; other backend errors are wrapped in one).
+        """
+        self._refuse_if_open()
+        loop = asyncio.get_running_loop()
+        adapter = _Adapter(self)
+        try:
+            transport, _ = await self._connect(
+                loop, lambda: adapter, self.url, baudrate=self.baudrate
+            )
+        except OSError:
+            raise
+        except Exception as err:
+            raise OSError(f"cannot open {self.url} with backend {self.backend!r}: {err}") from err
+        self._transport = cast(asyncio.Transport, transport)
+        self._adapter = adapter
+        self._on_data = on_data
+        self._on_lost = on_lost
+        self._echo.reset()
+        try:
+            self._configure(self._transport)
+        except BaseException:
+            await self.close()
+            raise
+
+    def _configure(self, transport: asyncio.Transport) -> None:
+        """Apply the options that need the opened port."""
+        if self.backend == "serialx" and hasattr(transport, "max_size"):
+            transport.max_size = SERIALX_MAX_READ
+        pyserial = transport.get_extra_info("serial")
+        if self.rs485:
+            self._set_rs485(pyserial)
+        tty_name = usb_serial_name(self.url)
+        if tty_name is None:
+            self.latency_timer_ms = None
+            return
+        set_low_latency = getattr(pyserial, "set_low_latency_mode", None)
+        if self.low_latency and set_low_latency is not None:
+            try:
+                set_low_latency(True)
+            except (OSError, ValueError) as err:
+                _log.warning("%s: cannot set low-latency mode: %s", self.url, err)
+        self.latency_timer_ms = read_latency_timer_ms(tty_name)
+        _log.debug("%s: latency timer %s ms", self.url, self.latency_timer_ms)
+
+    def _set_rs485(self, pyserial: object) -> None:
+        if pyserial is None or not hasattr(pyserial, "rs485_mode"):
+            raise OSError(f"{self.url}: backend {self.backend!r} exposes no RS-485 setting")
+        import serial.rs485
+
+        try:
+            pyserial.rs485_mode = serial.rs485.RS485Settings()
+        except (OSError, ValueError) as err:
+            raise OSError(f"{self.url}: cannot enable RS-485 mode: {err}") from err
+
+    def warn_if_latency_exceeds(self, deadline_s: float) -> bool:
+        """Log a WARNING if the adapter's latency timer makes ``deadline_s`` impossible.
+
+        Args:
+            deadline_s: the shortest reply timeout the bus will use, in seconds.
+
+        Returns:
+            True if a warning was logged (the latency timer is longer than the deadline).
+        """
+        ms = self.latency_timer_ms
+        if ms is None or ms / 1000.0 <= deadline_s:
+            return False
+        _log.warning(
+            "%s: the USB adapter holds received bytes up to %d ms (latency_timer), so a "
+            "%.3f ms reply deadline cannot hold; set it to 1 ms (low_latency=True, or write "
+            "1 to %s/%s/latency_timer) or use longer timeouts",
+            self.url,
+            ms,
+            deadline_s * 1000.0,
+            USB_SERIAL_SYSFS,
+            usb_serial_name(self.url),
+        )
+        return True
+
+    def write(self, data: bytes) -> None:
+        """Queue ``data`` on the port; never blocks.
+
+        Raises:
+            BusClosedError: the port is not open.
+        """
+        data = self._outgoing(data)
+        if data and self._transport is not None:
+            self._transport.write(data)
+
+    async def close(self) -> None:
+        """Close the port and wait (up to ``CLOSE_TIMEOUT_S``) until it is released."""
+        transport, adapter = self._transport, self._adapter
+        self._detach()
+        if transport is None or adapter is None:
+            return
+        adapter.active = False
+        transport.close()
+        try:
+            await asyncio.wait_for(asyncio.shield(adapter.lost), CLOSE_TIMEOUT_S)
+        except TimeoutError:
+            _log.warning(
+                "%s: backend did not close within %.1f s, aborting", self.url, CLOSE_TIMEOUT_S
+            )
+            transport.abort()
+
+    def _detach(self) -> None:
+        self._transport = None
+        self._adapter = None
+        self._on_data = None
+        self._on_lost = None
+        self._echo.reset()
+
+    def _data_received(self, data: bytes) -> None:
+        data = self._incoming(data)
+        if data and self._on_data is not None:
+            self._on_data(data)
+
+    def _connection_lost(self, exc: BaseException | None) -> None:
+        on_lost = self._on_lost
+        self._detach()
+        if exc is None:
+            # The peer closed (TCP end of file): still a loss, report it as one.
+            exc = BusClosedError(f"{self.url}: the connection was closed by the other end")
+        _log.debug("%s: port lost: %r", self.url, exc)
+        if on_lost is not None:
+            on_lost(exc)
+
+
+def open_transport(
+    url: str,
+    *,
+    baudrate: int,
+    backend: str = DEFAULT_BACKEND,
+    **opts: Any,
+) -> Transport:
+    """Return the transport for ``url`` (not yet opened).
+
+    ``memory://NAME`` returns the transport registered with
+    :func:`motorbus.transport.register_memory_link` (``baudrate``, ``backend`` and ``opts``
+    are then ignored); anything else returns a :class:`SerialTransport`.
+
+    Args:
+        url: device path, pyserial URL or ``memory://NAME``.
+        baudrate: line speed in bits per second.
+        backend: serial backend name, one of :data:`BACKENDS`.
+        opts: further :class:`SerialTransport` options (``rs485``, ``remove_echo``,
+            ``low_latency``).
+
+    Raises:
+        LocalProtocolError: unknown backend or option, unregistered memory link.
+        ImportError: the chosen backend's package is missing.
+    """
+    if url.startswith(MEMORY_SCHEME):
+        return lookup_memory_link(url)
+    allowed = ("rs485", "remove_echo", "low_latency")
+    for key in opts:
+        if key not in allowed:
+            raise LocalProtocolError(
+                f"{key!r} is not a serial transport option: choose from {', '.join(allowed)}",
+                field=key,
+                value=opts[key],
+            )
+    return SerialTransport(url, baudrate=baudrate, backend=backend, **opts)

@@ -1,0 +1,248 @@
+"""Timers: never early, in deadline order, cancellable, leak-free, under both loops.
+
+Behaviour only: lateness is measured by benchmarks/bench_timer.py, never asserted here.
+Each test runs its own loop (default asyncio and uvloop) through ``asyncio.Runner``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import random
+import sys
+import weakref
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from motorbus.bus.timer import (
+    LoopTimer,
+    Timer,
+    TimerfdTimer,
+    default_timer,
+    timerfd_available,
+)
+
+WAIT_S = 5.0  # generous bound for callbacks due within a few milliseconds
+
+LOOPS: list[Any] = [pytest.param(asyncio.new_event_loop, id="asyncio")]
+try:
+    import uvloop
+
+    LOOPS.append(pytest.param(uvloop.new_event_loop, id="uvloop"))
+except ImportError:  # pragma: no cover - uvloop is in the test extras
+    pass
+
+TIMERS: list[Any] = [pytest.param(LoopTimer, id="loop")]
+if timerfd_available():
+    TIMERS.append(pytest.param(TimerfdTimer, id="timerfd"))
+
+
+def run(loop_factory: Callable[[], asyncio.AbstractEventLoop], coro: Awaitable[None]) -> None:
+    with asyncio.Runner(loop_factory=loop_factory) as runner:
+        runner.run(asyncio.wait_for(coro, WAIT_S))
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_callbacks_never_fire_early_and_run_in_deadline_order(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        rng = random.Random(1)
+        origin = timer.now()
+        # Deadlines from 1 ms in the past to 6 ms ahead, many sharing a value (ties).
+        deadlines = [origin + rng.randrange(-10, 60) * 1e-4 for _ in range(300)]
+        fired: list[tuple[int, float]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def make(i: int) -> Callable[[], None]:
+            def cb() -> None:
+                fired.append((i, timer.now()))
+                if len(fired) == len(deadlines):
+                    done.set_result(None)
+
+            return cb
+
+        for i, d in enumerate(deadlines):
+            timer.call_at(d, make(i))
+        assert fired == []  # never synchronously, even for past deadlines
+        await done
+        late = [(i, at - deadlines[i]) for i, at in fired if at < deadlines[i]]
+        assert late == []
+        order = [i for i, _ in fired]
+        assert order == sorted(range(len(deadlines)), key=lambda i: (deadlines[i], i))
+        assert timer.pending == 0
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_sleep_until_never_returns_early(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        origin = timer.now()
+        for k in range(1, 101):
+            deadline = origin + k * 2e-4  # 200 µs periodic absolute deadlines
+            await timer.sleep_until(deadline)
+            assert timer.now() >= deadline
+        await timer.sleep_until(origin)  # long past: returns after yielding once
+        assert timer.pending == 0
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_cancelled_callbacks_never_run_and_do_not_leak(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        ran: list[int] = []
+        now = timer.now()
+        handles = [
+            timer.call_at(now + 1e-3 + i * 1e-5, lambda i=i: ran.append(i)) for i in range(100)
+        ]
+        for h in handles[::2]:
+            h.cancel()
+            h.cancel()  # idempotent
+        assert timer.pending == 50
+        assert all(h.cancelled() for h in handles[::2])
+        last = asyncio.get_running_loop().create_future()
+        timer.call_at(now + 3e-3, lambda: last.set_result(None))
+        await last
+        assert ran == list(range(1, 100, 2))
+        assert timer.pending == 0
+        assert len(timer._heap) == 0  # cancelled entries were dropped, not kept
+        handles[1].cancel()  # after it ran: harmless
+        assert not handles[1].cancelled()
+        # A far-future callback that is cancelled leaves nothing behind.
+        far = timer.call_at(timer.now() + 3600, lambda: ran.append(-1))
+        far.cancel()
+        assert timer.pending == 0 and len(timer._heap) == 0
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_cancelling_sleep_until_cleans_up(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        sleepers = [asyncio.create_task(timer.sleep_until(timer.now() + 60)) for _ in range(20)]
+        await asyncio.sleep(0)
+        assert timer.pending == 20
+        for task in sleepers:
+            task.cancel()
+        results = await asyncio.gather(*sleepers, return_exceptions=True)
+        assert all(isinstance(r, asyncio.CancelledError) for r in results)
+        assert timer.pending == 0
+        assert len(timer._heap) == 0
+        # wait_for around sleep_until: the timeout cancels the sleep and cleans up too.
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(timer.sleep_until(timer.now() + 60), 0.001)
+        assert timer.pending == 0
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_callbacks_may_schedule_and_failures_reach_the_exception_handler(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        loop = asyncio.get_running_loop()
+        errors: list[BaseException] = []
+        loop.set_exception_handler(lambda _loop, ctx: errors.append(ctx["exception"]))
+        chain: list[int] = []
+        done = loop.create_future()
+
+        def step() -> None:
+            chain.append(len(chain))
+            if len(chain) < 5:
+                timer.call_at(timer.now() + 1e-4, step)
+            else:
+                done.set_result(None)
+
+        def boom() -> None:
+            raise RuntimeError("callback failed")
+
+        timer.call_at(timer.now(), boom)
+        timer.call_at(timer.now() + 1e-4, step)
+        await done
+        assert chain == [0, 1, 2, 3, 4]
+        assert [str(e) for e in errors] == ["callback failed"]
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_close_drops_pending_callbacks_and_refuses_new_ones(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        handle = timer.call_at(timer.now() + 60, lambda: None)
+        timer.close()
+        timer.close()
+        assert handle.cancelled()
+        assert timer.pending == 0
+        with pytest.raises(RuntimeError, match="closed"):
+            timer.call_at(timer.now(), lambda: None)
+
+    run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_default_timer_is_one_per_loop(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop],
+) -> None:
+    seen: list[Timer] = []
+
+    async def main() -> None:
+        timer = default_timer()
+        assert default_timer() is timer
+        assert default_timer(asyncio.get_running_loop()) is timer
+        expected = "timerfd" if sys.platform.startswith("linux") else "loop"
+        assert timer.name == expected
+        seen.append(timer)
+        timer.close()
+        assert default_timer() is not timer  # a closed timer is replaced
+
+    run(loop_factory, main())
+    run(loop_factory, main())
+    assert seen[0] is not seen[1]
+
+
+def test_timerfd_is_released_with_its_loop() -> None:
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+    finalizers: list[weakref.finalize[Any, Any]] = []
+
+    async def main() -> None:
+        timer = default_timer()
+        assert isinstance(timer, TimerfdTimer)
+        await timer.sleep_until(timer.now() + 1e-4)
+        finalizers.append(timer._finalizer)
+
+    run(asyncio.new_event_loop, main())
+    gc.collect()
+    # The per-loop cache held the timer weakly through its loop: both are gone and the
+    # fd was closed by the finalizer.
+    assert not finalizers[0].alive
