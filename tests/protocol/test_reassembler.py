@@ -73,9 +73,7 @@ def test_every_stepper_document_request_is_framed() -> None:
         raw = parse_hex(v["request_hex"])
         items = r.feed(raw)
         family = (
-            Family.PROJECT_STEPPER
-            if v["device_kind"].startswith("ffaa11")
-            else Family.QUAD_STEPPER
+            Family.PROJECT_STEPPER if v["device_kind"].startswith("ffaa11") else Family.QUAD_STEPPER
         )
         assert items == [Frame(family, Direction.REQUEST, raw)], v["description"]
 
@@ -199,9 +197,7 @@ def test_decode_mode_tells_requests_from_replies() -> None:
     )
     r = Reassembler(direction=None)
     items = r.feed(stream) + r.end_of_stream()
-    kinds = [
-        (i.family, i.direction) if isinstance(i, Frame) else type(i).__name__ for i in items
-    ]
+    kinds = [(i.family, i.direction) if isinstance(i, Frame) else type(i).__name__ for i in items]
     assert kinds == [
         (Family.PROJECT_STEPPER, Direction.REQUEST),
         (Family.PROJECT_STEPPER, Direction.REPLY),
@@ -306,9 +302,7 @@ def test_garbage_inside_a_frame_loses_only_that_frame(
 
 @settings(max_examples=300)
 @given(data=st.binary(max_size=600), cuts=st.lists(st.integers(0, 10_000), max_size=20))
-def test_random_bytes_never_raise_and_every_byte_is_accounted(
-    data: bytes, cuts: list[int]
-) -> None:
+def test_random_bytes_never_raise_and_every_byte_is_accounted(data: bytes, cuts: list[int]) -> None:
     for direction in (Direction.REPLY, Direction.REQUEST, None):
         r = Reassembler(direction=direction)
         items = feed_all(r, split(data, cuts))
@@ -321,7 +315,9 @@ def test_random_bytes_never_raise_and_every_byte_is_accounted(
 def test_seeded_random_splits_of_mixed_stepper_replies() -> None:
     rng = random.Random(7)
     acks = [parse_hex(h) for h in ("FF AA 6E 01 00 00", "FF AA 03 03 00 01", "FF AA 00 0B 01 01")]
-    stream = b"".join(rng.choice(acks) + (b"\xee\xdd" if rng.random() < 0.3 else b"") for _ in range(200))
+    stream = b"".join(
+        rng.choice(acks) + (b"\xee\xdd" if rng.random() < 0.3 else b"") for _ in range(200)
+    )
     whole = Reassembler(families=[Family.PROJECT_STEPPER]).feed(stream)
     cuts = [rng.randrange(len(stream)) for _ in range(80)]
     r = Reassembler(families=[Family.PROJECT_STEPPER])

@@ -15,6 +15,7 @@ from typing import ClassVar
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
+    "BITS_PER_BYTE",
     "FF_AA",
     "LA_REPLY_HEADER",
     "LA_REQUEST_HEADER",
@@ -28,6 +29,7 @@ __all__ = [
     "format_hex",
     "parse_hex",
     "sum8",
+    "wire_time",
 ]
 
 #: Header of every stepper request and reply (docs 000 and 001, "FF AA").
@@ -53,6 +55,15 @@ class Direction(enum.Enum):
 
     REQUEST = "request"  # host -> device
     REPLY = "reply"  # device -> host
+
+
+#: A UART byte on the wire: start bit, 8 data bits, stop bit (8N1, all three manuals).
+BITS_PER_BYTE = 10
+
+
+def wire_time(nbytes: int, baud: int) -> float:
+    """Seconds that ``nbytes`` take on the wire at ``baud`` (8N1: 10 bits a byte)."""
+    return nbytes * BITS_PER_BYTE / baud
 
 
 def sum8(data: bytes | bytearray | memoryview) -> int:

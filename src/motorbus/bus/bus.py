@@ -1,0 +1,668 @@
+"""One serial bus: a reader, a writer, request/reply matching, spacing and deadlines.
+
+The bus owns one port.  Everything written to the port goes through one queue, in
+priority order (an emergency stop jumps it), and starts only when
+
+* the previous request started at least ``min_spacing`` earlier (1 ms, LA manual
+  3.4.2 / PROTOCOLS C.6) and its own bytes are off the wire, and
+* no reply is still owed: a request that expects a reply holds the bus until the
+  reply is matched or its deadline runs out.
+
+A reply's deadline is the wire time of the request and of its longest reply at the
+bus's baud, plus the device turnaround (800 us for the LA), plus a host-latency margin.
+Deadlines and spacing run on the high-resolution timer of ``motorbus.bus.timer``
+(timerfd on Linux), because asyncio's own timers round to whole milliseconds.
+
+Every byte that arrives is fed to the sans-I/O reassembler; the bus matches frames to
+the pending request, routes events (``EE DD``, quad "done" replies), and counts the
+rest: garbage, late replies, unexpected frames.  A late reply is never matched to a
+later request (see ``_is_late`` for how).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import enum
+import heapq
+import itertools
+import logging
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+from motorbus.bus.events import (
+    BusStateChanged,
+    EventHub,
+    FaultChanged,
+    ProjectFinished,
+    QuadDone,
+)
+from motorbus.bus.stats import BusStats
+from motorbus.bus.timer import Timer, TimerHandle, default_timer
+from motorbus.errors import (
+    BusClosedError,
+    LocalProtocolError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
+from motorbus.protocol import la
+from motorbus.protocol.base import Command, Family, FrameShape, format_hex, wire_time
+from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
+from motorbus.protocol.reassembler import ProjectFinished as ProjectFinishedItem
+from motorbus.transport.base import Transport
+
+__all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
+
+log = logging.getLogger("motorbus.bus")
+
+#: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
+#: (LA manual 3.4.2, PROTOCOLS.md C.6).
+MIN_SPACING_S = 1e-3
+#: Worst-case device turnaround, request end to reply start.  LA: "120 us typical, up
+#: to 800 us" (manual 3.4.2).  The stepper manuals give none; A0-14 recommends a
+#: timeout of at least 50 ms for a 6-byte reply at 9600 baud, which 11.5 ms (request)
+#: + 6.25 ms (reply) + 30 ms turnaround + the margin meets.
+DEFAULT_TURNAROUND: Mapping[Family, float] = {
+    Family.LA: 800e-6,
+    Family.PROJECT_STEPPER: 30e-3,
+    Family.QUAD_STEPPER: 30e-3,
+}
+#: Host-side latency allowance added to every deadline (scheduling, USB, pty).
+DEFAULT_HOST_MARGIN_S = 1e-3
+#: After a timeout, the next request to the same device waits this long, so that the
+#: device's late answer (if it comes) arrives before a new question it could be
+#: mistaken for.  Requests to other devices are not held.
+DEFAULT_LATE_GUARD_S = 20e-3
+#: How long a timed-out request is remembered to recognise its late reply.
+LATE_WINDOW_S = 2.0
+#: A reply cannot complete before its request and itself have crossed the wire; we
+#: allow 10 % for baud-rate tolerance before calling a frame "too early to be ours".
+_EARLIEST_FACTOR = 0.9
+#: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
+RECONNECT_FIRST_S = 0.05
+RECONNECT_FACTOR = 2.0
+RECONNECT_MAX_S = 2.0
+
+
+class Priority(enum.IntEnum):
+    """Queue order; lower goes first."""
+
+    EMERGENCY = 0  # e-stop, stop-all: jump the queue
+    HIGH = 1
+    NORMAL = 2
+    BACKGROUND = 3  # status polling that yields to everything else
+
+
+class BusState(enum.Enum):
+    """Where the bus is in its life."""
+
+    CLOSED = "closed"
+    OPEN = "open"
+    LOST = "lost"  # the port went away; reconnecting if enabled
+
+
+def device_key(cmd: Command) -> str:
+    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``..."""
+    if cmd.family is Family.LA:
+        address: int = getattr(cmd, "id", la.BROADCAST_ID)
+        return f"la:{address}"
+    return str(cmd.family.value)
+
+
+@dataclass(slots=True, eq=False)
+class _Job:
+    """One request travelling through the bus."""
+
+    cmd: Command
+    raw: bytes
+    future: asyncio.Future[Any]
+    priority: int
+    seq: int
+    timeout: float
+    retries_left: int
+    key: str
+    tx_time: float = 0.0
+    earliest: float = 0.0
+    deadline: float = 0.0
+    handle: TimerHandle | None = None
+    attempts: int = 0
+
+    def __lt__(self, other: _Job) -> bool:
+        return (self.priority, self.seq) < (other.priority, other.seq)
+
+
+@dataclass(slots=True)
+class _Timeout:
+    cmd: Command
+    key: str
+    until: float
+
+
+@dataclass(slots=True)
+class _DoneWatch:
+    """A quad stepper command whose "done" reply is still to come."""
+
+    shapes: tuple[FrameShape, ...]
+    kind: str
+    led: int | None
+
+
+@dataclass(slots=True)
+class BusConfig:
+    """Timing policy of one bus (all durations in seconds)."""
+
+    min_spacing: float = MIN_SPACING_S
+    host_margin: float = DEFAULT_HOST_MARGIN_S
+    turnaround: dict[Family, float] = field(default_factory=lambda: dict(DEFAULT_TURNAROUND))
+    retries: int = 1
+    late_guard: float = DEFAULT_LATE_GUARD_S
+    reconnect: bool = True
+
+
+class Bus:
+    """A serial bus of devices: ``await bus.request(command)`` returns the decoded reply.
+
+    Args:
+        transport: an opened-on-demand :class:`~motorbus.transport.base.Transport`.
+        name: a label for logs, events and stats (default: the transport URL).
+        families: device families present on the bus (shapes the reassembler).
+        min_spacing: minimum start-to-start spacing of frames, seconds (default 1 ms).
+        host_margin: latency allowance added to every reply deadline, seconds.
+        turnaround: per-family worst-case device turnaround, seconds.
+        retries: default retries of a timed-out query or setting (never of motion).
+        late_guard: after a timeout, hold the next request to that device this long.
+        reconnect: reopen the port with backoff if it is lost.
+        timer: the timer for spacing and deadlines (default: the loop's high-res timer).
+    """
+
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        name: str | None = None,
+        families: Iterable[Family] = tuple(Family),
+        min_spacing: float = MIN_SPACING_S,
+        host_margin: float = DEFAULT_HOST_MARGIN_S,
+        turnaround: Mapping[Family, float] | None = None,
+        retries: int = 1,
+        late_guard: float = DEFAULT_LATE_GUARD_S,
+        reconnect: bool = True,
+        timer: Timer | None = None,
+    ) -> None:
+        if not 0 <= min_spacing <= 1:
+            raise LocalProtocolError(
+                f"min_spacing={min_spacing} is out of range: allowed 0..1 s", field="min_spacing"
+            )
+        if not 0 <= host_margin <= 10:
+            raise LocalProtocolError(
+                f"host_margin={host_margin} is out of range: allowed 0..10 s", field="host_margin"
+            )
+        if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
+            raise LocalProtocolError(
+                f"retries={retries!r} is out of range: allowed 0..10", field="retries"
+            )
+        self.transport = transport
+        self.name = name or transport.url
+        self.families = frozenset(families)
+        self.config = BusConfig(
+            min_spacing=min_spacing,
+            host_margin=host_margin,
+            turnaround={**DEFAULT_TURNAROUND, **(turnaround or {})},
+            retries=retries,
+            late_guard=late_guard,
+            reconnect=reconnect,
+        )
+        self.stats = BusStats()
+        self.events = EventHub()
+        self.state = BusState.CLOSED
+        self._timer = timer
+        self._reassembler = Reassembler(families=self.families)
+        self._heap: list[_Job] = []
+        self._seq = itertools.count()
+        self._pending: _Job | None = None
+        self._next_tx = 0.0
+        self._wake: asyncio.Future[None] | None = None
+        self._writer_task: asyncio.Task[None] | None = None
+        self._reconnect_task: asyncio.Task[None] | None = None
+        self._timeouts: collections.deque[_Timeout] = collections.deque()
+        self._guard_until: dict[str, float] = {}
+        self._done_watches: list[_DoneWatch] = []
+        self._last_errors: dict[int, int] = {}
+        self._closing = False
+
+    # -- life cycle --------------------------------------------------------------
+
+    @property
+    def timer(self) -> Timer:
+        """The timer that paces this bus."""
+        if self._timer is None:
+            self._timer = default_timer()
+        return self._timer
+
+    @property
+    def baudrate(self) -> int:
+        """The bus's baud rate (bits per second)."""
+        return self.transport.baudrate
+
+    async def open(self) -> None:
+        """Open the port and start the writer.  Raises ``OSError`` if the port cannot open."""
+        if self.state is BusState.OPEN:
+            return
+        self._closing = False
+        await self.transport.open(self._on_data, self._on_lost)
+        self.state = BusState.OPEN
+        self._writer_task = asyncio.get_running_loop().create_task(
+            self._writer(), name=f"motorbus writer {self.name}"
+        )
+        self._publish_state("open")
+
+    async def close(self) -> None:
+        """Fail what is queued, stop the tasks and close the port; idempotent."""
+        self._closing = True
+        for task in (self._writer_task, self._reconnect_task):
+            if task is not None and not task.done():
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+        self._writer_task = self._reconnect_task = None
+        self._fail_all(BusClosedError(f"bus {self.name} closed"))
+        await self.transport.close()
+        if self.state is not BusState.CLOSED:
+            self.state = BusState.CLOSED
+            self._publish_state("closed")
+
+    async def __aenter__(self) -> Bus:
+        await self.open()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    # -- requests ----------------------------------------------------------------
+
+    def reply_budget(self, cmd: Command) -> float:
+        """Seconds from the start of ``cmd``'s transmission to its reply deadline.
+
+        Wire time of the request and of its longest possible reply at this bus's baud,
+        plus the family's turnaround and the host margin; 0 if no reply is expected.
+        """
+        lengths = cmd.reply_lengths()
+        if not lengths:
+            return 0.0
+        baud = self.baudrate
+        raw_len = len(cmd.encode())
+        return (
+            wire_time(raw_len, baud)
+            + wire_time(max(lengths), baud)
+            + self.config.turnaround[cmd.family]
+            + self.config.host_margin
+        )
+
+    async def request(
+        self,
+        cmd: Command,
+        *,
+        timeout: float | None = None,
+        retries: int | None = None,
+        priority: Priority = Priority.NORMAL,
+    ) -> Any:
+        """Send ``cmd`` and return its decoded reply (``None`` if it expects none).
+
+        Args:
+            cmd: a command value from ``motorbus.protocol``.
+            timeout: reply budget in seconds from the start of transmission
+                (default: ``reply_budget(cmd)``).
+            retries: retries after a timeout (default: the bus's; always 0 for
+                commands that start motion, which are never retried blindly).
+            priority: queue order; ``Priority.EMERGENCY`` jumps the queue.
+
+        Raises:
+            ReplyTimeoutError: no matching reply before the deadline (after retries).
+            BusClosedError: the bus is closed or its port was lost.
+            RemoteProtocolError: the matching reply could not be decoded.
+        """
+        if not isinstance(cmd, Command):
+            raise LocalProtocolError(
+                f"cmd must be a motorbus Command, got {type(cmd).__name__}", field="cmd"
+            )
+        if cmd.family not in self.families:
+            raise LocalProtocolError(
+                f"cmd is a {cmd.family.value} command; bus {self.name} carries "
+                f"{', '.join(sorted(f.value for f in self.families))}",
+                field="cmd",
+            )
+        if self.state is not BusState.OPEN:
+            raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        budget = self.reply_budget(cmd) if timeout is None else float(timeout)
+        if budget < 0:
+            raise LocalProtocolError(f"timeout={timeout} must be >= 0", field="timeout")
+        n_retries = self.config.retries if retries is None else retries
+        if cmd.starts_motion or not cmd.expects_reply:
+            n_retries = 0
+        loop = asyncio.get_running_loop()
+        job = _Job(
+            cmd=cmd,
+            raw=cmd.encode(),
+            future=loop.create_future(),
+            priority=int(priority),
+            seq=next(self._seq),
+            timeout=budget,
+            retries_left=n_retries,
+            key=device_key(cmd),
+        )
+        if self._pending is None and not self._heap and self._can_send_now(job):
+            self._transmit(job)  # idle bus: no queue hop, lowest latency
+        else:
+            heapq.heappush(self._heap, job)
+            self._wake_writer()
+        try:
+            return await job.future
+        except asyncio.CancelledError:
+            # The caller gave up: a queued job is dropped; a sent one still holds the
+            # bus until its reply or deadline, so spacing and matching stay correct.
+            if job in self._heap:
+                self._heap.remove(job)
+                heapq.heapify(self._heap)
+            raise
+
+    async def send(self, cmd: Command, *, priority: Priority = Priority.NORMAL) -> None:
+        """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
+        await self.request(cmd, priority=priority)
+
+    # -- writer ------------------------------------------------------------------
+
+    def _can_send_now(self, job: _Job) -> bool:
+        now = self.timer.now()
+        return now >= self._next_tx and now >= self._guard_until.get(job.key, 0.0)
+
+    def _wake_writer(self) -> None:
+        wake = self._wake
+        if wake is not None and not wake.done():
+            wake.set_result(None)
+
+    async def _wait(self, deadline: float | None) -> None:
+        """Sleep until ``deadline`` (None: indefinitely) or until ``_wake_writer``."""
+        wake: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._wake = wake
+        handle = None
+        if deadline is not None:
+
+            def ring() -> None:
+                if not wake.done():
+                    wake.set_result(None)
+
+            handle = self.timer.call_at(deadline, ring)
+        try:
+            await wake
+        finally:
+            self._wake = None
+            if handle is not None:
+                handle.cancel()
+
+    async def _writer(self) -> None:
+        timer = self.timer
+        while True:
+            if not self._heap or self._pending is not None or self.state is not BusState.OPEN:
+                await self._wait(None)
+                continue
+            job = self._heap[0]
+            start = max(self._next_tx, self._guard_until.get(job.key, 0.0))
+            if start > timer.now():
+                await self._wait(start)
+                continue  # re-check: an emergency job may have arrived meanwhile
+            heapq.heappop(self._heap)
+            if job.future.done():
+                continue  # cancelled while queued
+            self._transmit(job)
+
+    def _transmit(self, job: _Job) -> None:
+        now = self.timer.now()
+        cmd = job.cmd
+        baud = self.baudrate
+        tx_wire = wire_time(len(job.raw), baud)
+        self._next_tx = now + max(self.config.min_spacing, tx_wire)
+        job.attempts += 1
+        stats = self.stats
+        stats.requests += 1
+        stats.bytes_out += len(job.raw)
+        device = stats.device(job.key)
+        device.requests += 1
+        if cmd.expects_reply:
+            job.tx_time = now
+            job.earliest = now + _EARLIEST_FACTOR * (
+                tx_wire + wire_time(min(cmd.reply_lengths()), baud)
+            )
+            job.deadline = now + job.timeout
+            self._pending = job
+            if cmd.family is not Family.LA:
+                self._reassembler.expect(self._stepper_shapes(cmd))
+            job.handle = self.timer.call_at(job.deadline, self._on_deadline)
+        else:
+            stats.no_reply_frames += 1
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
+        try:
+            self.transport.write(job.raw)
+        except BusClosedError as err:
+            self._finish(job, err)
+            return
+        if not cmd.expects_reply and not job.future.done():
+            job.future.set_result(None)
+
+    def _stepper_shapes(self, cmd: Command) -> list[FrameShape]:
+        shapes = list(cmd.reply_shapes())
+        for watch in self._done_watches:
+            shapes.extend(watch.shapes)
+        return shapes
+
+    def _finish(self, job: _Job, outcome: Any) -> None:
+        """Resolve ``job`` with a value or an exception and free the bus."""
+        if job.handle is not None:
+            job.handle.cancel()
+            job.handle = None
+        if self._pending is job:
+            self._pending = None
+            if job.cmd.family is not Family.LA:
+                self._reassembler.expect(self._idle_shapes())
+        if not job.future.done():
+            if isinstance(outcome, BaseException):
+                self.stats.failed += 1
+                job.future.set_exception(outcome)
+            else:
+                job.future.set_result(outcome)
+        self._wake_writer()
+
+    def _idle_shapes(self) -> list[FrameShape] | None:
+        if not self._done_watches:
+            return None
+        return [s for w in self._done_watches for s in w.shapes]
+
+    # -- deadlines ---------------------------------------------------------------
+
+    def _on_deadline(self) -> None:
+        job = self._pending
+        if job is None:
+            return
+        now = self.timer.now()
+        job.handle = None
+        self.stats.timeouts += 1
+        self.stats.device(job.key).timeouts += 1
+        self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S))
+        self._guard_until[job.key] = now + self.config.late_guard
+        log.debug(
+            "%s timeout: %s to %s after %.0f us",
+            self.name,
+            type(job.cmd).__name__,
+            job.key,
+            (now - job.tx_time) * 1e6,
+        )
+        if job.retries_left > 0:
+            job.retries_left -= 1
+            self.stats.retries += 1
+            self.stats.device(job.key).retries += 1
+            self._pending = None
+            job.priority = min(job.priority, int(Priority.HIGH))
+            heapq.heappush(self._heap, job)
+            self._wake_writer()
+            return
+        self._finish(
+            job,
+            ReplyTimeoutError(
+                f"no reply from {job.key} to {type(job.cmd).__name__} "
+                f"({format_hex(job.raw)}) within {job.timeout * 1e3:.2f} ms"
+                + (f" after {job.attempts} attempts" if job.attempts > 1 else "")
+            ),
+        )
+
+    # -- reader ------------------------------------------------------------------
+
+    def _on_data(self, data: bytes) -> None:
+        now = self.timer.now()
+        self.stats.bytes_in += len(data)
+        for item in self._reassembler.feed(data):
+            if type(item) is Frame:
+                self._on_frame(item, now)
+            elif type(item) is Discarded:
+                self.stats.garbage_bytes += len(item.raw)
+                self.stats.resyncs += 1
+                log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
+            elif type(item) is ProjectFinishedItem:
+                self._publish(ProjectFinished(self.name, now))
+
+    def _on_frame(self, frame: Frame, now: float) -> None:
+        raw = frame.raw
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s RX %s", self.name, format_hex(raw))
+        job = self._pending
+        if job is not None and now >= job.earliest and job.cmd.matches_reply(raw):
+            latency = now - job.tx_time
+            self.stats.replies += 1
+            self.stats.latency.record(latency)
+            device = self.stats.device(job.key)
+            device.replies += 1
+            device.latency.record(latency)
+            try:
+                value: Any = job.cmd.decode_reply(raw)
+            except RemoteProtocolError as err:
+                self._finish(job, err)
+                return
+            if job.cmd.done_shapes():
+                self._done_watches.append(_done_watch(job.cmd))
+            self._observe(value, now)
+            self._finish(job, value)
+            return
+        if self._match_done(raw, now):
+            return
+        if self._is_late(raw, now):
+            return
+        self.stats.unexpected_frames += 1
+        log.debug("%s unexpected frame %s", self.name, format_hex(raw))
+
+    def _match_done(self, raw: bytes, now: float) -> bool:
+        for i, watch in enumerate(self._done_watches):
+            if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
+                del self._done_watches[i]
+                self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
+                return True
+        return False
+
+    def _is_late(self, raw: bytes, now: float) -> bool:
+        """Recognise the answer to a request whose deadline already ran out.
+
+        Such a frame is never given to the pending request: either it matched no
+        pending request at all, or it completed earlier than a reply to the pending
+        request physically can (``_Job.earliest``), or the per-device late guard kept
+        a same-device request from being sent while it could still arrive.
+        """
+        timeouts = self._timeouts
+        while timeouts and timeouts[0].until < now:
+            timeouts.popleft()
+        for t in reversed(timeouts):
+            if t.cmd.matches_reply(raw):
+                self.stats.late_replies += 1
+                self.stats.device(t.key).late_replies += 1
+                log.debug("%s late reply from %s: %s", self.name, t.key, format_hex(raw))
+                return True
+        return False
+
+    def _observe(self, value: Any, now: float) -> None:
+        """Turn LA status replies into fault-change events."""
+        if isinstance(value, la.Status):
+            errors = int(value.errors)
+            before = self._last_errors.get(value.id, 0)
+            self._last_errors[value.id] = errors
+            if errors != before:
+                self._publish(FaultChanged(self.name, now, value.id, before, errors, value))
+
+    def _publish(self, event: Any) -> None:
+        self.stats.events += 1
+        self.events.publish(event)
+
+    def _publish_state(self, state: str, detail: str = "") -> None:
+        self.events.publish(BusStateChanged(self.name, self.timer.now(), state, detail))
+
+    # -- port loss and reconnect ---------------------------------------------------
+
+    def _fail_all(self, err: BaseException) -> None:
+        if self._pending is not None:
+            self._finish(self._pending, err)
+        while self._heap:
+            job = heapq.heappop(self._heap)
+            if not job.future.done():
+                self.stats.failed += 1
+                job.future.set_exception(err)
+
+    def _on_lost(self, exc: BaseException | None) -> None:
+        if self._closing:
+            return
+        self.stats.disconnects += 1
+        self.state = BusState.LOST
+        detail = f"{type(exc).__name__}: {exc}" if exc else "port closed"
+        log.warning("bus %s lost its port (%s)", self.name, detail)
+        self._fail_all(BusClosedError(f"bus {self.name} lost its port: {detail}"))
+        self._reassembler = Reassembler(families=self.families)
+        self._publish_state("lost", detail)
+        if self.config.reconnect:
+            self._reconnect_task = asyncio.get_running_loop().create_task(
+                self._reconnect(), name=f"motorbus reconnect {self.name}"
+            )
+
+    async def _reconnect(self) -> None:
+        delay = RECONNECT_FIRST_S
+        while not self._closing:
+            await asyncio.sleep(delay)
+            self._publish_state("reconnecting")
+            try:
+                await self.transport.open(self._on_data, self._on_lost)
+            except (OSError, BusClosedError) as err:
+                log.debug("bus %s reopen failed: %s", self.name, err)
+                delay = min(delay * RECONNECT_FACTOR, RECONNECT_MAX_S)
+                continue
+            self.stats.reconnects += 1
+            self.state = BusState.OPEN
+            self._next_tx = 0.0
+            self._publish_state("open", "reconnected")
+            self._wake_writer()
+            return
+
+    async def wait_state(self, state: BusState, timeout: float | None = None) -> None:
+        """Wait until the bus reaches ``state`` (e.g. ``OPEN`` after a reconnect)."""
+        if self.state is state:
+            return
+        async with self.events.subscribe(BusStateChanged, lambda e: e.state == state.value) as sub:
+            if self.state is state:
+                return
+            await sub.next(timeout)
+
+
+def _done_watch(cmd: Command) -> _DoneWatch:
+    led = getattr(cmd, "led", None)
+    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)

@@ -1,0 +1,119 @@
+"""The 9-byte ``FF AA`` 4-axis stepper controller as an async device."""
+
+from __future__ import annotations
+
+import asyncio
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.events import QuadDone
+from motorbus.protocol import quad_stepper as q
+
+__all__ = ["QuadStepper"]
+
+#: Host-side ceiling on waiting for a "done" reply when the caller gives none:
+#: the manual documents no duration (A1-09), and a long move at low speed can take
+#: minutes, so the default is generous; pass ``timeout`` for anything tighter.
+DEFAULT_DONE_TIMEOUT_S = 600.0
+
+
+class QuadStepper:
+    """A 4-axis stepper controller on a bus.
+
+    Every method sends one command and returns its decoded acknowledgement; the ones
+    that start motion can also wait for the controller's "done" reply.
+
+    Args:
+        bus: an open :class:`~motorbus.bus.bus.Bus` carrying ``Family.QUAD_STEPPER``.
+    """
+
+    def __init__(self, bus: Bus) -> None:
+        self.bus = bus
+        # A single-motor run's done reply is addressed to 0x00, not to the motor (A1-02):
+        # with two awaited runs in flight it could not be attributed, so awaited runs
+        # take turns.
+        self._run_lock = asyncio.Lock()
+
+    async def configure(
+        self,
+        motor: int,
+        *,
+        subdivision: int,
+        step_angle_x100: int,
+        pulses: int,
+        direction: q.RotationDirection | int = q.RotationDirection.FORWARD,
+        start_hz: int,
+        accel_hz: int,
+        speed_rpm: int,
+    ) -> None:
+        """Set a motor's microstepping, run length, direction, start frequency, ramp and speed.
+
+        Args:
+            motor: 1..4.
+            subdivision: microsteps per full step, 1..65535.
+            step_angle_x100: step angle in 0.01 degree (1.8 deg -> 180), 1..255.
+            pulses: run length in pulses, 0..16777215 (A1-05).
+            direction: FORWARD or REVERSE.
+            start_hz: start (and homing) frequency in Hz, 0..65535.
+            accel_hz: acceleration/deceleration setting, 0..65535 (unit not documented).
+            speed_rpm: run speed in RPM, 0..65535.
+
+        All four commands are validated before the first is sent.
+        """
+        commands = [
+            q.MotorSetup(motor, subdivision, step_angle_x100),
+            q.RunPulses(motor, pulses),
+            q.DirectionAndStartFrequency(motor, q.RotationDirection(direction), start_hz),
+            q.AccelAndSpeed(motor, accel_hz, speed_rpm),
+        ]
+        for cmd in commands:
+            await self.bus.request(cmd)
+
+    async def run(self, motor: int, *, wait: bool = True, timeout: float | None = None) -> None:
+        """Start a motor's configured run; with ``wait``, return when it reports done.
+
+        Raises:
+            ReplyTimeoutError: no ack, or no done reply within ``timeout`` seconds
+                (default ``DEFAULT_DONE_TIMEOUT_S``).
+        """
+        cmd = q.Run(motor)
+        if not wait:
+            await self.bus.request(cmd)
+            return
+        async with self._run_lock:
+            with self.bus.events.subscribe(QuadDone, lambda e: e.kind == "run") as sub:
+                await self.bus.request(cmd)
+                await sub.next(DEFAULT_DONE_TIMEOUT_S if timeout is None else timeout)
+
+    async def run_all(self) -> None:
+        """Start all four motors (the manual documents no done reply for this, A1-04)."""
+        await self.bus.request(q.RunAll())
+
+    async def stop(self, motor: int) -> None:
+        """Stop one motor at once."""
+        await self.bus.request(q.Stop(motor), priority=Priority.HIGH)
+
+    async def stop_all(self) -> None:
+        """Stop every motor; jumps the bus queue."""
+        await self.bus.request(q.StopAll(), priority=Priority.EMERGENCY)
+
+    async def home(self, motor: int, stop_input: int) -> None:
+        """Start homing in the configured direction until input YL``stop_input`` (1..13).
+
+        ``stop_input=0`` starts a homing run that only a stop ends (A1-10); pass it
+        explicitly if that is what you want.
+        """
+        await self.bus.request(q.Home(motor, stop_input))
+
+    async def led(self, led: int, on: bool, *, wait: bool = True, timeout: float = 1.0) -> None:
+        """Switch LED ``led`` (1..4, 5 = all); with ``wait``, return after its done reply."""
+        cmd = q.SetLed(led, on)
+        if not wait:
+            await self.bus.request(cmd)
+            return
+        with self.bus.events.subscribe(QuadDone, lambda e: e.kind == "led" and e.led == led) as sub:
+            await self.bus.request(cmd)
+            await sub.next(timeout)
+
+    async def save(self) -> None:
+        """Save the parameters to the controller's flash (reloaded at power-up)."""
+        await self.bus.request(q.Save())

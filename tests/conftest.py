@@ -1,0 +1,51 @@
+"""Shared fixtures.  ``sim_bus`` fails a test whose bus leaves tasks running behind it."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Callable, Sequence
+from contextlib import asynccontextmanager
+from typing import Any
+
+import pytest
+
+from motorbus.bus.bus import Bus
+from motorbus.bus.timer import default_timer
+from motorbus.protocol.base import Family
+from motorbus.sim.memory import MemorySim
+from motorbus.sim.model import DeviceModel
+
+
+@asynccontextmanager
+async def sim_bus(
+    models: Sequence[DeviceModel],
+    *,
+    baud: int | None = None,
+    delivery: str = "whole",
+    faults: Any = None,
+    seed: int = 0,
+    **bus_options: Any,
+) -> AsyncIterator[tuple[Bus, MemorySim]]:
+    """A bus talking to simulated devices over the in-memory link."""
+    timer = default_timer()
+    before = set(asyncio.all_tasks())
+    async with MemorySim.start(
+        models,
+        baud=baud,
+        delivery=delivery,
+        faults=faults,
+        seed=seed,
+        timer=timer,  # type: ignore[arg-type]
+    ) as sim:
+        families = {m.family for m in models} or set(Family)
+        bus = Bus(sim.transport, name="sim", families=families, timer=timer, **bus_options)
+        async with bus:
+            yield bus, sim
+    await asyncio.sleep(0)
+    leaked = [t for t in asyncio.all_tasks() - before if not t.done()]
+    assert not leaked, f"the bus leaked tasks: {leaked}"
+
+
+@pytest.fixture
+def make_sim_bus() -> Callable[..., Any]:
+    return sim_bus

@@ -1,0 +1,71 @@
+"""InspireLA against simulated actuators over the in-memory link."""
+
+from __future__ import annotations
+
+import pytest
+
+from motorbus.devices.la import InspireLA, scan
+from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.protocol import la
+from motorbus.sim.la import LAModel
+from tests.conftest import sim_bus
+
+
+@pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
+async def test_status_move_and_registers(delivery: str) -> None:
+    models = [LAModel(i) for i in (1, 2, 3)]
+    async with sim_bus(models, delivery=delivery) as (bus, _):
+        a = InspireLA(bus, 2)
+        status = await a.status()
+        assert status.id == 2
+        moved = await a.move_to(1300)
+        assert moved is not None and moved.target == 1300
+        assert await a.target() == 1300
+        await a.set_over_current_limit(1000)
+        assert await a.over_current_limit() == 1000
+        await a.set_temperature_limits(70.5, 60.5)
+        assert await a.temperature_limits() == (70.5, 60.5)
+        assert models[1].received[-1][2] == 1300
+        assert bus.stats.timeouts == 0 and bus.stats.garbage_bytes == 0
+
+
+async def test_estop_needs_enable_and_pause_resumes() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _):
+        a = InspireLA(bus, 1)
+        await a.estop()
+        await a.move_to(500)
+        assert model.target != 500  # ignored after e-stop (manual 3.5.4)
+        await a.enable()
+        await a.move_to(500)
+        assert model.target == 500
+        await a.pause()
+        await a.move_to(600)
+        assert model.target == 600  # after pause a move resumes directly
+
+
+async def test_change_id_and_scan() -> None:
+    async with sim_bus([LAModel(1), LAModel(4)]) as (bus, _):
+        found: list[int] = []
+        assert await scan(bus, range(1, 6), progress=lambda i, n, hit: found.append(i)) == [1, 4]
+        assert found == [1, 2, 3, 4, 5]
+        moved = await InspireLA(bus, 4).change_id(7)
+        assert (await moved.status()).id == 7
+        with pytest.raises(ReplyTimeoutError, match="la:4"):
+            await InspireLA(bus, 4).status()
+
+
+async def test_bad_input_is_refused_before_sending() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _):
+        a = InspireLA(bus, 1)
+        with pytest.raises(LocalProtocolError, match=r"position=2500 .*0\.\.2000"):
+            await a.move_to(2500)
+        with pytest.raises(LocalProtocolError, match="300..1500"):
+            await a.set_over_current_limit(200)
+        with pytest.raises(LocalProtocolError):
+            await a.set_temperature_limits(50, 48)
+        with pytest.raises(LocalProtocolError, match="id"):
+            InspireLA(bus, 255)
+        with pytest.raises(LocalProtocolError, match="read-only|writable"):
+            await a.write(la.Register.POSITION, 5)
+        assert bus.stats.requests == 0

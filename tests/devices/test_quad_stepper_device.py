@@ -1,0 +1,47 @@
+"""QuadStepper against the simulated controller over the in-memory link."""
+
+from __future__ import annotations
+
+import pytest
+
+from motorbus.devices.quad_stepper import QuadStepper
+from motorbus.errors import LocalProtocolError
+from motorbus.sim.quad_stepper import QuadStepperModel
+from tests.conftest import sim_bus
+
+
+@pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
+async def test_run_waits_for_done(delivery: str) -> None:
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200, delivery=delivery) as (bus, _):
+        quad = QuadStepper(bus)
+        await quad.configure(
+            1,
+            subdivision=8,
+            step_angle_x100=180,
+            pulses=400,
+            start_hz=50,
+            accel_hz=0,
+            speed_rpm=600,
+        )
+        await quad.run(1, timeout=5)
+        assert model.motors[1].position == 400
+        assert not model.motors[1].running
+        await quad.led(2, True)
+        assert model.leds[1] is True
+        assert bus.stats.timeouts == 0
+        assert bus.stats.events == 2
+
+
+async def test_stop_all_and_bad_input_sends_nothing() -> None:
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        quad = QuadStepper(bus)
+        sent = bus.stats.requests
+        with pytest.raises(LocalProtocolError, match="motor"):
+            await quad.run(5)
+        with pytest.raises(LocalProtocolError, match="led"):
+            await quad.led(6, True)
+        assert bus.stats.requests == sent
+        await quad.stop_all()
+        await quad.save()
