@@ -60,12 +60,12 @@ async def test_bad_input_is_refused_before_sending() -> None:
         a = InspireLA(bus, 1)
         with pytest.raises(LocalProtocolError, match=r"position=2500 .*0\.\.2000"):
             await a.move_to(2500)
-        with pytest.raises(LocalProtocolError, match="300..1500"):
+        with pytest.raises(LocalProtocolError, match=r"300\.\.1500"):
             await a.set_over_current_limit(200)
         with pytest.raises(LocalProtocolError):
             await a.set_temperature_limits(50, 48)
         with pytest.raises(LocalProtocolError, match="id"):
             InspireLA(bus, 255)
-        with pytest.raises(LocalProtocolError, match="read-only|writable"):
+        with pytest.raises(LocalProtocolError, match=r"read-only|writable"):
             await a.write(la.Register.POSITION, 5)
         assert bus.stats.requests == 0
