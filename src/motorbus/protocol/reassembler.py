@@ -215,7 +215,7 @@ class Reassembler:
         cached = [-2] * len(self._headers)
         while pos < n:
             if only is not None:
-                if only == LA_REPLY_HEADER or only == LA_REQUEST_HEADER:
+                if only in (LA_REPLY_HEADER, LA_REQUEST_HEADER):
                     pos = self._scan_la_only(buf, pos, out)
                     if pos >= n or buf.find(only, pos) < 0:
                         break
