@@ -1,0 +1,133 @@
+"""``motorbus sim``: serve simulated devices on a pseudo-terminal until interrupted.
+
+Example::
+
+    motorbus sim --link /tmp/ttyLA la:1-3
+    /dev/pts/7 /tmp/ttyLA
+
+The first line of standard output is the slave device path, followed by the link if
+one was asked for; point any serial client at either.  SIGINT or SIGTERM stops the
+simulator, which prints a one-line summary and exits with status 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from typing import Any
+
+from motorbus.errors import LocalProtocolError
+from motorbus.sim.bus import SimStats
+from motorbus.sim.faults import FaultConfig
+from motorbus.sim.pty import PtySim
+from motorbus.sim.spec import parse_device_specs
+
+__all__ = ["add_arguments", "main", "register", "run", "summary"]
+
+#: Exit status for bad arguments, as argparse uses.
+EXIT_USAGE = 2
+#: How often the main thread checks that the sim thread is still alive (s).
+_LIVENESS_PERIOD_S = 0.5
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the ``sim`` options and the DEVICE arguments to ``parser``."""
+    parser.add_argument(
+        "devices",
+        metavar="DEVICE",
+        nargs="+",
+        help="device spec: la, la:1-15, la:1,4,7, project-stepper[:motor=3], quad-stepper "
+        "(options are key=value items of the model)",
+    )
+    parser.add_argument("--link", metavar="PATH", help="create a symlink PATH to the pty")
+    parser.add_argument(
+        "--baud",
+        type=int,
+        help="emulated wire rate in bit/s (default 921600 for LA only, else 9600)",
+    )
+    parser.add_argument(
+        "--faults",
+        metavar="SPEC",
+        default="",
+        help="faults, e.g. drop=0.01,flip=0.001,garbage=0.02,late=0.01:0.05,dup=0.01,"
+        "silent,silent=2:3,disconnect=5:1",
+    )
+    parser.add_argument("--seed", type=int, default=0, help="seed of turnarounds and faults")
+    parser.add_argument("--log", metavar="FILE", help="append one JSON line per frame to FILE")
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``sim`` command to an ``argparse`` subparsers object (``add_subparsers()``)."""
+    parser = subparsers.add_parser(
+        "sim",
+        help="serve simulated devices on a pseudo-terminal",
+        description="Serve simulated devices on a pseudo-terminal until SIGINT or SIGTERM.",
+    )
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def summary(stats: SimStats) -> str:
+    """Return the one-line summary printed when the simulator stops."""
+    faults = " ".join(f"{k}={v}" for k, v in stats.faults_injected.items() if v) or "none"
+    return (
+        f"motorbus sim: {stats.requests} requests, {stats.replies} replies, "
+        f"{stats.unsolicited} unsolicited, {stats.ignored_while_transmitting} missed while "
+        f"transmitting, {stats.discarded_bytes} bytes discarded; faults: {faults}"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Serve the devices in ``args`` until SIGINT/SIGTERM; return the exit status.
+
+    Returns 0 after a signal, 2 for a bad device or fault spec, 1 if the simulator
+    thread fails.
+    """
+    try:
+        models = parse_device_specs(args.devices)
+        faults = FaultConfig.parse(args.faults or "")
+    except LocalProtocolError as err:
+        print(f"motorbus sim: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    # Block the stop signals before the sim thread exists, so that it inherits the mask
+    # and only this thread takes them, synchronously, with sigtimedwait.
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        try:
+            sim = PtySim(
+                models,
+                baud=args.baud,
+                faults=faults,
+                seed=args.seed,
+                link=args.link,
+                log_file=args.log,
+            ).start()
+        except (OSError, LocalProtocolError) as err:
+            print(f"motorbus sim: error: {err}", file=sys.stderr)
+            return EXIT_USAGE
+        try:
+            line = sim.path if sim.link is None else f"{sim.path} {sim.link}"
+            print(line, flush=True)
+            while signal.sigtimedwait(_STOP_SIGNALS, _LIVENESS_PERIOD_S) is None:
+                if not sim.running:
+                    print(f"motorbus sim: error: simulator stopped: {sim.error}", file=sys.stderr)
+                    return 1
+        finally:
+            sim.stop()
+        print(summary(sim.bus.stats), flush=True)
+        return 0
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old_mask)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m motorbus.cli.sim`` (the same options as ``motorbus sim``)."""
+    parser = argparse.ArgumentParser(prog="motorbus sim", description=__doc__)
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,274 @@
+"""``PtySim``: serve a ``SimBus`` on a real pseudo-terminal, from a dedicated thread.
+
+Any serial client (pyserial, the motorbus bus, ser2net, minicom) opens ``sim.path``
+(or the stable symlink ``sim.link``) as if it were a USB adapter.
+
+Why a thread and not asyncio: the simulator must deliver replies at emulated wire
+times with ~0.1 ms precision; ``select`` with a float timeout and ``time.monotonic``
+hold that, asyncio timers on the default loop round up to a whole millisecond
+(PLATFORM.md section 1).
+
+The slave end is put in raw mode and kept open by the simulator itself, so that reading
+the master does not fail with EIO while no client has the device open.  A disconnect
+fault closes both ends (the client sees EIO / connection lost, as on a USB unplug),
+removes the symlink, and when the outage ends opens a new pty and re-points the link.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import json
+import logging
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import IO
+
+from motorbus.sim.bus import LinkEvent, LogRecord, SimBus
+from motorbus.sim.faults import FaultConfig
+from motorbus.sim.model import DeviceModel
+from motorbus.sim.spec import default_baud
+
+__all__ = ["READ_SIZE", "PtySim"]
+
+_log = logging.getLogger("motorbus.sim")
+
+#: Bytes read from the master per wake-up; far more than one frame (at most 260 bytes).
+READ_SIZE = 4096
+
+
+class PtySim:
+    """Serve simulated devices on a pseudo-terminal.
+
+    Args:
+        models: the simulated devices.
+        baud: emulated wire rate in bit/s; default 921600 for LA-only buses, else 9600.
+        faults: faults to inject (``None``: none).
+        seed: seeds turnarounds and faults (reproducible runs).
+        link: optional path of a symlink to the slave device; an existing symlink is
+            replaced, any other existing file is refused (``FileExistsError``).
+        log_file: optional path; one JSON object per frame, flushed line by line.
+        log: optional callback with the same records (called from the sim thread).
+
+    Attributes:
+        bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
+        path: the slave device path (changes after a disconnect fault).
+        dropped_bytes: output dropped because nobody drained the pty buffer.
+        error: the exception that stopped the sim thread, if any.
+    """
+
+    def __init__(
+        self,
+        models: Sequence[DeviceModel],
+        *,
+        baud: int | None = None,
+        faults: FaultConfig | None = None,
+        seed: int = 0,
+        link: str | os.PathLike[str] | None = None,
+        log_file: str | os.PathLike[str] | None = None,
+        log: Callable[[LogRecord], None] | None = None,
+    ) -> None:
+        self.link = Path(link) if link is not None else None
+        self._log_path = Path(log_file) if log_file is not None else None
+        self._log_stream: IO[str] | None = None
+        self._user_log = log
+        wants_log = log is not None or log_file is not None
+        self.bus = SimBus(
+            models,
+            baud=baud if baud is not None else default_baud(models),
+            faults=faults,
+            seed=seed,
+            log=self._write_log if wants_log else None,
+        )
+        self.path = ""
+        self.dropped_bytes = 0
+        self.error: BaseException | None = None
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._wake_r: int | None = None
+        self._wake_w: int | None = None
+        self._thread: threading.Thread | None = None
+        self._stopping = threading.Event()
+        self._open = threading.Event()
+
+    @property
+    def models(self) -> tuple[DeviceModel, ...]:
+        """The simulated devices."""
+        return self.bus.models
+
+    @property
+    def running(self) -> bool:
+        """True while the sim thread serves."""
+        return self._thread is not None and self._thread.is_alive()
+
+    def wait_open(self, timeout: float | None = None) -> bool:
+        """Block until a pty is being served (e.g. after a disconnect fault ends).
+
+        Args:
+            timeout: seconds to wait at most (``None``: no limit).
+
+        Returns:
+            True if the pty is open, False on timeout.
+        """
+        return self._open.wait(timeout)
+
+    def start(self) -> PtySim:
+        """Open the pty, create the link, start the sim thread; return ``self``.
+
+        Raises:
+            FileExistsError: ``link`` exists and is not a symlink.
+            OSError: no pty could be opened.
+        """
+        if self._thread is not None:
+            return self
+        if self.link is not None and self.link.exists() and not self.link.is_symlink():
+            raise FileExistsError(
+                errno.EEXIST,
+                f"refusing to replace {self.link}: it is not a symlink",
+                str(self.link),
+            )
+        if self._log_path is not None:
+            self._log_stream = self._log_path.open("a", encoding="utf-8")
+        self._open_pty()
+        self._wake_r, self._wake_w = os.pipe()
+        self._stopping.clear()
+        self.bus.epoch = time.monotonic()
+        self._thread = threading.Thread(target=self._run, name="motorbus-pty-sim", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        """Stop the thread, close the pty, remove the link, close the log.  Idempotent."""
+        self._stopping.set()
+        if self._wake_w is not None:
+            with contextlib.suppress(OSError):
+                os.write(self._wake_w, b"x")
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        self._close_pty()
+        for fd in (self._wake_r, self._wake_w):
+            if fd is not None:
+                os.close(fd)
+        self._wake_r = self._wake_w = None
+        if self._log_stream is not None:
+            self._log_stream.close()
+            self._log_stream = None
+
+    def __enter__(self) -> PtySim:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+
+    # -- the pty ----------------------------------------------------------------------
+
+    def _open_pty(self) -> None:
+        master, slave = os.openpty()
+        tty.setraw(slave)
+        os.set_blocking(master, False)
+        self._master, self._slave = master, slave
+        self.path = os.ttyname(slave)
+        if self.link is not None:
+            # Build the new link beside the old one and rename over it: clients never
+            # see a moment without a link, nor a link to a dead pty.
+            tmp = self.link.with_name(f".{self.link.name}.{os.getpid()}.tmp")
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+            tmp.symlink_to(self.path)
+            os.replace(tmp, self.link)
+        self._open.set()
+
+    def _close_pty(self) -> None:
+        self._open.clear()
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = None
+        if self.link is not None and self.link.is_symlink():
+            with contextlib.suppress(OSError):
+                if os.readlink(self.link) == self.path:
+                    self.link.unlink()
+
+    # -- the thread -------------------------------------------------------------------
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as err:  # reported through .error; the thread must not vanish
+            self.error = err
+            _log.exception("pty simulator thread failed")
+
+    def _loop(self) -> None:
+        bus = self.bus
+        wake_r = self._wake_r
+        if wake_r is None:
+            return
+        while not self._stopping.is_set():
+            now = time.monotonic()
+            chunks = bus.due_output(now)
+            if chunks:
+                self._write(b"".join(chunks))
+            for event in bus.link_events(now):
+                if event is LinkEvent.DOWN:
+                    _log.info("disconnect fault: closing %s", self.path)
+                    self._close_pty()
+                else:
+                    self._open_pty()
+                    _log.info("disconnect fault over: serving on %s", self.path)
+            wakeup = bus.next_wakeup()
+            timeout = None if wakeup is None else max(0.0, wakeup - time.monotonic())
+            master = self._master
+            fds = [wake_r] if master is None else [wake_r, master]
+            readable, _, _ = select.select(fds, [], [], timeout)
+            if wake_r in readable:
+                os.read(wake_r, 64)
+                continue
+            if master is not None and master in readable:
+                try:
+                    data = os.read(master, READ_SIZE)
+                except BlockingIOError:
+                    continue
+                except OSError as err:
+                    # EIO would mean nobody holds the slave; we do, so this is unexpected.
+                    _log.warning("reading the pty master failed: %s", err)
+                    continue
+                if data:
+                    bus.receive(data, time.monotonic())
+
+    def _write(self, data: bytes) -> None:
+        master = self._master
+        if master is None:
+            return
+        view = memoryview(data)
+        while view:
+            try:
+                n = os.write(master, view)
+            except BlockingIOError:
+                # Nobody drains the slave: drop what does not fit, as a UART would overrun.
+                self.dropped_bytes += len(view)
+                return
+            except OSError as err:
+                _log.warning("writing the pty master failed: %s", err)
+                self.dropped_bytes += len(view)
+                return
+            view = view[n:]
+
+    def _write_log(self, record: LogRecord) -> None:
+        if self._log_stream is not None:
+            self._log_stream.write(json.dumps(record) + "\n")
+            self._log_stream.flush()
+        if self._user_log is not None:
+            self._user_log(record)
