@@ -8,12 +8,10 @@ taken on a real UART and delivers them then.
 from __future__ import annotations
 
 from motorbus.errors import LocalProtocolError
+from motorbus.protocol import base
+from motorbus.protocol.base import BITS_PER_BYTE
 
 __all__ = ["BITS_PER_BYTE", "byte_time", "wire_time"]
-
-#: 8N1 framing: one start bit, eight data bits, one stop bit (PROTOCOLS.md section 5;
-#: doc 000 A.1 "8 data bits, 1 stop bit, no parity"; doc 002 C.1 "8N1").
-BITS_PER_BYTE = 10
 
 
 def _check_baud(baud: object) -> int:
@@ -45,4 +43,4 @@ def wire_time(nbytes: int, baud: int) -> float:
         raise LocalProtocolError(
             f"nbytes must be a non-negative integer, got {nbytes!r}", field="nbytes", value=nbytes
         )
-    return nbytes * BITS_PER_BYTE / _check_baud(baud)
+    return base.wire_time(nbytes, _check_baud(baud))
