@@ -1,0 +1,634 @@
+"""Fixed-rate follow-mode streams to LA actuators, coalesced into broadcasts.
+
+A stream sends one target per actuator every ``period`` seconds (10..50 ms, LA manual
+3.5.3: "send at a fixed interval of 10-50 ms").  Ticks are scheduled on absolute
+deadlines, ``origin + k * period``, on the bus's high-resolution timer, so a stream
+never drifts; a tick that cannot be served on time is skipped, never burst.
+
+Per bus, one :class:`Streamer` serves every stream in one task:
+
+* without feedback, the targets of every actuator whose tick falls due together are
+  packed into 0xF3 broadcast frames of at most 15 entries (``la.split_broadcast``),
+  so 15 actuators at 10 ms cost one frame a tick (15 addressed frames cannot fit: the
+  1 ms spacing allows 10 in 10 ms);
+* with feedback, each actuator gets a 0x20 frame and its status reply;
+* the slots left in a tick poll the status of streamed actuators round-robin
+  (``poll_status=True``), without ever delaying the next tick.
+
+A set of streams that cannot fit the bus's time budget is refused when it starts,
+with an error that says what would fit.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import enum
+import inspect
+import logging
+import math
+from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any, TypeAlias
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.stats import LatencyHistogram
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.protocol import la
+from motorbus.protocol.base import Family, wire_time
+
+__all__ = [
+    "PERIOD_MAX_S",
+    "PERIOD_MIN_S",
+    "SafeAction",
+    "Stream",
+    "StreamStats",
+    "Streamer",
+]
+
+log = logging.getLogger("motorbus.streams")
+
+#: Follow-mode targets must come at a fixed interval of 10..50 ms (LA manual 3.5.3).
+PERIOD_MIN_S = 0.010
+PERIOD_MAX_S = 0.050
+#: Share of each tick that streams may plan to use; the rest absorbs host jitter and
+#: the user's own requests.
+TICK_BUDGET_SHARE = 0.8
+#: A tick sent later than this after its deadline counts as late (it is still sent).
+LATE_AFTER_S = 1e-3
+#: Ticks within this of each other are served together (and coalesced).
+COALESCE_WINDOW_S = 200e-6
+
+Targets: TypeAlias = Mapping[int, int]
+TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
+
+
+class SafeAction(enum.Enum):
+    """What a stream does to its actuators when it ends abnormally or is cancelled."""
+
+    HOLD = "hold"  # nothing: each actuator holds its last target
+    PAUSE = "pause"  # CMD_MC pause: power stage off, the next target resumes
+    ESTOP = "estop"  # CMD_MC e-stop: power stage off, "work" needed to move again
+
+
+@dataclass(slots=True)
+class StreamStats:
+    """Timing and counts of one stream (durations in seconds)."""
+
+    ticks: int = 0  # ticks served (frames sent)
+    late: int = 0  # ticks sent more than LATE_AFTER_S after their deadline
+    skipped: int = 0  # ticks dropped because the stream fell a whole period behind
+    frames: int = 0  # frames sent for this stream (broadcasts shared count once each)
+    feedback_timeouts: int = 0
+    polls: int = 0
+    #: Lateness of each tick's first frame against its absolute deadline.
+    jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
+
+    def summary(self) -> dict[str, float]:
+        """Counts plus jitter p50/p99/max in microseconds."""
+        j = self.jitter.summary()
+        return {
+            "ticks": self.ticks,
+            "late": self.late,
+            "skipped": self.skipped,
+            "frames": self.frames,
+            "feedback_timeouts": self.feedback_timeouts,
+            "polls": self.polls,
+            "jitter_p50_us": j["p50_us"],
+            "jitter_p99_us": j["p99_us"],
+            "jitter_max_us": j["max_us"],
+        }
+
+
+class StreamEnded(MotorbusError):
+    """Raised by ``Stream.wait`` when a stream ended on an error (the cause is chained)."""
+
+
+class Stream:
+    """A running (or finished) follow-mode stream; create it with ``Streamer.follow``.
+
+    Targets, per tick ``k`` at time ``t = k * period`` since the stream started, come
+    from ``source``, one of:
+
+    * a sequence (list, tuple, array): item ``k`` each tick; the stream ends after the
+      last item;
+    * an iterator or generator: the next item each tick, ending with it;
+    * an async iterator: awaited each tick;
+    * a callable ``f(t, statuses)``, where ``statuses`` maps ID to the latest
+      ``la.Status`` (feedback replies and polls): its return value each tick; return
+      ``None`` to end the stream.
+
+    An item is a position 0..2000 for a single actuator, a sequence with one position
+    per actuator (in the order given), or a mapping ``{id: position}``.
+    """
+
+    def __init__(
+        self,
+        streamer: Streamer,
+        actuators: Sequence[InspireLA],
+        source: TargetSource,
+        *,
+        period: float,
+        feedback: bool,
+        poll_status: bool,
+        safe_action: SafeAction,
+    ) -> None:
+        self.streamer = streamer
+        self.actuators = tuple(actuators)
+        self.ids = tuple(a.id for a in self.actuators)
+        self.period = period
+        self.feedback = feedback
+        self.poll_status = poll_status
+        self.safe_action = safe_action
+        self.stats = StreamStats()
+        self.statuses: dict[int, la.Status] = {}
+        self.last_targets: dict[int, int] = {}
+        self.error: BaseException | None = None
+        self.origin = 0.0
+        self.next_tick = 0
+        self.paused = False
+        self.done = False
+        self._source = source
+        self._sequence: Sequence[Any] | None = None
+        self._iterator: Iterator[Any] | None = None
+        self._aiterator: AsyncIterator[Any] | None = None
+        self._callable: Callable[..., Any] | None = None
+        self._finished = asyncio.get_running_loop().create_future()
+        self._poll_cursor = 0
+        self._bind(source)
+
+    # -- control ----------------------------------------------------------------
+
+    def _bind(self, source: TargetSource) -> None:
+        self._sequence = self._iterator = self._aiterator = self._callable = None
+        if isinstance(source, Sequence) and not isinstance(source, (str, bytes)):
+            self._sequence = source
+        elif hasattr(source, "__len__") and hasattr(source, "__getitem__"):
+            self._sequence = source  # numpy arrays and the like
+        elif hasattr(source, "__anext__"):
+            self._aiterator = source
+        elif hasattr(source, "__next__") or (hasattr(source, "__iter__") and not callable(source)):
+            self._iterator = iter(source)
+        elif callable(source):
+            self._callable = source
+        else:
+            raise LocalProtocolError(
+                f"targets must be a sequence, an iterator, an async iterator or a callable "
+                f"f(t, statuses); got {type(source).__name__}",
+                field="targets",
+            )
+
+    def set_targets(self, source: TargetSource) -> None:
+        """Replace the target source on the fly; it starts at its own index 0 next tick."""
+        self._bind(source)
+        self._index_base = self.next_tick
+
+    _index_base = 0
+
+    def pause(self) -> None:
+        """Stop sending targets (the tick grid keeps running, so resume is on the grid)."""
+        self.paused = True
+
+    def resume(self) -> None:
+        """Send targets again from the next tick."""
+        self.paused = False
+
+    async def stop(self, *, safe: bool = False) -> None:
+        """End the stream; with ``safe``, apply its safe action first.  Idempotent."""
+        if self.done:
+            return
+        if safe:
+            await self.apply_safe_action()
+        self._finish(None)
+
+    async def wait(self) -> None:
+        """Wait until the stream ends; raises ``StreamEnded`` if it ended on an error."""
+        await asyncio.shield(self._finished)
+        if self.error is not None:
+            raise StreamEnded(f"stream to {list(self.ids)} ended: {self.error}") from self.error
+
+    async def apply_safe_action(self) -> None:
+        """Bring every actuator of the stream to the configured safe state."""
+        if self.safe_action is SafeAction.HOLD:
+            return
+        action = (
+            la.ControlAction.ESTOP
+            if self.safe_action is SafeAction.ESTOP
+            else la.ControlAction.PAUSE
+        )
+        for ident in self.ids:
+            try:
+                await self.streamer.bus.request(
+                    la.Control(ident, action), priority=Priority.EMERGENCY
+                )
+            except MotorbusError as err:
+                log.warning("safe action %s on la:%d failed: %s", action.name, ident, err)
+
+    def _finish(self, error: BaseException | None) -> None:
+        if self.done:
+            return
+        self.done = True
+        self.error = error
+        if not self._finished.done():
+            self._finished.set_result(None)
+        self.streamer._remove(self)
+
+    async def __aenter__(self) -> Stream:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        # Leaving the block normally ends the stream with the actuators holding; an
+        # exception or a cancellation applies the safe action.
+        await self.stop(safe=exc_type is not None)
+
+    # -- targets ------------------------------------------------------------------
+
+    async def _targets(self, k: int, t: float) -> Targets | None:
+        """The targets of tick ``k`` (time ``t`` since start), or None when exhausted."""
+        item: Any
+        i = k - self._index_base
+        if self._sequence is not None:
+            if i >= len(self._sequence):
+                return None
+            item = self._sequence[i]
+        elif self._iterator is not None:
+            try:
+                item = next(self._iterator)
+            except StopIteration:
+                return None
+        elif self._aiterator is not None:
+            try:
+                item = await self._aiterator.__anext__()
+            except StopAsyncIteration:
+                return None
+        else:
+            assert self._callable is not None
+            item = self._callable(t, self.statuses)
+            if inspect.isawaitable(item):
+                item = await item
+        if item is None:
+            return None
+        return self._normalise(item)
+
+    def _normalise(self, item: Any) -> Targets:
+        if isinstance(item, Mapping):
+            targets = {int(i): _position(v, f"targets[{i}]") for i, v in item.items()}
+            unknown = set(targets) - set(self.ids)
+            if unknown:
+                raise LocalProtocolError(
+                    f"targets name ids {sorted(unknown)} that this stream does not drive "
+                    f"(it drives {list(self.ids)})",
+                    field="targets",
+                )
+            return targets
+        if isinstance(item, (int, float)) or _is_scalar(item):
+            if len(self.ids) != 1:
+                raise LocalProtocolError(
+                    f"a single target was given for {len(self.ids)} actuators; give one "
+                    "per actuator or a mapping {id: position}",
+                    field="targets",
+                )
+            return {self.ids[0]: _position(item, "target")}
+        values = list(item)
+        if len(values) != len(self.ids):
+            raise LocalProtocolError(
+                f"targets has {len(values)} values for {len(self.ids)} actuators",
+                field="targets",
+            )
+        return {i: _position(v, f"targets[{i}]") for i, v in zip(self.ids, values, strict=True)}
+
+
+def _is_scalar(item: Any) -> bool:
+    return hasattr(item, "__index__") or (
+        hasattr(item, "__float__") and not hasattr(item, "__len__")
+    )
+
+
+def _position(value: Any, name: str) -> int:
+    """A target as an int 0..2000 (floats are rounded)."""
+    if isinstance(value, bool):
+        raise LocalProtocolError(f"{name} must be a number, got {value!r}", field=name)
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise LocalProtocolError(f"{name} must be a number, got {value!r}", field=name) from None
+    if math.isnan(number) or not la.POSITION_MIN <= number <= la.POSITION_MAX:
+        raise LocalProtocolError(
+            f"{name}={value} is out of range: allowed {la.POSITION_MIN}..{la.POSITION_MAX}",
+            field=name,
+            value=value,
+        )
+    return round(number)
+
+
+class Streamer:
+    """Serves every stream of one bus from one task, on absolute tick deadlines.
+
+    Args:
+        bus: an open bus carrying LA actuators.
+        phase: offset of this bus's tick grid in seconds (the manager spreads buses so
+            that they do not all wake at once).
+    """
+
+    def __init__(self, bus: Bus, *, phase: float = 0.0) -> None:
+        self.bus = bus
+        self.phase = phase
+        self.streams: list[Stream] = []
+        self._task: asyncio.Task[None] | None = None
+        self._wake: asyncio.Future[None] | None = None
+
+    # -- planning -------------------------------------------------------------------
+
+    def slot_cost(self, *, reply_bytes: int, request_bytes: int) -> float:
+        """Bus time one frame occupies: at least the spacing, at most its round trip."""
+        baud = self.bus.baudrate
+        cfg = self.bus.config
+        busy = wire_time(request_bytes, baud)
+        if reply_bytes:
+            busy += wire_time(reply_bytes, baud) + cfg.turnaround[Family.LA] + cfg.host_margin
+        return max(cfg.min_spacing, busy)
+
+    def tick_cost(self, streams: Iterable[Stream]) -> dict[float, float]:
+        """Planned bus time per tick, per period, for a set of streams."""
+        by_period: dict[float, tuple[int, int]] = {}
+        for s in streams:
+            broadcast, feedback = by_period.get(s.period, (0, 0))
+            if s.feedback:
+                feedback += len(s.ids)
+            else:
+                broadcast += len(s.ids)
+            by_period[s.period] = (broadcast, feedback)
+        follow_bytes = len(la.Follow(1, 0).encode())
+        costs: dict[float, float] = {}
+        for period, (broadcast, feedback) in by_period.items():
+            frames = math.ceil(broadcast / la.MAX_BROADCAST_ENTRIES)
+            cost = 0.0
+            if frames:
+                full, rest = divmod(broadcast, la.MAX_BROADCAST_ENTRIES)
+                sizes = [la.MAX_BROADCAST_ENTRIES] * full + ([rest] if rest else [])
+                cost += sum(self.slot_cost(request_bytes=6 + 3 * n, reply_bytes=0) for n in sizes)
+            cost += feedback * self.slot_cost(
+                request_bytes=follow_bytes, reply_bytes=la.STATUS_FRAME_SIZE
+            )
+            costs[period] = cost
+        return costs
+
+    def check_budget(self, extra: Stream) -> None:
+        """Refuse ``extra`` if the streams of this bus would no longer fit their ticks."""
+        streams = [*self.streams, extra]
+        costs = self.tick_cost(streams)
+        load = sum(cost / period for period, cost in costs.items())
+        if load <= TICK_BUDGET_SHARE:
+            return
+        poll = self.slot_cost(
+            request_bytes=len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()),
+            reply_bytes=la.STATUS_FRAME_SIZE,
+        )
+        usable = extra.period * TICK_BUDGET_SHARE
+        others = load - costs.get(extra.period, 0.0) / extra.period
+        free_ms = max(0.0, (TICK_BUDGET_SHARE - others) * extra.period) * 1e3
+        fit_feedback = int(max(0.0, usable - 0.0) // poll)
+        raise LocalProtocolError(
+            f"streams on bus {self.bus.name} would need {load * 100:.0f} % of the bus "
+            f"(limit {TICK_BUDGET_SHARE * 100:.0f} %): a {extra.period * 1e3:.0f} ms tick has "
+            f"{usable * 1e3:.1f} ms usable, {free_ms:.1f} ms still free. What fits per tick: "
+            f"at most {fit_feedback} actuators with feedback (one {poll * 1e3:.2f} ms round "
+            f"trip each), or {la.MAX_BROADCAST_ENTRIES} actuators per broadcast frame without "
+            "feedback; or use a longer period",
+            field="streams",
+        )
+
+    # -- starting and stopping --------------------------------------------------------
+
+    def follow(
+        self,
+        actuators: InspireLA | Sequence[InspireLA],
+        targets: TargetSource,
+        *,
+        period: float = 0.02,
+        feedback: bool = False,
+        poll_status: bool = False,
+        safe_action: SafeAction | str = SafeAction.HOLD,
+    ) -> Stream:
+        """Start streaming follow-mode targets; returns the running ``Stream``.
+
+        Args:
+            actuators: one actuator or several, all on this streamer's bus.
+            targets: where targets come from; see :class:`Stream`.
+            period: seconds between ticks, 0.010..0.050 (LA manual 3.5.3).
+            feedback: send 0x20 per actuator and decode each status (else 0x19, coalesced
+                into 0xF3 broadcasts with the other no-feedback streams of the bus).
+            poll_status: in the slots a tick leaves free, query the status of this
+                stream's actuators round-robin (no-feedback streams).
+            safe_action: applied on cancellation or error: "hold", "pause" or "estop".
+
+        Raises:
+            LocalProtocolError: a bad period, an empty or foreign actuator list, an
+                actuator already streamed, or a load that does not fit the bus.
+        """
+        group = [actuators] if isinstance(actuators, InspireLA) else list(actuators)
+        if not group:
+            raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
+        if isinstance(period, bool) or not isinstance(period, (int, float)):
+            raise LocalProtocolError(f"period must be seconds, got {period!r}", field="period")
+        if not PERIOD_MIN_S - 1e-12 <= period <= PERIOD_MAX_S + 1e-12:
+            raise LocalProtocolError(
+                f"period={period} s is out of range: allowed {PERIOD_MIN_S}..{PERIOD_MAX_S} s "
+                "(LA manual 3.5.3: a fixed interval of 10-50 ms)",
+                field="period",
+                value=period,
+            )
+        try:
+            action = SafeAction(safe_action)
+        except ValueError:
+            raise LocalProtocolError(
+                f"safe_action={safe_action!r} is not allowed: choose hold, pause or estop",
+                field="safe_action",
+            ) from None
+        busy = {i for s in self.streams for i in s.ids}
+        for a in group:
+            if a.bus is not self.bus:
+                raise LocalProtocolError(
+                    f"actuator la:{a.id} is on bus {a.bus.name}, not {self.bus.name}",
+                    field="actuators",
+                )
+            if a.id in busy:
+                raise LocalProtocolError(
+                    f"actuator la:{a.id} is already streamed on bus {self.bus.name}",
+                    field="actuators",
+                )
+        if len({a.id for a in group}) != len(group):
+            raise LocalProtocolError("actuators lists an id twice", field="actuators")
+        stream = Stream(
+            self,
+            group,
+            targets,
+            period=float(period),
+            feedback=feedback,
+            poll_status=poll_status,
+            safe_action=action,
+        )
+        self.check_budget(stream)
+        now = self.bus.timer.now()
+        # Align the origin to this bus's grid so streams of one period coalesce.
+        grid = self.phase + math.ceil((now + 0.002 - self.phase) / stream.period) * stream.period
+        stream.origin = grid
+        self.streams.append(stream)
+        if self._task is None or self._task.done():
+            self._task = asyncio.get_running_loop().create_task(
+                self._run(), name=f"motorbus streams {self.bus.name}"
+            )
+        else:
+            self._ring()
+        return stream
+
+    def _remove(self, stream: Stream) -> None:
+        if stream in self.streams:
+            self.streams.remove(stream)
+            self._ring()
+
+    async def close(self, *, safe: bool = True) -> None:
+        """End every stream (applying safe actions if ``safe``) and stop the task."""
+        for s in list(self.streams):
+            await s.stop(safe=safe)
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._task
+            self._task = None
+
+    # -- the tick loop -------------------------------------------------------------------
+
+    def _ring(self) -> None:
+        if self._wake is not None and not self._wake.done():
+            self._wake.set_result(None)
+
+    async def _sleep_until(self, deadline: float) -> None:
+        wake: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        self._wake = wake
+
+        def ring() -> None:
+            if not wake.done():
+                wake.set_result(None)
+
+        handle = self.bus.timer.call_at(deadline, ring)
+        try:
+            await wake
+        finally:
+            handle.cancel()
+            self._wake = None
+
+    async def _run(self) -> None:
+        timer = self.bus.timer
+        while self.streams:
+            deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+            if deadline > timer.now():
+                await self._sleep_until(deadline)
+                continue  # re-check: streams may have changed while asleep
+            now = timer.now()
+            due = [
+                s
+                for s in self.streams
+                if s.origin + s.next_tick * s.period <= now + COALESCE_WINDOW_S
+            ]
+            await self._serve_tick(due, now)
+
+    async def _serve_tick(self, due: list[Stream], now: float) -> None:
+        timer = self.bus.timer
+        broadcast: dict[int, int] = {}
+        feedback: list[tuple[Stream, int, int]] = []
+        served: list[tuple[Stream, float]] = []
+        for s in due:
+            k = s.next_tick
+            deadline = s.origin + k * s.period
+            behind = int((now - deadline) // s.period)
+            if behind >= 1:  # overrun: skip to the current slot instead of bursting
+                s.stats.skipped += behind
+                k += behind
+                deadline += behind * s.period
+            s.next_tick = k + 1
+            if s.paused:
+                continue
+            try:
+                targets = await s._targets(k, k * s.period)
+            except Exception as err:  # the user's target source failed: end that stream
+                log.warning("stream to %s: target source failed: %s", list(s.ids), err)
+                await s.apply_safe_action()
+                s._finish(err)
+                continue
+            if targets is None:
+                s._finish(None)
+                continue
+            s.last_targets.update(targets)
+            served.append((s, deadline))
+            if s.feedback:
+                feedback.extend((s, i, p) for i, p in targets.items())
+            else:
+                broadcast.update(targets)
+        if not served:
+            return
+        sent_at: float | None = None
+        if broadcast:
+            frames = la.split_broadcast(la.BroadcastMode.FOLLOW, broadcast)
+            for frame in frames:
+                await self.bus.send(frame, priority=Priority.HIGH)
+                if sent_at is None:
+                    sent_at = timer.now()
+            for s, _ in served:
+                if not s.feedback:
+                    s.stats.frames += len(frames)
+        for s, ident, pos in feedback:
+            if sent_at is None:
+                sent_at = timer.now()
+            try:
+                status = await self.bus.request(la.Follow(ident, pos, True), priority=Priority.HIGH)
+            except MotorbusError:
+                s.stats.feedback_timeouts += 1
+            else:
+                s.statuses[ident] = status
+            s.stats.frames += 1
+        assert sent_at is not None
+        for s, deadline in served:
+            lateness = max(0.0, sent_at - deadline)
+            s.stats.ticks += 1
+            s.stats.jitter.record(lateness)
+            if lateness > LATE_AFTER_S:
+                s.stats.late += 1
+        await self._poll([s for s, _ in served])
+
+    async def _poll(self, due: list[Stream]) -> None:
+        """Use the slots left before the next tick to poll statuses round-robin."""
+        pollers = [s for s in due if s.poll_status and not s.paused and not s.done]
+        if not pollers or not self.streams:
+            return
+        timer = self.bus.timer
+        cost = self.slot_cost(
+            request_bytes=len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()),
+            reply_bytes=la.STATUS_FRAME_SIZE,
+        )
+        next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+        guard = self.bus.config.min_spacing
+        for s in pollers:
+            for _ in range(len(s.ids)):
+                if timer.now() + cost + guard > next_deadline:
+                    return
+                ident = s.ids[s._poll_cursor % len(s.ids)]
+                s._poll_cursor += 1
+                try:
+                    status = await self.bus.request(
+                        la.Control(ident, la.ControlAction.QUERY_STATUS),
+                        retries=0,
+                        priority=Priority.BACKGROUND,
+                    )
+                except MotorbusError:
+                    s.stats.feedback_timeouts += 1
+                    continue
+                s.statuses[ident] = status
+                s.stats.polls += 1

@@ -1,0 +1,144 @@
+"""Follow-mode streams against simulated actuators: targets, coalescing, budgets, safety."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+
+import pytest
+
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol import la
+from motorbus.sim.la import LAModel
+from motorbus.streams import SafeAction, StreamEnded, Streamer
+from tests.conftest import sim_bus
+
+
+def trajectory(n: int, k: int, i: int) -> int:
+    return round(1000 + 500 * math.sin(0.3 * k + i))
+
+
+async def test_fifteen_actuators_one_broadcast_per_tick() -> None:
+    models = [LAModel(i) for i in range(1, 16)]
+    ticks = 25
+    rows = [[trajectory(15, k, i) for i in range(15)] for k in range(ticks)]
+    async with sim_bus(models) as (bus, _):
+        actuators = [InspireLA(bus, i) for i in range(1, 16)]
+        streamer = Streamer(bus)
+        stream = streamer.follow(actuators, rows, period=0.01)
+        await asyncio.wait_for(stream.wait(), 5)
+        assert stream.stats.ticks == ticks
+        assert bus.stats.no_reply_frames == ticks  # 15 targets, one 0xF3 frame a tick
+        assert bus.stats.requests == ticks
+        for i, model in enumerate(models):
+            got = [target for _, cmd, target in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
+            assert got == [row[i] for row in rows]
+        await streamer.close()
+
+
+async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> None:
+    models = [LAModel(i) for i in (1, 2)]
+    seen: list[int] = []
+
+    def source(t: float, statuses: dict[int, la.Status]) -> list[int] | None:
+        seen.append(len(statuses))
+        return None if t >= 0.1 else [500 + round(t * 1000), 600]
+
+    async with sim_bus(models) as (bus, _):
+        streamer = Streamer(bus)
+        stream = streamer.follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)], source, period=0.01, feedback=True
+        )
+        await asyncio.wait_for(stream.wait(), 5)
+        assert set(stream.statuses) == {1, 2}
+        assert stream.statuses[2].target == 600
+        assert seen[0] == 0 and seen[-1] == 2
+        cmds = {cmd for _, cmd, _ in models[0].received}
+        assert cmds == {la.CMD_FOLLOW}
+        assert stream.stats.feedback_timeouts == 0
+        await streamer.close()
+
+
+async def test_polling_uses_free_slots_round_robin() -> None:
+    models = [LAModel(i) for i in range(1, 16)]
+    async with sim_bus(models) as (bus, _):
+        streamer = Streamer(bus)
+        actuators = [InspireLA(bus, i) for i in range(1, 16)]
+        stream = streamer.follow(actuators, [[1000] * 15] * 20, period=0.01, poll_status=True)
+        await asyncio.wait_for(stream.wait(), 5)
+        assert set(stream.statuses) == set(range(1, 16))  # every actuator read at least once
+        assert stream.stats.polls >= 15
+        await streamer.close()
+
+
+async def test_infeasible_streams_are_refused_with_what_fits() -> None:
+    models = [LAModel(i) for i in range(1, 21)]
+    async with sim_bus(models) as (bus, _):
+        streamer = Streamer(bus)
+        actuators = [InspireLA(bus, i) for i in range(1, 21)]
+        with pytest.raises(LocalProtocolError, match="with feedback") as err:
+            streamer.follow(actuators, [[1000] * 20], period=0.01, feedback=True)
+        assert "broadcast" in str(err.value)
+        assert bus.stats.requests == 0
+        with pytest.raises(LocalProtocolError, match=r"period=0.005 s is out of range"):
+            streamer.follow(actuators[:1], [1000], period=0.005)
+        with pytest.raises(LocalProtocolError, match="safe_action"):
+            streamer.follow(actuators[:1], [1000], period=0.01, safe_action="explode")
+        await streamer.close()
+
+
+async def test_bad_target_ends_the_stream_with_its_safe_action() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _):
+        streamer = Streamer(bus)
+        stream = streamer.follow(
+            InspireLA(bus, 1), [1000, 1100, 2500, 1200], period=0.01, safe_action="pause"
+        )
+        with pytest.raises(StreamEnded, match=r"targets?.*2500.*0\.\.2000|2500"):
+            await asyncio.wait_for(stream.wait(), 5)
+        targets = [t for _, cmd, t in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
+        assert targets == [1000, 1100]
+        assert stream.stats.ticks == 2
+        await streamer.close()
+
+
+async def test_cancelled_block_applies_estop() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _):
+        streamer = Streamer(bus)
+
+        async def run() -> None:
+            async with streamer.follow(
+                InspireLA(bus, 1), lambda t, s: 1000, period=0.01, safe_action=SafeAction.ESTOP
+            ):
+                await asyncio.sleep(10)
+
+        task = asyncio.create_task(run())
+        while len(model.received) < 3:
+            await asyncio.sleep(0.005)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        await InspireLA(bus, 1).move_to(200)
+        assert model.target != 200  # e-stopped: moves need "work" first
+        await streamer.close()
+
+
+async def test_pause_resume_and_new_targets_on_the_fly() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _):
+        streamer = Streamer(bus)
+        stream = streamer.follow(InspireLA(bus, 1), lambda t, s: 700, period=0.01)
+        while len(model.received) < 2:
+            await asyncio.sleep(0.005)
+        stream.pause()
+        await asyncio.sleep(0.03)
+        paused_count = len(model.received)
+        await asyncio.sleep(0.03)
+        assert len(model.received) == paused_count
+        stream.set_targets([900, 901, 902])
+        stream.resume()
+        await asyncio.wait_for(stream.wait(), 5)
+        assert [t for _, _, t in model.received][-3:] == [900, 901, 902]
+        await streamer.close()
