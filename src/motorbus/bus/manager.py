@@ -1,0 +1,379 @@
+"""Many buses in one program: built from code or a TOML file, opened together, stopped safely.
+
+``BusManager`` opens every bus concurrently in an anyio task group, gives each bus a
+``Streamer`` whose tick grid is phase-offset from the other buses' (so 32 buses at
+100 Hz do not all wake at once), and on the way out - normal exit, exception,
+cancellation or Ctrl-C - brings every configured device to its safe state before the
+ports close: LA actuators pause (or e-stop, or hold, per bus), project steppers get
+"stop project" and their motor stopped, quad steppers "stop all".
+
+A bus file (TOML)::
+
+    [[bus]]
+    name = "arm"
+    url = "/dev/ttyUSB0"          # any pyserial URL: socket://host:port, rfc2217://...
+    baud = 921600
+    backend = "fast"              # fast | serialx | pyserial-asyncio
+    la_safe_action = "pause"      # pause | estop | hold
+    devices = ["la:1-15"]
+
+    [[bus]]
+    name = "feeder"
+    url = "socket://10.0.0.5:7012"
+    baud = 9600
+    devices = ["project-stepper:motor=3", "quad-stepper"]
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import tomllib
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import anyio
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.devices.la import InspireLA
+from motorbus.devices.project_stepper import ProjectStepper
+from motorbus.devices.quad_stepper import QuadStepper
+from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.protocol import la
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
+from motorbus.protocol.base import Family
+from motorbus.streams import SafeAction, Streamer
+from motorbus.transport.base import Transport
+from motorbus.transport.serial import open_transport
+
+__all__ = ["BusManager", "BusSpec", "DeviceSpec", "parse_devices"]
+
+log = logging.getLogger("motorbus.manager")
+
+#: Longest a safe stop may take on the way out before the ports close anyway.
+SAFE_STOP_TIMEOUT_S = 2.0
+#: Ticks of the buses are spread over this span (the shortest stream period).
+PHASE_SPAN_S = 0.010
+
+_BUS_KEYS = {
+    "name",
+    "url",
+    "baud",
+    "backend",
+    "rs485",
+    "remove_echo",
+    "low_latency",
+    "min_spacing_ms",
+    "host_margin_ms",
+    "retries",
+    "la_safe_action",
+    "devices",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceSpec:
+    """A device on a bus: ``kind`` is "la", "project_stepper" or "quad_stepper"."""
+
+    kind: str
+    ids: tuple[int, ...] = ()
+    motor: int = ps.DEFAULT_MOTOR
+
+
+def parse_devices(items: Sequence[str]) -> list[DeviceSpec]:
+    """Parse device strings: ``"la:1-15"``, ``"la:1,4,7"``, ``"project-stepper[:motor=N]"``,
+    ``"quad-stepper"``.  Raises ``LocalProtocolError`` naming the bad item."""
+    out: list[DeviceSpec] = []
+    for item in items:
+        kind, _, rest = str(item).partition(":")
+        kind = kind.strip().replace("_", "-")
+        if kind == "la":
+            ids: list[int] = []
+            for part in filter(None, rest.split(",")):
+                m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+))?\s*", part)
+                if not m:
+                    raise LocalProtocolError(
+                        f"device {item!r}: {part!r} is not an ID or a range like 1-15",
+                        field="devices",
+                    )
+                lo = int(m.group(1))
+                hi = int(m.group(2) or lo)
+                for i in (lo, hi):
+                    if not la.ID_MIN <= i <= la.ID_MAX:
+                        raise LocalProtocolError(
+                            f"device {item!r}: id={i} is out of range: allowed 1..254",
+                            field="devices",
+                        )
+                ids.extend(range(lo, hi + 1))
+            if not ids:
+                raise LocalProtocolError(
+                    f"device {item!r} lists no IDs: write la:1-15 or la:1,4,7", field="devices"
+                )
+            out.append(DeviceSpec("la", tuple(ids)))
+        elif kind == "project-stepper":
+            motor = ps.DEFAULT_MOTOR
+            if rest:
+                m = re.fullmatch(r"\s*motor\s*=\s*(\d+)\s*", rest)
+                if not m:
+                    raise LocalProtocolError(
+                        f"device {item!r}: options are 'motor=N'", field="devices"
+                    )
+                motor = int(m.group(1))
+            out.append(DeviceSpec("project_stepper", motor=motor))
+        elif kind == "quad-stepper":
+            out.append(DeviceSpec("quad_stepper"))
+        else:
+            raise LocalProtocolError(
+                f"device {item!r}: kind {kind!r} is unknown: use la:IDS, project-stepper or "
+                "quad-stepper",
+                field="devices",
+            )
+    return out
+
+
+@dataclass(slots=True)
+class BusSpec:
+    """How to open one bus and what is on it."""
+
+    name: str
+    url: str
+    baud: int
+    devices: list[DeviceSpec] = field(default_factory=list)
+    backend: str = "fast"
+    rs485: bool = False
+    remove_echo: bool = False
+    low_latency: bool = True
+    min_spacing_ms: float = 1.0
+    host_margin_ms: float = 1.0
+    retries: int = 1
+    la_safe_action: str = "pause"
+
+    @classmethod
+    def from_mapping(cls, data: Mapping[str, Any], index: int = 0) -> BusSpec:
+        """Build from one ``[[bus]]`` table; unknown keys are refused by name."""
+        unknown = set(data) - _BUS_KEYS
+        if unknown:
+            raise LocalProtocolError(
+                f"bus #{index + 1}: unknown keys {sorted(unknown)}; allowed: {sorted(_BUS_KEYS)}",
+                field="bus",
+            )
+        for key in ("url", "baud"):
+            if key not in data:
+                raise LocalProtocolError(f"bus #{index + 1}: '{key}' is required", field=key)
+        baud = data["baud"]
+        if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
+            raise LocalProtocolError(
+                f"bus #{index + 1}: baud={baud!r} must be a positive integer", field="baud"
+            )
+        safe = data.get("la_safe_action", "pause")
+        if safe not in {a.value for a in SafeAction}:
+            raise LocalProtocolError(
+                f"bus #{index + 1}: la_safe_action={safe!r}: choose pause, estop or hold",
+                field="la_safe_action",
+            )
+        return cls(
+            name=str(data.get("name", f"bus{index}")),
+            url=str(data["url"]),
+            baud=baud,
+            devices=parse_devices(list(data.get("devices", []))),
+            backend=str(data.get("backend", "fast")),
+            rs485=bool(data.get("rs485", False)),
+            remove_echo=bool(data.get("remove_echo", False)),
+            low_latency=bool(data.get("low_latency", True)),
+            min_spacing_ms=float(data.get("min_spacing_ms", 1.0)),
+            host_margin_ms=float(data.get("host_margin_ms", 1.0)),
+            retries=int(data.get("retries", 1)),
+            la_safe_action=safe,
+        )
+
+    def families(self) -> set[Family]:
+        """The protocol families its devices speak (all three if none are listed)."""
+        kinds = {
+            "la": Family.LA,
+            "project_stepper": Family.PROJECT_STEPPER,
+            "quad_stepper": Family.QUAD_STEPPER,
+        }
+        return {kinds[d.kind] for d in self.devices} or set(Family)
+
+
+class BusManager:
+    """Opens many buses together, hands out their devices, and stops them safely.
+
+    Use as ``async with BusManager.from_toml("buses.toml") as mgr:`` or build it with
+    ``add_bus``.  Devices: ``mgr.la("arm", 3)``, ``mgr.project_stepper("feeder")``,
+    ``mgr.quad_stepper("feeder")``; streaming: ``mgr.streamer("arm")``.
+    """
+
+    def __init__(self, *, safe_stop: bool = True) -> None:
+        self.safe_stop = safe_stop
+        self.specs: dict[str, BusSpec] = {}
+        self.buses: dict[str, Bus] = {}
+        self._transports: dict[str, Transport] = {}
+        self._streamers: dict[str, Streamer] = {}
+
+    # -- building -----------------------------------------------------------------
+
+    @classmethod
+    def from_toml(cls, path: str | Path, **kwargs: Any) -> BusManager:
+        """Load a bus file (see the module docstring)."""
+        with open(path, "rb") as fh:
+            data = tomllib.load(fh)
+        return cls.from_dict(data, **kwargs)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], **kwargs: Any) -> BusManager:
+        """Build from parsed TOML: ``{"bus": [{...}, ...]}``."""
+        tables = data.get("bus")
+        if not isinstance(tables, list) or not tables:
+            raise LocalProtocolError("the bus file needs at least one [[bus]] table", field="bus")
+        mgr = cls(**kwargs)
+        for i, table in enumerate(tables):
+            mgr.add_spec(BusSpec.from_mapping(table, i))
+        return mgr
+
+    def add_spec(self, spec: BusSpec, transport: Transport | None = None) -> None:
+        """Add a bus; ``transport`` overrides opening ``spec.url`` (e.g. an in-memory link)."""
+        if spec.name in self.specs:
+            raise LocalProtocolError(f"bus name {spec.name!r} is used twice", field="name")
+        self.specs[spec.name] = spec
+        if transport is not None:
+            self._transports[spec.name] = transport
+
+    def add_bus(
+        self,
+        name: str,
+        url: str,
+        *,
+        baud: int,
+        devices: Sequence[str] = (),
+        transport: Transport | None = None,
+        **options: Any,
+    ) -> None:
+        """Add a bus from code; ``options`` are the ``BusSpec`` fields (backend, rs485...)."""
+        spec = BusSpec.from_mapping(
+            {"name": name, "url": url, "baud": baud, "devices": list(devices), **options},
+            len(self.specs),
+        )
+        self.add_spec(spec, transport)
+
+    # -- life cycle -----------------------------------------------------------------
+
+    async def __aenter__(self) -> BusManager:
+        await self.open()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()
+
+    async def open(self) -> None:
+        """Open every bus concurrently; if one fails, close the others and raise."""
+        for i, (name, spec) in enumerate(self.specs.items()):
+            transport = self._transports.get(name) or open_transport(
+                spec.url,
+                baudrate=spec.baud,
+                backend=spec.backend,
+                rs485=spec.rs485,
+                remove_echo=spec.remove_echo,
+                low_latency=spec.low_latency,
+            )
+            bus = Bus(
+                transport,
+                name=name,
+                families=spec.families(),
+                min_spacing=spec.min_spacing_ms / 1e3,
+                host_margin=spec.host_margin_ms / 1e3,
+                retries=spec.retries,
+            )
+            self.buses[name] = bus
+            phase = (i * PHASE_SPAN_S / max(1, len(self.specs))) % PHASE_SPAN_S
+            self._streamers[name] = Streamer(bus, phase=phase)
+        try:
+            async with anyio.create_task_group() as tg:
+                for bus in self.buses.values():
+                    tg.start_soon(bus.open)
+        except BaseException:
+            await self._close_buses()
+            raise
+
+    async def close(self) -> None:
+        """Safe-stop every device (shielded from cancellation, bounded in time), then close."""
+        with anyio.CancelScope(shield=True):
+            if self.safe_stop:
+                with anyio.move_on_after(SAFE_STOP_TIMEOUT_S):
+                    await self.stop_all_devices()
+            await self._close_buses()
+
+    async def _close_buses(self) -> None:
+        for streamer in self._streamers.values():
+            await streamer.close(safe=False)
+        async with anyio.create_task_group() as tg:
+            for bus in self.buses.values():
+                tg.start_soon(bus.close)
+
+    async def stop_all_devices(self) -> None:
+        """Bring every configured device to its safe state, all buses in parallel."""
+        async with anyio.create_task_group() as tg:
+            for name in self.buses:
+                tg.start_soon(self._stop_bus_devices, name)
+
+    async def _stop_bus_devices(self, name: str) -> None:
+        bus = self.buses[name]
+        spec = self.specs[name]
+        commands: list[Any] = []
+        action = SafeAction(spec.la_safe_action)
+        for dev in spec.devices:
+            if dev.kind == "la" and action is not SafeAction.HOLD:
+                sub = (
+                    la.ControlAction.ESTOP if action is SafeAction.ESTOP else la.ControlAction.PAUSE
+                )
+                commands.extend(la.Control(i, sub) for i in dev.ids)
+            elif dev.kind == "project_stepper":
+                commands += [ps.StopProject(), ps.ManualStop(motor=dev.motor)]
+            elif dev.kind == "quad_stepper":
+                commands.append(q.StopAll())
+        for cmd in commands:
+            try:
+                await bus.request(cmd, priority=Priority.EMERGENCY, retries=1)
+            except MotorbusError as err:
+                log.warning("safe stop on bus %s: %s failed: %s", name, type(cmd).__name__, err)
+
+    # -- devices ----------------------------------------------------------------------
+
+    def bus(self, name: str) -> Bus:
+        """The bus called ``name``."""
+        try:
+            return self.buses[name]
+        except KeyError:
+            raise LocalProtocolError(
+                f"no bus named {name!r}; buses: {sorted(self.specs)}", field="bus"
+            ) from None
+
+    def la(self, bus: str, id: int) -> InspireLA:
+        """The LA actuator ``id`` on bus ``bus``."""
+        return InspireLA(self.bus(bus), id)
+
+    def project_stepper(self, bus: str) -> ProjectStepper:
+        """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
+        motor = next(
+            (d.motor for d in self.specs[bus].devices if d.kind == "project_stepper"),
+            ps.DEFAULT_MOTOR,
+        )
+        return ProjectStepper(self.bus(bus), motor=motor)
+
+    def quad_stepper(self, bus: str) -> QuadStepper:
+        """The quad stepper on bus ``bus``."""
+        return QuadStepper(self.bus(bus))
+
+    def streamer(self, bus: str) -> Streamer:
+        """The streamer of bus ``bus`` (phase-offset from the other buses)."""
+        self.bus(bus)
+        return self._streamers[bus]

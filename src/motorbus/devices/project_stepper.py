@@ -1,0 +1,178 @@
+"""The 11-byte ``FF AA`` stepper "project" controller as an async device."""
+
+from __future__ import annotations
+
+import asyncio
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.events import ProjectFinished
+from motorbus.errors import MotorbusError, RemoteProtocolError
+from motorbus.protocol import project_stepper as ps
+
+__all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
+
+#: Host-side ceiling on a project run when the caller gives none (the manual gives no
+#: figure; A0-06 asks for a per-run timeout).
+DEFAULT_RUN_TIMEOUT_S = 600.0
+
+
+class ProjectStopped(MotorbusError):
+    """``run_project`` ended because the project was stopped (``stop_project``)."""
+
+
+class ProjectVerifyError(MotorbusError):
+    """The project read back through 0x3E differs from the one uploaded."""
+
+
+class ProjectStepper:
+    """A stepper project controller on a bus: up to 4 projects of 10 steps.
+
+    Args:
+        bus: an open bus carrying ``Family.PROJECT_STEPPER``.
+        motor: the motor byte of motor-addressed commands (default 0x03, A0-02).
+    """
+
+    def __init__(self, bus: Bus, *, motor: int = ps.DEFAULT_MOTOR) -> None:
+        ps.ManualStop(motor=motor)  # validates the motor byte (refuses 0x00 and opcodes)
+        self.bus = bus
+        self.motor = motor
+        self._stopped = asyncio.Event()
+
+    async def _send_all(self, commands: list[ps.ProjectStepperCommand]) -> None:
+        for cmd in commands:
+            await self.bus.request(cmd)
+
+    # -- projects ------------------------------------------------------------------
+
+    async def upload(
+        self, project: ps.Project, *, save: bool = True, verify: bool = True
+    ) -> ps.ProjectDump | None:
+        """Program ``project`` with the exact command sequence of the manual (A.6).
+
+        Args:
+            project: the project value (number 1..4, motor configuration, 1..10 steps).
+            save: send 0x2E afterwards so the project survives a power cycle.
+            verify: read it back with 0x3E and compare.
+
+        Returns:
+            The read-back dump when ``verify``, else ``None``.
+
+        Raises:
+            ProjectVerifyError: the read-back differs from ``project``.
+            RemoteProtocolError: a 0x7E/0x8E reply names another project than the one
+                selected (A0-03).
+        """
+        commands = project.commands(self.motor)
+        for cmd in commands:
+            reply = await self.bus.request(cmd)
+            echoed = getattr(reply, "project", None)
+            if isinstance(cmd, (ps.StepLoop, ps.RepeatCount)) and echoed not in (
+                None,
+                project.number,
+            ):
+                raise RemoteProtocolError(
+                    f"{type(cmd).__name__} acted on project {echoed}, not {project.number} (A0-03)",
+                    raw=getattr(reply, "raw", b""),
+                )
+        if save:
+            await self.bus.request(ps.SaveProject(project.number))
+        if not verify:
+            return None
+        dump = await self.read_project(project.number)
+        if dump.to_project() != project:
+            raise ProjectVerifyError(
+                f"project {project.number} read back differs: sent {project}, read "
+                f"{dump.to_project()}"
+            )
+        return dump
+
+    async def read_project(self, number: int) -> ps.ProjectDump:
+        """Read project ``number`` (1..4) back: the 226-byte 0x3E dump, decoded."""
+        dump: ps.ProjectDump = await self.bus.request(ps.ReadProject(number))
+        return dump
+
+    async def save_project(self, number: int) -> None:
+        """Save project ``number`` to the controller's flash."""
+        await self.bus.request(ps.SaveProject(number))
+
+    async def clear_project(self, number: int) -> None:
+        """Clear project ``number``'s parameters."""
+        await self.bus.request(ps.ClearProject(number))
+
+    async def start_project(self, number: int) -> None:
+        """Start project ``number`` and return at once (``EE DD`` comes as an event)."""
+        await self.bus.request(ps.StartProject(number))
+
+    async def run_project(self, number: int, *, timeout: float | None = None) -> None:
+        """Start project ``number`` and return when it finishes (the controller's ``EE DD``).
+
+        The event subscription is registered before the start command is written, so
+        a project that ends at once is not missed.
+
+        Raises:
+            ReplyTimeoutError: no ``EE DD`` within ``timeout`` seconds (default 600).
+            ProjectStopped: ``stop_project`` was called meanwhile.
+        """
+        self._stopped.clear()
+        with self.bus.events.subscribe(ProjectFinished) as sub:
+            await self.bus.request(ps.StartProject(number))
+            finished = asyncio.ensure_future(
+                sub.next(DEFAULT_RUN_TIMEOUT_S if timeout is None else timeout)
+            )
+            stopped = asyncio.ensure_future(self._stopped.wait())
+            try:
+                await asyncio.wait((finished, stopped), return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                stopped.cancel()
+                if not finished.done():
+                    finished.cancel()
+            if finished.done() and not finished.cancelled():
+                finished.result()  # raises the timeout, if that is how it ended
+                return
+            raise ProjectStopped(f"project {number} was stopped before it finished")
+
+    async def stop_project(self) -> None:
+        """Stop the running project (0x5E); jumps the queue.  No ``EE DD`` follows."""
+        self._stopped.set()
+        await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)
+
+    # -- manual motion and settings ---------------------------------------------------
+
+    async def jog(self, *, forward: bool = True) -> None:
+        """Jog continuously (speed of project 1 step 1, A0-12) until ``stop``."""
+        cmd = ps.JogForward(motor=self.motor) if forward else ps.JogReverse(motor=self.motor)
+        await self.bus.request(cmd)
+
+    async def single_run(self) -> None:
+        """One run with the distance and speed of project 1 step 1 (A0-12)."""
+        await self.bus.request(ps.SingleRun(motor=self.motor))
+
+    async def home(self) -> None:
+        """Run in reverse until input IN5 is active (manual homing, 0x0F)."""
+        await self.bus.request(ps.Home(motor=self.motor))
+
+    async def stop(self) -> None:
+        """Stop manual motion (0x0D); jumps the queue."""
+        await self.bus.request(ps.ManualStop(motor=self.motor), priority=Priority.EMERGENCY)
+
+    async def set_stop_mode(self, mode: ps.StopBehavior | int) -> None:
+        """0 = decelerate, 1 = stop immediately."""
+        await self.bus.request(ps.StopMode(ps.StopBehavior(mode), motor=self.motor))
+
+    async def set_output(self, port: ps.OutputPort | int, active: bool) -> None:
+        """Switch an output: port 1..3 = OUTn, 4 = all three, 5 = LED1 and LED2."""
+        level = ps.OutputLevel.ACTIVE if active else ps.OutputLevel.INACTIVE
+        await self.bus.request(ps.SetOutput(ps.OutputPort(port), level))
+
+    async def read_input(self, number: int) -> bool:
+        """True if input IN``number`` (1..5) is active."""
+        value: bool = await self.bus.request(ps.ReadInput(number))
+        return value
+
+    async def set_mode4(self, value: int) -> None:
+        """The undocumented "mode 4" setting, raw 0..2 (A0-13)."""
+        await self.bus.request(ps.SetMode4(value))
+
+    async def set_power_on_homing(self, enabled: bool) -> None:
+        """Home automatically at power-up."""
+        await self.bus.request(ps.SetPowerOnHoming(enabled))

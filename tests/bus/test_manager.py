@@ -1,0 +1,84 @@
+"""BusManager: TOML buses, concurrent open, phase-offset streamers, safe stop on the way out."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+
+from motorbus.bus.bus import BusState
+from motorbus.bus.manager import BusManager, parse_devices
+from motorbus.bus.timer import default_timer
+from motorbus.errors import LocalProtocolError
+from motorbus.sim.la import LAModel, PowerState
+from motorbus.sim.memory import MemorySim
+from motorbus.sim.quad_stepper import QuadStepperModel
+
+
+def test_toml_file_is_parsed_and_validated(tmp_path: Path) -> None:
+    path = tmp_path / "buses.toml"
+    path.write_text(
+        """
+[[bus]]
+name = "arm"
+url = "/dev/ttyUSB0"
+baud = 921600
+la_safe_action = "estop"
+devices = ["la:1-3,7"]
+
+[[bus]]
+name = "feeder"
+url = "socket://127.0.0.1:7012"
+baud = 9600
+backend = "serialx"
+devices = ["project-stepper:motor=3", "quad-stepper"]
+""",
+        encoding="utf-8",
+    )
+    mgr = BusManager.from_toml(path)
+    assert list(mgr.specs) == ["arm", "feeder"]
+    assert mgr.specs["arm"].devices[0].ids == (1, 2, 3, 7)
+    assert mgr.specs["feeder"].backend == "serialx"
+    with pytest.raises(LocalProtocolError, match="unknown keys"):
+        BusManager.from_dict({"bus": [{"url": "x", "baud": 1, "speed": 3}]})
+    with pytest.raises(LocalProtocolError, match="'baud' is required"):
+        BusManager.from_dict({"bus": [{"url": "x"}]})
+    with pytest.raises(LocalProtocolError, match="id=300"):
+        parse_devices(["la:250-300"])
+    with pytest.raises(LocalProtocolError, match="kind"):
+        parse_devices(["servo:1"])
+
+
+async def test_many_buses_stream_and_stop_safely() -> None:
+    timer = default_timer()
+    arm_models = [LAModel(i) for i in (1, 2)]
+    quad = QuadStepperModel()
+    async with (
+        MemorySim.start(arm_models, timer=timer) as arm_sim,
+        MemorySim.start([quad], baud=115200, timer=timer) as quad_sim,
+    ):
+        mgr = BusManager()
+        mgr.add_bus(
+            "arm", "memory://arm", baud=921600, devices=["la:1-2"], transport=arm_sim.transport
+        )
+        mgr.add_bus(
+            "feeder",
+            "memory://feeder",
+            baud=115200,
+            devices=["quad-stepper"],
+            transport=quad_sim.transport,
+        )
+        async with mgr:
+            assert all(b.state is BusState.OPEN for b in mgr.buses.values())
+            assert mgr.streamer("arm").phase != mgr.streamer("feeder").phase
+            actuators = [mgr.la("arm", 1), mgr.la("arm", 2)]
+            stream = mgr.streamer("arm").follow(actuators, lambda t, s: [800, 900], period=0.01)
+            while len(arm_models[0].received) < 3:
+                await asyncio.sleep(0.005)
+            await mgr.quad_stepper("feeder").led(1, True)
+            assert not stream.done
+        assert all(m.power_state is PowerState.PAUSED for m in arm_models)
+        assert all(b.state is BusState.CLOSED for b in mgr.buses.values())
+        with pytest.raises(LocalProtocolError, match="no bus named"):
+            mgr.la("nope", 1)
