@@ -37,7 +37,7 @@ from typing import Any
 
 import anyio
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus, Priority
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
@@ -148,7 +148,7 @@ class BusSpec:
     remove_echo: bool = False
     low_latency: bool = True
     min_spacing_ms: float = 1.0
-    host_margin_ms: float = 1.0
+    host_margin_ms: float = DEFAULT_HOST_MARGIN_S * 1e3
     retries: int = 1
     la_safe_action: str = "pause"
 
@@ -185,7 +185,7 @@ class BusSpec:
             remove_echo=bool(data.get("remove_echo", False)),
             low_latency=bool(data.get("low_latency", True)),
             min_spacing_ms=float(data.get("min_spacing_ms", 1.0)),
-            host_margin_ms=float(data.get("host_margin_ms", 1.0)),
+            host_margin_ms=float(data.get("host_margin_ms", DEFAULT_HOST_MARGIN_S * 1e3)),
             retries=int(data.get("retries", 1)),
             la_safe_action=safe,
         )

@@ -236,7 +236,9 @@ def _fields_of(value: object) -> dict[str, JSONValue]:
 
 
 def _dataclass_dict(value: object) -> dict[str, JSONValue]:
-    """The fields of a dataclass value, minus the raw bytes and fields hidden from repr."""
+    """The fields of a dataclass (or NamedTuple) value, minus raw bytes and hidden fields."""
+    if isinstance(value, tuple) and hasattr(value, "_asdict"):
+        return {k: _jsonable(v) for k, v in value._asdict().items() if k not in _SKIPPED_FIELDS}
     if not dataclasses.is_dataclass(value) or isinstance(value, type):
         return {}
     return {
@@ -258,6 +260,8 @@ def _jsonable(value: object) -> JSONValue:
         return value
     if isinstance(value, bytes | bytearray | memoryview):
         return format_hex(value)
+    if isinstance(value, tuple) and hasattr(value, "_asdict"):
+        return _dataclass_dict(value)
     if isinstance(value, tuple | list):
         return [_jsonable(v) for v in value]
     if isinstance(value, dict):

@@ -261,20 +261,24 @@ class Reassembler:
         header = self._only_header
         assert header is not None
         direction = Direction.REPLY if header == LA_REPLY_HEADER else Direction.REQUEST
+        first, second = header
         la = Family.LA
-        starts = buf.startswith
         new = tuple.__new__
         append = out.append
         n = len(buf)
         count = 0
-        while True:
-            if not starts(header, pos) or pos + 3 > n:
-                break
+        while pos + 3 <= n and buf[pos] == first and buf[pos + 1] == second:
             length = buf[pos + 2]
             end = pos + length + 5
-            if end > n or length < LA_MIN_LEN or sum(buf[pos + 2 : end - 1]) & 0xFF != buf[end - 1]:
+            if end > n or length < LA_MIN_LEN:
                 break
-            append(new(Frame, (la, direction, buf[pos:end])))
+            frame = buf[pos:end]
+            check = frame[-1]
+            # The checksum covers Len..last data byte: the frame's sum minus the two
+            # header bytes (0x55 + 0xAA = 0xFF either way round) minus the checksum.
+            if (sum(frame) - 0xFF - check) & 0xFF != check:
+                break
+            append(new(Frame, (la, direction, frame)))
             count += 1
             pos = end
         self.stats.frames += count

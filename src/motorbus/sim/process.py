@@ -1,0 +1,117 @@
+"""Run ``motorbus sim`` in a child process, as a real device would be: outside ours.
+
+A simulator in its own process does not share our GIL, so its reply timing does not
+depend on what our event loop is doing - which is what the demo, the benchmarks and
+the end-to-end tests need.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+__all__ = ["SimProcess"]
+
+#: Longest wait for the child to print its device path.
+START_TIMEOUT_S = 20.0
+
+
+class SimProcess:
+    """``with SimProcess(["la:1-15"], baud=921600) as sim: open(sim.path)...``.
+
+    Args:
+        devices: device specs as for ``motorbus sim`` ("la:1-15", "project-stepper"...).
+        baud: emulated baud rate (default: the simulator's choice per device kind).
+        faults: a ``--faults`` spec string, e.g. ``"garbage=0.01,late=0.01:0.05"``.
+        seed: seed of turnarounds and faults.
+        log_file: record every frame both ways as JSON lines to this path.
+        link: create this symlink to the pty.
+    """
+
+    def __init__(
+        self,
+        devices: Sequence[str],
+        *,
+        baud: int | None = None,
+        faults: str | None = None,
+        seed: int = 0,
+        log_file: str | os.PathLike[str] | None = None,
+        link: str | os.PathLike[str] | None = None,
+    ) -> None:
+        self.args = [sys.executable, "-m", "motorbus", "sim"]
+        if baud is not None:
+            self.args += ["--baud", str(baud)]
+        if faults:
+            self.args += ["--faults", faults]
+        self.args += ["--seed", str(seed)]
+        if log_file is not None:
+            self.args += ["--log", os.fspath(log_file)]
+        if link is not None:
+            self.args += ["--link", os.fspath(link)]
+        self.args += list(devices)
+        self.log_file = Path(log_file) if log_file is not None else None
+        self.proc: subprocess.Popen[str] | None = None
+        self.path = ""
+        self.summary = ""
+
+    def start(self) -> SimProcess:
+        """Start the child and wait for its device path."""
+        self.proc = subprocess.Popen(
+            self.args,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,  # a Ctrl-C to our group must not kill the device first
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline().strip()
+        if not line:
+            err = self.proc.stderr.read() if self.proc.stderr else ""
+            self.proc.wait(START_TIMEOUT_S)
+            raise RuntimeError(f"motorbus sim did not start: {err.strip()}")
+        self.path = line.split()[0]
+        return self
+
+    def stop(self) -> str:
+        """Interrupt the child (SIGINT) and return its one-line summary."""
+        if self.proc is None:
+            return self.summary
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            out, _ = self.proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            out, _ = self.proc.communicate()
+        self.summary = out.strip()
+        self.proc = None
+        return self.summary
+
+    def log_records(self) -> list[dict[str, Any]]:
+        """The frames the simulator logged (``log_file`` must have been given)."""
+        if self.log_file is None or not self.log_file.exists():
+            return []
+        records = []
+        with self.log_file.open(encoding="utf-8") as fh:
+            for line in fh:
+                if line.strip():
+                    records.append(json.loads(line))
+        return records
+
+    def __enter__(self) -> SimProcess:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
