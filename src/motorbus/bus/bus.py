@@ -291,17 +291,18 @@ class Bus:
 
     # -- requests ----------------------------------------------------------------
 
-    def reply_budget(self, cmd: Command) -> float:
+    def reply_budget(self, cmd: Command, request_size: int | None = None) -> float:
         """Seconds from the start of ``cmd``'s transmission to its reply deadline.
 
         Wire time of the request and of its longest possible reply at this bus's baud,
         plus the family's turnaround and the host margin; 0 if no reply is expected.
+        ``request_size`` saves re-encoding when the caller has the bytes already.
         """
         lengths = cmd.reply_lengths()
         if not lengths:
             return 0.0
         baud = self.baudrate
-        raw_len = len(cmd.encode())
+        raw_len = len(cmd.encode()) if request_size is None else request_size
         return (
             wire_time(raw_len, baud)
             + wire_time(max(lengths), baud)
@@ -344,7 +345,8 @@ class Bus:
             )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
-        budget = self.reply_budget(cmd) if timeout is None else float(timeout)
+        raw = cmd.encode()
+        budget = self.reply_budget(cmd, len(raw)) if timeout is None else float(timeout)
         if budget < 0:
             raise LocalProtocolError(f"timeout={timeout} must be >= 0", field="timeout")
         n_retries = self.config.retries if retries is None else retries
@@ -353,7 +355,7 @@ class Bus:
         loop = asyncio.get_running_loop()
         job = _Job(
             cmd=cmd,
-            raw=cmd.encode(),
+            raw=raw,
             future=loop.create_future(),
             priority=int(priority),
             seq=next(self._seq),

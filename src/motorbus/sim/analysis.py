@@ -53,12 +53,21 @@ class TickTiming:
         }
 
 
-def tick_timing(times: Sequence[float], period: float) -> TickTiming:
-    """Compare arrival ``times`` (seconds, ascending) with the grid of ``period``."""
+def tick_timing(times: Sequence[float], period: float, *, by_index: bool = False) -> TickTiming:
+    """Compare arrival ``times`` (seconds, ascending) with the grid of ``period``.
+
+    By default each arrival is matched to its nearest grid slot (so gaps show up as
+    missed ticks).  With ``by_index`` the k-th arrival is held to slot k: a loop whose
+    period stretches (a naive ``sleep(period)`` loop) then shows its walk away from
+    the grid as growing offsets, which is what drift does to a trajectory.
+    """
     if len(times) < 2:
         return TickTiming(len(times), 0, 0.0, 0.0, 0.0, 0.0, ())
     t0 = times[0]
-    slots = [round((t - t0) / period) for t in times]
+    if by_index:
+        slots = list(range(len(times)))
+    else:
+        slots = [round((t - t0) / period) for t in times]
     raw = [t - t0 - k * period for t, k in zip(times, slots, strict=True)]
     base = min(raw)
     offsets = tuple(r - base for r in raw)

@@ -29,12 +29,13 @@ What the model does (behaviour from the manual; the numbers marked "model choice
 from __future__ import annotations
 
 import enum
+import functools
 import math
 import random
 from typing import ClassVar, Literal
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
-from motorbus.protocol.base import LA_REPLY_HEADER, Family, check_int
+from motorbus.protocol.base import LA_REPLY_HEADER, Command, Family, check_int
 from motorbus.protocol.la import (
     BROADCAST_ID,
     CMD_CONTROL,
@@ -113,6 +114,20 @@ _TRIP_FLAGS = {"stall": ErrorFlags.STALL, "over_current": ErrorFlags.OVER_CURREN
 
 WriteReply = Literal["status", "ack"]
 IdChangeReply = Literal["old", "new"]
+
+
+#: Where the 1-byte ID lives in the control table (3.6 index 2): read on every frame.
+_ID_INDEX = Register.ID.index
+#: (index, size, signed) of every register, looked up once: Enum attribute access is
+#: slow and the model reads registers on every frame.
+_LAYOUT = {reg: (reg.index, reg.size, reg.signed) for reg in Register}
+
+
+@functools.lru_cache(maxsize=256)
+def _decode_shared(request: bytes) -> Command:
+    """``decode_request``, memoised: every model on a bus sees the same frame, and a
+    decoded command is an immutable value, so the bus's 15 actuators decode it once."""
+    return decode_request(request)
 
 
 class PowerState(enum.Enum):
@@ -260,7 +275,7 @@ class LAModel(DeviceModel):
     @property
     def id(self) -> int:
         """The ID the actuator answers to now (RAM index 2)."""
-        return self._get(Register.ID)
+        return self._ram[_ID_INDEX]
 
     @property
     def baud(self) -> int:
@@ -374,15 +389,16 @@ class LAModel(DeviceModel):
         no-reply commands return ``[]``.
         """
         try:
-            cmd = decode_request(request)
+            cmd = _decode_shared(request)
         except RemoteProtocolError:
             self.ignored += 1
             return []
         self._advance(now)
         if isinstance(cmd, Broadcast):
             follow = cmd.mode is BroadcastMode.FOLLOW
+            me = self.id
             for ident, pos in cmd.entries:
-                if ident == self.id:
+                if ident == me:
                     self._position_command(now, int(cmd.mode), pos, follow=follow)
             return []
         addressed = (MoveTo, Follow, Control, ReadRegister, ReadTable, WriteRegister, WriteTable)
@@ -442,7 +458,8 @@ class LAModel(DeviceModel):
     # --- internals -----------------------------------------------------------------------
 
     def _get(self, reg: Register) -> int:
-        return reg.decode_value(bytes(self._ram[reg.index : reg.index + reg.size]))
+        index, size, signed = _LAYOUT[reg]
+        return int.from_bytes(self._ram[index : index + size], "little", signed=signed)
 
     def _put(self, reg: Register, value: int) -> None:
         self._ram[reg.index : reg.index + reg.size] = reg.encode_value(value)

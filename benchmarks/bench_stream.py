@@ -1,0 +1,259 @@
+"""Follow-mode streaming: tick jitter at the simulator, drift, and scaling with bus count.
+
+Measured where the frames land: every simulator runs in its own process (``motorbus
+sim`` on a pty, like a real device) and logs the time each frame finished arriving
+on its emulated wire.  Jitter is each 0xF3 broadcast's offset from the ideal 10 ms
+grid (``motorbus.sim.analysis.tick_timing``), so a constant latency is not counted
+but every wobble and any drift is.
+
+Part 1: 15 actuators at 10 ms on one bus (one broadcast frame a tick), motorbus's
+Streamer against a naive ``await bus.send(frame); await asyncio.sleep(period)`` loop
+on the same bus, in the same run.  Goals: p99 <= 300 us, max <= 2 ms, no missed
+tick, no drift.
+
+Part 2: 1, 4, 16 and 32 buses of 15 actuators each in one process: our process's CPU
+time (per bus and in all) and the worst bus's p99 jitter.  Goal: 32 buses under 50 %
+of one core with p99 <= 1 ms.  The simulators run on the same 2 cores, so they
+compete with the streams for the CPU: that is noted in the output.
+
+    python benchmarks/bench_stream.py [--quick] [--seconds 30] [--scaling-seconds 10]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import os
+import platform
+import resource
+import sys
+import tempfile
+import time
+from contextlib import ExitStack
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from motorbus.bus.manager import BusManager
+from motorbus.bus.timer import default_timer
+from motorbus.protocol import la
+from motorbus.sim.analysis import tick_timing
+from motorbus.sim.process import SimProcess
+
+PERIOD_S = 0.010
+N_ACTUATORS = 15
+BAUD = 921600
+RESULTS = Path(__file__).resolve().parent / "results" / "stream.json"
+GOALS = {
+    "one_bus_p99_le_300us": lambda r: r["tick_jitter_p99_us"] <= 300,
+    "one_bus_max_le_2ms": lambda r: r["tick_jitter_max_us"] <= 2000,
+    "one_bus_no_missed_tick": lambda r: r["missed_ticks"] == 0,
+    "one_bus_no_drift": lambda r: abs(r["drift_ppm"]) <= 100,
+    "32_buses_cpu_lt_50pct": lambda r: _at(r, 32, "cpu_percent") < 50,
+    "32_buses_p99_le_1ms": lambda r: _at(r, 32, "tick_jitter_p99_us") <= 1000,
+}
+
+
+def _at(result: dict[str, Any], buses: int, key: str) -> float:
+    scaling = result["scaling"]
+    if buses not in scaling["buses"]:
+        return math.nan
+    return float(scaling[key][scaling["buses"].index(buses)])
+
+
+def f3_arrivals(sim: SimProcess) -> list[float]:
+    """Times (s) at which the simulator finished receiving each 0xF3 broadcast."""
+    return [r["t"] for r in sim.log_records() if r["dir"] == "rx" and r["hex"][9:14] == "FF F3"]
+
+
+def trajectory(t: float) -> list[float]:
+    return [
+        1000 + 600 * math.sin(2 * math.pi * 0.5 * t + 2 * math.pi * i / N_ACTUATORS)
+        for i in range(N_ACTUATORS)
+    ]
+
+
+def cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+async def stream_buses(paths: list[str], seconds: float, backend: str) -> dict[str, Any]:
+    """Stream to every bus for ``seconds``; return host-side stats and our CPU use."""
+    mgr = BusManager(safe_stop=False)
+    for i, path in enumerate(paths):
+        mgr.add_bus(f"bus{i}", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"], backend=backend)
+    async with mgr:
+        streams = []
+        for name in mgr.buses:
+            actuators = [mgr.la(name, i) for i in range(1, N_ACTUATORS + 1)]
+            streams.append(
+                mgr.streamer(name).follow(
+                    actuators,
+                    lambda t, s: None if t >= seconds else trajectory(t),
+                    period=PERIOD_S,
+                )
+            )
+        wall0, cpu0 = time.monotonic(), cpu_seconds()
+        await asyncio.gather(*(s.wait() for s in streams))
+        wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+        late = sum(s.stats.late for s in streams)
+        skipped = sum(s.stats.skipped for s in streams)
+    return {"cpu_percent": 100 * cpu / wall, "host_late": late, "host_skipped": skipped}
+
+
+async def naive_loop(path: str, seconds: float, backend: str) -> None:
+    """The baseline: send, then ``asyncio.sleep(period)``, on the same bus stack."""
+    mgr = BusManager(safe_stop=False)
+    mgr.add_bus("naive", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"], backend=backend)
+    async with mgr:
+        bus = mgr.bus("naive")
+        t0 = time.monotonic()
+        while (t := time.monotonic() - t0) < seconds:
+            targets = {i + 1: round(v) for i, v in enumerate(trajectory(t))}
+            for frame in la.split_broadcast(la.BroadcastMode.FOLLOW, targets):
+                await bus.send(frame)
+            await asyncio.sleep(PERIOD_S)
+
+
+def one_bus(seconds: float, backend: str, tmp: Path) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for label, runner in (("motorbus", "streamer"), ("naive", "naive")):
+        log = tmp / f"one-{label}.jsonl"
+        with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD, log_file=log) as sim:
+            if runner == "streamer":
+                host = asyncio.run(stream_buses([sim.path], seconds, backend))
+            else:
+                asyncio.run(naive_loop(sim.path, seconds, backend))
+                host = {}
+            sim.stop()
+            arrivals = f3_arrivals(sim)
+        timing = tick_timing(arrivals, PERIOD_S, by_index=(runner == "naive"))
+        out[label] = {**timing.as_dict(), **host}
+        if runner == "naive":
+            span = arrivals[-1] - arrivals[0] if len(arrivals) > 1 else 0.0
+            out[label]["mean_period_us"] = 1e6 * span / max(1, len(arrivals) - 1)
+    return out
+
+
+def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[str, Any]:
+    rows: dict[str, list[Any]] = {
+        k: []
+        for k in (
+            "buses",
+            "cpu_percent",
+            "cpu_percent_per_bus",
+            "tick_jitter_p99_us",
+            "tick_jitter_max_us",
+            "missed_ticks",
+        )
+    }
+    for n in counts:
+        with ExitStack() as stack:
+            sims = [
+                stack.enter_context(
+                    SimProcess(
+                        [f"la:1-{N_ACTUATORS}"], baud=BAUD, log_file=tmp / f"scale{n}-{i}.jsonl"
+                    )
+                )
+                for i in range(n)
+            ]
+            host = asyncio.run(stream_buses([s.path for s in sims], seconds, backend))
+            for s in sims:
+                s.stop()
+            timings = [tick_timing(f3_arrivals(s), PERIOD_S) for s in sims]
+        rows["buses"].append(n)
+        rows["cpu_percent"].append(round(host["cpu_percent"], 1))
+        rows["cpu_percent_per_bus"].append(round(host["cpu_percent"] / n, 2))
+        rows["tick_jitter_p99_us"].append(round(max(t.jitter_p99 for t in timings) * 1e6))
+        rows["tick_jitter_max_us"].append(round(max(t.jitter_max for t in timings) * 1e6))
+        rows["missed_ticks"].append(sum(t.missed for t in timings))
+        print(
+            f"  {n:3d} buses: CPU {host['cpu_percent']:5.1f} % ({host['cpu_percent'] / n:.2f} %/bus),"
+            f" worst-bus p99 {rows['tick_jitter_p99_us'][-1]} us,"
+            f" max {rows['tick_jitter_max_us'][-1]} us, missed {rows['missed_ticks'][-1]}",
+            flush=True,
+        )
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=30.0, help="one-bus run length")
+    parser.add_argument("--scaling-seconds", type=float, default=10.0)
+    parser.add_argument("--buses", default="1,4,16,32", help="bus counts for the scaling run")
+    parser.add_argument("--backend", default="fast")
+    parser.add_argument("--quick", action="store_true", help="5 s runs, buses 1,4,16")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    if args.quick:
+        args.seconds, args.scaling_seconds, args.buses = 5.0, 4.0, "1,4,16"
+    counts = [int(x) for x in args.buses.split(",") if x]
+    with tempfile.TemporaryDirectory(prefix="motorbus-bench-") as tmp_name:
+        tmp = Path(tmp_name)
+        print(
+            f"one bus, {N_ACTUATORS} actuators, {PERIOD_S * 1e3:.0f} ms, {args.seconds:.0f} s",
+            flush=True,
+        )
+        one = one_bus(args.seconds, args.backend, tmp)
+        print(f"scaling, {args.scaling_seconds:.0f} s per step", flush=True)
+        scale = scaling(counts, args.scaling_seconds, args.backend, tmp)
+    ours, naive = one["motorbus"], one["naive"]
+    result: dict[str, Any] = {
+        "tick_jitter_p50_us": round(ours["tick_jitter_p50_us"]),
+        "tick_jitter_p99_us": round(ours["tick_jitter_p99_us"]),
+        "tick_jitter_max_us": round(ours["tick_jitter_max_us"]),
+        "missed_ticks": ours["missed_ticks"],
+        "drift_ppm": round(ours["drift_ppm"], 1),
+        "frames": ours["frames"],
+        "host_late_ticks": ours["host_late"],
+        "host_skipped_ticks": ours["host_skipped"],
+        "naive_tick_jitter_p99_us": round(naive["tick_jitter_p99_us"]),
+        "naive_tick_jitter_max_us": round(naive["tick_jitter_max_us"]),
+        "naive_drift_ppm": round(naive["drift_ppm"], 1),
+        "naive_mean_period_us": round(naive["mean_period_us"], 1),
+        "scaling": scale,
+        "seconds": args.seconds,
+        "scaling_seconds": args.scaling_seconds,
+        "backend": args.backend,
+        "timer": default_timer_name(),
+        "loop": "asyncio default",
+        "machine": {
+            "platform": platform.platform(),
+            "python": sys.version.split()[0],
+            "cpus": os.cpu_count(),
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "note": "simulators run as separate processes on the same cores as the streams",
+    }
+    result["goals"] = {name: bool(check(result)) for name, check in GOALS.items()}
+    print()
+    print(f"{'':34}{'motorbus':>12}{'naive sleep':>14}")
+    for label, key in (
+        ("tick jitter p99 (us)", "tick_jitter_p99_us"),
+        ("tick jitter max (us)", "tick_jitter_max_us"),
+        ("drift (ppm)", "drift_ppm"),
+    ):
+        print(f"{label:34}{ours[key]:12.0f}{naive[key]:14.0f}")
+    print(f"{'missed ticks':34}{ours['missed_ticks']:12d}{'-':>14}")
+    print(f"{'mean period (us)':34}{PERIOD_S * 1e6:12.0f}{naive['mean_period_us']:14.0f}")
+    print()
+    for name, ok in result["goals"].items():
+        print(f"goal {name:28} {'met' if ok else 'NOT met'}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {args.out}")
+    return 0
+
+
+def default_timer_name() -> str:
+    async def name() -> str:
+        return default_timer().name
+
+    return asyncio.run(name())
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
