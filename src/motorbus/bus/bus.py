@@ -509,7 +509,8 @@ class Bus:
             job.key,
             (now - job.tx_time) * 1e6,
         )
-        if job.retries_left > 0:
+        # A caller that cancelled while its request was on the wire awaits no retry.
+        if job.retries_left > 0 and not job.future.done():
             job.retries_left -= 1
             self.stats.retries += 1
             self.stats.device(job.key).retries += 1
