@@ -576,7 +576,14 @@ class Streamer:
             return
         sent_at: float | None = None
         if broadcast:
-            frames = la.split_broadcast(la.BroadcastMode.FOLLOW, broadcast)
+            # IDs were checked when the streams started (distinct across streams) and
+            # every position by _position, so the frames are built without re-checking.
+            pairs = tuple(broadcast.items())
+            step = la.MAX_BROADCAST_ENTRIES
+            frames = [
+                la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step])
+                for i in range(0, len(pairs), step)
+            ]
             for frame in frames:
                 await self.bus.send(frame, priority=Priority.HIGH)
                 if sent_at is None:

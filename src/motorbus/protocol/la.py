@@ -1176,6 +1176,17 @@ class Broadcast(LACommand):
             seen.add(ident)
         object.__setattr__(self, "entries", entries)
 
+    @classmethod
+    def prevalidated(cls, mode: BroadcastMode, entries: tuple[tuple[int, int], ...]) -> Broadcast:
+        """Build without re-checking, for callers that already validated every ID and
+        position and keep IDs distinct (the Streamer does, once per stream and target).
+        It saves ~30 range checks per frame on the 100 Hz path; anything else should
+        use the validating constructor."""
+        obj = object.__new__(cls)
+        object.__setattr__(obj, "mode", mode)
+        object.__setattr__(obj, "entries", entries)
+        return obj
+
     @property
     def starts_motion(self) -> bool:  # type: ignore[override]
         """Always True: every addressed actuator moves."""

@@ -7,6 +7,7 @@ the arrival times the simulator logged and compare them with the ideal grid
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -64,14 +65,11 @@ def tick_timing(times: Sequence[float], period: float, *, by_index: bool = False
     if len(times) < 2:
         return TickTiming(len(times), 0, 0.0, 0.0, 0.0, 0.0, ())
     t0 = times[0]
-    if by_index:
-        slots = list(range(len(times)))
-    else:
-        slots = [round((t - t0) / period) for t in times]
+    slots = list(range(len(times))) if by_index else [round((t - t0) / period) for t in times]
     raw = [t - t0 - k * period for t, k in zip(times, slots, strict=True)]
     base = min(raw)
     offsets = tuple(r - base for r in raw)
-    missed = sum(max(0, b - a - 1) for a, b in zip(slots, slots[1:], strict=False))
+    missed = sum(max(0, b - a - 1) for a, b in itertools.pairwise(slots))
     # Least-squares slope of the offsets against time: the stream's drift.
     n = len(times)
     mean_t = sum(times) / n
