@@ -227,8 +227,9 @@ class Bus:
         self._seq = itertools.count()
         self._pending: _Job | None = None
         self._next_tx = 0.0
-        self._wake: asyncio.Future[None] | None = None
-        self._writer_task: asyncio.Task[None] | None = None
+        self._pump_handle: TimerHandle | None = None
+        self._pump_at = 0.0
+        self._pumping = False
         self._reconnect_task: asyncio.Task[None] | None = None
         self._timeouts: collections.deque[_Timeout] = collections.deque()
         self._guard_until: dict[str, float] = {}
@@ -251,26 +252,26 @@ class Bus:
         return self.transport.baudrate
 
     async def open(self) -> None:
-        """Open the port and start the writer.  Raises ``OSError`` if the port cannot open."""
+        """Open the port.  Raises ``OSError`` if the port cannot open."""
         if self.state is BusState.OPEN:
             return
         self._closing = False
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
-        self._writer_task = asyncio.get_running_loop().create_task(
-            self._writer(), name=f"motorbus writer {self.name}"
-        )
         self._publish_state("open")
 
     async def close(self) -> None:
-        """Fail what is queued, stop the tasks and close the port; idempotent."""
+        """Fail what is queued, stop reconnecting and close the port; idempotent."""
         self._closing = True
-        for task in (self._writer_task, self._reconnect_task):
-            if task is not None and not task.done():
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await task
-        self._writer_task = self._reconnect_task = None
+        task = self._reconnect_task
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self._reconnect_task = None
+        if self._pump_handle is not None:
+            self._pump_handle.cancel()
+            self._pump_handle = None
         self._fail_all(BusClosedError(f"bus {self.name} closed"))
         await self.transport.close()
         if self.state is not BusState.CLOSED:
@@ -363,11 +364,8 @@ class Bus:
             retries_left=n_retries,
             key=device_key(cmd),
         )
-        if self._pending is None and not self._heap and self._can_send_now(job):
-            self._transmit(job)  # idle bus: no queue hop, lowest latency
-        else:
-            heapq.heappush(self._heap, job)
-            self._wake_writer()
+        heapq.heappush(self._heap, job)
+        self._pump()  # an idle bus sends right here, from the caller's task
         try:
             return await job.future
         except asyncio.CancelledError:
@@ -383,50 +381,44 @@ class Bus:
         await self.request(cmd, priority=priority)
 
     # -- writer ------------------------------------------------------------------
+    #
+    # There is no writer task: ``_pump`` sends the head of the queue as soon as the bus
+    # allows it, and is called whenever that may have changed (a request queued, a reply
+    # matched, a deadline run out, the port back) or by the timer when the spacing or a
+    # late guard ends.  A task would add an event-loop iteration (~100 us on this VM) to
+    # every command; a timer callback sends on time.
 
-    def _can_send_now(self, job: _Job) -> bool:
-        now = self.timer.now()
-        return now >= self._next_tx and now >= self._guard_until.get(job.key, 0.0)
-
-    def _wake_writer(self) -> None:
-        wake = self._wake
-        if wake is not None and not wake.done():
-            wake.set_result(None)
-
-    async def _wait(self, deadline: float | None) -> None:
-        """Sleep until ``deadline`` (None: indefinitely) or until ``_wake_writer``."""
-        wake: asyncio.Future[None] = asyncio.get_running_loop().create_future()
-        self._wake = wake
-        handle = None
-        if deadline is not None:
-
-            def ring() -> None:
-                if not wake.done():
-                    wake.set_result(None)
-
-            handle = self.timer.call_at(deadline, ring)
+    def _pump(self) -> None:
+        if self._pumping:
+            return  # called back from inside a transmission: the loop below goes on
+        self._pumping = True
         try:
-            await wake
+            heap = self._heap
+            while heap and self._pending is None and self.state is BusState.OPEN:
+                job = heap[0]
+                if job.future.done():
+                    heapq.heappop(heap)  # cancelled while queued
+                    continue
+                start = max(self._next_tx, self._guard_until.get(job.key, 0.0))
+                if start > self.timer.now():
+                    self._pump_later(start)
+                    return
+                heapq.heappop(heap)
+                self._transmit(job)
         finally:
-            self._wake = None
-            if handle is not None:
-                handle.cancel()
+            self._pumping = False
 
-    async def _writer(self) -> None:
-        timer = self.timer
-        while True:
-            if not self._heap or self._pending is not None or self.state is not BusState.OPEN:
-                await self._wait(None)
-                continue
-            job = self._heap[0]
-            start = max(self._next_tx, self._guard_until.get(job.key, 0.0))
-            if start > timer.now():
-                await self._wait(start)
-                continue  # re-check: an emergency job may have arrived meanwhile
-            heapq.heappop(self._heap)
-            if job.future.done():
-                continue  # cancelled while queued
-            self._transmit(job)
+    def _pump_later(self, start: float) -> None:
+        if self._pump_handle is not None:
+            if self._pump_at == start:
+                return
+            self._pump_handle.cancel()
+        self._pump_at = start
+        self._pump_handle = self.timer.call_at(start, self._on_pump_timer)
+
+    def _on_pump_timer(self) -> None:
+        self._pump_handle = None
+        self._pump()
 
     def _transmit(self, job: _Job) -> None:
         now = self.timer.now()
@@ -483,7 +475,7 @@ class Bus:
                 job.future.set_exception(outcome)
             else:
                 job.future.set_result(outcome)
-        self._wake_writer()
+        self._pump()
 
     def _idle_shapes(self) -> list[FrameShape] | None:
         if not self._done_watches:
@@ -517,7 +509,7 @@ class Bus:
             self._pending = None
             job.priority = min(job.priority, int(Priority.HIGH))
             heapq.heappush(self._heap, job)
-            self._wake_writer()
+            self._pump()
             return
         self._finish(
             job,
@@ -656,7 +648,7 @@ class Bus:
             self.state = BusState.OPEN
             self._next_tx = 0.0
             self._publish_state("open", "reconnected")
-            self._wake_writer()
+            self._pump()
             return
 
     async def wait_state(self, state: BusState, timeout: float | None = None) -> None:

@@ -382,20 +382,31 @@ def _deadline_ns(deadline: float) -> int:
 class TimerfdTimer(Timer):
     """Linux timer: one ``timerfd`` on absolute ``CLOCK_MONOTONIC`` deadlines.
 
-    The fd is armed at the earliest pending deadline and watched with
-    ``loop.add_reader``.  Measured lateness: about 40 µs p50, 100 µs p99 under both the
-    default loop and uvloop (PLATFORM.md §1).
+    The fd is armed ``spin_lead`` seconds before the earliest pending deadline and
+    watched with ``loop.add_reader``; the wake-up then spins on the clock for the rest.
+    A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
+    (PLATFORM.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
+    sleep deeply, 250 us p50 and up to 500 us.  Spinning the last 500 us makes a
+    deadline fire within ~30 us at p99, never early, for at most 500 us of CPU per
+    wake-up (about 2.5 % of a core for a 100 Hz stream, 25 % for a bus held at 1000
+    commands/s).  ``spin_lead=0``, or the environment variable
+    ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
     """
 
     name = "timerfd"
+    #: How long before a deadline the fd fires, to spin the rest (seconds).
+    SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
 
-    def __init__(self, loop: asyncio.AbstractEventLoop | None = None) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop | None = None, *, spin_lead: float | None = None
+    ) -> None:
         """Create the timer and its timerfd for ``loop`` (the running loop by default).
 
         Raises:
             OSError: ``timerfd`` is not available.
         """
         super().__init__(loop or asyncio.get_running_loop())
+        self._spin_lead = self.SPIN_LEAD_S if spin_lead is None else spin_lead
         self._api = _api()
         self._fd = self._api.create()
         # Closes the fd if the timer is dropped without close() (its loop went away).
@@ -407,7 +418,7 @@ class TimerfdTimer(Timer):
         if not self._reading:
             self.loop.add_reader(self._fd, self._on_expiry)
             self._reading = True
-        ns = _deadline_ns(deadline)
+        ns = _deadline_ns(deadline - self._spin_lead)
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
@@ -431,6 +442,13 @@ class TimerfdTimer(Timer):
         # The fd expired, so the armed time has passed: forget it, or re-arming at the
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         self._armed_ns = 0
+        heap = self._heap
+        if heap and self._spin_lead and not heap[0][2].cancelled():
+            first = heap[0][0]
+            now = self.now()
+            if now < first <= now + self._spin_lead:
+                while self.now() < first:
+                    pass  # the last microseconds: a timer wake-up cannot be this precise
         self._wake()
 
 
