@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, TypeAlias
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus, BusState, Priority, check_flag
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError
@@ -60,6 +60,10 @@ TICK_BUDGET_SHARE = 0.8
 LATE_AFTER_S = 1e-3
 #: Ticks within this of each other are served together (and coalesced).
 COALESCE_WINDOW_S = 200e-6
+#: A tick's targets are computed this long before its deadline; its frames are then
+#: sent from a timer callback at the deadline itself.  A callback source sees statuses
+#: at most this old plus one period.
+PREPARE_S = 2e-3
 
 Targets: TypeAlias = Mapping[int, int]
 TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
@@ -163,7 +167,12 @@ class Stream:
 
     def _bind(self, source: TargetSource) -> None:
         self._sequence = self._iterator = self._aiterator = self._callable = None
-        if isinstance(source, Sequence) and not isinstance(source, (str, bytes)):
+        if isinstance(source, (str, bytes, bytearray)):
+            # Strings are sequences: "1500" would stream the targets 1, 5, 0, 0.
+            raise LocalProtocolError(
+                f"targets must be positions, not text: got {source!r}", field="targets"
+            )
+        if isinstance(source, Sequence):
             self._sequence = source
         elif hasattr(source, "__len__") and hasattr(source, "__getitem__"):
             self._sequence = source  # numpy arrays and the like
@@ -433,7 +442,15 @@ class Streamer:
             LocalProtocolError: a bad period, an empty or foreign actuator list, an
                 actuator already streamed, or a load that does not fit the bus.
         """
-        group = [actuators] if isinstance(actuators, InspireLA) else list(actuators)
+        if isinstance(actuators, InspireLA):
+            group = [actuators]
+        elif isinstance(actuators, Sequence) and all(isinstance(a, InspireLA) for a in actuators):
+            group = list(actuators)
+        else:
+            raise LocalProtocolError(
+                f"actuators must be an InspireLA or a sequence of them, got {actuators!r}",
+                field="actuators",
+            )
         if not group:
             raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
         if isinstance(period, bool) or not isinstance(period, (int, float)):
@@ -445,6 +462,8 @@ class Streamer:
                 field="period",
                 value=period,
             )
+        check_flag("feedback", feedback)
+        check_flag("poll_status", poll_status)
         try:
             action = SafeAction(safe_action)
         except ValueError:
@@ -518,7 +537,8 @@ class Streamer:
             if not wake.done():
                 wake.set_result(None)
 
-        handle = self.bus.timer.call_at(deadline, ring)
+        # Only the preparation wakes here; the frames go out from a precise callback.
+        handle = self.bus.timer.call_at(deadline, ring, precise=False)
         try:
             await wake
         finally:
@@ -529,31 +549,35 @@ class Streamer:
         timer = self.bus.timer
         while self.streams:
             deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
-            if deadline > timer.now():
-                await self._sleep_until(deadline)
+            if deadline - PREPARE_S > timer.now():
+                await self._sleep_until(deadline - PREPARE_S)
                 continue  # re-check: streams may have changed while asleep
-            now = timer.now()
             due = [
                 s
                 for s in self.streams
-                if s.origin + s.next_tick * s.period <= now + COALESCE_WINDOW_S
+                if s.origin + s.next_tick * s.period <= deadline + COALESCE_WINDOW_S
             ]
-            await self._serve_tick(due, now)
+            await self._serve_tick(due, deadline)
 
-    async def _serve_tick(self, due: list[Stream], now: float) -> None:
+    async def _serve_tick(self, due: list[Stream], deadline: float) -> None:
+        """Prepare the tick's frames ahead of ``deadline``, send them at it, then
+        do the feedback round trips and polls."""
         timer = self.bus.timer
+        now = timer.now()
         broadcast: dict[int, int] = {}
         feedback: list[tuple[Stream, int, int]] = []
-        served: list[tuple[Stream, float]] = []
+        served: list[Stream] = []
+        bus_up = self.bus.state is BusState.OPEN
         for s in due:
             k = s.next_tick
-            deadline = s.origin + k * s.period
-            behind = int((now - deadline) // s.period)
+            behind = int((now - (s.origin + k * s.period)) // s.period)
             if behind >= 1:  # overrun: skip to the current slot instead of bursting
                 s.stats.skipped += behind
                 k += behind
-                deadline += behind * s.period
             s.next_tick = k + 1
+            if not bus_up:  # the port is gone: the grid runs on, the ticks are skipped
+                s.stats.skipped += 1
+                continue
             if s.paused:
                 continue
             try:
@@ -567,30 +591,25 @@ class Streamer:
                 s._finish(None)
                 continue
             s.last_targets.update(targets)
-            served.append((s, deadline))
+            served.append(s)
             if s.feedback:
                 feedback.extend((s, i, p) for i, p in targets.items())
             else:
                 broadcast.update(targets)
         if not served:
             return
-        sent_at: float | None = None
-        if broadcast:
-            # IDs were checked when the streams started (distinct across streams) and
-            # every position by _position, so the frames are built without re-checking.
-            pairs = tuple(broadcast.items())
-            step = la.MAX_BROADCAST_ENTRIES
-            frames = [
-                la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step])
-                for i in range(0, len(pairs), step)
-            ]
-            for frame in frames:
-                await self.bus.send(frame, priority=Priority.HIGH)
-                if sent_at is None:
-                    sent_at = timer.now()
-            for s, _ in served:
-                if not s.feedback:
-                    s.stats.frames += len(frames)
+        # IDs were checked when the streams started (distinct across streams) and every
+        # position by _position, so the frames are built without re-checking.
+        pairs = tuple(broadcast.items())
+        step = la.MAX_BROADCAST_ENTRIES
+        frames = [
+            la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step])
+            for i in range(0, len(pairs), step)
+        ]
+        sent_at = await self._send_at(deadline, frames)
+        for s in served:
+            if not s.feedback:
+                s.stats.frames += len(frames)
         for s, ident, pos in feedback:
             if sent_at is None:
                 sent_at = timer.now()
@@ -601,14 +620,55 @@ class Streamer:
             else:
                 s.statuses[ident] = status
             s.stats.frames += 1
-        assert sent_at is not None
-        for s, deadline in served:
-            lateness = max(0.0, sent_at - deadline)
+        if sent_at is None:
+            return  # the port went away before anything left
+        for s in served:
+            lateness = max(0.0, sent_at - (s.origin + (s.next_tick - 1) * s.period))
             s.stats.ticks += 1
             s.stats.jitter.record(lateness)
             if lateness > LATE_AFTER_S:
                 s.stats.late += 1
-        await self._poll([s for s, _ in served])
+        await self._poll(served)
+
+    async def _send_at(self, deadline: float, frames: list[la.Broadcast]) -> float | None:
+        """Queue ``frames`` on the bus at ``deadline`` exactly, from a timer callback.
+
+        A task woken at the deadline would send one event-loop iteration late (~100 us
+        here); the timer callback submits within microseconds.  Returns when the first
+        frame left (None if the port went away), after every frame has left.
+        """
+        if not frames:
+            return None
+        loop = asyncio.get_running_loop()
+        fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
+        sent: list[float] = []
+
+        def fire() -> None:
+            if fired.done():
+                return
+            try:
+                futures = [self.bus.submit(f, priority=Priority.HIGH) for f in frames]
+            except MotorbusError as err:
+                fired.set_exception(err)
+                return
+            if futures[0].done():  # an idle bus transmitted it inside submit()
+                sent.append(self.bus.timer.now())
+            fired.set_result(futures)
+
+        handle = self.bus.timer.call_at(deadline, fire)
+        try:
+            futures = await fired
+            for f in futures:
+                await f
+                if not sent:  # it waited in the queue (a reply was owed)
+                    sent.append(self.bus.timer.now())
+        except MotorbusError as err:
+            log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
+            return None
+        finally:
+            handle.cancel()
+        first_sent = sent[0]
+        return first_sent
 
     async def _poll(self, due: list[Stream]) -> None:
         """Use the slots left before the next tick to poll statuses round-robin."""

@@ -28,6 +28,7 @@ import enum
 import heapq
 import itertools
 import logging
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -334,6 +335,30 @@ class Bus:
             BusClosedError: the bus is closed or its port was lost.
             RemoteProtocolError: the matching reply could not be decoded.
         """
+        future = self.submit(cmd, timeout=timeout, retries=retries, priority=priority)
+        try:
+            return await future
+        except asyncio.CancelledError:
+            # The caller gave up: a queued job is dropped; a sent one still holds the
+            # bus until its reply or deadline, so spacing and matching stay correct.
+            future.cancel()
+            raise
+
+    def submit(
+        self,
+        cmd: Command,
+        *,
+        timeout: float | None = None,
+        retries: int | None = None,
+        priority: Priority = Priority.NORMAL,
+    ) -> asyncio.Future[Any]:
+        """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
+
+        Returns the future of its decoded reply (``request`` awaits it).  Cancelling the
+        future drops the command if it is still queued.  For code that must send at an
+        exact instant from a timer callback (the stream ticks); otherwise use
+        ``request``.  Arguments and errors as for ``request``, raised at once.
+        """
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
                 f"cmd must be a motorbus Command, got {type(cmd).__name__}", field="cmd"
@@ -344,20 +369,18 @@ class Bus:
                 f"{', '.join(sorted(f.value for f in self.families))}",
                 field="cmd",
             )
+        _check_request_options(timeout, retries, priority)
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
         raw = cmd.encode()
         budget = self.reply_budget(cmd, len(raw)) if timeout is None else float(timeout)
-        if budget < 0:
-            raise LocalProtocolError(f"timeout={timeout} must be >= 0", field="timeout")
         n_retries = self.config.retries if retries is None else retries
         if cmd.starts_motion or not cmd.expects_reply:
             n_retries = 0
-        loop = asyncio.get_running_loop()
         job = _Job(
             cmd=cmd,
             raw=raw,
-            future=loop.create_future(),
+            future=asyncio.get_running_loop().create_future(),
             priority=int(priority),
             seq=next(self._seq),
             timeout=budget,
@@ -365,16 +388,8 @@ class Bus:
             key=device_key(cmd),
         )
         heapq.heappush(self._heap, job)
-        self._pump()  # an idle bus sends right here, from the caller's task
-        try:
-            return await job.future
-        except asyncio.CancelledError:
-            # The caller gave up: a queued job is dropped; a sent one still holds the
-            # bus until its reply or deadline, so spacing and matching stay correct.
-            if job in self._heap:
-                self._heap.remove(job)
-                heapq.heapify(self._heap)
-            raise
+        self._pump()  # an idle bus sends right here
+        return job.future
 
     async def send(self, cmd: Command, *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
@@ -659,6 +674,69 @@ class Bus:
             if self.state is state:
                 return
             await sub.next(timeout)
+
+
+#: Ceiling on a per-request reply budget: far beyond any reply the three manuals
+#: describe (the 226-byte 0x3E dump takes 0.24 s at 9600 bit/s), it only refuses nonsense.
+REQUEST_TIMEOUT_MAX_S = 3600.0
+#: Ceiling on per-request retries, the same as the bus-wide ``retries`` option.
+REQUEST_RETRIES_MAX = 10
+
+
+def check_timeout(field: str, value: object, maximum: float = math.inf) -> float:
+    """Return ``value`` (seconds) if it is a finite number in ``0..maximum``.
+
+    Raises:
+        LocalProtocolError: a bool, a non-number, NaN, infinity or out of range (a NaN
+            deadline used to reach the timer and break its callback).
+    """
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or not 0 <= value <= maximum
+    ):
+        shown = "" if maximum == math.inf else f"..{maximum:g}"
+        raise LocalProtocolError(
+            f"{field}={value!r} is out of range: allowed 0{shown} seconds (a finite number)",
+            field=field,
+            value=value,
+        )
+    return float(value)
+
+
+def check_flag(field: str, value: object) -> bool:
+    """Return ``value`` if it is a bool; a truthy string or None must not pick a command."""
+    if not isinstance(value, bool):
+        raise LocalProtocolError(
+            f"{field} must be True or False, got {value!r} ({type(value).__name__})",
+            field=field,
+            value=value,
+        )
+    return value
+
+
+def _check_request_options(timeout: object, retries: object, priority: object) -> None:
+    """Refuse a bad ``timeout``/``retries``/``priority`` before anything is queued."""
+    if timeout is not None:
+        check_timeout("timeout", timeout, REQUEST_TIMEOUT_MAX_S)
+    if retries is not None and (
+        isinstance(retries, bool)
+        or not isinstance(retries, int)
+        or not 0 <= retries <= REQUEST_RETRIES_MAX
+    ):
+        raise LocalProtocolError(
+            f"retries={retries!r} is out of range: allowed 0..{REQUEST_RETRIES_MAX} or None",
+            field="retries",
+            value=retries,
+        )
+    if isinstance(priority, bool) or priority not in set(Priority):
+        raise LocalProtocolError(
+            f"priority={priority!r} is not allowed: choose one of "
+            f"{', '.join(p.name for p in Priority)}",
+            field="priority",
+            value=priority,
+        )
 
 
 def _done_watch(cmd: Command) -> _DoneWatch:

@@ -59,12 +59,15 @@ _NS_PER_S = 1_000_000_000
 class TimerHandle:
     """A scheduled callback; :meth:`cancel` it to stop it from running."""
 
-    __slots__ = ("_callback", "_cancelled", "_done", "_timer", "deadline")
+    __slots__ = ("_callback", "_cancelled", "_done", "_timer", "deadline", "precise")
 
-    def __init__(self, timer: Timer, deadline: float, callback: Callable[[], None]) -> None:
+    def __init__(
+        self, timer: Timer, deadline: float, callback: Callable[[], None], precise: bool = True
+    ) -> None:
         """Create a handle; use :meth:`Timer.call_at`."""
         self._timer: Timer | None = timer
         self.deadline = deadline
+        self.precise = precise
         self._callback: Callable[[], None] | None = callback
         self._cancelled = False
         self._done = False
@@ -146,7 +149,9 @@ class Timer(abc.ABC):
         """Return the current time in seconds, the clock of ``time.monotonic()``."""
         return time.monotonic()
 
-    def call_at(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+    def call_at(
+        self, deadline: float, callback: Callable[[], None], *, precise: bool = True
+    ) -> TimerHandle:
         """Run ``callback()`` on the loop once ``now() >= deadline``.
 
         Args:
@@ -154,6 +159,8 @@ class Timer(abc.ABC):
                 the past runs the callback as soon as possible, never synchronously.
             callback: called with no arguments; exceptions go to the loop's exception
                 handler.
+            precise: spend CPU to run it within microseconds of ``deadline`` (where the
+                timer can); ``False`` for wake-ups that only need to be roughly on time.
 
         Returns:
             A handle whose ``cancel()`` stops the callback.
@@ -163,7 +170,7 @@ class Timer(abc.ABC):
         """
         if self._closed:
             raise RuntimeError(f"{type(self).__name__} is closed")
-        handle = TimerHandle(self, deadline, callback)
+        handle = TimerHandle(self, deadline, callback, precise)
         heapq.heappush(self._heap, (deadline, next(self._seq), handle))
         if self._heap[0][2] is handle:
             self._arm(deadline)
@@ -418,7 +425,9 @@ class TimerfdTimer(Timer):
         if not self._reading:
             self.loop.add_reader(self._fd, self._on_expiry)
             self._reading = True
-        ns = _deadline_ns(deadline - self._spin_lead)
+        heap = self._heap
+        lead = self._spin_lead if heap and heap[0][2].precise else 0.0
+        ns = _deadline_ns(deadline - lead)
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
@@ -443,7 +452,7 @@ class TimerfdTimer(Timer):
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         self._armed_ns = 0
         heap = self._heap
-        if heap and self._spin_lead and not heap[0][2].cancelled():
+        if heap and self._spin_lead and heap[0][2].precise and not heap[0][2].cancelled():
             first = heap[0][0]
             now = self.now()
             if now < first <= now + self._spin_lead:
