@@ -164,8 +164,10 @@ async def _demo(args: argparse.Namespace) -> int:
     if not args.no_plot:
         print(_plot(log, arrivals, out))
     print(f"summary written to {out / 'summary.json'}")
-    failures = summary["timeouts"] + summary["missed_ticks"]
-    return 0 if failures == 0 and summary["project"] == "done" and summary["quad"] == "done" else 1
+    # Success means every job finished and the stream ran; timeouts, late replies and
+    # jitter are reported above, not failures: a loaded machine shows some.
+    ran = summary["stream_host"]["ticks"] > 0
+    return 0 if ran and summary["project"] == "done" and summary["quad"] == "done" else 1
 
 
 def _simple_project() -> ps.Project:
