@@ -38,6 +38,9 @@ async def sim_bus(
         timer=timer,  # type: ignore[arg-type]
     ) as sim:
         families = {m.family for m in models} or set(Family)
+        # Tests assert behaviour, not speed: a generous host margin keeps a loaded CI
+        # machine from turning a slow reply into a timeout.  Timeout tests pass their own.
+        bus_options.setdefault("host_margin", 0.05)
         bus = Bus(sim.transport, name="sim", families=families, timer=timer, **bus_options)
         async with bus:
             yield bus, sim

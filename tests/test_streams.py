@@ -62,10 +62,12 @@ async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> 
 
 async def test_polling_uses_free_slots_round_robin() -> None:
     models = [LAModel(i) for i in range(1, 16)]
-    async with sim_bus(models) as (bus, _):
+    # Polls only start when even their timeout ends before the next tick: a margin that
+    # leaves room for them in a 10 ms tick.
+    async with sim_bus(models, host_margin=0.002) as (bus, _):
         streamer = Streamer(bus)
         actuators = [InspireLA(bus, i) for i in range(1, 16)]
-        stream = streamer.follow(actuators, [[1000] * 15] * 20, period=0.01, poll_status=True)
+        stream = streamer.follow(actuators, [[1000] * 15] * 30, period=0.01, poll_status=True)
         await asyncio.wait_for(stream.wait(), 5)
         assert set(stream.statuses) == set(range(1, 16))  # every actuator read at least once
         assert stream.stats.polls >= 15

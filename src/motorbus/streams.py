@@ -356,12 +356,14 @@ class Streamer:
     # -- planning -------------------------------------------------------------------
 
     def slot_cost(self, *, reply_bytes: int, request_bytes: int) -> float:
-        """Bus time one frame occupies: at least the spacing, at most its round trip."""
+        """Bus time one frame occupies when the device answers in time: the spacing, or
+        its round trip (wire times and worst-case turnaround) if longer.  The host margin
+        is left out: it only matters when a reply is missing."""
         baud = self.bus.baudrate
         cfg = self.bus.config
         busy = wire_time(request_bytes, baud)
         if reply_bytes:
-            busy += wire_time(reply_bytes, baud) + cfg.turnaround[Family.LA] + cfg.host_margin
+            busy += wire_time(reply_bytes, baud) + cfg.turnaround[Family.LA]
         return max(cfg.min_spacing, busy)
 
     def tick_cost(self, streams: Iterable[Stream]) -> dict[float, float]:
@@ -681,10 +683,11 @@ class Streamer:
             reply_bytes=la.STATUS_FRAME_SIZE,
         )
         next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
-        guard = self.bus.config.min_spacing
+        # A poll starts only if even its timeout would end before the next tick.
+        worst = cost + self.bus.config.host_margin + self.bus.config.min_spacing
         for s in pollers:
             for _ in range(len(s.ids)):
-                if timer.now() + cost + guard > next_deadline:
+                if timer.now() + worst > next_deadline - PREPARE_S:
                     return
                 ident = s.ids[s._poll_cursor % len(s.ids)]
                 s._poll_cursor += 1
