@@ -29,6 +29,7 @@ import heapq
 import itertools
 import logging
 import math
+import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -74,8 +75,9 @@ DEFAULT_TURNAROUND: Mapping[Family, float] = {
 #: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
 #: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, PLATFORM.md 5).  The
 #: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
-#: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.
-DEFAULT_HOST_MARGIN_S = 2e-3
+#: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.  On a loaded or
+#: slow host, raise it for every bus at once with ``MOTORBUS_HOST_MARGIN_MS``.
+DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 1e3
 #: After a timeout, the next request to the same device waits this long, so that the
 #: device's late answer (if it comes) arrives before a new question it could be
 #: mistaken for.  Requests to other devices are not held.
