@@ -6,9 +6,19 @@ so one command's optional dependency never breaks another.
 
 Exit codes (documented in README):
     0  success
-    1  the command ran but failed (device error, timeout, bad reply)
-    2  usage error: bad arguments or bad input (nothing was sent)
-    130 interrupted (Ctrl-C)
+    1  the command ran but failed: a reply timeout (a silent ID), a device error or bad
+       reply, a port that cannot open or was lost, a project verify mismatch, ``scan``
+       finding nothing, ``stream`` skipping ticks
+    2  usage error: bad arguments or bad input - a missing ``--port``, an ID, position,
+       register value or setting out of range, an unknown register name, a bad project or
+       CSV file (nothing was sent)
+    130 interrupted (Ctrl-C); the hardware commands first bring what they started to a
+       safe state (``stream`` pauses its actuators, ``project run`` stops the project,
+       ``quad run`` stops the motor).  ``capture`` and ``monitor`` end normally (0) on
+       Ctrl-C, which is how an open-ended run ends.
+
+Every error is one line ``motorbus COMMAND: message`` on standard error; ``--debug``
+shows the traceback instead.
 """
 
 from __future__ import annotations
@@ -29,7 +39,18 @@ EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
 #: Modules that each contribute one or more commands, in help order.
-COMMAND_MODULES = ("demo", "sim", "decode")
+COMMAND_MODULES = (
+    "demo",
+    "sim",
+    "decode",
+    "scan",
+    "la",
+    "stream",
+    "monitor",
+    "project",
+    "quad",
+    "capture",
+)
 
 
 class UsageError(MotorbusError):

@@ -1,0 +1,123 @@
+"""``motorbus monitor``: a live table of LA actuator status, polled round-robin.
+
+Example::
+
+    motorbus monitor --port /dev/ttyUSB0 --ids 1-3 --interval 0.2
+
+Each refresh queries every listed actuator once, in turn, then waits ``--interval``.
+On a terminal the table is redrawn in place; otherwise each refresh prints a block of
+lines (or, with ``--json``, one JSON object a line).  An actuator that does not answer
+shows as ``timeout`` and does not stop the monitor.  ``--count N`` ends after N
+refreshes; otherwise Ctrl-C ends it (exit code 0).  Without ``--ids`` the bus is
+scanned first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import time
+from typing import Any
+
+from motorbus.bus.bus import Bus
+from motorbus.cli.common import (
+    LA_BAUD,
+    LiveText,
+    add_bus_options,
+    check_seconds,
+    open_bus,
+    parse_ids,
+    print_json,
+)
+from motorbus.cli.la import STATUS_HEADER, status_json, status_row
+from motorbus.cli.scan import SCAN_TIMEOUT_S
+from motorbus.devices.la import InspireLA, scan
+from motorbus.errors import ReplyTimeoutError
+from motorbus.protocol import la
+from motorbus.protocol.base import Family, check_int
+
+__all__ = ["register", "run"]
+
+#: Shortest ``--interval``: well above one round trip, so the table stays readable.
+MIN_INTERVAL_S = 0.01
+#: Largest ``--count``.
+MAX_COUNT = 10**9
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``monitor`` command."""
+    p = subparsers.add_parser(
+        "monitor",
+        help="live table of LA actuator status",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--ids", help="IDs to poll, e.g. 1-3,7 (default: scan the bus first)")
+    p.add_argument(
+        "--interval", type=float, default=0.2, help="seconds between refreshes (default 0.2)"
+    )
+    p.add_argument("--count", type=int, help="stop after N refreshes")
+    add_bus_options(p, default_baud=LA_BAUD)
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``motorbus monitor``; return 0 (1 if a scan found nothing to monitor).
+
+    Raises:
+        LocalProtocolError: a bad ``--ids``, ``--interval`` or ``--count``.
+    """
+    ids = parse_ids(args.ids) if args.ids is not None else None
+    check_seconds("--interval", args.interval, MIN_INTERVAL_S)
+    if args.count is not None:
+        check_int("--count", args.count, 1, MAX_COUNT)
+    try:
+        return asyncio.run(_monitor(args, ids))
+    except KeyboardInterrupt:
+        return 0  # Ctrl-C is how an endless monitor ends
+
+
+async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
+    live = LiveText(sys.stdout)
+    async with open_bus(args, [Family.LA]) as bus:
+        if ids is None:
+            ids = await scan(bus, timeout=SCAN_TIMEOUT_S)
+            if not ids:
+                print("motorbus monitor: no actuator answered a scan of 1..254", file=sys.stderr)
+                return 1
+        refreshes = 0
+        started = time.monotonic()
+        while args.count is None or refreshes < args.count:
+            if refreshes:
+                await asyncio.sleep(args.interval)
+            rows = await _poll(bus, ids)
+            refreshes += 1
+            elapsed = time.monotonic() - started
+            if args.json:
+                print_json(
+                    {
+                        "refresh": refreshes,
+                        "t": round(elapsed, 4),
+                        "statuses": [
+                            status_json(s) if isinstance(s, la.Status) else {"id": i, "error": s}
+                            for i, s in zip(ids, rows, strict=True)
+                        ],
+                    }
+                )
+                continue
+            lines = [f"refresh {refreshes}  t={elapsed:6.2f}s  bus {bus.name}", STATUS_HEADER]
+            for i, s in zip(ids, rows, strict=True):
+                lines.append(status_row(s) if isinstance(s, la.Status) else f"  {i:3d}  {s}")
+            live.show(lines)
+    return 0
+
+
+async def _poll(bus: Bus, ids: list[int]) -> list[la.Status | str]:
+    rows: list[la.Status | str] = []
+    for i in ids:
+        try:
+            rows.append(await InspireLA(bus, i).status())
+        except ReplyTimeoutError:
+            rows.append("timeout")
+    return rows

@@ -1,0 +1,349 @@
+"""``motorbus project``: program, run and read back the projects of the FF AA project stepper.
+
+Examples::
+
+    motorbus project upload examples/project.toml --port /dev/ttyUSB1
+    motorbus project run 1 --timeout 60
+    motorbus project read 1 > saved.toml      # the same TOML form upload takes
+
+A project file (TOML)::
+
+    number = 1                 # project 1..4
+    subdivision = 8            # microsteps per full step, 1..65535
+    step_angle = 1.8           # degrees (0.01 resolution; stored x100, 0.01..2.55)
+    distance_per_rev = 1       # user units per revolution, 1..16777215
+    repeat = 0                 # 0..254, or "forever"
+
+    [loop]                     # optional: run steps start..end count times in total
+    start = 1
+    end = 2
+    count = 3
+
+    [[step]]                   # 1..10 of these, in order
+    distance = 2               # user units, 0..16777215
+    direction = "forward"      # or "reverse"
+    start_hz = 100             # 0..65535
+    accel_hz = 50              # 0..65535
+    speed_rpm = 300            # 0..65535
+    output = "out1_on"         # none, out1_on..out3_on, all_on, out1_off..out3_off, all_off
+    delay_ms = 200             # 0..16777215
+    start_input = "none"       # none, in1, in2, in5
+    stop_input = "none"
+
+Keys other than these are refused, so a typo is not silently ignored.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import enum
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+from motorbus.cli.common import (
+    STEP_ANGLE_SCALE,
+    STEPPER_BAUD,
+    add_bus_options,
+    check_seconds,
+    open_bus,
+    print_json,
+    say,
+    step_angle_x100,
+)
+from motorbus.devices.project_stepper import ProjectStepper
+from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol.base import Family, check_int
+
+__all__ = [
+    "project_from_dict",
+    "project_from_toml",
+    "project_to_dict",
+    "project_to_toml",
+    "register",
+    "run",
+]
+
+#: ``repeat = "forever"`` is stored as 255 (A.4 0x8E).
+REPEAT_FOREVER_NAME = "forever"
+
+_TOP_KEYS = ("number", "subdivision", "step_angle", "distance_per_rev", "repeat", "loop", "step")
+_LOOP_KEYS = ("start", "end", "count")
+_STEP_KEYS = (
+    "distance",
+    "direction",
+    "start_hz",
+    "accel_hz",
+    "speed_rpm",
+    "output",
+    "delay_ms",
+    "start_input",
+    "stop_input",
+)
+_REQUIRED_STEP_KEYS = ("distance", "speed_rpm")
+
+E = TypeVar("E", bound=enum.IntEnum)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``project`` command and its sub-commands."""
+    parser = subparsers.add_parser(
+        "project",
+        help="program and run the FF AA project stepper",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    p = sub.add_parser("upload", help="program a project from a TOML file")
+    p.add_argument("file", metavar="FILE.toml")
+    p.add_argument("--no-verify", action="store_true", help="do not read the project back")
+    p.add_argument("--no-save", action="store_true", help="do not save it to flash")
+    _common(p)
+    p = sub.add_parser("run", help="start project N and wait for its end (EE DD)")
+    p.add_argument("number", metavar="N", type=int, help="project 1..4")
+    p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
+    _common(p)
+    for name, text in (
+        ("read", "print project N in the TOML form upload takes"),
+        ("save", "save project N to flash"),
+        ("clear", "clear project N"),
+    ):
+        p = sub.add_parser(name, help=text)
+        p.add_argument("number", metavar="N", type=int, help="project 1..4")
+        _common(p)
+    _common(sub.add_parser("stop", help="stop the running project"))
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    add_bus_options(parser, default_baud=STEPPER_BAUD)
+    parser.set_defaults(func=run)
+
+
+# -- the TOML form ---------------------------------------------------------------------
+
+
+def _unknown_keys(table: Mapping[str, Any], allowed: tuple[str, ...], where: str) -> None:
+    extra = sorted(set(table) - set(allowed))
+    if extra:
+        raise LocalProtocolError(
+            f"{where}: key {extra[0]!r} is not allowed: use {', '.join(allowed)}",
+            field=extra[0],
+        )
+
+
+def _enum_value(kind: type[E], field: str, value: object) -> E:
+    """An enum member from its lower-case name or its integer code."""
+    if isinstance(value, str):
+        try:
+            return kind[value.strip().upper()]
+        except KeyError:
+            pass
+    elif isinstance(value, int) and not isinstance(value, bool):
+        try:
+            return kind(value)
+        except ValueError:
+            pass
+    names = ", ".join(m.name.lower() for m in kind)
+    raise LocalProtocolError(
+        f"{field}={value!r} is not allowed: choose one of {names}", field=field, value=value
+    )
+
+
+def _step_from(table: object, n: int) -> ps.StepSpec:
+    where = f"step {n}"
+    if not isinstance(table, dict):
+        raise LocalProtocolError(f"{where} must be a [[step]] table", field="step")
+    _unknown_keys(table, _STEP_KEYS, where)
+    for key in _REQUIRED_STEP_KEYS:
+        if key not in table:
+            raise LocalProtocolError(f"{where}: {key} is required", field=key)
+    try:
+        return ps.StepSpec(
+            run_distance=table["distance"],
+            direction=_enum_value(
+                ps.RotationDirection, "direction", table.get("direction", "forward")
+            ),
+            start_hz=table.get("start_hz", 0),
+            accel_hz=table.get("accel_hz", 0),
+            speed_rpm=table["speed_rpm"],
+            output=_enum_value(ps.StepOutputCode, "output", table.get("output", "none")),
+            delay_ms=table.get("delay_ms", 0),
+            start_input=_enum_value(ps.GatingInput, "start_input", table.get("start_input", 0)),
+            stop_input=_enum_value(ps.GatingInput, "stop_input", table.get("stop_input", 0)),
+        )
+    except LocalProtocolError as err:
+        raise LocalProtocolError(f"{where}: {err}", field=err.field, value=err.value) from err
+
+
+def project_from_dict(data: Mapping[str, Any]) -> ps.Project:
+    """Build a :class:`~motorbus.protocol.project_stepper.Project` from the parsed TOML form.
+
+    Raises:
+        LocalProtocolError: a missing or unknown key, or a value out of range (named).
+    """
+    _unknown_keys(data, _TOP_KEYS, "project")
+    for key in ("number", "subdivision", "step_angle", "distance_per_rev", "step"):
+        if key not in data:
+            raise LocalProtocolError(f"project: {key} is required", field=key)
+    steps = data["step"]
+    if not isinstance(steps, list):
+        raise LocalProtocolError("project: step must be [[step]] tables", field="step")
+    check_int("number of steps", len(steps), 1, ps.MAX_STEPS)
+    loop = data.get("loop", {})
+    if not isinstance(loop, dict):
+        raise LocalProtocolError("project: loop must be a [loop] table", field="loop")
+    _unknown_keys(loop, _LOOP_KEYS, "loop")
+    repeat = data.get("repeat", 0)
+    if repeat == REPEAT_FOREVER_NAME:
+        repeat = ps.REPEAT_FOREVER
+    return ps.Project(
+        number=data["number"],
+        subdivision=data["subdivision"],
+        step_angle_x100=step_angle_x100("step_angle", data["step_angle"], ps.MAX_STEP_ANGLE_X100),
+        distance_per_rev=data["distance_per_rev"],
+        steps=tuple(_step_from(s, n) for n, s in enumerate(steps, start=1)),
+        loop_start=loop.get("start", 0),
+        loop_end=loop.get("end", 0),
+        loop_count=loop.get("count", 0),
+        repeat_count=repeat,
+    )
+
+
+def project_from_toml(text: str) -> ps.Project:
+    """Parse a project file's text.
+
+    Raises:
+        LocalProtocolError: not TOML, or not a valid project (the message says where).
+    """
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise LocalProtocolError(f"not valid TOML: {err}", field="file") from err
+    return project_from_dict(data)
+
+
+def project_to_dict(project: ps.Project) -> dict[str, Any]:
+    """The TOML form of ``project`` as a dict (also its ``--json`` form)."""
+    out: dict[str, Any] = {
+        "number": project.number,
+        "subdivision": project.subdivision,
+        "step_angle": project.step_angle_x100 / STEP_ANGLE_SCALE,
+        "distance_per_rev": project.distance_per_rev,
+        "repeat": (
+            REPEAT_FOREVER_NAME
+            if project.repeat_count == ps.REPEAT_FOREVER
+            else project.repeat_count
+        ),
+    }
+    if (project.loop_start, project.loop_end, project.loop_count) != (0, 0, 0):
+        out["loop"] = {
+            "start": project.loop_start,
+            "end": project.loop_end,
+            "count": project.loop_count,
+        }
+    out["step"] = [
+        {
+            "distance": s.run_distance,
+            "direction": s.direction.name.lower(),
+            "start_hz": s.start_hz,
+            "accel_hz": s.accel_hz,
+            "speed_rpm": s.speed_rpm,
+            "output": s.output.name.lower(),
+            "delay_ms": s.delay_ms,
+            "start_input": s.start_input.name.lower(),
+            "stop_input": s.stop_input.name.lower(),
+        }
+        for s in project.steps
+    ]
+    return out
+
+
+def _toml_value(value: object) -> str:
+    # Only the value types of the project form occur: str, int, float.
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    return repr(value)
+
+
+def project_to_toml(project: ps.Project) -> str:
+    """The TOML text of ``project``, in the form ``project upload`` reads back."""
+    data = project_to_dict(project)
+    lines = [f"# motorbus project {project.number}"]
+    for key, value in data.items():
+        if key not in ("loop", "step"):
+            lines.append(f"{key} = {_toml_value(value)}")
+    if "loop" in data:
+        lines += ["", "[loop]"] + [f"{k} = {_toml_value(v)}" for k, v in data["loop"].items()]
+    for step in data["step"]:
+        lines += ["", "[[step]]"] + [f"{k} = {_toml_value(v)}" for k, v in step.items()]
+    return "\n".join(lines) + "\n"
+
+
+# -- running -----------------------------------------------------------------------------
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``motorbus project ACTION``; return the exit code.
+
+    Raises:
+        LocalProtocolError: a bad file, project number or timeout (nothing is sent).
+        OSError: the file cannot be read, or the port cannot open.
+        MotorbusError: a timeout, a verify mismatch, a device error.
+    """
+    project: ps.Project | None = None
+    if args.action == "upload":
+        project = project_from_toml(Path(args.file).read_text(encoding="utf-8"))
+    elif args.action != "stop":
+        check_int("project", args.number, 1, ps.MAX_PROJECT)
+    if args.action == "run":
+        check_seconds("--timeout", args.timeout, 1e-3)
+    return asyncio.run(_run(args, project))
+
+
+async def _run(args: argparse.Namespace, project: ps.Project | None) -> int:
+    async with open_bus(args, [Family.PROJECT_STEPPER]) as bus:
+        stepper = ProjectStepper(bus)
+        action: str = args.action
+        if project is not None:
+            await stepper.upload(project, save=not args.no_save, verify=not args.no_verify)
+            done = ["uploaded"] + ([] if args.no_save else ["saved"])
+            done += [] if args.no_verify else ["verified"]
+            say(
+                args,
+                {"project": project.number, "steps": len(project.steps), "result": done},
+                f"project {project.number} ({len(project.steps)} steps) {', '.join(done)}",
+            )
+        elif action == "run":
+            try:
+                await stepper.run_project(args.number, timeout=args.timeout)
+            except asyncio.CancelledError:
+                # Ctrl-C: the motor must not keep running a project nobody watches.
+                await stepper.stop_project()
+                raise
+            say(args, {"project": args.number, "finished": True}, f"project {args.number} done")
+        elif action == "read":
+            dump = await stepper.read_project(args.number)
+            try:
+                stored = dump.to_project()
+            except LocalProtocolError as err:
+                raise MotorbusError(
+                    f"project {args.number} on the controller is not a valid project "
+                    f"(cleared?): {err}"
+                ) from err
+            if args.json:
+                print_json(project_to_dict(stored))
+            else:
+                print(project_to_toml(stored), end="")
+        elif action == "save":
+            await stepper.save_project(args.number)
+            say(args, {"project": args.number, "saved": True}, f"project {args.number} saved")
+        elif action == "clear":
+            await stepper.clear_project(args.number)
+            say(args, {"project": args.number, "cleared": True}, f"project {args.number} cleared")
+        elif action == "stop":
+            await stepper.stop_project()
+            say(args, {"stopped": True}, "project stopped")
+    return 0
