@@ -28,7 +28,8 @@ process, where it competes with the bus for the GIL).  ``--profile`` prints a cP
 the rate run.
 
 Usage: ``python benchmarks/bench_bus.py [--quick] [--n 2000] [--backend fast]
-[--loop asyncio|uvloop] [--seconds 3] [--sim process|thread] [--profile] [--out PATH]``
+[--loop asyncio|uvloop] [--seconds 3] [--sim process|thread] [--profile] [--out PATH]
+[--samples PATH]``
 """
 
 from __future__ import annotations
@@ -409,6 +410,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--profile", action="store_true", help="cProfile the rate run")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output path")
+    parser.add_argument(
+        "--samples",
+        type=Path,
+        default=None,
+        help="also write the raw samples (seconds) to this JSON file, for plots",
+    )
     args = parser.parse_args(argv)
     if args.n is None:
         args.n = 300 if args.quick else 2000
@@ -484,6 +491,19 @@ def main(argv: list[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     print(f"\nwrote {args.out}")
+    if args.samples is not None:
+        samples = {
+            "unit": "s",
+            "rtt_ours": ours,
+            "rtt_minimal_client": minimal,
+            "rtt_blocking_pyserial": blocking,
+            "timeout_lateness": lateness,
+            "timeout_timer_fire_lateness": timer_late,
+            "rate_sim_gaps": sim_gaps,
+        }
+        args.samples.parent.mkdir(parents=True, exist_ok=True)
+        args.samples.write_text(json.dumps(samples) + "\n", encoding="utf-8")
+        print(f"wrote {args.samples}")
     return 0
 
 

@@ -7,7 +7,7 @@ wake-up (a broken deadline).  Prints a table and writes ``benchmarks/results/tim
 with each method's p99 as a ratio of the ``asyncio.sleep`` baseline measured in the same
 run.
 
-Usage: ``python benchmarks/bench_timer.py [--seconds 2] [--out PATH]``
+Usage: ``python benchmarks/bench_timer.py [--seconds 2] [--out PATH] [--samples PATH]``
 """
 
 from __future__ import annotations
@@ -71,8 +71,14 @@ async def asyncio_sleep_until(deadline: float) -> None:
     await asyncio.sleep(max(0.0, deadline - time.monotonic()))
 
 
-async def run_loop(loop_name: str, seconds: float) -> list[Result]:
-    """Measure every method and period on the running loop."""
+async def run_loop(
+    loop_name: str, seconds: float, samples: list[dict[str, object]] | None = None
+) -> list[Result]:
+    """Measure every method and period on the running loop.
+
+    If ``samples`` is given, one record per run (loop, period_ms, method and the
+    lateness values in seconds) is appended to it.
+    """
     timers: list[tuple[str, Timer | None]] = [("asyncio.sleep", None), ("LoopTimer", LoopTimer())]
     if timerfd_available():
         timers.append(("TimerfdTimer", TimerfdTimer()))
@@ -82,6 +88,15 @@ async def run_loop(loop_name: str, seconds: float) -> list[Result]:
         for method, timer in timers:
             sleeper = asyncio_sleep_until if timer is None else timer.sleep_until
             values = sorted(await measure(sleeper, period, seconds))
+            if samples is not None:
+                samples.append(
+                    {
+                        "loop": loop_name,
+                        "period_ms": period * 1e3,
+                        "method": method,
+                        "lateness": values,
+                    }
+                )
             early = [v for v in values if v < 0]
             result = Result(
                 loop=loop_name,
@@ -141,14 +156,21 @@ def main(argv: list[str] | None = None) -> int:
         "--seconds", type=float, default=2.0, help="duration of each run (default 2)"
     )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output path")
+    parser.add_argument(
+        "--samples",
+        type=Path,
+        default=None,
+        help="also write every lateness value (seconds) to this JSON file, for plots",
+    )
     args = parser.parse_args(argv)
     if args.seconds <= 0:
         parser.error(f"--seconds must be positive, got {args.seconds}")
 
     results: list[Result] = []
+    samples: list[dict[str, object]] = []
     for name, factory in loop_factories():
         with asyncio.Runner(loop_factory=factory) as runner:
-            results.extend(runner.run(run_loop(name, args.seconds)))
+            results.extend(runner.run(run_loop(name, args.seconds, samples)))
     print_table(results)
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -163,6 +185,11 @@ def main(argv: list[str] | None = None) -> int:
     }
     args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     print(f"\nwrote {args.out}")
+    if args.samples is not None:
+        args.samples.parent.mkdir(parents=True, exist_ok=True)
+        text = json.dumps({"unit": "s", "runs": samples}) + "\n"
+        args.samples.write_text(text, encoding="utf-8")
+        print(f"wrote {args.samples}")
     return 0
 
 

@@ -1,0 +1,299 @@
+"""The benchmark harness's pure parts: plan, results.json, goals, report.md, plots.
+
+No benchmark runs here (timing belongs in benchmarks/, not in tests): the harness gets
+small fake reports shaped like each script's JSON.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import report_plots  # noqa: E402
+import run  # noqa: E402
+
+DATE = "2026-01-02T03:04:05+00:00"
+MACHINE = {"platform": "Linux-test", "python": "3.11.7", "cpus": 2, "load_avg": [0.5, 0.4, 0.3]}
+
+
+def bus_report(rtt_us: float, backend: str = "fast", loop: str = "asyncio") -> dict[str, Any]:
+    return {
+        "rtt_p50_us": rtt_us,
+        "rtt_p99_us": 2 * rtt_us,
+        "rtt_minimal_client_p50_us": 800.0,
+        "rtt_minimal_client_p99_us": 1200.0,
+        "rtt_blocking_pyserial_p50_us": 640.0,
+        "rtt_blocking_pyserial_p99_us": 1000.0,
+        "rtt_ratio_vs_minimal": rtt_us / 800.0,
+        "commands_per_s": 950.0,
+        "min_gap_us": 1001.0,
+        "gaps_under_1000us": 0,
+        "timeout_late_p99_us": 200.0,
+        "timeout_early_count": 0,
+        "n": 300,
+        "backend": backend,
+        "loop": loop,
+        "timer": "TimerfdTimer",
+    }
+
+
+def fake_reports() -> dict[str, Any]:
+    return {
+        "reassembler": {
+            "frames_per_s": 1_200_000,
+            "frames_per_s_garbage1": 600_000,
+            "decoded_per_s": 500_000,
+            "decoded_per_s_garbage1": 300_000,
+            "pymodbus_decoded_per_s": 100_000,
+            "ratio_vs_pymodbus": 5.0,
+            "goals": {"every_undamaged_frame_found": True},
+            "pymodbus": {"version": "3.16.1"},
+        },
+        "bus-fast-asyncio": bus_report(1000.0),
+        "bus-serialx-asyncio": bus_report(1200.0, backend="serialx"),
+        "bus-fast-uvloop": bus_report(900.0, loop="uvloop"),
+        "stream": {
+            "tick_jitter_p50_us": 40,
+            "tick_jitter_p99_us": 250,
+            "tick_jitter_max_us": 2500,
+            "missed_ticks": 0,
+            "drift_ppm": -150.0,
+            "naive_tick_jitter_p99_us": 1000,
+            "naive_tick_jitter_max_us": 5000,
+            "scaling": {
+                "buses": [1, 4, 16],
+                "cpu_percent": [3.0, 10.0, float("nan")],
+                "tick_jitter_p99_us": [100, 200, 400],
+            },
+            "scaling_seconds": 4.0,
+            "backend": "fast",
+            "timer": "timerfd",
+            "loop": "asyncio default",
+        },
+        "timer": {
+            "seconds_per_run": 1.0,
+            "timerfd": True,
+            "results": [
+                {"loop": "asyncio", "period_ms": 1.0, "method": "asyncio.sleep", "p99_us": 900.0},
+                {"loop": "asyncio", "period_ms": 1.0, "method": "TimerfdTimer", "p99_us": 90.0},
+            ],
+        },
+    }
+
+
+RUNS = {
+    "bus-pyserial-asyncio-asyncio": {
+        "command": ["python", "bench_bus.py"],
+        "returncode": 1,
+        "seconds": 1.0,
+        "load_avg_1min": 0.5,
+        "log": "logs/bus-pyserial-asyncio-asyncio.log",
+    }
+}
+
+
+def build(reports: dict[str, Any] | None = None) -> dict[str, Any]:
+    return run.build_results(
+        fake_reports() if reports is None else reports,
+        quick=True,
+        date=DATE,
+        machine=MACHINE,
+        runs=RUNS,
+        backends=["fast", "serialx", "pyserial-asyncio"],
+        loops=["asyncio", "uvloop"],
+        duration_s=12.34,
+    )
+
+
+def test_plan_runs_every_benchmark_once_with_quick() -> None:
+    steps = run.plan(True, ["fast", "serialx"], ["asyncio", "uvloop"])
+    assert [s.name for s in steps] == [
+        "reassembler",
+        "bus-fast-asyncio",
+        "bus-serialx-asyncio",
+        "bus-fast-uvloop",
+        "stream",
+        "timer",
+    ]
+    assert all("--quick" in s.args for s in steps if s.script != "bench_timer.py")
+    assert steps[-1].args == ("--seconds", "1")
+    cmd = steps[3].command(Path("/x/raw"))
+    assert cmd[2:] == [
+        "--quick",
+        "--backend",
+        "fast",
+        "--loop",
+        "uvloop",
+        "--out",
+        "/x/raw/bus-fast-uvloop.json",
+        "--samples",
+        "/x/raw/bus-fast-uvloop.samples.json",
+    ]
+    assert "--quick" not in run.plan(False, ["fast"], ["asyncio"])[0].args
+
+
+def test_results_have_every_documented_key() -> None:
+    r = build()
+    for key in (
+        "reassembler.frames_per_s",
+        "reassembler.decoded_per_s",
+        "reassembler.pymodbus_decoded_per_s",
+        "bus.rtt_p50_us",
+        "bus.rtt_minimal_client_p50_us",
+        "bus.rtt_blocking_pyserial_p50_us",
+        "bus.commands_per_s",
+        "bus.min_gap_us",
+        "bus.timeout_late_p99_us",
+        "bus.timeout_early_count",
+        "stream.tick_jitter_p99_us",
+        "stream.tick_jitter_max_us",
+        "stream.missed_ticks",
+        "stream.naive_tick_jitter_p99_us",
+        "scaling.buses",
+        "scaling.cpu_percent",
+        "scaling.tick_jitter_p99_us",
+        "machine.platform",
+        "machine.python",
+        "machine.cpus",
+    ):
+        assert run.lookup(r, key) is not None, key
+    assert (r["backend"], r["event_loop"], r["timer_source"]) == ("fast", "asyncio", "TimerfdTimer")
+    assert r["bus"]["backends"]["serialx"]["rtt_p50_us"] == 1200.0
+    assert r["bus"]["backends"]["pyserial-asyncio"]["status"] == "failed"
+    assert r["bus"]["loops"]["uvloop"]["rtt_p50_us"] == 900.0
+    assert r["scaling"]["cpu_percent"] == [3.0, 10.0, None]  # NaN is not JSON
+    assert r["errors"] == [
+        "bus-pyserial-asyncio-asyncio: exit status 1 (timeout if null), "
+        "see logs/bus-pyserial-asyncio-asyncio.log"
+    ]
+    json.dumps(r, allow_nan=False)
+
+
+def test_missing_reports_give_nulls_not_missing_keys() -> None:
+    r = build({})
+    assert r["bus"]["rtt_p50_us"] is None
+    assert r["scaling"]["buses"] == []
+    assert r["bus"]["backends"]["fast"]["status"] == "failed"
+    assert all(g["met"] is None for g in r["goals"].values())
+    assert "n/a" in run.render_report(r)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "met"),
+    [
+        ("reassembler.framing_ge_1M_per_s", 1_200_000, True),
+        ("reassembler.decoded_ge_5x_pymodbus", 5.0, True),  # the bound itself is met
+        ("reassembler.every_undamaged_frame_found", True, True),
+        ("bus.rtt_le_1.3x_minimal_client", 1.25, True),
+        ("bus.commands_ge_970_per_s", 950.0, False),
+        ("bus.timeout_late_p99_le_150us", 200.0, False),
+        ("bus.timeout_never_early", 0, True),
+        ("stream.p99_le_300us", 250, True),
+        ("stream.max_le_2ms", 2500, False),
+        ("stream.no_drift", -150.0, False),  # |drift| counts, not its sign
+        ("scaling.32_buses_cpu_lt_50pct", None, None),  # 32 buses not run in quick mode
+    ],
+)
+def test_goals(name: str, value: Any, met: bool | None) -> None:
+    goal = build()["goals"][name]
+    assert (goal["value"], goal["met"]) == (value, met)
+
+
+def test_scaling_goal_reads_the_32_bus_entry() -> None:
+    reports = fake_reports()
+    reports["stream"]["scaling"] = {
+        "buses": [1, 32],
+        "cpu_percent": [2.0, 49.9],
+        "tick_jitter_p99_us": [100, 1001],
+    }
+    goals = build(reports)["goals"]
+    assert goals["scaling.32_buses_cpu_lt_50pct"]["met"] is True
+    assert goals["scaling.32_buses_p99_le_1ms"]["value"] == 1001
+    assert goals["scaling.32_buses_p99_le_1ms"]["met"] is False
+
+
+def test_report_shows_ratios_goals_and_machine() -> None:
+    text = run.render_report(build())
+    assert text.startswith("# motorbus benchmark report\n")
+    assert "Linux-test, 2 CPUs, Python 3.11.7" in text
+    assert DATE in text
+    # decoded 500k against pymodbus 100k
+    assert (
+        "| reassembler framing + decode_status | 500,000 frames/s | pymodbus RTU decode: "
+        "100,000 frames/s | 5.00 | >= 5 | met |"
+    ) in text
+    # RTT against the minimal client (1000 / 800) and the blocking one (1000 / 640)
+    assert "| minimal asyncio client p50: 800 µs | 1.25 | <= 1.3 | met |" in text
+    assert "blocking pyserial p50: 640 µs | 1.56 | - | - |" in text
+    assert "| stream tick jitter max | 2,500 µs | naive sleep loop max: 5,000 µs | 0.50 |" in text
+    assert (
+        "- **NOT MET**: `stream.max_le_2ms`: stream.tick_jitter_max_us = 2,500 (goal <= 2,000)"
+    ) in text
+    assert "- not measured: `scaling.32_buses_cpu_lt_50pct`" in text
+    states = ("- met: ", "- **NOT MET**: ", "- not measured: ")
+    goal_lines = [line for line in text.splitlines() if line.startswith(states)]
+    assert len(goal_lines) == len(run.GOALS)
+    # serialx RTT 1200 vs its minimal client 800, and vs fast 1000
+    assert "| serialx | ok | TimerfdTimer | 1,200 µs | 2,400 µs | 800 µs | 1.50 | 1.20 |" in text
+    assert "| 16 | n/a | n/a | 400 µs | n/a | n/a |" in text
+
+
+@pytest.mark.parametrize(
+    ("value", "unit", "text"),
+    [
+        (None, "µs", "n/a"),
+        (math.nan, "", "n/a"),
+        (True, "", "yes"),
+        (1234.6, "µs", "1,235 µs"),
+        (1.2345, "", "1.23"),
+        (3, "", "3"),
+    ],
+)
+def test_fmt(value: Any, unit: str, text: str) -> None:
+    assert run.fmt(value, unit) == text
+
+
+def test_plots_are_written(tmp_path: Path) -> None:
+    results = build()
+    samples = {
+        "bus-fast-asyncio": {
+            "rtt_ours": [0.001, 0.0011, 0.0009],
+            "rtt_minimal_client": [0.0008, 0.0009],
+            "rtt_blocking_pyserial": [0.0007],
+        },
+        "stream": {"tick_offsets_motorbus": [0.0, 5e-5, 2e-4], "tick_offsets_naive": [0.0, 0.02]},
+        "timer": {
+            "runs": [
+                {
+                    "loop": "asyncio",
+                    "period_ms": 1.0,
+                    "method": "asyncio.sleep",
+                    "lateness": [5e-4],
+                },
+                {
+                    "loop": "uvloop",
+                    "period_ms": 10.0,
+                    "method": "TimerfdTimer",
+                    "lateness": [-1e-5],
+                },
+            ]
+        },
+    }
+    plots, skipped = report_plots.make_plots(results, samples, tmp_path)
+    assert plots == report_plots.PLOT_FILES
+    assert skipped == {}
+    for name in plots.values():
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # Without samples only the scaling plot (from results.json) is drawn; stale files go.
+    plots, skipped = report_plots.make_plots(results, {}, tmp_path)
+    assert plots == {"scaling": "scaling.png"}
+    assert set(skipped) == {"tick_jitter", "rtt_cdf", "timer_lateness"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.png"]
