@@ -452,3 +452,17 @@ async def test_unknown_family_is_refused_before_sending() -> None:
         with pytest.raises(ValueError, match="quad_stepper"):
             await bus.request(q.StopAll())
         assert bus.stats.requests == 0 and trace.records == []
+
+
+async def test_open_checks_the_usb_adapter_latency_timer() -> None:
+    """A transport that knows its adapter's latency timer is asked about the deadline slack."""
+    from motorbus.bus.bus import Bus
+    from motorbus.transport.memory import memory_pair
+
+    host, _peer = memory_pair(baudrate=921600)
+    asked: list[float] = []
+    host.warn_if_latency_exceeds = asked.append  # type: ignore[attr-defined]
+    bus = Bus(host, families=[Family.LA], host_margin=0.002)
+    async with bus:
+        pass
+    assert asked == [pytest.approx(800e-6 + 0.002)]

@@ -261,7 +261,20 @@ class Bus:
         self._closing = False
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
+        self._check_adapter_latency()
         self._publish_state("open")
+
+    def _check_adapter_latency(self) -> None:
+        """Warn if a USB adapter's latency timer leaves no deadline of this bus a chance.
+
+        A reply arrives at the earliest after the device turnaround; what the adapter
+        may hold it beyond that must fit in the turnaround plus the host margin.
+        """
+        warn = getattr(self.transport, "warn_if_latency_exceeds", None)
+        if warn is None:
+            return
+        slack = min(self.config.turnaround[f] for f in self.families) + self.config.host_margin
+        warn(slack)
 
     async def close(self) -> None:
         """Fail what is queued, stop reconnecting and close the port; idempotent."""
