@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.errors import ReplyTimeoutError
+from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.protocol.base import check_int
+from motorbus.protocol.base import check_choice, check_int
 
 __all__ = ["InspireLA", "scan"]
 
@@ -165,8 +166,8 @@ class InspireLA:
             over_c: over-temperature limit, 25.0..80.0 degC.
             recovery_c: recovery temperature, 20.0..75.0 degC, at least 5 degC below.
         """
-        over = round(over_c * 10)
-        recovery = round(recovery_c * 10)
+        over = _tenths("over_c", over_c)
+        recovery = _tenths("recovery_c", recovery_c)
         # Validate before reading anything back, so bad input sends nothing.
         la.temperature_limit_writes(self.id, over, recovery, over, recovery)
         current_over = await self.read(la.Register.OVER_TEMPERATURE_LIMIT)
@@ -182,6 +183,7 @@ class InspireLA:
 
     async def set_baud_code(self, code: la.BaudCode | int) -> None:
         """Store a new baud code; it takes effect only after ``save`` and a power cycle (A2-13)."""
+        check_choice("code", code, [int(c) for c in la.BaudCode], "BaudCode")
         await self.write(la.Register.BAUD, int(code))
 
     async def change_id(self, new_id: int, *, save: bool = False) -> InspireLA:
@@ -196,6 +198,21 @@ class InspireLA:
         if save:
             await moved.save()
         return moved
+
+
+def _tenths(field: str, degrees: object) -> int:
+    """A temperature in degC as the table's 0.1 degC integer; refuses non-numbers and NaN."""
+    if (
+        isinstance(degrees, bool)
+        or not isinstance(degrees, int | float)
+        or not math.isfinite(degrees)
+    ):
+        raise LocalProtocolError(
+            f"{field} must be a temperature in degC (a finite number), got {degrees!r}",
+            field=field,
+            value=degrees,
+        )
+    return round(degrees * 10)
 
 
 async def scan(

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import asyncio
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus, Priority, check_flag, check_timeout
 from motorbus.bus.events import ProjectFinished
-from motorbus.errors import MotorbusError, RemoteProtocolError
+from motorbus.errors import LocalProtocolError, MotorbusError, RemoteProtocolError
 from motorbus.protocol import project_stepper as ps
 
 __all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
@@ -62,6 +62,12 @@ class ProjectStepper:
             RemoteProtocolError: a 0x7E/0x8E reply names another project than the one
                 selected (A0-03).
         """
+        if not isinstance(project, ps.Project):
+            raise LocalProtocolError(
+                f"project must be a project_stepper.Project, got {project!r}", field="project"
+            )
+        check_flag("save", save)
+        check_flag("verify", verify)
         commands = project.commands(self.motor)
         for cmd in commands:
             reply = await self.bus.request(cmd)
@@ -79,10 +85,17 @@ class ProjectStepper:
         if not verify:
             return None
         dump = await self.read_project(project.number)
-        if dump.to_project() != project:
+        try:
+            read_back = dump.to_project()
+        except LocalProtocolError as err:
+            # The dump has no checksum: a corrupted byte can hold a field no project can
+            # have.  That is the device's (or the line's) fault, not the caller's.
             raise ProjectVerifyError(
-                f"project {project.number} read back differs: sent {project}, read "
-                f"{dump.to_project()}"
+                f"project {project.number} read back is not a valid project: {err}"
+            ) from err
+        if read_back != project:
+            raise ProjectVerifyError(
+                f"project {project.number} read back differs: sent {project}, read {read_back}"
             )
         return dump
 
@@ -113,6 +126,8 @@ class ProjectStepper:
             ReplyTimeoutError: no ``EE DD`` within ``timeout`` seconds (default 600).
             ProjectStopped: ``stop_project`` was called meanwhile.
         """
+        if timeout is not None:
+            check_timeout("timeout", timeout)
         self._stopped.clear()
         with self.bus.events.subscribe(ProjectFinished) as sub:
             await self.bus.request(ps.StartProject(number))
@@ -140,6 +155,7 @@ class ProjectStepper:
 
     async def jog(self, *, forward: bool = True) -> None:
         """Jog continuously (speed of project 1 step 1, A0-12) until ``stop``."""
+        check_flag("forward", forward)
         cmd = ps.JogForward(motor=self.motor) if forward else ps.JogReverse(motor=self.motor)
         await self.bus.request(cmd)
 
@@ -157,12 +173,13 @@ class ProjectStepper:
 
     async def set_stop_mode(self, mode: ps.StopBehavior | int) -> None:
         """0 = decelerate, 1 = stop immediately."""
-        await self.bus.request(ps.StopMode(ps.StopBehavior(mode), motor=self.motor))
+        # StopMode validates and converts the mode (an int or the enum).
+        await self.bus.request(ps.StopMode(mode, motor=self.motor))  # type: ignore[arg-type]
 
     async def set_output(self, port: ps.OutputPort | int, active: bool) -> None:
         """Switch an output: port 1..3 = OUTn, 4 = all three, 5 = LED1 and LED2."""
-        level = ps.OutputLevel.ACTIVE if active else ps.OutputLevel.INACTIVE
-        await self.bus.request(ps.SetOutput(ps.OutputPort(port), level))
+        level = ps.OutputLevel.ACTIVE if check_flag("active", active) else ps.OutputLevel.INACTIVE
+        await self.bus.request(ps.SetOutput(port, level))  # type: ignore[arg-type]
 
     async def read_input(self, number: int) -> bool:
         """True if input IN``number`` (1..5) is active."""

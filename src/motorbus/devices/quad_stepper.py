@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus, Priority, check_flag, check_timeout
 from motorbus.bus.events import QuadDone
 from motorbus.protocol import quad_stepper as q
 
@@ -62,7 +62,8 @@ class QuadStepper:
         commands = [
             q.MotorSetup(motor, subdivision, step_angle_x100),
             q.RunPulses(motor, pulses),
-            q.DirectionAndStartFrequency(motor, q.RotationDirection(direction), start_hz),
+            # The command validates and converts the direction (an int or the enum).
+            q.DirectionAndStartFrequency(motor, direction, start_hz),  # type: ignore[arg-type]
             q.AccelAndSpeed(motor, accel_hz, speed_rpm),
         ]
         for cmd in commands:
@@ -76,6 +77,9 @@ class QuadStepper:
                 (default ``DEFAULT_DONE_TIMEOUT_S``).
         """
         cmd = q.Run(motor)
+        check_flag("wait", wait)
+        if timeout is not None:
+            check_timeout("timeout", timeout)
         if not wait:
             await self.bus.request(cmd)
             return
@@ -107,6 +111,8 @@ class QuadStepper:
     async def led(self, led: int, on: bool, *, wait: bool = True, timeout: float = 1.0) -> None:
         """Switch LED ``led`` (1..4, 5 = all); with ``wait``, return after its done reply."""
         cmd = q.SetLed(led, on)
+        check_flag("wait", wait)
+        check_timeout("timeout", timeout)
         if not wait:
             await self.bus.request(cmd)
             return

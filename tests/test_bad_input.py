@@ -1,0 +1,491 @@
+"""Bad input everywhere: every public entry point refuses it before a byte is written.
+
+Each case calls one constructor or method with one argument replaced by an out-of-range,
+wrong-typed (str, float, None, bool) or malformed value.  It must raise
+``LocalProtocolError`` (a ``ValueError``) whose message names the field and shows the
+value, and the bus and the simulated devices must have seen nothing.
+
+The cases are generated from tables: one valid call per entry point, and per argument
+the values that must be refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.manager import BusManager
+from motorbus.devices.la import InspireLA, scan
+from motorbus.devices.project_stepper import ProjectStepper
+from motorbus.devices.quad_stepper import QuadStepper
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol import la
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
+from motorbus.protocol.base import Command
+from motorbus.sim.la import LAModel
+from motorbus.sim.model import DeviceModel
+from motorbus.sim.project_stepper import ProjectStepperModel
+from motorbus.sim.quad_stepper import QuadStepperModel
+from motorbus.streams import Streamer
+from motorbus.transport.memory import memory_pair
+from tests.conftest import sim_bus
+
+#: Wrong types for an integer (or enum) argument.  ``True`` is refused: it is not a number.
+WRONG_INT = ("1", 1.5, None, True)
+#: Wrong types for a flag: truthy text or None must never pick a command.
+WRONG_FLAG = ("yes", 1.5, None, 0)
+#: Wrong values for a duration in seconds that may be left out (None is its default).
+WRONG_SECONDS = ("1", True, float("nan"), float("inf"), -1.0)
+STEPPER_BAUD = 115200
+
+# -- protocol command constructors ------------------------------------------------------------
+
+#: One valid call per command, the extra out-of-range values per field.  Every field of
+#: every command class is listed (checked below), so a new field cannot be forgotten.
+COMMANDS: dict[type[Any], tuple[dict[str, Any], dict[str, tuple[Any, ...]]]] = {
+    la.Control: (
+        {"id": 1, "action": la.ControlAction.QUERY_STATUS},
+        {"id": (0, 256), "action": (99, -1)},
+    ),
+    la.MoveTo: ({"id": 1, "position": 5, "reply": True}, {"id": (0, 256), "position": (-1, 2001)}),
+    la.Follow: ({"id": 1, "position": 5, "reply": True}, {"id": (0, 256), "position": (-1, 2001)}),
+    la.ReadRegister: (
+        {"id": 1, "register": la.Register.TARGET},
+        {"id": (0, 255), "register": (55, "TARGET")},
+    ),
+    la.WriteRegister: (
+        {"id": 1, "register": la.Register.OVER_CURRENT_LIMIT, "value": 500},
+        {"id": (0, 256), "register": (32,), "value": (299, 1501)},
+    ),
+    la.ReadTable: ({"id": 1, "index": 0, "count": 2}, {"id": (0, 255), "index": (-1, 255)}),
+    la.WriteTable: (
+        {"id": 1, "index": 0, "data": b"\x01"},
+        {"id": (0, 256), "index": (-1, 255), "data": (b"", bytes(254), "ab", None, 5)},
+    ),
+    la.Broadcast: (
+        {"mode": la.BroadcastMode.FOLLOW, "entries": ((1, 5),)},
+        {
+            "mode": (0xF1, -1),
+            "entries": (
+                (),
+                ((1, 5), (1, 6)),
+                ((0, 5),),
+                ((1, 2001),),
+                tuple((i, 1) for i in range(1, 17)),
+                None,
+                "x",
+            ),
+        },
+    ),
+    ps.AccelAndSpeed: (
+        {"step": 1, "accel_hz": 1, "speed_rpm": 1, "motor": 3},
+        {"step": (0, 11), "accel_hz": (-1, 65536), "speed_rpm": (-1, 65536), "motor": (0,)},
+    ),
+    ps.ClearProject: ({"project": 1}, {"project": (0, 5)}),
+    ps.DirectionAndStartFrequency: (
+        {"step": 1, "direction": ps.RotationDirection.FORWARD, "start_hz": 1, "motor": 3},
+        {"step": (0, 11), "direction": (2, -1), "start_hz": (-1, 65536), "motor": (0,)},
+    ),
+    ps.DistancePerRev: ({"value": 1, "motor": 3}, {"value": (0, 2**24), "motor": (0,)}),
+    ps.Home: ({"motor": 3}, {"motor": (0, 256)}),
+    ps.JogForward: ({"motor": 3}, {"motor": (0, 256)}),
+    ps.JogReverse: ({"motor": 3}, {"motor": (0, 256)}),
+    ps.ManualStop: ({"motor": 3}, {"motor": (0, 256)}),
+    ps.SingleRun: ({"motor": 3}, {"motor": (0, 256)}),
+    ps.MotorSetup: (
+        {"subdivision": 1, "step_angle_x100": 180, "motor": 3},
+        {"subdivision": (0, 65536), "step_angle_x100": (0, 256), "motor": (0,)},
+    ),
+    ps.ReadInput: ({"input_number": 1}, {"input_number": (0, 6)}),
+    ps.ReadProject: ({"project": 1}, {"project": (0, 5)}),
+    ps.RepeatCount: ({"count": 1}, {"count": (-1, 256)}),
+    ps.RunDistance: (
+        {"step": 1, "distance": 1, "motor": 3},
+        {"step": (0, 11), "distance": (-1, 2**24), "motor": (0,)},
+    ),
+    ps.SaveProject: ({"project": 1}, {"project": (0, 5)}),
+    ps.SelectProject: ({"project": 1, "total_steps": 1}, {"project": (0, 5), "total_steps": (11,)}),
+    ps.SetMode4: ({"value": 1}, {"value": (-1, 3)}),
+    ps.SetOutput: (
+        {"port": ps.OutputPort(1), "level": ps.OutputLevel(1)},
+        {"port": (0, 6), "level": (2, -1)},
+    ),
+    ps.SetPowerOnHoming: ({"enabled": True}, {"enabled": ("yes", None, 2)}),
+    ps.StartInput: (
+        {"step": 1, "input_number": ps.GatingInput(1), "motor": 3},
+        {"step": (0, 11), "input_number": (99, -1), "motor": (0,)},
+    ),
+    ps.StopInput: (
+        {"step": 1, "input_number": ps.GatingInput(1), "motor": 3},
+        {"step": (0, 11), "input_number": (99, -1), "motor": (0,)},
+    ),
+    ps.StartProject: ({"project": 1}, {"project": (0, 5)}),
+    ps.StepDelay: (
+        {"step": 1, "delay_ms": 1, "motor": 3},
+        {"step": (0, 11), "delay_ms": (-1, 2**24), "motor": (0,)},
+    ),
+    ps.StepLoop: (
+        {"start": 1, "end": 2, "count": 1},
+        {"start": (-1, 11), "end": (-1, 11), "count": (-1, 256)},
+    ),
+    ps.StepOutput: (
+        {"step": 1, "code": ps.StepOutputCode(0), "motor": 3},
+        {"step": (0, 11), "code": (99, -1), "motor": (0,)},
+    ),
+    ps.StopMode: ({"mode": ps.StopBehavior(0), "motor": 3}, {"mode": (2, -1), "motor": (0,)}),
+    q.AccelAndSpeed: (
+        {"motor": 1, "accel_hz": 1, "speed_rpm": 1},
+        {"motor": (0, 5), "accel_hz": (-1, 65536), "speed_rpm": (-1, 65536)},
+    ),
+    q.DirectionAndStartFrequency: (
+        {"motor": 1, "direction": q.RotationDirection(0), "start_hz": 1},
+        {"motor": (0, 5), "direction": (2, -1), "start_hz": (-1, 65536)},
+    ),
+    q.Home: ({"motor": 1, "stop_input": 0}, {"motor": (0, 5), "stop_input": (-1, 14)}),
+    q.MotorSetup: (
+        {"motor": 1, "subdivision": 1, "step_angle_x100": 180},
+        {"motor": (0, 5), "subdivision": (0, 65536), "step_angle_x100": (0, 256)},
+    ),
+    q.Run: ({"motor": 1}, {"motor": (0, 5)}),
+    q.RunPulses: ({"motor": 1, "pulses": 1}, {"motor": (0, 5), "pulses": (-1, 2**24)}),
+    q.SetLed: ({"led": 1, "on": True}, {"led": (0, 6), "on": ("yes", None, 1)}),
+    q.Stop: ({"motor": 1}, {"motor": (0, 5)}),
+}
+
+#: The message of a refused register value names the register, not "value".
+FIELD_ALIASES = {"value": ("over_current_limit",), "entries": ("id", "position")}
+
+
+def _wrong_types(valid: Any) -> tuple[Any, ...]:
+    return WRONG_FLAG if isinstance(valid, bool) else WRONG_INT
+
+
+def _constructor_cases() -> list[Any]:
+    cases = []
+    for cls, (valid, extra) in COMMANDS.items():
+        for name in valid:
+            wrong = () if name in ("data", "entries") else _wrong_types(valid[name])
+            for bad in (*wrong, *extra.get(name, ())):
+                cases.append(
+                    pytest.param(
+                        cls,
+                        valid,
+                        name,
+                        bad,
+                        id=f"{cls.__module__[18:]}.{cls.__name__}-{name}={bad!r}",
+                    )
+                )
+    return cases
+
+
+def test_every_command_class_and_field_is_in_the_table() -> None:
+    for module in (la, ps, q):
+        for name in module.__all__:
+            obj = getattr(module, name)
+            if isinstance(obj, type) and issubclass(obj, Command) and dataclasses.is_dataclass(obj):
+                fields = {f.name for f in dataclasses.fields(obj)}
+                if not fields:
+                    continue  # StopAll, RunAll, Save, StopProject: nothing to get wrong
+                assert obj in COMMANDS, f"{module.__name__}.{name} has no bad-input row"
+                assert set(COMMANDS[obj][0]) == fields, name
+
+
+@pytest.mark.parametrize(("cls", "valid", "name", "bad"), _constructor_cases())
+def test_command_constructor_refuses(
+    cls: type[Any], valid: dict[str, Any], name: str, bad: Any
+) -> None:
+    cls(**valid)  # the baseline call is fine
+    with pytest.raises(LocalProtocolError) as info:
+        cls(**{**valid, name: bad})
+    assert isinstance(info.value, ValueError)
+    message = str(info.value)
+    names = (name, *FIELD_ALIASES.get(name, ()))
+    assert any(n in message for n in names) or info.value.field in names, message
+    if name not in ("entries", "data"):
+        assert repr(bad) in message or str(bad) in message, message
+
+
+# -- device methods, the streamer, the bus ----------------------------------------------------
+
+Call = Callable[[Bus, Any], Awaitable[object]]
+
+
+async def _sync(value: object) -> object:
+    return value
+
+
+def _la_calls() -> dict[str, tuple[Call, tuple[Any, ...]]]:
+    def dev(bus: Bus) -> InspireLA:
+        return InspireLA(bus, 1)
+
+    return {
+        "InspireLA(id)": (lambda b, v: _sync(InspireLA(b, v)), (*WRONG_INT, 0, 255)),
+        "move_to(position)": (lambda b, v: dev(b).move_to(v), (*WRONG_INT, -1, 2001)),
+        "move_to(reply)": (lambda b, v: dev(b).move_to(5, reply=v), WRONG_FLAG),
+        "follow(position)": (lambda b, v: dev(b).follow(v), (*WRONG_INT, -1, 2001)),
+        "follow(reply)": (lambda b, v: dev(b).follow(5, reply=v), WRONG_FLAG),
+        "read(register)": (lambda b, v: dev(b).read(v), (*WRONG_INT, 55, "TARGET")),
+        "write(register)": (lambda b, v: dev(b).write(v, 500), (*WRONG_INT, 32)),
+        "write(value)": (
+            lambda b, v: dev(b).write(la.Register.OVER_CURRENT_LIMIT, v),
+            (*WRONG_INT, 299, 1501),
+        ),
+        "read_table(index)": (lambda b, v: dev(b).read_table(v, 1), (*WRONG_INT, -1, 255)),
+        "read_table(count)": (lambda b, v: dev(b).read_table(0, v), (*WRONG_INT, 0, 254)),
+        "write_table(index)": (lambda b, v: dev(b).write_table(v, b"\x01"), (*WRONG_INT, -1)),
+        "write_table(data)": (lambda b, v: dev(b).write_table(0, v), (b"", "ab", None, 3)),
+        "set_over_current_limit": (
+            lambda b, v: dev(b).set_over_current_limit(v),
+            (*WRONG_INT, 299, 1501),
+        ),
+        "set_temperature_limits(over_c)": (
+            lambda b, v: dev(b).set_temperature_limits(v, 30.0),
+            ("1", None, True, float("nan"), 24.0, 81.0),
+        ),
+        "set_temperature_limits(recovery_c)": (
+            lambda b, v: dev(b).set_temperature_limits(70.0, v),
+            ("1", None, True, float("nan"), 19.0, 66.0),
+        ),
+        "set_baud_code": (lambda b, v: dev(b).set_baud_code(v), (*WRONG_INT, 4, -1)),
+        "change_id": (lambda b, v: dev(b).change_id(v), (*WRONG_INT, 0, 255)),
+        "scan(ids)": (lambda b, v: scan(b, [v]), (*WRONG_INT, 0, 255)),
+        "scan(timeout)": (lambda b, v: scan(b, [1], timeout=v), WRONG_SECONDS),
+        "follow(actuators)": (
+            lambda b, v: _sync(Streamer(b).follow(v, [5])),
+            ("1", 1.5, None, True, [], ["x"]),
+        ),
+        "follow(targets)": (
+            lambda b, v: _sync(Streamer(b).follow(dev(b), v)),
+            ("1500", None, 1.5, b"\x01"),
+        ),
+        "follow(period)": (
+            lambda b, v: _sync(Streamer(b).follow(dev(b), [5], period=v)),
+            ("1", None, True, 0.009, 0.051, float("nan")),
+        ),
+        "follow(feedback)": (
+            lambda b, v: _sync(Streamer(b).follow(dev(b), [5], feedback=v)),
+            WRONG_FLAG,
+        ),
+        "follow(poll_status)": (
+            lambda b, v: _sync(Streamer(b).follow(dev(b), [5], poll_status=v)),
+            WRONG_FLAG,
+        ),
+        "follow(safe_action)": (
+            lambda b, v: _sync(Streamer(b).follow(dev(b), [5], safe_action=v)),
+            ("stop", None, 1),
+        ),
+        "request(cmd)": (lambda b, v: b.request(v), ("55 AA", None, b"\x55\xaa", q.StopAll())),
+        "request(timeout)": (lambda b, v: b.request(la.MoveTo(1, 5), timeout=v), WRONG_SECONDS),
+        "request(retries)": (
+            lambda b, v: b.request(la.Control(1, la.ControlAction.QUERY_STATUS), retries=v),
+            ("1", 1.5, True, -1, 11),
+        ),
+        "request(priority)": (
+            lambda b, v: b.request(la.MoveTo(1, 5), priority=v),
+            ("HIGH", 1.5, True, 7),
+        ),
+    }
+
+
+def _quad_calls() -> dict[str, tuple[Call, tuple[Any, ...]]]:
+    good = {
+        "motor": 1,
+        "subdivision": 1,
+        "step_angle_x100": 180,
+        "pulses": 1,
+        "direction": 0,
+        "start_hz": 1,
+        "accel_hz": 1,
+        "speed_rpm": 1,
+    }
+    calls: dict[str, tuple[Call, tuple[Any, ...]]] = {}
+    for name, extra in {
+        "motor": (0, 5),
+        "subdivision": (0, 65536),
+        "step_angle_x100": (0, 256),
+        "pulses": (-1, 2**24),
+        "direction": (2, -1),
+        "start_hz": (-1, 65536),
+        "accel_hz": (-1, 65536),
+        "speed_rpm": (-1, 65536),
+    }.items():
+        calls[f"configure({name})"] = (
+            lambda b, v, name=name: QuadStepper(b).configure(**{**good, name: v}),  # type: ignore[misc]
+            (*WRONG_INT, *extra),
+        )
+    calls.update(
+        {
+            "run(motor)": (lambda b, v: QuadStepper(b).run(v), (*WRONG_INT, 0, 5)),
+            "run(wait)": (lambda b, v: QuadStepper(b).run(1, wait=v), WRONG_FLAG),
+            "run(timeout)": (lambda b, v: QuadStepper(b).run(1, timeout=v), WRONG_SECONDS),
+            "stop(motor)": (lambda b, v: QuadStepper(b).stop(v), (*WRONG_INT, 0, 5)),
+            "home(motor)": (lambda b, v: QuadStepper(b).home(v, 1), (*WRONG_INT, 0, 5)),
+            "home(stop_input)": (lambda b, v: QuadStepper(b).home(1, v), (*WRONG_INT, -1, 14)),
+            "led(led)": (lambda b, v: QuadStepper(b).led(v, True), (*WRONG_INT, 0, 6)),
+            "led(on)": (lambda b, v: QuadStepper(b).led(1, v), WRONG_FLAG),
+            "led(wait)": (lambda b, v: QuadStepper(b).led(1, True, wait=v), WRONG_FLAG),
+            "led(timeout)": (
+                lambda b, v: QuadStepper(b).led(1, True, timeout=v),
+                (*WRONG_SECONDS, None),
+            ),
+        }
+    )
+    return calls
+
+
+def _project_calls() -> dict[str, tuple[Call, tuple[Any, ...]]]:
+    def dev(bus: Bus) -> ProjectStepper:
+        return ProjectStepper(bus)
+
+    numbered = ("read_project", "save_project", "clear_project", "start_project", "run_project")
+    calls: dict[str, tuple[Call, tuple[Any, ...]]] = {
+        f"{m}(number)": (
+            lambda b, v, m=m: getattr(dev(b), m)(v),  # type: ignore[misc]
+            (*WRONG_INT, 0, 5),
+        )
+        for m in numbered
+    }
+    calls.update(
+        {
+            "ProjectStepper(motor)": (
+                lambda b, v: _sync(ProjectStepper(b, motor=v)),
+                (*WRONG_INT, 0, 256),
+            ),
+            "run_project(timeout)": (lambda b, v: dev(b).run_project(1, timeout=v), WRONG_SECONDS),
+            "upload(project)": (lambda b, v: dev(b).upload(v), (None, "1", 1, {"number": 1})),
+            "read_input": (lambda b, v: dev(b).read_input(v), (*WRONG_INT, 0, 6)),
+            "set_mode4": (lambda b, v: dev(b).set_mode4(v), (*WRONG_INT, -1, 3)),
+            "set_stop_mode": (lambda b, v: dev(b).set_stop_mode(v), (*WRONG_INT, 2, -1)),
+            "set_output(port)": (lambda b, v: dev(b).set_output(v, True), (*WRONG_INT, 0, 6)),
+            "set_output(active)": (lambda b, v: dev(b).set_output(1, v), WRONG_FLAG),
+            "set_power_on_homing": (lambda b, v: dev(b).set_power_on_homing(v), WRONG_FLAG),
+            "jog(forward)": (lambda b, v: dev(b).jog(forward=v), WRONG_FLAG),
+        }
+    )
+    return calls
+
+
+def _device_cases() -> list[Any]:
+    cases = []
+    for family, table in (
+        ("la", _la_calls()),
+        ("quad", _quad_calls()),
+        ("project", _project_calls()),
+    ):
+        for name, (call, values) in table.items():
+            for bad in values:
+                cases.append(pytest.param(family, call, bad, id=f"{family}.{name}={bad!r}"))
+    return cases
+
+
+def _models(family: str) -> tuple[list[DeviceModel], int | None]:
+    if family == "la":
+        return [LAModel(1)], None
+    if family == "quad":
+        return [QuadStepperModel()], STEPPER_BAUD
+    return [ProjectStepperModel()], STEPPER_BAUD
+
+
+@pytest.mark.parametrize(("family", "call", "bad"), _device_cases())
+async def test_device_call_refuses_and_sends_nothing(family: str, call: Call, bad: Any) -> None:
+    models, baud = _models(family)
+    async with sim_bus(models, baud=baud) as (bus, sim):
+        with pytest.raises(LocalProtocolError) as info:
+            await call(bus, bad)
+        assert isinstance(info.value, ValueError)
+        assert info.value.field, str(info.value)
+        assert (bus.stats.requests, bus.stats.bytes_out) == (0, 0)
+        assert (sim.bus.stats.requests, sim.bus.stats.bytes_in) == (0, 0)
+
+
+# -- Bus(...) and BusManager -------------------------------------------------------------------
+
+BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
+    "min_spacing": (-0.001, 2.0),
+    "host_margin": (-1.0, 11.0),
+    "retries": ("1", 1.5, None, True, -1, 11),
+}
+
+
+@pytest.mark.parametrize(
+    ("option", "bad"),
+    [pytest.param(k, v, id=f"{k}={v!r}") for k, values in BUS_OPTIONS.items() for v in values],
+)
+async def test_bus_constructor_refuses(option: str, bad: Any) -> None:
+    host, _peer = memory_pair()
+    with pytest.raises(LocalProtocolError, match=option):
+        Bus(host, **{option: bad})
+    assert not host.is_open
+
+
+MANAGER_BUS = {"name": "arm", "url": "memory://arm", "baud": 921600}
+MANAGER_CASES: list[tuple[str, dict[str, Any]]] = [
+    ("baud", {"baud": 0}),
+    ("baud", {"baud": "921600"}),
+    ("baud", {"baud": True}),
+    ("baud", {"baud": None}),
+    ("baud", {"baud": 1.5}),
+    ("la_safe_action", {"la_safe_action": "explode"}),
+    ("unknown", {"speed": 3}),
+]
+
+
+@pytest.mark.parametrize(
+    ("field", "change"), MANAGER_CASES, ids=[f"{f}-{c}" for f, c in MANAGER_CASES]
+)
+def test_manager_from_dict_and_add_bus_refuse(field: str, change: dict[str, Any]) -> None:
+    table = {**MANAGER_BUS, **change}
+    with pytest.raises(LocalProtocolError, match=field if field != "unknown" else "speed"):
+        BusManager.from_dict({"bus": [table]})
+    mgr = BusManager()
+    options = {k: v for k, v in table.items() if k not in ("name", "url", "baud")}
+    with pytest.raises(LocalProtocolError):
+        mgr.add_bus("arm", "memory://arm", baud=table["baud"], **options)
+    assert mgr.buses == {} and mgr.specs == {}
+
+
+@pytest.mark.parametrize("data", [{}, {"bus": []}, {"bus": "x"}, {"bus": [{"url": "x"}]}])
+def test_manager_from_dict_refuses_malformed(data: dict[str, Any]) -> None:
+    with pytest.raises(LocalProtocolError):
+        BusManager.from_dict(data)
+
+
+@pytest.mark.parametrize("devices", [["la:0"], ["la:x"], ["printer"], ["la:255"]])
+def test_manager_refuses_bad_device_lists(devices: list[str]) -> None:
+    with pytest.raises(LocalProtocolError):
+        BusManager().add_bus("arm", "memory://arm", baud=921600, devices=devices)
+
+
+# -- the command line --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["decode", "ZZ"], ["demo", "--seconds", "0"]],
+    ids=["decode-ZZ", "demo-seconds-0"],
+)
+def test_cli_usage_errors_exit_2_with_one_line(argv: list[str]) -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "motorbus", *argv],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 2, done
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr
+    assert lines[0].startswith(f"motorbus {argv[0]}: "), lines
+    assert done.stdout == ""
+
+
+def test_priority_values_are_accepted_as_ints() -> None:
+    # The check must not refuse the documented IntEnum values given as plain ints.
+    assert [int(p) for p in Priority] == [0, 1, 2, 3]

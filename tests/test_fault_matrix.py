@@ -1,0 +1,339 @@
+"""Every simulated fault against every kind of traffic: the bus's invariants hold.
+
+Faults (``FaultConfig``): drop, flip, garbage, late, duplicate, silent, disconnect.
+Traffic: LA request/reply (status, move, register read), quad stepper request/reply,
+and an LA follow stream with status polling.  In every cell:
+
+* no reply is ever given to a request it does not answer (the status ID, the register
+  value, the MoveTo target: every MoveTo to a device asks for a new target, so a stale
+  status would show the old one; the quad ack's address and command echo);
+* every request resolves (a value, ``ReplyTimeoutError`` or ``BusClosedError``) within
+  its deadline plus a generous slack (``asyncio.wait_for``);
+* no task leaks (``sim_bus`` checks);
+* the counters account for what happened (garbage bytes, late replies, reconnects);
+* traffic goes on after the fault window: models keep receiving frames.
+
+Known limitation, not hidden: a reply later than the bus's ``late_guard`` (20 ms) after
+its request's deadline can be taken for the answer to a later request of identical shape
+to the same device (the bus cannot tell two identical status frames apart).  The late
+delays below are chosen inside the guard, and ``test_late_reply_inside_the_guard_is_never_matched``
+asserts on exactly that.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from motorbus.bus.bus import DEFAULT_LATE_GUARD_S, Bus, BusState
+from motorbus.devices.la import InspireLA
+from motorbus.devices.project_stepper import ProjectStepper, ProjectVerifyError
+from motorbus.errors import (
+    BusClosedError,
+    LocalProtocolError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
+from motorbus.protocol import la
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
+from motorbus.sim.faults import FaultConfig
+from motorbus.sim.la import LAModel
+from motorbus.sim.memory import MemorySim
+from motorbus.sim.project_stepper import ProjectStepperModel
+from motorbus.sim.quad_stepper import QuadStepperModel
+from motorbus.streams import Streamer
+from tests.bus.test_bus_faults import eventually
+from tests.conftest import sim_bus
+
+#: How long each cell drives traffic, seconds of simulator time.
+RUN_S = 0.3
+#: The fault window of the windowed faults (silent, disconnect), seconds after the epoch.
+WINDOW = (0.08, 0.16)
+#: Host margin of the buses here.  ``sim_bus`` defaults to 50 ms (behaviour tests on a
+#: loaded machine); the late cells need a deadline well short of the late guard.
+MATRIX_HOST_MARGIN_S = 5e-3
+#: Late delays: past the reply deadline, inside the 20 ms late guard that follows it.  The
+#: LA deadline is ~5.5 ms at 921600 bit/s with this margin; the quad stepper's ~36 ms (30 ms
+#: turnaround allowance) and its model answers within a few ms, so 15 ms and 40 ms land
+#: between the deadline and the end of the guard.
+LA_LATE_DELAY_S = 0.015
+QUAD_LATE_DELAY_S = 0.04
+#: Generous bound on any one request: every attempt's deadline, the late guard, and
+#: scheduling slack on a loaded two-core machine.  Not a timing assertion: a hang guard.
+RESOLVE_BOUND_S = 2.0
+QUAD_BAUD = 115200
+STREAM_PERIOD_S = 0.01
+
+
+def fault_config(kind: str, late_delay: float) -> FaultConfig:
+    """One fault kind at a rate high enough to hit a few hundred frames several times."""
+    start, end = WINDOW
+    return {
+        "drop": FaultConfig(drop_byte_rate=0.01),
+        "flip": FaultConfig(bit_flip_rate=0.01),
+        "garbage": FaultConfig(garbage_rate=0.2),
+        "late": FaultConfig(late_reply_rate=0.1, late_reply_delay_s=late_delay),
+        "duplicate": FaultConfig(duplicate_reply_rate=0.2),
+        "silent": FaultConfig(silent_windows=((start, end),)),
+        "disconnect": FaultConfig(
+            disconnect_after_s=start, reconnect_after_s=end - start, disconnect_count=1
+        ),
+    }[kind]
+
+
+FAULTS = ("drop", "flip", "garbage", "late", "duplicate", "silent", "disconnect")
+
+
+@dataclass
+class Tally:
+    """What the traffic saw."""
+
+    ok: int = 0
+    timeouts: int = 0
+    closed: int = 0
+    mismatches: list[str] = field(default_factory=list)
+
+
+async def resolve(bus: Bus, cmd: Any, tally: Tally) -> Any:
+    """Send ``cmd``; return its value or None after a typed error; fail on a hang."""
+    try:
+        value = await asyncio.wait_for(bus.request(cmd), RESOLVE_BOUND_S)
+    except ReplyTimeoutError:
+        tally.timeouts += 1
+        return None
+    except BusClosedError:
+        tally.closed += 1
+        await bus.wait_state(BusState.OPEN, timeout=RESOLVE_BOUND_S)
+        return None
+    tally.ok += 1
+    return value
+
+
+async def drive_until(sim: MemorySim, bus: Bus, until_s: float, step: Callable[[int], Any]) -> None:
+    """Call ``step(k)`` (awaitable) until ``until_s`` seconds after the simulator's epoch."""
+    k = 0
+    while bus.timer.now() - sim.bus.epoch < until_s:
+        await step(k)
+        k += 1
+
+
+def check_counters(kind: str, bus: Bus, sim: MemorySim) -> None:
+    injected = sim.bus.stats.faults_injected
+    if kind in ("drop", "flip", "garbage"):
+        assert injected[kind] > 0
+        assert bus.stats.garbage_bytes > 0 and bus.stats.resyncs > 0
+    if kind in ("late", "duplicate", "silent"):
+        # Whole frames only: nothing to discard.
+        assert bus.stats.garbage_bytes == 0
+    if kind == "silent":
+        assert injected["silent"] > 0 and bus.stats.timeouts > 0
+    if kind == "disconnect":
+        assert injected["disconnect"] == 1
+        assert (bus.stats.disconnects, bus.stats.reconnects) == (1, 1)
+
+
+async def late_counted(kind: str, bus: Bus, sim: MemorySim) -> None:
+    if kind == "late":
+        assert sim.bus.stats.faults_injected["late"] > 0
+        await eventually(lambda: bus.stats.late_replies > 0, "late replies counted")
+
+
+# -- LA request/reply --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", FAULTS)
+async def test_la_requests_under_fault(kind: str) -> None:
+    models = [LAModel(i) for i in (1, 2, 3)]
+    faults = fault_config(kind, LA_LATE_DELAY_S)
+    async with sim_bus(models, faults=faults, seed=7, host_margin=MATRIX_HOST_MARGIN_S) as (
+        bus,
+        sim,
+    ):
+        tally = Tally()
+        targets: dict[int, int] = {}
+
+        async def step(k: int) -> None:
+            ident = 1 + k % 3
+            what = (k // 3) % 3
+            if what == 0:
+                # A new target each time: a stale status would carry the previous one.
+                target = (targets.get(ident, 0) + 37 + k) % 2001
+                targets[ident] = target
+                status = await resolve(bus, la.MoveTo(ident, target), tally)
+                if status is not None and (status.id, status.target) != (ident, target):
+                    tally.mismatches.append(f"MoveTo({ident}, {target}) got {status}")
+            elif what == 1:
+                status = await resolve(bus, la.Control(ident, la.ControlAction.QUERY_STATUS), tally)
+                if status is not None and status.id != ident:
+                    tally.mismatches.append(f"status of {ident} got id {status.id}")
+            else:
+                value = await resolve(bus, la.ReadRegister(ident, la.Register.TARGET), tally)
+                if value is not None and value != models[ident - 1].target:
+                    tally.mismatches.append(
+                        f"TARGET of {ident}: {value} != {models[ident - 1].target}"
+                    )
+
+        await drive_until(sim, bus, RUN_S, step)
+        assert tally.mismatches == []
+        assert tally.ok > 0
+        check_counters(kind, bus, sim)
+        await late_counted(kind, bus, sim)
+        # Traffic went on after the fault window: the models took new targets after it.
+        after = sim.bus.epoch + WINDOW[1]
+        assert sum(1 for m in models for t, _, _ in m.received if t > after) > 0
+        assert await resolve(bus, la.Control(1, la.ControlAction.QUERY_STATUS), Tally()) is not None
+
+
+# -- quad stepper request/reply ----------------------------------------------------------------
+
+
+def quad_command(k: int) -> q.QuadCommand:
+    motor = 1 + k % 4
+    choice = (k // 4) % 3
+    if choice == 0:
+        return q.RunPulses(motor, 100 + k)
+    if choice == 1:
+        return q.MotorSetup(motor, 1 + k % 16, 180)
+    return q.Stop(motor)
+
+
+@pytest.mark.parametrize("kind", FAULTS)
+async def test_quad_requests_under_fault(kind: str) -> None:
+    model = QuadStepperModel()
+    faults = fault_config(kind, QUAD_LATE_DELAY_S)
+    async with sim_bus(
+        [model], baud=QUAD_BAUD, faults=faults, seed=3, host_margin=MATRIX_HOST_MARGIN_S
+    ) as (bus, sim):
+        tally = Tally()
+        before_window = 0
+
+        async def step(k: int) -> None:
+            nonlocal before_window
+            cmd = quad_command(k)
+            raw = cmd.encode()
+            ack = await resolve(bus, cmd, tally)
+            if ack is not None and (ack.address, ack.command) != (raw[2], raw[3]):
+                tally.mismatches.append(f"{cmd} got {ack}")
+            if bus.timer.now() - sim.bus.epoch < WINDOW[1]:
+                before_window = sim.bus.stats.requests
+
+        await drive_until(sim, bus, RUN_S, step)
+        assert tally.mismatches == []
+        assert tally.ok > 0
+        check_counters(kind, bus, sim)
+        await late_counted(kind, bus, sim)
+        assert sim.bus.stats.requests > before_window  # requests reached it after the window
+
+
+# -- LA follow stream with polling -------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", FAULTS)
+async def test_follow_stream_under_fault(kind: str) -> None:
+    ids = (1, 2, 3, 4)
+    models = [LAModel(i) for i in ids]
+    faults = fault_config(kind, LA_LATE_DELAY_S)
+    ticks = round(RUN_S / STREAM_PERIOD_S)
+    # Target of actuator i at tick k: 100 + 4k + i, so every received value is traceable.
+    sequence = [[100 + 4 * k + i for i in ids] for k in range(ticks)]
+    async with sim_bus(models, faults=faults, seed=5, host_margin=MATRIX_HOST_MARGIN_S) as (
+        bus,
+        sim,
+    ):
+        streamer = Streamer(bus)
+        actuators = [InspireLA(bus, i) for i in ids]
+        stream = streamer.follow(actuators, sequence, period=STREAM_PERIOD_S, poll_status=True)
+        await asyncio.wait_for(stream.wait(), RUN_S + 5.0)
+        await streamer.close(safe=False)
+        assert stream.error is None
+        assert stream.stats.ticks > 0
+        for ident, status in stream.statuses.items():
+            assert status.id == ident
+        for model in models:
+            for _, _, target in model.received:
+                assert (target - 100 - model.id) % 4 == 0, (model.id, target)
+        after = sim.bus.epoch + WINDOW[1]
+        assert all(any(t > after for t, _, _ in m.received) for m in models)
+        check_stream_counters(kind, bus, sim, stream.stats.skipped)
+        await late_counted(kind, bus, sim)
+
+
+def check_stream_counters(kind: str, bus: Bus, sim: MemorySim, skipped: int) -> None:
+    injected = sim.bus.stats.faults_injected
+    if kind in ("drop", "flip", "garbage") and injected[kind]:
+        assert bus.stats.garbage_bytes > 0
+    if kind == "disconnect":
+        assert (bus.stats.disconnects, bus.stats.reconnects) == (1, 1)
+        assert skipped > 0  # ticks skipped while the port was gone, then resumed
+
+
+# -- the documented limit ----------------------------------------------------------------------
+
+
+async def test_late_reply_inside_the_guard_is_never_matched() -> None:
+    """Late replies inside the guard are counted as late, never given to a newer request.
+
+    Past ``late_guard`` after the deadline the bus no longer holds the device, and a
+    stale status could be taken for the answer to a same-shaped later request: that is
+    the known limit, and why every late delay in this file stays inside the guard.
+    """
+    assert LA_LATE_DELAY_S < DEFAULT_LATE_GUARD_S
+    faults = FaultConfig(late_reply_rate=0.5, late_reply_delay_s=LA_LATE_DELAY_S)
+    async with sim_bus([LAModel(1)], faults=faults, seed=1, host_margin=MATRIX_HOST_MARGIN_S) as (
+        bus,
+        sim,
+    ):
+        tally = Tally()
+        for k in range(30):
+            status = await resolve(bus, la.MoveTo(1, 10 + k), tally)
+            if status is not None:
+                assert status.target == 10 + k
+        assert tally.timeouts > 0
+        await eventually(
+            lambda: bus.stats.late_replies >= sim.bus.stats.faults_injected["late"],
+            "every late reply counted",
+        )
+        assert bus.stats.unexpected_frames == 0
+
+
+async def test_corrupted_project_read_back_is_a_verify_error_not_local() -> None:
+    """The 0x3E dump has no checksum: a flipped bit can make a field no project can hold.
+
+    ``upload(verify=True)`` must report that as ``ProjectVerifyError`` (the device's or
+    the line's fault), never as ``LocalProtocolError`` (which says the caller erred).
+    The soak run found this: one upload in ~100 under 1 % faults raised the latter.
+    """
+    project = ps.Project(
+        number=1,
+        subdivision=1,
+        step_angle_x100=180,
+        distance_per_rev=200,
+        steps=(ps.StepSpec(run_distance=40, start_hz=2000, speed_rpm=600),),
+    )
+    faults = FaultConfig(bit_flip_rate=0.004)
+    outcomes: dict[str, int] = {}
+    async with sim_bus(
+        [ProjectStepperModel()],
+        baud=QUAD_BAUD,
+        faults=faults,
+        seed=2,
+        host_margin=MATRIX_HOST_MARGIN_S,
+    ) as (bus, sim):
+        device = ProjectStepper(bus)
+        for _ in range(12):
+            try:
+                await asyncio.wait_for(device.upload(project, save=False), 10 * RESOLVE_BOUND_S)
+            except LocalProtocolError as err:  # pragma: no cover - the bug this guards
+                pytest.fail(f"a corrupted read-back surfaced as LocalProtocolError: {err}")
+            except (ProjectVerifyError, ReplyTimeoutError, RemoteProtocolError) as err:
+                name = type(err).__name__
+            else:
+                name = "ok"
+            outcomes[name] = outcomes.get(name, 0) + 1
+        assert sim.bus.stats.faults_injected["flip"] > 0
+        assert outcomes.get("ok", 0) > 0, outcomes
