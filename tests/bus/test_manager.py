@@ -48,6 +48,8 @@ devices = ["project-stepper:motor=3", "quad-stepper"]
         parse_devices(["la:250-300"])
     with pytest.raises(LocalProtocolError, match="kind"):
         parse_devices(["servo:1"])
+    with pytest.raises(LocalProtocolError, match=r"la ids \[1\] are listed twice"):
+        BusManager.from_dict({"bus": [{"url": "x", "baud": 9600, "devices": ["la:1-2", "la:1"]}]})
 
 
 async def test_many_buses_stream_and_stop_safely() -> None:

@@ -181,11 +181,27 @@ class BusSpec:
                 f"bus #{index + 1}: la_safe_action={safe!r}: choose pause, estop or hold",
                 field="la_safe_action",
             )
+        devices = parse_devices(list(data.get("devices", [])))
+        ids = [i for d in devices for i in d.ids]
+        twice = sorted({i for i in ids if ids.count(i) > 1})
+        if twice:
+            # Two actuators with one ID on a bus answer together (A2-12).
+            raise LocalProtocolError(
+                f"bus #{index + 1}: la ids {twice} are listed twice: each ID once per bus",
+                field="devices",
+            )
+        kinds = [d.kind for d in devices if d.kind != "la"]
+        for kind in set(kinds):
+            if kinds.count(kind) > 1:
+                raise LocalProtocolError(
+                    f"bus #{index + 1}: {kind} is listed twice: at most one per bus",
+                    field="devices",
+                )
         return cls(
             name=str(data.get("name", f"bus{index}")),
             url=str(data["url"]),
             baud=baud,
-            devices=parse_devices(list(data.get("devices", []))),
+            devices=devices,
             backend=str(data.get("backend", "fast")),
             rs485=bool(data.get("rs485", False)),
             remove_echo=bool(data.get("remove_echo", False)),
