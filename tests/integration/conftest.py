@@ -1,0 +1,173 @@
+"""Fixtures of the integration tests: a simulator process behind the real ser2net.
+
+``ser2net_server`` starts ``motorbus sim`` (LA IDs 1-3 at 921600 baud) on a pty and a
+ser2net 4.x in front of it with two accepters on 127.0.0.1: raw TCP (``socket://``)
+and RFC 2217 (``rfc2217://``), configured as PLATFORM.md section 4 recommends.  The
+tests skip, with the reason, when ser2net is not installed; ``.ci/run`` installs it.
+"""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motorbus.protocol import la
+from motorbus.protocol.base import LA_REQUEST_HEADER
+from motorbus.sim.process import SimProcess
+
+#: The simulated bus: three LA actuators at the LA's fastest documented rate.
+SIM_DEVICES = ("la:1-3",)
+SIM_BAUD = 921600
+#: Longest wait for ser2net to accept TCP connections after it starts.
+SER2NET_START_TIMEOUT_S = 5.0
+#: Pause between two connection attempts while ser2net starts.
+SER2NET_RETRY_S = 0.02
+#: Longest wait for ser2net to exit after SIGTERM before it is killed.
+SER2NET_STOP_TIMEOUT_S = 5.0
+
+SER2NET_CONFIG = """\
+%YAML 1.1
+---
+connection: &bus0-raw
+    accepter: tcp,127.0.0.1,{raw_port}
+    enable: on
+    options:
+      kickolduser: true
+      chardelay: false
+    connector: serialdev,{device},{baud}n81,local
+
+connection: &bus0-rfc2217
+    accepter: telnet(rfc2217),tcp,127.0.0.1,{rfc2217_port}
+    enable: on
+    options:
+      kickolduser: true
+      chardelay: false
+    connector: serialdev,{device},{baud}n81,local
+"""
+
+
+def free_tcp_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago (bind to 0, read, close)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+def require_ser2net() -> str:
+    """The path of ``ser2net``, or skip the test saying how to get it."""
+    path = shutil.which("ser2net")
+    if path is None:
+        pytest.skip(
+            "ser2net is not installed: these tests need the Debian package 'ser2net' "
+            "(4.x); .ci/run installs it (apt-get install ser2net)"
+        )
+    return path
+
+
+@dataclass(frozen=True, slots=True)
+class Ser2netServer:
+    """A running ser2net in front of a simulator process."""
+
+    sim: SimProcess
+    raw_url: str  # socket://127.0.0.1:PORT
+    rfc2217_url: str  # rfc2217://127.0.0.1:PORT
+    log_file: Path  # ser2net's own stdout and stderr
+
+
+def _wait_accepting(proc: subprocess.Popen[bytes], ports: list[int], log_file: Path) -> None:
+    deadline = time.monotonic() + SER2NET_START_TIMEOUT_S
+    waiting = list(ports)
+    while waiting:
+        if proc.poll() is not None:
+            raise RuntimeError(
+                f"ser2net exited with status {proc.returncode}: "
+                f"{log_file.read_text(errors='replace').strip()}"
+            )
+        try:
+            with socket.create_connection(("127.0.0.1", waiting[0]), timeout=0.5):
+                pass
+        except OSError:
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"ser2net did not accept on 127.0.0.1:{waiting[0]} within "
+                    f"{SER2NET_START_TIMEOUT_S} s: {log_file.read_text(errors='replace')}"
+                ) from None
+            time.sleep(SER2NET_RETRY_S)  # polling for readiness, bounded by the deadline
+        else:
+            waiting.pop(0)
+
+
+@pytest.fixture(scope="module")
+def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2netServer]:
+    """A simulator (la:1-3, 921600 baud, frame log) served by ser2net on two TCP ports."""
+    ser2net = require_ser2net()
+    workdir = tmp_path_factory.mktemp("ser2net")
+    with SimProcess(SIM_DEVICES, baud=SIM_BAUD, log_file=workdir / "sim.jsonl") as sim:
+        raw_port = free_tcp_port()
+        rfc2217_port = free_tcp_port()
+        config = workdir / "ser2net.yaml"
+        config.write_text(
+            SER2NET_CONFIG.format(
+                raw_port=raw_port, rfc2217_port=rfc2217_port, device=sim.path, baud=SIM_BAUD
+            ),
+            encoding="utf-8",
+        )
+        log_file = workdir / "ser2net.out"
+        with log_file.open("wb") as out:
+            proc = subprocess.Popen(
+                [ser2net, "-n", "-u", "-c", str(config), "-P", str(workdir / "ser2net.pid")],
+                stdin=subprocess.DEVNULL,
+                stdout=out,
+                stderr=subprocess.STDOUT,
+            )
+        try:
+            _wait_accepting(proc, [raw_port, rfc2217_port], log_file)
+            yield Ser2netServer(
+                sim=sim,
+                raw_url=f"socket://127.0.0.1:{raw_port}",
+                rfc2217_url=f"rfc2217://127.0.0.1:{rfc2217_port}",
+                log_file=log_file,
+            )
+        finally:
+            proc.terminate()
+            try:
+                proc.wait(SER2NET_STOP_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+
+
+# -- reading the simulator's frame log ------------------------------------------------
+
+
+def received_frames(records: list[dict[str, Any]]) -> list[bytes]:
+    """The frames the simulator received (``"rx"`` records), in arrival order."""
+    return [bytes.fromhex(str(r["hex"])) for r in records if r.get("dir") == "rx"]
+
+
+def is_broadcast_follow(frame: bytes) -> bool:
+    """True for a ``55 AA LEN FF F3 ...`` broadcast follow frame (LA manual 3.5.3)."""
+    return (
+        len(frame) > 4
+        and frame[:2] == LA_REQUEST_HEADER
+        and frame[3] == la.BROADCAST_ID
+        and frame[4] == la.CMD_BROADCAST_FOLLOW
+    )
+
+
+def broadcast_targets(frame: bytes) -> dict[int, int]:
+    """The ``{id: position}`` entries of a broadcast follow frame (3 bytes each, LE)."""
+    body = frame[5:-1]
+    size = la.BROADCAST_ENTRY_SIZE
+    return {
+        body[i]: int.from_bytes(body[i + 1 : i + size], "little") for i in range(0, len(body), size)
+    }
