@@ -26,6 +26,10 @@ PERIOD_S = 0.010
 CENTRE, AMPLITUDE, FREQUENCY_HZ = 1000, 400, 0.5
 
 
+#: The manager of the run, to read its safe-stop report after main() ends (even by Ctrl-C).
+MANAGERS: list[motorbus.BusManager] = []
+
+
 async def main(
     port: str,
     baud: int,
@@ -35,6 +39,7 @@ async def main(
     fail_after: float | None,
 ) -> None:
     manager = motorbus.BusManager()
+    MANAGERS.append(manager)
     manager.add_bus("arm", port, baud=baud, devices=[f"la:{ids}"], la_safe_action=safe_action)
     async with manager:
         ids_on_bus = manager.specs["arm"].devices[0].ids
@@ -83,4 +88,8 @@ if __name__ == "__main__":
             # asyncio.run cancelled main() on Ctrl-C, and BusManager's exit ran the safe
             # stop (shielded) before KeyboardInterrupt reached us: this is a normal end.
             print("interrupted", flush=True)
+    failures = [f for m in MANAGERS for f in m.safe_stop_failures]
+    if failures:
+        print("safe stop INCOMPLETE:", *failures, sep="\n  ", flush=True)
+        raise SystemExit(1)
     print("stopped safely", flush=True)

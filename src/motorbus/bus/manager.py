@@ -65,6 +65,12 @@ PHASE_SPAN_S = 0.010
 #: from all writing at the same instant.
 PHASE_GROUPS = 4
 
+#: Default host margin of a bus reached over the network (ser2net): a TCP hop adds
+#: 100-150 us typically but far more under load, and a fresh ser2net connection
+#: answers its first request 9-25 ms late (measured by tests/integration).
+REMOTE_HOST_MARGIN_MS = 20.0
+REMOTE_SCHEMES = ("socket://", "rfc2217://")
+
 _BUS_KEYS = {
     "name",
     "url",
@@ -207,7 +213,14 @@ class BusSpec:
             remove_echo=bool(data.get("remove_echo", False)),
             low_latency=bool(data.get("low_latency", True)),
             min_spacing_ms=float(data.get("min_spacing_ms", 1.0)),
-            host_margin_ms=float(data.get("host_margin_ms", DEFAULT_HOST_MARGIN_S * 1e3)),
+            host_margin_ms=float(
+                data.get(
+                    "host_margin_ms",
+                    REMOTE_HOST_MARGIN_MS
+                    if str(data["url"]).startswith(REMOTE_SCHEMES)
+                    else DEFAULT_HOST_MARGIN_S * 1e3,
+                )
+            ),
             retries=int(data.get("retries", 1)),
             la_safe_action=safe,
         )
@@ -232,6 +245,8 @@ class BusManager:
 
     def __init__(self, *, safe_stop: bool = True) -> None:
         self.safe_stop = safe_stop
+        #: What the last safe stop could not do (empty if every device was reached).
+        self.safe_stop_failures: list[str] = []
         self.specs: dict[str, BusSpec] = {}
         self.buses: dict[str, Bus] = {}
         self._transports: dict[str, Transport] = {}
@@ -370,7 +385,9 @@ class BusManager:
             try:
                 await bus.request(cmd, priority=Priority.EMERGENCY, retries=1)
             except MotorbusError as err:
-                log.warning("safe stop on bus %s: %s failed: %s", name, type(cmd).__name__, err)
+                what = f"bus {name}: {type(cmd).__name__} {cmd}: {err}"
+                self.safe_stop_failures.append(what)
+                log.warning("safe stop failed on %s", what)
 
     # -- devices ----------------------------------------------------------------------
 
