@@ -186,7 +186,11 @@ async def test_la_requests_under_fault(kind: str) -> None:
         # Traffic went on after the fault window: the models took new targets after it.
         after = sim.bus.epoch + WINDOW[1]
         assert sum(1 for m in models for t, _, _ in m.received if t > after) > 0
-        assert await resolve(bus, la.Control(1, la.ControlAction.QUERY_STATUS), Tally()) is not None
+        # The bus still answers.  Byte faults go on after the window, so one query may be
+        # hit twice (with its retry); one of a few must get through.
+        query = la.Control(1, la.ControlAction.QUERY_STATUS)
+        answers = [await resolve(bus, query, Tally()) for _ in range(5)]
+        assert any(a is not None for a in answers)
 
 
 # -- quad stepper request/reply ----------------------------------------------------------------

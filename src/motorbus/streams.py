@@ -32,12 +32,12 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, TypeAlias
 
-from motorbus.bus.bus import Bus, BusState, Priority, check_flag
+from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, wire_time
+from motorbus.protocol.base import Family, check_flag, wire_time
 
 __all__ = [
     "PERIOD_MAX_S",
@@ -60,10 +60,13 @@ TICK_BUDGET_SHARE = 0.8
 LATE_AFTER_S = 1e-3
 #: Ticks within this of each other are served together (and coalesced).
 COALESCE_WINDOW_S = 200e-6
-#: A tick's targets are computed this long before its deadline; its frames are then
-#: sent from a timer callback at the deadline itself.  A callback source sees statuses
-#: at most this old plus one period.
-PREPARE_S = 2e-3
+#: A tick's targets are computed as soon as the previous tick's frames, feedback and
+#: polls are done, at most this long before its deadline; its frames then leave from
+#: a timer callback at the deadline itself.  One timer wake-up a tick (each costs
+#: ~300 us of CPU on this VM): the preparation rides on the previous tick's.
+PLAN_AHEAD_S = 0.050
+#: Polls stop this long before the next tick, to leave time to prepare it.
+PREPARE_S = 1e-3
 
 Targets: TypeAlias = Mapping[int, int]
 TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
@@ -311,7 +314,19 @@ class Stream:
                 f"targets has {len(values)} values for {len(self.ids)} actuators",
                 field="targets",
             )
+        # The common case, once a tick per bus: plain numbers all in range.  Anything
+        # else (a bool, NaN, a string, out of range) takes the checking path below,
+        # which names the offending value.
+        if all(type(v) in _PLAIN_NUMBERS for v in values):
+            try:
+                if min(values) >= la.POSITION_MIN and max(values) <= la.POSITION_MAX:
+                    return dict(zip(self.ids, map(round, values), strict=True))
+            except (ValueError, OverflowError):  # NaN or infinity: round() refuses them
+                pass
         return {i: _position(v, f"targets[{i}]") for i, v in zip(self.ids, values, strict=True)}
+
+
+_PLAIN_NUMBERS = (int, float)
 
 
 def _is_scalar(item: Any) -> bool:
@@ -551,8 +566,8 @@ class Streamer:
         timer = self.bus.timer
         while self.streams:
             deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
-            if deadline - PREPARE_S > timer.now():
-                await self._sleep_until(deadline - PREPARE_S)
+            if deadline - PLAN_AHEAD_S > timer.now():
+                await self._sleep_until(deadline - PLAN_AHEAD_S)
                 continue  # re-check: streams may have changed while asleep
             due = [
                 s
@@ -566,7 +581,6 @@ class Streamer:
         do the feedback round trips and polls."""
         timer = self.bus.timer
         now = timer.now()
-        broadcast: dict[int, int] = {}
         feedback: list[tuple[Stream, int, int]] = []
         served: list[Stream] = []
         bus_up = self.bus.state is BusState.OPEN
@@ -596,22 +610,13 @@ class Streamer:
             served.append(s)
             if s.feedback:
                 feedback.extend((s, i, p) for i, p in targets.items())
-            else:
-                broadcast.update(targets)
         if not served:
             return
-        # IDs were checked when the streams started (distinct across streams) and every
-        # position by _position, so the frames are built without re-checking.
-        pairs = tuple(broadcast.items())
-        step = la.MAX_BROADCAST_ENTRIES
-        frames = [
-            la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step])
-            for i in range(0, len(pairs), step)
-        ]
-        sent_at = await self._send_at(deadline, frames)
+        parts = [(s, s.last_targets) for s in served if not s.feedback]
+        sent_at, frames = await self._send_at(deadline, parts)
         for s in served:
             if not s.feedback:
-                s.stats.frames += len(frames)
+                s.stats.frames += frames
         for s, ident, pos in feedback:
             if sent_at is None:
                 sent_at = timer.now()
@@ -632,15 +637,19 @@ class Streamer:
                 s.stats.late += 1
         await self._poll(served)
 
-    async def _send_at(self, deadline: float, frames: list[la.Broadcast]) -> float | None:
-        """Queue ``frames`` on the bus at ``deadline`` exactly, from a timer callback.
+    async def _send_at(
+        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
+    ) -> tuple[float | None, int]:
+        """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
 
-        A task woken at the deadline would send one event-loop iteration late (~100 us
-        here); the timer callback submits within microseconds.  Returns when the first
-        frame left (None if the port went away), after every frame has left.
+        The frames are built and queued from a timer callback at the deadline: a task
+        woken then would send one event-loop iteration late (~100 us here).  Streams
+        stopped or paused since their targets were computed are left out at that moment,
+        so a stream ended with a safe action never sends one more target after it.
+        Returns (when the first frame left, or None if nothing left; frames sent).
         """
-        if not frames:
-            return None
+        if not parts:
+            return None, 0
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
@@ -648,12 +657,24 @@ class Streamer:
         def fire() -> None:
             if fired.done():
                 return
+            # IDs were checked when the streams started (distinct across streams) and
+            # every position by _position, so the frames are built without re-checking.
+            pairs = tuple(
+                pair for s, targets in parts if not (s.done or s.paused) for pair in targets.items()
+            )
+            step = la.MAX_BROADCAST_ENTRIES
             try:
-                futures = [self.bus.submit(f, priority=Priority.HIGH) for f in frames]
+                futures = [
+                    self.bus.submit(
+                        la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step]),
+                        priority=Priority.HIGH,
+                    )
+                    for i in range(0, len(pairs), step)
+                ]
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
-            if futures[0].done():  # an idle bus transmitted it inside submit()
+            if futures and futures[0].done():  # an idle bus transmitted it inside submit()
                 sent.append(self.bus.timer.now())
             fired.set_result(futures)
 
@@ -666,11 +687,10 @@ class Streamer:
                     sent.append(self.bus.timer.now())
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
-            return None
+            return None, 0
         finally:
             handle.cancel()
-        first_sent = sent[0]
-        return first_sent
+        return (sent[0] if sent else None), len(futures)
 
     async def _poll(self, due: list[Stream]) -> None:
         """Use the slots left before the next tick to poll statuses round-robin."""

@@ -28,7 +28,6 @@ import enum
 import heapq
 import itertools
 import logging
-import math
 import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -51,7 +50,14 @@ from motorbus.errors import (
     ReplyTimeoutError,
 )
 from motorbus.protocol import la
-from motorbus.protocol.base import Command, Family, FrameShape, format_hex, wire_time
+from motorbus.protocol.base import (
+    Command,
+    Family,
+    FrameShape,
+    check_timeout,
+    format_hex,
+    wire_time,
+)
 from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
 from motorbus.protocol.reassembler import ProjectFinished as ProjectFinishedItem
 from motorbus.transport.base import Transport
@@ -696,39 +702,6 @@ class Bus:
 REQUEST_TIMEOUT_MAX_S = 3600.0
 #: Ceiling on per-request retries, the same as the bus-wide ``retries`` option.
 REQUEST_RETRIES_MAX = 10
-
-
-def check_timeout(field: str, value: object, maximum: float = math.inf) -> float:
-    """Return ``value`` (seconds) if it is a finite number in ``0..maximum``.
-
-    Raises:
-        LocalProtocolError: a bool, a non-number, NaN, infinity or out of range (a NaN
-            deadline used to reach the timer and break its callback).
-    """
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int | float)
-        or not math.isfinite(value)
-        or not 0 <= value <= maximum
-    ):
-        shown = "" if maximum == math.inf else f"..{maximum:g}"
-        raise LocalProtocolError(
-            f"{field}={value!r} is out of range: allowed 0{shown} seconds (a finite number)",
-            field=field,
-            value=value,
-        )
-    return float(value)
-
-
-def check_flag(field: str, value: object) -> bool:
-    """Return ``value`` if it is a bool; a truthy string or None must not pick a command."""
-    if not isinstance(value, bool):
-        raise LocalProtocolError(
-            f"{field} must be True or False, got {value!r} ({type(value).__name__})",
-            field=field,
-            value=value,
-        )
-    return value
 
 
 def _check_request_options(timeout: object, retries: object, priority: object) -> None:

@@ -401,8 +401,14 @@ class TimerfdTimer(Timer):
     """
 
     name = "timerfd"
-    #: How long before a deadline the fd fires, to spin the rest (seconds).
+    #: The longest the fd fires before a deadline, to spin the rest (seconds).
     SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
+    #: The shortest lead, whatever the recent wake-ups did.
+    SPIN_LEAD_MIN_S = 60e-6
+    #: The lead follows twice the recent worst wake-up lateness, which decays by this
+    #: factor a wake-up: a busy machine wakes promptly and spins little, an idle one
+    #: (deep C-states) wakes late and gets the full lead.
+    LATENESS_DECAY = 0.98
 
     def __init__(
         self, loop: asyncio.AbstractEventLoop | None = None, *, spin_lead: float | None = None
@@ -414,6 +420,7 @@ class TimerfdTimer(Timer):
         """
         super().__init__(loop or asyncio.get_running_loop())
         self._spin_lead = self.SPIN_LEAD_S if spin_lead is None else spin_lead
+        self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
         self._api = _api()
         self._fd = self._api.create()
         # Closes the fd if the timer is dropped without close() (its loop went away).
@@ -426,11 +433,16 @@ class TimerfdTimer(Timer):
             self.loop.add_reader(self._fd, self._on_expiry)
             self._reading = True
         heap = self._heap
-        lead = self._spin_lead if heap and heap[0][2].precise else 0.0
+        lead = self._current_lead() if heap and heap[0][2].precise else 0.0
         ns = _deadline_ns(deadline - lead)
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
+
+    def _current_lead(self) -> float:
+        if not self._spin_lead:
+            return 0.0
+        return min(self._spin_lead, max(self.SPIN_LEAD_MIN_S, 2 * self._wake_late))
 
     def _disarm(self) -> None:
         if self._armed_ns:
@@ -450,13 +462,17 @@ class TimerfdTimer(Timer):
             os.read(self._fd, _EXPIRY_COUNT_SIZE)
         # The fd expired, so the armed time has passed: forget it, or re-arming at the
         # same deadline (woken early by float rounding) would be skipped as a no-op.
+        if self._armed_ns:
+            late = self.now() - self._armed_ns / _NS_PER_S
+            self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
         heap = self._heap
         if heap and self._spin_lead and heap[0][2].precise and not heap[0][2].cancelled():
             first = heap[0][0]
             now = self.now()
-            if now < first <= now + self._spin_lead:
-                while self.now() < first:
+            if now < first <= now + self._current_lead() + self.SPIN_LEAD_MIN_S:
+                clock = time.monotonic
+                while clock() < first:
                     pass  # the last microseconds: a timer wake-up cannot be this precise
         self._wake()
 

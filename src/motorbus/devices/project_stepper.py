@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 
-from motorbus.bus.bus import Bus, Priority, check_flag, check_timeout
+from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished
 from motorbus.errors import LocalProtocolError, MotorbusError, RemoteProtocolError
 from motorbus.protocol import project_stepper as ps
+from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 

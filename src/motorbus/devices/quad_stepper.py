@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import asyncio
 
-from motorbus.bus.bus import Bus, Priority, check_flag, check_timeout
+from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
 from motorbus.protocol import quad_stepper as q
+from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["QuadStepper"]
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import abc
 import enum
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -25,7 +26,9 @@ __all__ = [
     "Family",
     "FrameShape",
     "check_choice",
+    "check_flag",
     "check_int",
+    "check_timeout",
     "format_hex",
     "parse_hex",
     "sum8",
@@ -97,6 +100,39 @@ def check_choice(field: str, value: object, allowed: Sequence[int], meaning: str
         extra = f" ({meaning})" if meaning else ""
         raise LocalProtocolError(
             f"{field}={value!r} is not allowed: choose one of {shown}{extra}",
+            field=field,
+            value=value,
+        )
+    return value
+
+
+def check_timeout(field: str, value: object, maximum: float = math.inf) -> float:
+    """Return ``value`` (seconds) if it is a finite number in ``0..maximum``.
+
+    Raises:
+        LocalProtocolError: a bool, a non-number, NaN, infinity or out of range (a NaN
+            deadline used to reach the timer and break its callback).
+    """
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or not 0 <= value <= maximum
+    ):
+        shown = "" if maximum == math.inf else f"..{maximum:g}"
+        raise LocalProtocolError(
+            f"{field}={value!r} is out of range: allowed 0{shown} seconds (a finite number)",
+            field=field,
+            value=value,
+        )
+    return float(value)
+
+
+def check_flag(field: str, value: object) -> bool:
+    """Return ``value`` if it is a bool; a truthy string or None must not pick a command."""
+    if not isinstance(value, bool):
+        raise LocalProtocolError(
+            f"{field} must be True or False, got {value!r} ({type(value).__name__})",
             field=field,
             value=value,
         )

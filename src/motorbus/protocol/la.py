@@ -1199,11 +1199,15 @@ class Broadcast(LACommand):
 
     def encode(self) -> bytes:
         """Return ``55 AA (1+3N) FF F2|F3 {ID PosL PosH}... CS``."""
-        body = bytearray((BROADCAST_ID, self.mode))
-        for ident, pos in self.entries:
-            body.append(ident)
-            body += pos.to_bytes(2, "little")
-        return build_frame(LA_REQUEST_HEADER, bytes(body))
+        # Streams encode one of these per tick and bus: one bytes() call, no loop.
+        body = bytes(
+            (
+                BROADCAST_ID,
+                self.mode,
+                *(b for ident, pos in self.entries for b in (ident, pos & 0xFF, pos >> 8)),
+            )
+        )
+        return build_frame(LA_REQUEST_HEADER, body)
 
     def reply_lengths(self) -> tuple[int, ...]:
         """``()``: nothing answers a broadcast."""
