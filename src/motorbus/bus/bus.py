@@ -566,6 +566,8 @@ class Bus:
                 self._on_frame(item, now)
             elif type(item) is Discarded:
                 self.stats.garbage_bytes += len(item.raw)
+                by_reason = self.stats.discarded_by_reason
+                by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
                 self.stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedItem:

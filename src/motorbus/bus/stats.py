@@ -87,6 +87,9 @@ class BusStats:
     late_replies: int = 0  # replies that came after their request's deadline
     unexpected_frames: int = 0  # valid frames that answered nothing we asked
     garbage_bytes: int = 0  # bytes the reassembler discarded
+    #: The same bytes by the reassembler's reason ("garbage", "bad checksum",
+    #: "unexpected reply shape", ...).
+    discarded_by_reason: dict[str, int] = field(default_factory=dict)
     resyncs: int = 0  # runs of discarded bytes
     events: int = 0  # device events delivered (EE DD, done replies, fault changes)
     disconnects: int = 0
@@ -126,6 +129,7 @@ class BusStats:
                 "bytes_in",
             )
         }
+        out["discarded_by_reason"] = dict(self.discarded_by_reason)
         out["latency"] = self.latency.summary()
         out["devices"] = {
             k: {

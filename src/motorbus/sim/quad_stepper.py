@@ -172,8 +172,10 @@ class MotionProfile:
         """Whole pulses emitted ``elapsed`` seconds after the start (0..pulses)."""
         if elapsed <= 0:
             return 0
-        if self.pulses is not None and elapsed >= self.duration():
-            return self.pulses  # exact at the end, whatever the float rounding on the way
+        # Exact at the end, whatever the float rounding on the way: the end time is
+        # start + duration, and (start + duration) - start can come out a hair short.
+        if self.pulses is not None and elapsed >= self.duration() - _END_TOLERANCE_S:
+            return self.pulses
         t_ramp, n_ramp, peak = self._ramp()
         f0, a = self.start_hz, self.accel_hz_per_s
         if elapsed < t_ramp:
@@ -191,6 +193,10 @@ class MotionProfile:
                 done = self.pulses - n_ramp + peak * t_down - a * t_down * t_down / 2
         whole = math.floor(done + 1e-9)  # absorb float error at exact phase boundaries
         return whole if self.pulses is None else min(whole, self.pulses)
+
+
+#: Float slack when deciding that a move has reached its end time.
+_END_TOLERANCE_S = 1e-9
 
 
 @dataclass(slots=True)
