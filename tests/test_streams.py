@@ -144,3 +144,17 @@ async def test_pause_resume_and_new_targets_on_the_fly() -> None:
         await asyncio.wait_for(stream.wait(), 5)
         assert [t for _, _, t in model.received][-3:] == [900, 901, 902]
         await streamer.close()
+
+
+def test_tick_timing_counts_missing_frames_not_rounding_artifacts() -> None:
+    from motorbus.sim.analysis import tick_timing
+
+    period = 0.01
+    times = [k * period for k in range(100)]
+    assert tick_timing(times, period).missed == 0
+    assert tick_timing(times[:50] + times[51:], period).missed == 1
+    jittery = list(times)
+    jittery[50] += 0.0056  # late enough to round into its neighbour's slot
+    assert tick_timing(jittery, period).missed == 0
+    drifting = [k * period * 1.07 for k in range(100)]
+    assert tick_timing(drifting, period, by_index=True).drift > 0.06
