@@ -57,6 +57,12 @@ async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> 
         cmds = {cmd for _, cmd, _ in models[0].received}
         assert cmds == {la.CMD_FOLLOW}
         assert stream.stats.feedback_timeouts == 0
+        # Each tick's 0x20 frames go out on the tick, not a period early: the model saw
+        # one per actuator per tick, at the period apart.
+        times = [t for t, cmd, _ in models[0].received if cmd == la.CMD_FOLLOW]
+        gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+        assert len(times) == stream.stats.ticks
+        assert min(gaps) > 0.5 * 0.01  # never two ticks' frames back to back
         await streamer.close()
 
 

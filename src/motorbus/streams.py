@@ -617,6 +617,10 @@ class Streamer:
         for s in served:
             if not s.feedback:
                 s.stats.frames += frames
+        if feedback and timer.now() < deadline:
+            # Feedback frames are round trips, sent one after another from this task:
+            # the first leaves at the deadline (the tick was prepared a period ahead).
+            await timer.sleep_until(deadline)
         for s, ident, pos in feedback:
             if sent_at is None:
                 sent_at = timer.now()
