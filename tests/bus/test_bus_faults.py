@@ -282,3 +282,21 @@ async def test_simulated_disconnect_fault_and_recovery() -> None:
         assert (await bus.request(status_query(1))).id == 1
         assert (bus.stats.disconnects, bus.stats.reconnects) == (1, 1)
         assert sim.bus.stats.faults_injected["disconnect"] == 1
+
+
+async def test_lost_done_replies_do_not_pile_up() -> None:
+    """Done replies that never come are forgotten past a bound, and counted."""
+    from motorbus.bus.bus import MAX_DONE_WATCHES
+    from motorbus.protocol import quad_stepper as q
+    from motorbus.sim.quad_stepper import QuadStepperModel
+    from tests.conftest import sim_bus
+
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        await bus.request(q.MotorSetup(1, 8, 180))
+        await bus.request(q.RunPulses(1, 1_000_000))  # long enough not to finish
+        for _ in range(MAX_DONE_WATCHES + 5):
+            await bus.request(q.Run(1))  # acked each time; the done reply never comes
+        assert len(bus._done_watches) == MAX_DONE_WATCHES
+        assert bus.stats.done_watches_dropped == 5
+        await bus.request(q.Stop(1))

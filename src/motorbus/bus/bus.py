@@ -88,6 +88,9 @@ DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 
 #: device's late answer (if it comes) arrives before a new question it could be
 #: mistaken for.  Requests to other devices are not held.
 DEFAULT_LATE_GUARD_S = 20e-3
+#: Quad stepper "done" replies awaited at once, at most: more outstanding runs than
+#: this means done replies are being lost (four motors and the LEDs fit easily).
+MAX_DONE_WATCHES = 16
 #: How long a timed-out request is remembered to recognise its late reply.
 LATE_WINDOW_S = 2.0
 #: A reply cannot complete before its request and itself have crossed the wire; we
@@ -591,7 +594,7 @@ class Bus:
                 self._finish(job, err)
                 return
             if job.cmd.done_shapes():
-                self._done_watches.append(_done_watch(job.cmd))
+                self._watch_done(_done_watch(job.cmd))
             self._observe(value, now)
             self._finish(job, value)
             return
@@ -601,6 +604,18 @@ class Bus:
             return
         self.stats.unexpected_frames += 1
         log.debug("%s unexpected frame %s", self.name, format_hex(raw))
+
+    def _watch_done(self, watch: _DoneWatch) -> None:
+        """Remember a "done" reply to come, keeping at most ``MAX_DONE_WATCHES``.
+
+        A done reply that is lost on the line would otherwise be awaited forever, and
+        the list (and the reply shapes the reassembler is given) would grow with every
+        run.  Past the bound the oldest is forgotten and counted.
+        """
+        self._done_watches.append(watch)
+        if len(self._done_watches) > MAX_DONE_WATCHES:
+            del self._done_watches[0]
+            self.stats.done_watches_dropped += 1
 
     def _match_done(self, raw: bytes, now: float) -> bool:
         for i, watch in enumerate(self._done_watches):

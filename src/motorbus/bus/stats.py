@@ -92,6 +92,7 @@ class BusStats:
     discarded_by_reason: dict[str, int] = field(default_factory=dict)
     resyncs: int = 0  # runs of discarded bytes
     events: int = 0  # device events delivered (EE DD, done replies, fault changes)
+    done_watches_dropped: int = 0  # awaited "done" replies given up (never came)
     disconnects: int = 0
     reconnects: int = 0
     bytes_out: int = 0
@@ -123,6 +124,7 @@ class BusStats:
                 "garbage_bytes",
                 "resyncs",
                 "events",
+                "done_watches_dropped",
                 "disconnects",
                 "reconnects",
                 "bytes_out",
