@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import math
 
 import pytest
@@ -60,7 +61,7 @@ async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> 
         # Each tick's 0x20 frames go out on the tick, not a period early: the model saw
         # one per actuator per tick, at the period apart.
         times = [t for t, cmd, _ in models[0].received if cmd == la.CMD_FOLLOW]
-        gaps = [b - a for a, b in zip(times, times[1:], strict=False)]
+        gaps = [b - a for a, b in itertools.pairwise(times)]
         assert len(times) == stream.stats.ticks
         assert min(gaps) > 0.5 * 0.01  # never two ticks' frames back to back
         await streamer.close()
