@@ -51,7 +51,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
-from motorbus.protocol.base import FF_AA, Family, check_int
+from motorbus.protocol.base import FF_AA, Family, check_int, wire_time
 from motorbus.protocol.project_stepper import (
     BASE_DISTANCE_PER_REV,
     BASE_LOOP_START,
@@ -143,12 +143,10 @@ ACCEL_STEP_S = 1e-3
 #: (the controller must load the next step); it also keeps a loop of empty steps from
 #: spinning at one instant.
 STEP_GAP_S = 1e-3
-#: Bits per byte on the 9600 8N1 link (A.1), to keep ``EE DD`` behind the 4E ack.
-_BITS_PER_BYTE = 10
 #: The baud rate of doc 000 (A.1).
 _BAUD = 9600
 #: Oldest step-trace entries are dropped beyond this (a forever loop would grow it).
-MAX_TRACE = 100_000
+MAX_TRACE = 10_000
 #: Output names, in the order OUT1..OUT3 (open collector) then LED1, LED2 (A.3).
 OUTPUT_NAMES = ("OUT1", "OUT2", "OUT3", "LED1", "LED2")
 #: Degrees x 100 in one revolution: pulses/rev = subdivision x 36000 / angle x 100 (A.3).
@@ -712,7 +710,9 @@ class ProjectStepperModel(DeviceModel):
 
     def _earliest_finish(self, run: _Run) -> float:
         # Keep EE DD behind the 4E acknowledgement on the wire.
-        return run.started + self._turnaround_s + REPLY_SIZE * _BITS_PER_BYTE / _BAUD
+        return (
+            run.started + self._turnaround_s + wire_time(REPLY_SIZE, _BAUD)
+        )  # keeps EE DD behind the 4E ack
 
     def _stop_project(self, now: float) -> None:
         """0x5E / IN4: stop at once, no EE DD (A.4)."""
