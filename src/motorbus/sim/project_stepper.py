@@ -710,9 +710,7 @@ class ProjectStepperModel(DeviceModel):
 
     def _earliest_finish(self, run: _Run) -> float:
         # Keep EE DD behind the 4E acknowledgement on the wire.
-        return (
-            run.started + self._turnaround_s + wire_time(REPLY_SIZE, _BAUD)
-        )  # keeps EE DD behind the 4E ack
+        return run.started + self._turnaround_s + wire_time(REPLY_SIZE, _BAUD)
 
     def _stop_project(self, now: float) -> None:
         """0x5E / IN4: stop at once, no EE DD (A.4)."""
