@@ -18,3 +18,15 @@ def load_vectors() -> list[dict[str, Any]]:
     data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
     vectors: list[dict[str, Any]] = data["vectors"]
     return vectors
+
+
+def vectors_of(device_kind: str) -> list[dict[str, Any]]:
+    """The vectors of one device kind, or ``[]`` if the file is missing.
+
+    For parametrising at collection time, where skipping is not possible yet: an empty
+    list makes pytest report the test as skipped ("got empty parameter set").
+    """
+    if not VECTORS_PATH.exists():
+        return []
+    data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
+    return [v for v in data["vectors"] if v["device_kind"] == device_kind]

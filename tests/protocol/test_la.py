@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -42,15 +40,11 @@ from motorbus.protocol.la import (
     split_broadcast,
     temperature_limit_writes,
 )
-
-VECTORS_PATH = Path(__file__).parents[2].parent / "shared/protocols/vectors.json"
+from tests.vectors import VECTORS_PATH, vectors_of
 
 
 def _la_vectors() -> list[dict[str, Any]]:
-    if not VECTORS_PATH.exists():
-        return []
-    data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
-    return [v for v in data["vectors"] if v["device_kind"] == "inspire_la_55aa"]
+    return vectors_of("inspire_la_55aa")
 
 
 LA_VECTORS = _la_vectors()

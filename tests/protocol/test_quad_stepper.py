@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -38,19 +36,10 @@ from motorbus.protocol.quad_stepper import (
     is_done_reply,
     request_is_valid,
 )
+from tests.vectors import VECTORS_PATH, vectors_of
 
-VECTORS_PATH = Path(__file__).resolve().parents[2].parent / "shared" / "protocols" / "vectors.json"
 DEVICE_KIND = "ffaa9_4axis_stepper"
-
-
-def _load_vectors() -> list[dict[str, Any]]:
-    if not VECTORS_PATH.exists():
-        return []
-    data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
-    return [v for v in data["vectors"] if v["device_kind"] == DEVICE_KIND]
-
-
-VECTORS = _load_vectors()
+VECTORS = vectors_of(DEVICE_KIND)
 needs_vectors = pytest.mark.skipif(not VECTORS, reason=f"test vectors missing: {VECTORS_PATH}")
 
 

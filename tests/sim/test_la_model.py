@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import random
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -34,19 +32,11 @@ from motorbus.protocol.la import (
     split_broadcast,
 )
 from motorbus.sim.la import AUTO_CLEAR_S, CONSECUTIVE_WINDOW_S, LAModel, PowerState
-
-VECTORS_PATH = Path(__file__).parents[2].parent / "shared/protocols/vectors.json"
+from tests.vectors import VECTORS_PATH, vectors_of
 
 
 def _request_vectors() -> list[dict[str, Any]]:
-    if not VECTORS_PATH.exists():
-        return []
-    data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
-    return [
-        v
-        for v in data["vectors"]
-        if v["device_kind"] == "inspire_la_55aa" and v["decoded"]["header"] == "55 AA"
-    ]
+    return [v for v in vectors_of("inspire_la_55aa") if v["decoded"]["header"] == "55 AA"]
 
 
 REQUEST_VECTORS = _request_vectors()

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 import random
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -37,18 +35,9 @@ from motorbus.sim.quad_stepper import (
     MotorParams,
     QuadStepperModel,
 )
+from tests.vectors import VECTORS_PATH, vectors_of
 
-VECTORS_PATH = Path(__file__).resolve().parents[2].parent / "shared" / "protocols" / "vectors.json"
-
-
-def _load_vectors() -> list[dict[str, Any]]:
-    if not VECTORS_PATH.exists():
-        return []
-    data = json.loads(VECTORS_PATH.read_text(encoding="utf-8"))
-    return [v for v in data["vectors"] if v["device_kind"] == "ffaa9_4axis_stepper"]
-
-
-VECTORS = _load_vectors()
+VECTORS = vectors_of("ffaa9_4axis_stepper")
 
 RUN_ACK = parse_hex("FF AA 00 09 00 00")
 RUN_DONE = parse_hex("FF AA 00 09 01 00")
