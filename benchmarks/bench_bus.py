@@ -327,7 +327,9 @@ async def deadline_precision(path: str, backend: str, n: int) -> dict[str, Any]:
 def _serve(conn: Connection, log_file: str | None) -> None:
     """Child process: serve the LA models on a pty until told to stop."""
     models = [LAModel(i) for i in LA_IDS]
-    with PtySim(models, baud=BAUD, log_file=log_file) as sim:
+    # Busy-polling: the simulator's arrival stamps (the start-to-start gaps it reports)
+    # and its reply times do not include its own wake-up latency, as a UART's would not.
+    with PtySim(models, baud=BAUD, log_file=log_file, spin=True) as sim:
         conn.send(sim.path)
         conn.recv()
         error = sim.error

@@ -30,8 +30,9 @@ def open_port(path: str | Path) -> serial.Serial:
     return serial.Serial(str(path), baudrate=921600, timeout=READ_TIMEOUT_S)
 
 
-def test_la_status_over_a_pty_with_plain_pyserial() -> None:
-    with PtySim([LAModel(id=1)]) as sim, open_port(sim.path) as port:
+@pytest.mark.parametrize("spin", [False, True], ids=["select", "busy-poll"])
+def test_la_status_over_a_pty_with_plain_pyserial(spin: bool) -> None:
+    with PtySim([LAModel(id=1)], spin=spin) as sim, open_port(sim.path) as port:
         port.write(STATUS_QUERY)
         reply = port.read(STATUS_SIZE)
         assert reply[:4] == bytes.fromhex("AA 55 11 01")

@@ -56,6 +56,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of turnarounds and faults")
     parser.add_argument("--log", metavar="FILE", help="append one JSON line per frame to FILE")
+    parser.add_argument(
+        "--spin",
+        action="store_true",
+        help="busy-poll the port: precise arrival timestamps for timing measurements, "
+        "at the cost of a whole CPU core",
+    )
 
 
 def register(subparsers: Any) -> None:
@@ -103,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
                 seed=args.seed,
                 link=args.link,
                 log_file=args.log,
+                spin=getattr(args, "spin", False),
             ).start()
         except (OSError, LocalProtocolError) as err:
             print(f"motorbus sim: error: {err}", file=sys.stderr)

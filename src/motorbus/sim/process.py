@@ -33,6 +33,7 @@ class SimProcess:
         seed: seed of turnarounds and faults.
         log_file: record every frame both ways as JSON lines to this path.
         link: create this symlink to the pty.
+        spin: busy-poll the port for precise timestamps (``motorbus sim --spin``).
     """
 
     def __init__(
@@ -44,8 +45,11 @@ class SimProcess:
         seed: int = 0,
         log_file: str | os.PathLike[str] | None = None,
         link: str | os.PathLike[str] | None = None,
+        spin: bool = False,
     ) -> None:
         self.args = [sys.executable, "-m", "motorbus", "sim"]
+        if spin:
+            self.args.append("--spin")
         if baud is not None:
             self.args += ["--baud", str(baud)]
         if faults:

@@ -55,6 +55,7 @@ class PtySim:
             replaced, any other existing file is refused (``FileExistsError``).
         log_file: optional path; one JSON object per frame, flushed line by line.
         log: optional callback with the same records (called from the sim thread).
+        spin: busy-poll the port for precise timestamps (uses a whole core).
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
@@ -73,8 +74,14 @@ class PtySim:
         link: str | os.PathLike[str] | None = None,
         log_file: str | os.PathLike[str] | None = None,
         log: Callable[[LogRecord], None] | None = None,
+        spin: bool = False,
     ) -> None:
         self.link = Path(link) if link is not None else None
+        #: Busy-poll the port instead of sleeping in select(): arrival timestamps and
+        #: reply times then do not include this thread's own wake-up latency (100-500 us
+        #: on a VM whose idle cores sleep deeply), at the cost of a whole core.  For
+        #: measuring a host's timing; off by default.
+        self.spin = spin
         self._log_path = Path(log_file) if log_file is not None else None
         self._log_stream: IO[str] | None = None
         self._user_log = log
@@ -229,7 +236,10 @@ class PtySim:
                     self._open_pty()
                     _log.info("disconnect fault over: serving on %s", self.path)
             wakeup = bus.next_wakeup()
-            timeout = None if wakeup is None else max(0.0, wakeup - time.monotonic())
+            if self.spin:
+                timeout: float | None = 0.0
+            else:
+                timeout = None if wakeup is None else max(0.0, wakeup - time.monotonic())
             master = self._master
             fds = [wake_r] if master is None else [wake_r, master]
             readable, _, _ = select.select(fds, [], [], timeout)
