@@ -1,4 +1,4 @@
-"""One serial bus: a reader, a writer, request/reply matching, spacing and deadlines.
+"""One serial bus: one port, one queue, request/reply matching, spacing and deadlines.
 
 The bus owns one port.  Everything written to the port goes through one queue, in
 priority order (an emergency stop jumps it), and starts only when
@@ -15,8 +15,11 @@ Deadlines and spacing run on the high-resolution timer of ``motorbus.bus.timer``
 
 Every byte that arrives is fed to the sans-I/O reassembler; the bus matches frames to
 the pending request, routes events (``EE DD``, quad "done" replies), and counts the
-rest: garbage, late replies, unexpected frames.  A late reply is never matched to a
-later request (see ``_is_late`` for how).
+rest: garbage, late replies, unexpected frames.  A late reply is not given to a later
+request: it completes earlier than that request's reply physically can, or it comes
+within the per-device late guard that holds the next request (``_is_late``).  The
+protocols carry no sequence numbers, so a reply later than the guard with exactly the
+shape of a newer request cannot be told apart: raise ``late_guard`` for such devices.
 """
 
 from __future__ import annotations
