@@ -63,7 +63,8 @@ COALESCE_WINDOW_S = 200e-6
 #: A tick's targets are computed as soon as the previous tick's frames, feedback and
 #: polls are done, at most this long before its deadline; its frames then leave from
 #: a timer callback at the deadline itself.  One timer wake-up a tick (each costs
-#: ~300 us of CPU on this VM): the preparation rides on the previous tick's.
+#: 180-600 us of CPU on this VM, benchmarks/bench_wakeups.py): the preparation rides
+#: on the previous tick's.
 PLAN_AHEAD_S = 0.050
 #: Polls stop this long before the next tick, to leave time to prepare it.
 PREPARE_S = 1e-3
@@ -647,7 +648,7 @@ class Streamer:
         """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
 
         The frames are built and queued from a timer callback at the deadline: a task
-        woken then would send one event-loop iteration late (~100 us here).  Streams
+        woken then would send one event-loop step late (~55 us here, bench_wakeups.py).  Streams
         stopped or paused since their targets were computed are left out at that moment,
         so a stream ended with a safe action never sends one more target after it.
         Returns (when the first frame left, or None if nothing left; frames sent).

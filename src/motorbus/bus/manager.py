@@ -59,8 +59,8 @@ SAFE_STOP_TIMEOUT_S = 2.0
 #: Ticks of the buses are spread over this span (the shortest stream period)...
 PHASE_SPAN_S = 0.010
 #: ... in this many phase groups.  Buses of one group share their wake-ups: on this
-#: platform one epoll wake-up costs ~300 us of CPU while each extra task woken with it
-#: costs ~15 us (benchmarks/bench_stream.py and the note in README), so 32 buses in 4
+#: platform a wake-up of its own costs 180-600 us of CPU while tasks sharing one cost
+#: 30-90 us each (benchmarks/bench_wakeups.py), so 32 buses in 4
 #: groups cost a fraction of 32 separate wake-ups, and the groups still keep the buses
 #: from all writing at the same instant.
 PHASE_GROUPS = 4

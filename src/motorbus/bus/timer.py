@@ -393,11 +393,11 @@ class TimerfdTimer(Timer):
     watched with ``loop.add_reader``; the wake-up then spins on the clock for the rest.
     A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
     (PLATFORM.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
-    sleep deeply, 250 us p50 and up to 500 us.  Spinning the last 500 us makes a
-    deadline fire within ~30 us at p99, never early, for at most 500 us of CPU per
-    wake-up (about 2.5 % of a core for a 100 Hz stream, 25 % for a bus held at 1000
-    commands/s).  ``spin_lead=0``, or the environment variable
-    ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
+    sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
+    Spinning the last part (a lead of 60-500 us that follows recent wake-up lateness)
+    makes a deadline fire within ~25 us at p99, never early, for at most the lead in CPU
+    per wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
+    environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
     """
 
     name = "timerfd"
