@@ -19,6 +19,7 @@ __all__ = [
     "DeviceFaultError",
     "LocalProtocolError",
     "MotorbusError",
+    "NotSentError",
     "RemoteProtocolError",
     "ReplyTimeoutError",
 ]
@@ -50,6 +51,10 @@ class RemoteProtocolError(MotorbusError):
 
 class ReplyTimeoutError(MotorbusError, TimeoutError):
     """No matching reply arrived before the request's deadline."""
+
+
+class NotSentError(MotorbusError):
+    """A request could not start by its ``start_by`` time and was dropped; nothing was sent."""
 
 
 class BusClosedError(MotorbusError, ConnectionError):

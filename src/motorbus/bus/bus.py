@@ -1,25 +1,38 @@
 """One serial bus: one port, one queue, request/reply matching, spacing and deadlines.
 
 The bus owns one port.  Everything written to the port goes through one queue, in
-priority order (an emergency stop jumps it), and starts only when
+priority order (an emergency stop jumps it), and a frame's write starts only when
 
-* the previous request started at least ``min_spacing`` earlier (1 ms, LA manual
-  3.4.2 / PROTOCOLS C.6) and its own bytes are off the wire, and
+* at least ``min_spacing`` (1 ms, LA manual 3.4.2) has passed since the previous
+  write *returned* (and the previous frame's own wire time, if longer).  The anchor
+  is the moment the write call came back, not a timestamp taken before it: a process
+  preempted between reading the clock and writing would otherwise write later than
+  its timestamp says, and the kernel would see two frames closer than the rule;
 * no reply is still owed: a request that expects a reply holds the bus until the
-  reply is matched or its deadline runs out.
+  reply is matched or its deadline runs out;
+* it does not overlap a window reserved by a stream tick (``add_reservation_source``):
+  a request that could still hold the bus when the tick is due waits until after it.
 
 A reply's deadline is the wire time of the request and of its longest reply at the
-bus's baud, plus the device turnaround (800 us for the LA), plus a host-latency margin.
-Deadlines and spacing run on the high-resolution timer of ``motorbus.bus.timer``
-(timerfd on Linux), because asyncio's own timers round to whole milliseconds.
+bus's baud, plus the device turnaround (800 us for the LA), plus a host-latency margin,
+counted from the completed write.  Deadlines and spacing run on the high-resolution
+timer of ``motorbus.bus.timer`` (timerfd on Linux), because asyncio's own timers round
+to whole milliseconds.
 
 Every byte that arrives is fed to the sans-I/O reassembler; the bus matches frames to
 the pending request, routes events (``EE DD``, quad "done" replies), and counts the
-rest: garbage, late replies, unexpected frames.  A late reply is not given to a later
-request: it completes earlier than that request's reply physically can, or it comes
-within the per-device late guard that holds the next request (``_is_late``).  The
-protocols carry no sequence numbers, so a reply later than the guard with exactly the
-shape of a newer request cannot be told apart: raise ``late_guard`` for such devices.
+rest: garbage, late replies, unexpected frames.  A reply is accepted by causality: a
+frame whose first byte arrived after the request was handed to the OS may be its reply,
+however soon (a pty, a USB-CDC device or a TCP bridge does not pace bytes at the baud);
+a frame that began before the write is older traffic.  Whether a reply is on time is
+decided by when its bytes were seen against the deadline, whichever callback runs
+first.  A late reply is never given to a later request: after a timeout, the next
+request to that device waits ``late_guard``, and the late frame is recognised by its
+shape and counted.  The protocols carry no sequence numbers, so a reply later than the
+guard with exactly the shape of a newer request cannot be told apart: raise
+``late_guard`` for such devices.  ``wire_floor=True`` (for a real UART that paces bytes
+at the baud) also refuses frames that completed sooner than the wire allows; each such
+frame is counted as ``early_replies`` and logged, never silently made a timeout.
 """
 
 from __future__ import annotations
@@ -31,8 +44,9 @@ import enum
 import heapq
 import itertools
 import logging
+import math
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
@@ -49,6 +63,7 @@ from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.errors import (
     BusClosedError,
     LocalProtocolError,
+    NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
 )
@@ -96,9 +111,21 @@ DEFAULT_LATE_GUARD_S = 20e-3
 MAX_DONE_WATCHES = 16
 #: How long a timed-out request is remembered to recognise its late reply.
 LATE_WINDOW_S = 2.0
-#: A reply cannot complete before its request and itself have crossed the wire; we
-#: allow 10 % for baud-rate tolerance before calling a frame "too early to be ours".
-_EARLIEST_FACTOR = 0.9
+#: With ``wire_floor=True`` (a real UART that paces bytes at the baud), a reply cannot
+#: complete before its request and itself have crossed the wire; 10 % is allowed for
+#: baud-rate tolerance before a frame is called "too early to be ours".  Off by default:
+#: ptys, USB-CDC devices and TCP bridges deliver far sooner than the wire would.
+WIRE_FLOOR_FACTOR = 0.9
+#: A timer callback that runs this much after its deadline means the host (not the
+#: device) stalled: a full garbage collection, another process on the core.  Timeouts
+#: and late replies decided then are counted apart (``BusStats.host_stalls``).
+HOST_STALL_S = 1e-3
+#: What a write is assumed to take when a request is fitted before a reserved stream
+#: tick: the largest recent write duration, decaying by this factor a write, within
+#: these bounds (seconds).  A write that takes longer only slips the tick (counted).
+WRITE_COST_DECAY = 0.99
+WRITE_COST_MIN_S = 50e-6
+WRITE_COST_MAX_S = 500e-6
 #: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
@@ -130,6 +157,14 @@ def device_key(cmd: Command) -> str:
     return str(cmd.family.value)
 
 
+#: Called at the moment a queued frame is written: returns the command to send now
+#: (rebuilt from what is still wanted) or None to drop it unsent.
+Refresh = Callable[[], "Command | None"]
+#: A source of reserved bus windows: given the time now, the earliest (start, end) window
+#: that ends after now, or None.
+ReservationSource = Callable[[float], "tuple[float, float] | None"]
+
+
 @dataclass(slots=True, eq=False)
 class _Job:
     """One request travelling through the bus."""
@@ -142,11 +177,16 @@ class _Job:
     timeout: float
     retries_left: int
     key: str
-    tx_time: float = 0.0
-    earliest: float = 0.0
+    tx_time: float = 0.0  # when the write returned
+    rx_mark: int = 0  # stream offset of the first received byte that may be its reply
+    earliest: float = 0.0  # wire floor (wire_floor=True only)
     deadline: float = 0.0
     handle: TimerHandle | None = None
     attempts: int = 0
+    reserved: bool = False  # a stream tick's frame: it owns the reserved window
+    refresh: Refresh | None = None
+    start_by: float = math.inf
+    expiry: TimerHandle | None = None
 
     def __lt__(self, other: _Job) -> bool:
         return (self.priority, self.seq) < (other.priority, other.seq)
@@ -178,6 +218,7 @@ class BusConfig:
     retries: int = 1
     late_guard: float = DEFAULT_LATE_GUARD_S
     reconnect: bool = True
+    wire_floor: bool = False
 
 
 class Bus:
@@ -194,6 +235,9 @@ class Bus:
         late_guard: after a timeout, hold the next request to that device this long.
         reconnect: reopen the port with backoff if it is lost.
         timer: the timer for spacing and deadlines (default: the loop's high-res timer).
+        wire_floor: also refuse (and count as ``early_replies``) a reply that completed
+            sooner than the wire at the bus's baud allows; only for a link that provably
+            paces bytes (a real UART).  Off by default: a reply is accepted by causality.
     """
 
     def __init__(
@@ -209,6 +253,7 @@ class Bus:
         late_guard: float = DEFAULT_LATE_GUARD_S,
         reconnect: bool = True,
         timer: Timer | None = None,
+        wire_floor: bool = False,
     ) -> None:
         if not 0 <= min_spacing <= 1:
             raise LocalProtocolError(
@@ -232,6 +277,7 @@ class Bus:
             retries=retries,
             late_guard=late_guard,
             reconnect=reconnect,
+            wire_floor=wire_floor,
         )
         self.stats = BusStats()
         self.events = EventHub()
@@ -242,6 +288,10 @@ class Bus:
         self._seq = itertools.count()
         self._pending: _Job | None = None
         self._next_tx = 0.0
+        self._write_cost = WRITE_COST_MIN_S
+        self._rx_total = 0  # bytes handed to the reassembler since the port opened
+        self._reservation_sources: list[ReservationSource] = []
+        self._expected_shapes: tuple[FrameShape, ...] | None = None
         self._pump_handle: TimerHandle | None = None
         self._pump_at = 0.0
         self._pumping = False
@@ -271,10 +321,18 @@ class Bus:
         if self.state is BusState.OPEN:
             return
         self._closing = False
+        self._new_reassembler()
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
         self._check_adapter_latency()
         self._publish_state("open")
+
+    def _new_reassembler(self) -> None:
+        """A fresh stream (on open and after a lost port): nothing buffered, offsets at 0."""
+        self._reassembler = Reassembler(families=self.families)
+        self._rx_total = 0
+        self._expected_shapes = None
+        self._expect_shapes()
 
     def _check_adapter_latency(self) -> None:
         """Warn if a USB adapter's latency timer leaves no deadline of this bus a chance.
@@ -378,13 +436,27 @@ class Bus:
         timeout: float | None = None,
         retries: int | None = None,
         priority: Priority = Priority.NORMAL,
+        start_by: float | None = None,
+        reserved: bool = False,
+        refresh: Refresh | None = None,
     ) -> asyncio.Future[Any]:
         """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
 
         Returns the future of its decoded reply (``request`` awaits it).  Cancelling the
         future drops the command if it is still queued.  For code that must send at an
         exact instant from a timer callback (the stream ticks); otherwise use
-        ``request``.  Arguments and errors as for ``request``, raised at once.
+        ``request``.  Arguments and errors as for ``request``, raised at once, and:
+
+        Args:
+            start_by: absolute time (``bus.timer`` clock): if the frame has not been
+                written by then, it is dropped unsent and the future fails with
+                ``NotSentError`` (counted in ``stats.not_sent``).
+            reserved: the frame belongs to a reserved window (a stream tick): it is
+                not held back by reservations.
+            refresh: called when the frame is about to be written; returns the command
+                to write now (rebuilt from what is still wanted) or None to drop it
+                unsent (the future then resolves to None).  A stream uses it so that a
+                frame queued before the stream stopped is never written after.
         """
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
@@ -397,6 +469,12 @@ class Bus:
                 field="cmd",
             )
         _check_request_options(timeout, retries, priority)
+        if start_by is not None and not (
+            isinstance(start_by, int | float) and not isinstance(start_by, bool)
+        ):
+            raise LocalProtocolError(
+                f"start_by must be a time in seconds, got {start_by!r}", field="start_by"
+            )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
         raw = cmd.encode()
@@ -413,7 +491,14 @@ class Bus:
             timeout=budget,
             retries_left=n_retries,
             key=device_key(cmd),
+            reserved=reserved,
+            refresh=refresh,
         )
+        if start_by is not None:
+            job.start_by = float(start_by)
+            job.expiry = self.timer.call_at(
+                job.start_by, lambda: self._drop_unsent(job), precise=False
+            )
         heapq.heappush(self._heap, job)
         self._pump()  # an idle bus sends right here
         return job.future
@@ -422,14 +507,49 @@ class Bus:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
         await self.request(cmd, priority=priority)
 
+    # -- reservations --------------------------------------------------------------
+
+    def add_reservation_source(self, source: ReservationSource) -> None:
+        """Register ``source(now) -> (start, end) | None``: the next reserved window.
+
+        A frame that is not ``reserved`` is not started if it could still hold the bus
+        (its write, its spacing, and its whole reply budget) when a reserved window
+        begins; it waits until the window ends.  Emergency frames ignore reservations.
+        Streams use this so that user requests never delay a tick.
+        """
+        self._reservation_sources.append(source)
+
+    def remove_reservation_source(self, source: ReservationSource) -> None:
+        """Forget a source added with ``add_reservation_source``; unknown ones are ignored."""
+        with contextlib.suppress(ValueError):
+            self._reservation_sources.remove(source)
+
+    def _held_by_reservation(self, job: _Job, start: float) -> float | None:
+        """End of the reserved window ``job`` would overlap if started at ``start``."""
+        if job.reserved or job.priority == Priority.EMERGENCY or not self._reservation_sources:
+            return None
+        occupancy = self._write_cost + max(
+            self.config.min_spacing,
+            wire_time(len(job.raw), self.baudrate),
+            job.timeout if job.cmd.expects_reply else 0.0,
+        )
+        for source in self._reservation_sources:
+            window = source(start)
+            if window is None:
+                continue
+            begin, end = window
+            if start + occupancy > begin and start < end:
+                return end
+        return None
+
     # -- writer ------------------------------------------------------------------
     #
     # There is no writer task: ``_pump`` sends the head of the queue as soon as the bus
     # allows it, and is called whenever that may have changed (a request queued, a reply
-    # matched, a deadline run out, the port back) or by the timer when the spacing or a
-    # late guard ends.  A task would add an event-loop step (~55 us p50 on this VM,
-    # benchmarks/bench_wakeups.py) to
-    # every command; a timer callback sends on time.
+    # matched, a deadline run out, the port back) or by the timer when the spacing, a
+    # late guard or a reservation ends.  A task would add an event-loop step (~55 us p50
+    # on this VM, benchmarks/bench_wakeups.py) to every command; a timer callback sends
+    # on time.
 
     def _pump(self) -> None:
         if self._pumping:
@@ -440,10 +560,14 @@ class Bus:
             while heap and self._pending is None and self.state is BusState.OPEN:
                 job = heap[0]
                 if job.future.done():
-                    heapq.heappop(heap)  # cancelled while queued
+                    heapq.heappop(heap)  # cancelled (or expired) while queued
                     continue
-                start = max(self._next_tx, self._guard_until.get(job.key, 0.0))
-                if start > self.timer.now():
+                now = self.timer.now()
+                start = max(self._next_tx, self._guard_until.get(job.key, 0.0), now)
+                held = self._held_by_reservation(job, start)
+                if held is not None:
+                    start = held
+                if start > now:
                     self._pump_later(start)
                     return
                 heapq.heappop(heap)
@@ -463,55 +587,114 @@ class Bus:
         self._pump_handle = None
         self._pump()
 
+    def _drop_unsent(self, job: _Job) -> None:
+        """``start_by`` passed with ``job`` still queued: fail it, nothing was written."""
+        job.expiry = None
+        if job.attempts or job.future.done():
+            return
+        self.stats.not_sent += 1
+        job.future.set_exception(
+            NotSentError(
+                f"{type(job.cmd).__name__} to {job.key} could not start by its start_by "
+                "time; nothing was sent"
+            )
+        )
+        job.future.exception()  # retrieved: a poller that gave up need not await it
+        self._pump()  # it may have been the head of the queue
+
     def _transmit(self, job: _Job) -> None:
-        now = self.timer.now()
+        if job.expiry is not None:
+            job.expiry.cancel()
+            job.expiry = None
+        if job.refresh is not None:
+            fresh = job.refresh()
+            if fresh is None:
+                self.stats.dropped_by_refresh += 1
+                if not job.future.done():
+                    job.future.set_result(None)
+                return
+            if fresh is not job.cmd:
+                job.cmd = fresh
+                job.raw = fresh.encode()
         cmd = job.cmd
         baud = self.baudrate
         tx_wire = wire_time(len(job.raw), baud)
-        self._next_tx = now + max(self.config.min_spacing, tx_wire)
         job.attempts += 1
         stats = self.stats
         stats.requests += 1
         stats.bytes_out += len(job.raw)
         device = stats.device(job.key)
         device.requests += 1
-        if cmd.expects_reply:
-            job.tx_time = now
-            job.earliest = now + _EARLIEST_FACTOR * (
-                tx_wire + wire_time(min(cmd.reply_lengths()), baud)
-            )
-            job.deadline = now + job.timeout
+        expects = cmd.expects_reply
+        if expects:
+            # Registered before the write: no callback can run during it, and whatever
+            # the reassembler holds or has consumed so far came before it.
+            job.rx_mark = self._rx_total
             self._pending = job
-            if cmd.family is not Family.LA:
-                self._reassembler.expect(self._stepper_shapes(cmd))
-            job.handle = self.timer.call_at(job.deadline, self._on_deadline)
+            self._expect_shapes()
         else:
             stats.no_reply_frames += 1
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
+        timer = self.timer
+        before = timer.now()
         try:
             self.transport.write(job.raw)
         except BusClosedError as err:
             self._finish(job, err)
             return
-        if not cmd.expects_reply and not job.future.done():
+        after = timer.now()
+        # Spacing counts from the completed write (module docstring).
+        self._next_tx = after + max(self.config.min_spacing, tx_wire)
+        took = after - before
+        self._write_cost = min(
+            WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
+        )
+        job.tx_time = after
+        if expects:
+            if self.config.wire_floor:
+                job.earliest = before + WIRE_FLOOR_FACTOR * (
+                    tx_wire + wire_time(min(cmd.reply_lengths()), baud)
+                )
+            job.deadline = after + job.timeout
+            job.handle = timer.call_at(job.deadline, self._on_deadline)
+        elif not job.future.done():
             job.future.set_result(None)
 
-    def _stepper_shapes(self, cmd: Command) -> list[FrameShape]:
-        shapes = list(cmd.reply_shapes())
+    def _expect_shapes(self) -> None:
+        """Tell the reassembler which checksum-less stepper replies it may cut now.
+
+        Exactly what the bus awaits: the pending request's replies, the "done" replies
+        still to come, and the replies of requests that timed out recently (so that
+        their late answers are recognised and counted).  Nothing else: stray ``FF AA``
+        bytes are then discarded, never taken for a frame.
+        """
+        if self.families == {Family.LA}:
+            return
+        shapes: list[FrameShape] = []
+        job = self._pending
+        if job is not None:
+            shapes.extend(job.cmd.reply_shapes())
         for watch in self._done_watches:
             shapes.extend(watch.shapes)
-        return shapes
+        for t in self._timeouts:
+            shapes.extend(t.cmd.reply_shapes())
+        expected = tuple(dict.fromkeys(shapes))
+        if expected != self._expected_shapes:
+            self._expected_shapes = expected
+            self._reassembler.expect(expected)
 
     def _finish(self, job: _Job, outcome: Any) -> None:
         """Resolve ``job`` with a value or an exception and free the bus."""
         if job.handle is not None:
             job.handle.cancel()
             job.handle = None
+        if job.expiry is not None:
+            job.expiry.cancel()
+            job.expiry = None
         if self._pending is job:
             self._pending = None
-            if job.cmd.family is not Family.LA:
-                self._reassembler.expect(self._idle_shapes())
+            self._expect_shapes()
         if not job.future.done():
             if isinstance(outcome, BaseException):
                 self.stats.failed += 1
@@ -520,36 +703,45 @@ class Bus:
                 job.future.set_result(outcome)
         self._pump()
 
-    def _idle_shapes(self) -> list[FrameShape] | None:
-        if not self._done_watches:
-            return None
-        return [s for w in self._done_watches for s in w.shapes]
-
     # -- deadlines ---------------------------------------------------------------
 
     def _on_deadline(self) -> None:
         job = self._pending
         if job is None:
             return
-        now = self.timer.now()
         job.handle = None
-        self.stats.timeouts += 1
-        self.stats.device(job.key).timeouts += 1
+        self._expire(job, self.timer.now())
+
+    def _expire(self, job: _Job, now: float) -> None:
+        """``job``'s deadline has passed (seen at ``now``): retry it or fail it."""
+        if job.handle is not None:
+            job.handle.cancel()
+            job.handle = None
+        stats = self.stats
+        stats.timeouts += 1
+        stats.device(job.key).timeouts += 1
+        stalled = now - job.deadline
+        if stalled > HOST_STALL_S:
+            # The deadline was decided this late: the host, not the device, was slow.
+            stats.timeouts_in_host_stall += 1
+            stats.host_stall_max = max(stats.host_stall_max, stalled)
         self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S))
         self._guard_until[job.key] = now + self.config.late_guard
         log.debug(
-            "%s timeout: %s to %s after %.0f us",
+            "%s timeout: %s to %s after %.0f us%s",
             self.name,
             type(job.cmd).__name__,
             job.key,
             (now - job.tx_time) * 1e6,
+            f" (decided {stalled * 1e3:.1f} ms late: host stall)" if stalled > HOST_STALL_S else "",
         )
         # A caller that cancelled while its request was on the wire awaits no retry.
         if job.retries_left > 0 and not job.future.done():
             job.retries_left -= 1
-            self.stats.retries += 1
-            self.stats.device(job.key).retries += 1
+            stats.retries += 1
+            stats.device(job.key).retries += 1
             self._pending = None
+            self._expect_shapes()
             job.priority = min(job.priority, int(Priority.HIGH))
             heapq.heappush(self._heap, job)
             self._pump()
@@ -567,47 +759,74 @@ class Bus:
 
     def _on_data(self, data: bytes) -> None:
         now = self.timer.now()
-        self.stats.bytes_in += len(data)
-        for item in self._reassembler.feed(data):
+        stats = self.stats
+        stats.bytes_in += len(data)
+        reassembler = self._reassembler
+        # Stream offset of the first byte the reassembler still holds: the items it
+        # returns cover the stream from there, contiguously and in order.
+        offset = self._rx_total - reassembler.buffered
+        self._rx_total += len(data)
+        for item in reassembler.feed(data):
+            start = offset
+            offset += len(item.raw)
             if type(item) is Frame:
-                self._on_frame(item, now)
+                self._on_frame(item, start, now)
             elif type(item) is Discarded:
-                self.stats.garbage_bytes += len(item.raw)
-                by_reason = self.stats.discarded_by_reason
+                stats.garbage_bytes += len(item.raw)
+                by_reason = stats.discarded_by_reason
                 by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
-                self.stats.resyncs += 1
+                stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedItem:
                 self._publish(ProjectFinished(self.name, now))
 
-    def _on_frame(self, frame: Frame, now: float) -> None:
+    def _on_frame(self, frame: Frame, start: int, now: float) -> None:
         raw = frame.raw
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s RX %s", self.name, format_hex(raw))
         job = self._pending
-        if job is not None and now >= job.earliest and job.cmd.matches_reply(raw):
-            latency = now - job.tx_time
-            self.stats.replies += 1
-            self.stats.latency.record(latency)
-            device = self.stats.device(job.key)
-            device.replies += 1
-            device.latency.record(latency)
-            try:
-                value: Any = job.cmd.decode_reply(raw)
-            except RemoteProtocolError as err:
-                self._finish(job, err)
+        if job is not None and start >= job.rx_mark and job.cmd.matches_reply(raw):
+            if now > job.deadline:
+                # Seen after the deadline, whichever callback runs first: late.  The
+                # deadline's own callback has not run yet (the loop was held up), so the
+                # timeout is decided here, and the frame is counted as its late reply.
+                self._expire(job, now)
+            elif self.config.wire_floor and now < job.earliest:
+                self.stats.early_replies += 1
+                log.debug(
+                    "%s frame %s too early for the wire (%.0f us before the floor)",
+                    self.name,
+                    format_hex(raw),
+                    (job.earliest - now) * 1e6,
+                )
                 return
-            if job.cmd.done_shapes():
-                self._watch_done(_done_watch(job.cmd))
-            self._observe(value, now)
-            self._finish(job, value)
-            return
+            else:
+                self._accept(job, raw, now)
+                return
         if self._match_done(raw, now):
             return
         if self._is_late(raw, now):
             return
         self.stats.unexpected_frames += 1
         log.debug("%s unexpected frame %s", self.name, format_hex(raw))
+
+    def _accept(self, job: _Job, raw: bytes, now: float) -> None:
+        latency = now - job.tx_time
+        stats = self.stats
+        stats.replies += 1
+        stats.latency.record(latency)
+        device = stats.device(job.key)
+        device.replies += 1
+        device.latency.record(latency)
+        try:
+            value: Any = job.cmd.decode_reply(raw)
+        except RemoteProtocolError as err:
+            self._finish(job, err)
+            return
+        if job.cmd.done_shapes():
+            self._watch_done(_done_watch(job.cmd))
+        self._observe(value, now)
+        self._finish(job, value)
 
     def _watch_done(self, watch: _DoneWatch) -> None:
         """Remember a "done" reply to come, keeping at most ``MAX_DONE_WATCHES``.
@@ -620,11 +839,13 @@ class Bus:
         if len(self._done_watches) > MAX_DONE_WATCHES:
             del self._done_watches[0]
             self.stats.done_watches_dropped += 1
+        self._expect_shapes()
 
     def _match_done(self, raw: bytes, now: float) -> bool:
         for i, watch in enumerate(self._done_watches):
             if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
                 del self._done_watches[i]
+                self._expect_shapes()
                 self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
                 return True
         return False
@@ -633,13 +854,16 @@ class Bus:
         """Recognise the answer to a request whose deadline already ran out.
 
         Such a frame is never given to the pending request: either it matched no
-        pending request at all, or it completed earlier than a reply to the pending
-        request physically can (``_Job.earliest``), or the per-device late guard kept
-        a same-device request from being sent while it could still arrive.
+        pending request at all, or it began before the pending request was written
+        (``_Job.rx_mark``), or it was seen after that request's deadline, or the
+        per-device late guard kept a same-device request from being sent while it could
+        still arrive.
         """
         timeouts = self._timeouts
-        while timeouts and timeouts[0].until < now:
-            timeouts.popleft()
+        if timeouts and timeouts[0].until < now:
+            while timeouts and timeouts[0].until < now:
+                timeouts.popleft()
+            self._expect_shapes()
         for t in reversed(timeouts):
             if t.cmd.matches_reply(raw):
                 self.stats.late_replies += 1
@@ -683,7 +907,7 @@ class Bus:
         detail = f"{type(exc).__name__}: {exc}" if exc else "port closed"
         log.warning("bus %s lost its port (%s)", self.name, detail)
         self._fail_all(BusClosedError(f"bus {self.name} lost its port: {detail}"))
-        self._reassembler = Reassembler(families=self.families)
+        self._new_reassembler()
         self._publish_state("lost", detail)
         if self.config.reconnect:
             self._reconnect_task = asyncio.get_running_loop().create_task(

@@ -93,6 +93,13 @@ class BusStats:
     resyncs: int = 0  # runs of discarded bytes
     events: int = 0  # device events delivered (EE DD, done replies, fault changes)
     done_watches_dropped: int = 0  # awaited "done" replies given up (never came)
+    not_sent: int = 0  # requests dropped unsent: they could not start by their start_by
+    dropped_by_refresh: int = 0  # queued frames no longer wanted when their turn came
+    early_replies: int = 0  # frames refused by the wire floor (wire_floor=True only)
+    #: Timeouts decided more than HOST_STALL_S after their deadline: the host was held up
+    #: (a garbage collection, another process), so the device may not be at fault.
+    timeouts_in_host_stall: int = 0
+    host_stall_max: float = 0.0  # the longest such delay, seconds
     disconnects: int = 0
     reconnects: int = 0
     bytes_out: int = 0
@@ -125,6 +132,11 @@ class BusStats:
                 "resyncs",
                 "events",
                 "done_watches_dropped",
+                "not_sent",
+                "dropped_by_refresh",
+                "early_replies",
+                "timeouts_in_host_stall",
+                "host_stall_max",
                 "disconnects",
                 "reconnects",
                 "bytes_out",
