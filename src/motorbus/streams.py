@@ -13,10 +13,24 @@ Per bus, one :class:`Streamer` serves every stream in one task:
   1 ms spacing allows 10 in 10 ms);
 * with feedback, each actuator gets a 0x20 frame and its status reply;
 * the slots left in a tick poll the status of streamed actuators round-robin
-  (``poll_status=True``), without ever delaying the next tick.
+  (``poll_status=True``), without ever delaying the next tick: a poll that cannot
+  start in time is dropped unsent and counted (``polls_skipped``).
 
-A set of streams that cannot fit the bus's time budget is refused when it starts,
-with an error that says what would fit.
+Ticks never wait behind user requests: each streamer reserves its tick windows on the
+bus (``Bus.add_reservation_source``), and the bus does not start a request that could
+still hold the line when a tick is due.  A tick whose frame must still wait (a reply
+owed, or the 1 ms spacing from the previous write) slips by the time needed and is
+counted (``slipped``).
+
+Stop means stop: once a stream starts stopping (``stop``, the end of its ``async with``
+block, an error), nothing more of it is written.  Its frames are built at the moment
+they are written (``Bus.submit(refresh=...)``), from the streams still running, so a
+tick queued or being built when the stop began is dropped, not sent after the safe
+action's pause (a follow target would resume a paused actuator, LA manual 3.5.4).
+
+All the streamers of one bus share one time budget: a set of streams that cannot fit
+the bus is refused when it starts, with an error that says what would fit, and an
+actuator can be streamed by one stream at a time.
 """
 
 from __future__ import annotations
@@ -27,6 +41,7 @@ import enum
 import inspect
 import logging
 import math
+import weakref
 from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
@@ -35,7 +50,7 @@ from typing import Any, TypeAlias
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_flag, wire_time
 
@@ -88,9 +103,15 @@ class StreamStats:
     ticks: int = 0  # ticks served (frames sent)
     late: int = 0  # ticks sent more than LATE_AFTER_S after their deadline
     skipped: int = 0  # ticks dropped because the stream fell a whole period behind
+    #: Ticks whose first frame could not be written at the deadline itself (a reply
+    #: was still owed, or the 1 ms spacing from the previous write): sent that much later.
+    slipped: int = 0
     frames: int = 0  # frames sent for this stream (broadcasts shared count once each)
     feedback_timeouts: int = 0
     polls: int = 0
+    #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
+    #: whose free slots held no poll at all.
+    polls_skipped: int = 0
     #: Lateness of each tick's first frame against its absolute deadline.
     jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
 
@@ -101,9 +122,11 @@ class StreamStats:
             "ticks": self.ticks,
             "late": self.late,
             "skipped": self.skipped,
+            "slipped": self.slipped,
             "frames": self.frames,
             "feedback_timeouts": self.feedback_timeouts,
             "polls": self.polls,
+            "polls_skipped": self.polls_skipped,
             "jitter_p50_us": j["p50_us"],
             "jitter_p99_us": j["p99_us"],
             "jitter_max_us": j["max_us"],
@@ -157,6 +180,8 @@ class Stream:
         self.origin = 0.0
         self.next_tick = 0
         self.paused = False
+        #: True from the moment the stream starts to stop: nothing more of it is written.
+        self.stopping = False
         self.done = False
         self._source = source
         self._sequence: Sequence[Any] | None = None
@@ -208,13 +233,25 @@ class Stream:
         """Send targets again from the next tick."""
         self.paused = False
 
+    @property
+    def sending(self) -> bool:
+        """True while the stream may still write targets (not paused, stopping or done)."""
+        return not (self.paused or self.stopping or self.done)
+
     async def stop(self, *, safe: bool = False) -> None:
-        """End the stream; with ``safe``, apply its safe action first.  Idempotent."""
+        """End the stream; with ``safe``, apply its safe action first.  Idempotent.
+
+        From the moment this is called, nothing more of the stream is written: a tick
+        being built or queued is dropped, so the safe action is the last word.
+        """
         if self.done:
             return
-        if safe:
-            await self.apply_safe_action()
-        self._finish(None)
+        self.stopping = True
+        try:
+            if safe:
+                await self.apply_safe_action()
+        finally:
+            self._finish(None)
 
     async def wait(self) -> None:
         """Wait until the stream ends; raises ``StreamEnded`` if it ended on an error."""
@@ -223,7 +260,11 @@ class Stream:
             raise StreamEnded(f"stream to {list(self.ids)} ended: {self.error}") from self.error
 
     async def apply_safe_action(self) -> None:
-        """Bring every actuator of the stream to the configured safe state."""
+        """Bring every actuator of the stream to the configured safe state.
+
+        The stream stops sending first (``stopping``), so no target follows the stop.
+        """
+        self.stopping = True
         if self.safe_action is SafeAction.HOLD:
             return
         action = (
@@ -242,6 +283,7 @@ class Stream:
     def _finish(self, error: BaseException | None) -> None:
         if self.done:
             return
+        self.stopping = True
         self.done = True
         self.error = error
         if not self._finished.done():
@@ -368,6 +410,29 @@ class Streamer:
         self.streams: list[Stream] = []
         self._task: asyncio.Task[None] | None = None
         self._wake: asyncio.Future[None] | None = None
+        #: Planned bus time of one tick of this streamer's streams (s), kept current.
+        self._tick_cost_s = 0.0
+        #: The window of a tick prepared or in progress: (deadline, end of its frames).
+        self._active: tuple[float, float] | None = None
+        _streamers_of(bus).add(self)
+        bus.add_reservation_source(self._reservation)
+
+    def _bus_streams(self) -> list[Stream]:
+        """Every running stream on this streamer's bus, whichever streamer serves it."""
+        return [st for streamer in _streamers_of(self.bus) for st in streamer.streams]
+
+    def _reservation(self, now: float) -> tuple[float, float] | None:
+        """The next window this streamer's ticks need (see ``Bus.add_reservation_source``)."""
+        active = self._active
+        if active is not None and active[1] > now:
+            return active
+        if not self.streams:
+            return None
+        deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+        return deadline, deadline + self._tick_cost_s
+
+    def _update_tick_cost(self) -> None:
+        self._tick_cost_s = sum(self.tick_cost(self.streams).values())
 
     # -- planning -------------------------------------------------------------------
 
@@ -408,8 +473,11 @@ class Streamer:
         return costs
 
     def check_budget(self, extra: Stream) -> None:
-        """Refuse ``extra`` if the streams of this bus would no longer fit their ticks."""
-        streams = [*self.streams, extra]
+        """Refuse ``extra`` if the streams of this bus would no longer fit their ticks.
+
+        The budget is the bus's, shared by every streamer on it.
+        """
+        streams = [*self._bus_streams(), extra]
         costs = self.tick_cost(streams)
         load = sum(cost / period for period, cost in costs.items())
         if load <= TICK_BUDGET_SHARE:
@@ -489,7 +557,7 @@ class Streamer:
                 f"safe_action={safe_action!r} is not allowed: choose hold, pause or estop",
                 field="safe_action",
             ) from None
-        busy = {i for s in self.streams for i in s.ids}
+        busy = {i for s in self._bus_streams() for i in s.ids}
         for a in group:
             if a.bus is not self.bus:
                 raise LocalProtocolError(
@@ -518,6 +586,7 @@ class Streamer:
         grid = self.phase + math.ceil((now + 0.002 - self.phase) / stream.period) * stream.period
         stream.origin = grid
         self.streams.append(stream)
+        self._update_tick_cost()
         if self._task is None or self._task.done():
             self._task = asyncio.get_running_loop().create_task(
                 self._run(), name=f"motorbus streams {self.bus.name}"
@@ -529,6 +598,7 @@ class Streamer:
     def _remove(self, stream: Stream) -> None:
         if stream in self.streams:
             self.streams.remove(stream)
+            self._update_tick_cost()
             self._ring()
 
     async def close(self, *, safe: bool = True) -> None:
@@ -595,14 +665,16 @@ class Streamer:
             if not bus_up:  # the port is gone: the grid runs on, the ticks are skipped
                 s.stats.skipped += 1
                 continue
-            if s.paused:
+            if not s.sending:
                 continue
             try:
                 targets = await s._targets(k, k * s.period)
             except Exception as err:  # the user's target source failed: end that stream
                 log.warning("stream to %s: target source failed: %s", list(s.ids), err)
-                await s.apply_safe_action()
-                s._finish(err)
+                try:
+                    await s.apply_safe_action()
+                finally:
+                    s._finish(err)
                 continue
             if targets is None:
                 s._finish(None)
@@ -613,93 +685,122 @@ class Streamer:
                 feedback.extend((s, i, p) for i, p in targets.items())
         if not served:
             return
-        parts = [(s, s.last_targets) for s in served if not s.feedback]
-        sent_at, frames = await self._send_at(deadline, parts)
-        for s in served:
-            if not s.feedback:
-                s.stats.frames += frames
-        if feedback and timer.now() < deadline:
-            # Feedback frames are round trips, sent one after another from this task:
-            # the first leaves at the deadline (the tick was prepared a period ahead).
-            await timer.sleep_until(deadline)
-        for s, ident, pos in feedback:
-            if sent_at is None:
-                sent_at = timer.now()
-            try:
-                status = await self.bus.request(la.Follow(ident, pos, True), priority=Priority.HIGH)
-            except MotorbusError:
-                s.stats.feedback_timeouts += 1
-            else:
-                s.statuses[ident] = status
-            s.stats.frames += 1
+        self._active = (deadline, deadline + self._tick_cost_s)
+        try:
+            parts = [(s, s.last_targets) for s in served if not s.feedback]
+            sent_at, frames, slipped = await self._send_at(deadline, parts)
+            for s in served:
+                if not s.feedback:
+                    s.stats.frames += frames
+            if feedback and timer.now() < deadline:
+                # Feedback frames are round trips, sent one after another from this task:
+                # the first leaves at the deadline (the tick was prepared a period ahead).
+                await timer.sleep_until(deadline)
+            for s, ident, pos in feedback:
+                if sent_at is None:
+                    sent_at = timer.now()
+                    slipped = sent_at - deadline > LATE_AFTER_S / 10
+                if not s.sending:
+                    continue
+                follow = la.Follow(ident, pos, True)
+                try:
+                    status = await self.bus.submit(
+                        follow,
+                        priority=Priority.HIGH,
+                        reserved=True,
+                        refresh=_while_sending(s, follow),
+                    )
+                except MotorbusError:
+                    s.stats.feedback_timeouts += 1
+                else:
+                    if status is not None:
+                        s.statuses[ident] = status
+                s.stats.frames += 1
+        finally:
+            self._active = None
         if sent_at is None:
             return  # the port went away before anything left
         for s in served:
             lateness = max(0.0, sent_at - (s.origin + (s.next_tick - 1) * s.period))
             s.stats.ticks += 1
             s.stats.jitter.record(lateness)
+            if slipped:
+                s.stats.slipped += 1
             if lateness > LATE_AFTER_S:
                 s.stats.late += 1
         await self._poll(served)
 
     async def _send_at(
         self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
-    ) -> tuple[float | None, int]:
+    ) -> tuple[float | None, int, bool]:
         """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
 
-        The frames are built and queued from a timer callback at the deadline: a task
-        woken then would send one event-loop step late (~55 us here, bench_wakeups.py).  Streams
-        stopped or paused since their targets were computed are left out at that moment,
-        so a stream ended with a safe action never sends one more target after it.
-        Returns (when the first frame left, or None if nothing left; frames sent).
+        The frames are queued from a timer callback at the deadline: a task woken then
+        would send one event-loop step late (~55 us here, bench_wakeups.py).  Each frame
+        is built at the moment it is written, from the streams still sending then
+        (``Bus.submit(refresh=...)``), so a stream stopped or paused since its targets
+        were computed sends nothing more, even from a frame that had to wait its turn.
+        Returns (when the first frame left, or None if nothing left; frames sent; whether
+        the tick slipped: its first frame could not be written at the deadline itself).
         """
         if not parts:
-            return None, 0
+            return None, 0, False
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
+        step = la.MAX_BROADCAST_ENTRIES
+        # IDs were checked when the streams started (distinct across streams) and every
+        # position by _position, so the frames are built without re-checking.
+        entries = [(s, pair) for s, targets in parts for pair in targets.items()]
+        chunks = [entries[i : i + step] for i in range(0, len(entries), step)]
 
         def fire() -> None:
             if fired.done():
                 return
-            # IDs were checked when the streams started (distinct across streams) and
-            # every position by _position, so the frames are built without re-checking.
-            pairs = tuple(
-                pair for s, targets in parts if not (s.done or s.paused) for pair in targets.items()
-            )
-            step = la.MAX_BROADCAST_ENTRIES
+            futures = []
             try:
-                futures = [
-                    self.bus.submit(
-                        la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs[i : i + step]),
-                        priority=Priority.HIGH,
+                for chunk in chunks:
+                    build = _broadcast_builder(chunk)
+                    first = build()
+                    if first is None:
+                        continue
+                    futures.append(
+                        self.bus.submit(
+                            first, priority=Priority.HIGH, reserved=True, refresh=build
+                        )
                     )
-                    for i in range(0, len(pairs), step)
-                ]
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
-            if futures and futures[0].done():  # an idle bus transmitted it inside submit()
+            if futures and futures[0].done():  # an idle bus wrote it inside submit()
                 sent.append(self.bus.timer.now())
             fired.set_result(futures)
 
         handle = self.bus.timer.call_at(deadline, fire)
+        slipped = False
         try:
             futures = await fired
             for f in futures:
                 await f
-                if not sent:  # it waited in the queue (a reply was owed)
+                if not sent:  # it waited its turn (a reply owed, or the spacing)
                     sent.append(self.bus.timer.now())
+                    slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
-            return None, 0
+            return None, 0, False
         finally:
             handle.cancel()
-        return (sent[0] if sent else None), len(futures)
+        return (sent[0] if sent else None), len(futures), slipped
 
     async def _poll(self, due: list[Stream]) -> None:
-        """Use the slots left before the next tick to poll statuses round-robin."""
-        pollers = [s for s in due if s.poll_status and not s.paused and not s.done]
+        """Use the slots left before the next tick to poll statuses round-robin.
+
+        A poll is queued only if even its timeout would end before the next tick, with
+        a ``start_by`` past which it is dropped unsent: user requests take the slot
+        first (they queue ahead of polls), and a poll that cannot get one is counted in
+        ``polls_skipped``; it never holds the next tick.
+        """
+        pollers = [s for s in due if s.poll_status and s.sending]
         if not pollers or not self.streams:
             return
         timer = self.bus.timer
@@ -710,20 +811,75 @@ class Streamer:
         next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
         # A poll starts only if even its timeout would end before the next tick.
         worst = cost + self.bus.config.host_margin + self.bus.config.min_spacing
+        start_by = next_deadline - PREPARE_S - worst
         for s in pollers:
+            polled = 0
             for _ in range(len(s.ids)):
-                if timer.now() + worst > next_deadline - PREPARE_S:
-                    return
+                if timer.now() > start_by or not s.sending:
+                    break
                 ident = s.ids[s._poll_cursor % len(s.ids)]
-                s._poll_cursor += 1
                 try:
-                    status = await self.bus.request(
+                    status = await self.bus.submit(
                         la.Control(ident, la.ControlAction.QUERY_STATUS),
                         retries=0,
                         priority=Priority.BACKGROUND,
+                        start_by=start_by,
                     )
+                except NotSentError:
+                    s.stats.polls_skipped += 1
+                    polled = -1  # counted already
+                    break
                 except MotorbusError:
+                    s._poll_cursor += 1
                     s.stats.feedback_timeouts += 1
                     continue
+                s._poll_cursor += 1
+                polled += 1
                 s.statuses[ident] = status
                 s.stats.polls += 1
+            if polled == 0:
+                s.stats.polls_skipped += 1
+
+
+def _while_sending(stream: Stream, cmd: la.Follow) -> Callable[[], la.Follow | None]:
+    """A ``refresh`` for one feedback frame: drop it if its stream no longer sends."""
+    return lambda: cmd if stream.sending else None
+
+
+def _broadcast_builder(
+    chunk: list[tuple[Stream, tuple[int, int]]],
+) -> Callable[[], la.Broadcast | None]:
+    """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
+
+    While every stream of the chunk still sends, the frame built first is reused (it is
+    built once a tick, at the deadline, on the hot path).
+    """
+    streams = tuple({s: None for s, _ in chunk})
+    built: list[la.Broadcast] = []
+
+    def build() -> la.Broadcast | None:
+        if all(s.sending for s in streams):
+            if not built:
+                built.append(
+                    la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, tuple(p for _, p in chunk))
+                )
+            return built[0]
+        pairs = tuple(pair for s, pair in chunk if s.sending)
+        if not pairs:
+            return None
+        return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
+
+    return build
+
+
+_STREAMERS: weakref.WeakKeyDictionary[Bus, weakref.WeakSet[Streamer]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def _streamers_of(bus: Bus) -> weakref.WeakSet[Streamer]:
+    """The streamers of ``bus`` (they share its budget and its actuators)."""
+    found = _STREAMERS.get(bus)
+    if found is None:
+        found = _STREAMERS[bus] = weakref.WeakSet()
+    return found

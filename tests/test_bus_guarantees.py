@@ -1,0 +1,232 @@
+"""The bus's guarantees, checked on a fake clock, so they hold however slow the host is.
+
+* Spacing: the next write starts >= ``min_spacing`` after the previous write RETURNED, on
+  every path (requests, retries, polls, stream ticks, broadcasts, safe stops), even when
+  writes take hundreds of microseconds (a preempted process).
+* Streams never starve: while three loops of user requests keep the bus busy, a
+  ``poll_status=True`` stream still sends a tick every period; polls that find no slot
+  are skipped and counted, never holding a tick.
+* Stop means stop: after a stream's safe action begins, nothing more of that stream is
+  written, with the bus left open and in use afterwards.
+
+The clock (tests/fakeclock.py) only moves when the event loop is idle, so these are
+behaviour tests: the same outcome on a loaded CI machine as on an idle one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+
+import pytest
+
+from motorbus.bus.bus import Bus
+from motorbus.devices.la import InspireLA
+from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.protocol import la
+from motorbus.protocol.base import Family
+from motorbus.sim.bus import LogRecord
+from motorbus.sim.la import LAModel
+from motorbus.sim.memory import MemorySim
+from motorbus.streams import Streamer
+from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes
+
+MIN_SPACING_S = 1e-3
+PERIOD_S = 0.01
+
+
+@dataclass
+class Rig:
+    bus: Bus
+    sim: MemorySim
+    timer: AutojumpTimer
+    wire: TimedTransport
+    log: list[LogRecord]
+
+
+@contextlib.asynccontextmanager
+async def rig(
+    ids: range = range(1, 16),
+    *,
+    write_time: Callable[[], float] = lambda: 20e-6,
+    turnaround: float = 120e-6,
+    **bus_options: object,
+) -> AsyncIterator[Rig]:
+    loop = asyncio.get_running_loop()
+    timer = AutojumpTimer(loop)
+    timer.start()
+    records: list[LogRecord] = []
+    models = [LAModel(i, turnaround_typical=turnaround, turnaround_max=turnaround) for i in ids]
+    try:
+        async with MemorySim.start(models, timer=timer, log=records.append) as sim:
+            wire = TimedTransport(sim.transport, timer, write_time)
+            bus_options.setdefault("host_margin", 2e-3)
+            bus = Bus(wire, name="fake", families={Family.LA}, timer=timer, **bus_options)  # type: ignore[arg-type]
+            async with bus:
+                yield Rig(bus, sim, timer, wire, records)
+    finally:
+        await timer.stop()
+
+
+def gaps_from_completed_write(wire: TimedTransport) -> list[float]:
+    """Start of each write minus the moment the previous write returned."""
+    return [b.before - a.after for a, b in itertools.pairwise(wire.writes)]
+
+
+async def request_loop(actuator: InspireLA, stop: asyncio.Event, done: list[int]) -> None:
+    while not stop.is_set():
+        try:
+            await actuator.status()
+        except MotorbusError:
+            pass
+        done[0] += 1
+
+
+async def run_for(timer: AutojumpTimer, seconds: float) -> None:
+    await timer.sleep_until(timer.now() + seconds)
+
+
+# -- spacing -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+async def test_spacing_counts_from_the_completed_write_on_every_path(seed: int) -> None:
+    """Ticks, polls, user requests, retries and safe stops; writes that take up to 400 us."""
+    async with rig(write_time=preempted_writes(seed)) as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        stop = asyncio.Event()
+        counts = [0]
+        loops = [asyncio.create_task(request_loop(actuators[i], stop, counts)) for i in range(3)]
+        # A request to an absent ID: timeouts and a retry in the mix.
+        missing = asyncio.create_task(r.bus.request(la.Control(99, la.ControlAction.QUERY_STATUS)))
+        streamer = Streamer(r.bus)
+        stream = streamer.follow(
+            actuators,
+            lambda t, s: [1000] * 15,
+            period=PERIOD_S,
+            poll_status=True,
+            safe_action="pause",
+        )
+        await run_for(r.timer, 0.5)
+        await stream.stop(safe=True)
+        stop.set()
+        await asyncio.gather(*loops)
+        with pytest.raises(ReplyTimeoutError):
+            await missing
+        await streamer.close()
+        assert len(r.wire.writes) > 250
+        kinds = {w.data[4] for w in r.wire.writes}  # CMD byte: 0x04 control, 0xF3 ...
+        assert {0x04, 0xF3} <= kinds
+        gaps = gaps_from_completed_write(r.wire)
+        assert min(gaps) >= MIN_SPACING_S - 1e-9, min(gaps)
+        assert r.bus.stats.retries >= 1
+
+
+async def test_spacing_holds_for_back_to_back_requests_with_slow_writes() -> None:
+    async with rig(range(1, 4), write_time=lambda: 300e-6) as r:
+        for k in range(50):
+            await r.bus.request(la.Control(1 + k % 3, la.ControlAction.QUERY_STATUS))
+        gaps = gaps_from_completed_write(r.wire)
+        assert len(gaps) == 49
+        assert min(gaps) >= MIN_SPACING_S - 1e-9
+
+
+# -- streams never starve ----------------------------------------------------------------
+
+
+async def test_polling_stream_keeps_its_ticks_while_three_request_loops_run() -> None:
+    async with rig() as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        stop = asyncio.Event()
+        counts = [0]
+        loops = [asyncio.create_task(request_loop(actuators[i], stop, counts)) for i in range(3)]
+        streamer = Streamer(r.bus)
+        seconds = 2.0
+        ticks = round(seconds / PERIOD_S)
+        stream = streamer.follow(
+            actuators,
+            [[1000 + k % 100] * 15 for k in range(ticks)],
+            period=PERIOD_S,
+            poll_status=True,
+        )
+        await stream.wait()
+        stop.set()
+        await asyncio.gather(*loops)
+        await streamer.close()
+        stats = stream.stats
+        assert stats.ticks + stats.skipped == ticks
+        assert stats.ticks >= 0.99 * ticks, stats.summary()
+        assert counts[0] > 100  # the user loops were served too
+        # Polls that found no free slot are counted, not silent.
+        assert stats.polls + stats.polls_skipped > 0
+        # The ticks stayed on their grid: broadcasts one period apart.
+        sent = [w.before for w in r.wire.writes if w.data[4] == 0xF3]
+        assert len(sent) == stats.ticks
+        assert all(abs(b - a - PERIOD_S) < 1.5e-3 for a, b in itertools.pairwise(sent))
+
+
+# -- stop means stop ---------------------------------------------------------------------
+
+
+def follow_frames_after_first_pause(records: list[LogRecord], ids: set[int]) -> list[str]:
+    """Hex of every follow target for ``ids`` the devices received after the first pause."""
+    frames = [bytes.fromhex(str(rec["hex"])) for rec in records if rec["dir"] == "rx"]
+    pause = la.ControlAction.PAUSE.value
+    first = next(
+        (
+            i
+            for i, f in enumerate(frames)
+            if f[4] == la.CMD_CONTROL and f[3] in ids and f[6] == pause
+        ),
+        None,
+    )
+    assert first is not None, "no pause was sent"
+    after = []
+    for f in frames[first:]:
+        if f[4] == 0xF3 and any(f[i] in ids for i in range(5, len(f) - 1, 3)):
+            after.append(f.hex(" "))
+        elif f[4] in (0x19, 0x20) and f[3] in ids:
+            after.append(f.hex(" "))
+    return after
+
+
+@pytest.mark.parametrize("offset_ms", [0.0, 0.3, 1.0, 2.5, 5.0, 7.5, 9.0, 9.7])
+@pytest.mark.parametrize("how", ["stop", "exception"])
+async def test_nothing_of_a_stream_is_sent_after_its_safe_stop(offset_ms: float, how: str) -> None:
+    async with rig() as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        streamer = Streamer(r.bus)
+        other = [asyncio.create_task(actuators[0].status())]
+
+        async def targets(t: float, statuses: object) -> list[int]:
+            await asyncio.sleep(0)  # an async source: the tick is built across loop turns
+            return [900 + int(t * 100) % 200] * 15
+
+        stream = streamer.follow(
+            actuators, targets, period=PERIOD_S, poll_status=True, safe_action="pause"
+        )
+        await run_for(r.timer, 0.1 + offset_ms / 1e3)
+        if how == "stop":
+            await stream.stop(safe=True)
+        else:
+            with contextlib.suppress(RuntimeError):
+                async with stream:
+                    raise RuntimeError("user code failed")
+        # The bus stays open and in use: whatever follows is inspected.
+        for i in range(1, 16):
+            await actuators[i - 1].status()
+        await run_for(r.timer, 0.05)
+        await asyncio.gather(*other)
+        await streamer.close()
+        assert follow_frames_after_first_pause(r.log, set(range(1, 16))) == []
+        paused = {
+            bytes.fromhex(str(rec["hex"]))[3]
+            for rec in r.log
+            if rec["dir"] == "rx"
+            and bytes.fromhex(str(rec["hex"]))[4] == la.CMD_CONTROL
+            and bytes.fromhex(str(rec["hex"]))[6] == la.ControlAction.PAUSE.value
+        }
+        assert paused == set(range(1, 16))
