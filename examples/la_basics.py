@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 from _sim import parser, port_or_simulator
 
 import motorbus
@@ -26,4 +24,4 @@ async def main(port: str) -> None:
 if __name__ == "__main__":
     args = parser(__doc__).parse_args()
     with port_or_simulator(args, ["la:1"], 921600) as port:
-        asyncio.run(main(port))
+        motorbus.run(main(port))

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import contextlib
 import tempfile
 from pathlib import Path
@@ -53,4 +52,4 @@ if __name__ == "__main__":
             right = stack.enter_context(SimProcess(["la:1-4"], baud=921600))
             path = Path(stack.enter_context(tempfile.TemporaryDirectory())) / "buses.toml"
             path.write_text(BUSES_TOML.format(left=left.path, right=right.path), encoding="utf-8")
-        asyncio.run(main(path))
+        motorbus.run(main(path))

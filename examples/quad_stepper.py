@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
-
 from _sim import parser, port_or_simulator
 
 import motorbus
@@ -30,4 +28,4 @@ async def main(port: str) -> None:
 if __name__ == "__main__":
     args = parser(__doc__).parse_args()
     with port_or_simulator(args, ["quad-stepper"], 9600) as port:
-        asyncio.run(main(port))
+        motorbus.run(main(port))

@@ -2,9 +2,11 @@
 
     python examples/safe_stream.py --port /dev/ttyUSB0 --ids 1-15 --safe-action pause
 
-Runs until ``--seconds`` or Ctrl-C.  Either way, leaving ``async with BusManager``
-ends the stream and then pauses (or e-stops) every actuator before the port closes,
-and the program prints "stopped safely" and exits with status 0.  With
+Runs until ``--seconds``, Ctrl-C (once or more), SIGTERM or SIGHUP.  Either way, leaving
+``async with BusManager`` ends the stream and then pauses (or e-stops) every actuator
+before the port closes, and the program prints "stopped safely" and exits with status 0
+only if every actuator confirmed its stop; otherwise it lists those that did not and
+exits with status 1.  With
 ``--fail-after S`` the program raises an error S seconds into the stream, to show that
 an exception in your code gets the same safe stop (and still ends the program with
 its traceback, status 1).
@@ -81,15 +83,16 @@ if __name__ == "__main__":
     args = p.parse_args()
     with port_or_simulator(args, [f"la:{args.ids}"], args.baud) as port:
         try:
-            asyncio.run(
+            # motorbus.run: asyncio.run that turns SIGINT, SIGTERM and SIGHUP into the
+            # same safe stop (a second Ctrl-C waits for it), then exits 128 + signal.
+            motorbus.run(
                 main(port, args.baud, args.ids, args.safe_action, args.seconds, args.fail_after)
             )
-        except KeyboardInterrupt:
-            # asyncio.run cancelled main() on Ctrl-C, and BusManager's exit ran the safe
-            # stop (shielded) before KeyboardInterrupt reached us: this is a normal end.
-            print("interrupted", flush=True)
-    failures = [f for m in MANAGERS for f in m.safe_stop_failures]
-    if failures:
-        print("safe stop INCOMPLETE:", *failures, sep="\n  ", flush=True)
+        except SystemExit as ended:
+            # A signal ended main(): BusManager's exit ran the safe stop before this.
+            print(f"interrupted (status {ended.code})", flush=True)
+    report = MANAGERS[0].stop_report if MANAGERS else None
+    if report is None or not report.ok:
+        print(report if report is not None else "safe stop did not run", flush=True)
         raise SystemExit(1)
     print("stopped safely", flush=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import math
 
 from _sim import parser, port_or_simulator
@@ -37,4 +36,4 @@ if __name__ == "__main__":
     p.add_argument("--seconds", type=float, default=3.0)
     args = p.parse_args()
     with port_or_simulator(args, ["la:1-15"], 921600) as port:
-        asyncio.run(main(port, args.seconds))
+        motorbus.run(main(port, args.seconds))

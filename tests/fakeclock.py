@@ -16,12 +16,18 @@ the spacing rule must survive.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import heapq
 import random
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass, field
 
+from motorbus.bus.bus import Bus
 from motorbus.bus.timer import Timer
+from motorbus.sim.bus import LogRecord
+from motorbus.sim.la import LAModel
+from motorbus.sim.memory import MemorySim
+from motorbus.sim.model import DeviceModel
 from motorbus.transport.base import DataCallback, LostCallback, Transport
 
 #: Loop turns in a row with nothing runnable before the clock jumps.
@@ -63,10 +69,8 @@ class AutojumpTimer(Timer):
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()
-            try:
+            with contextlib.suppress(asyncio.CancelledError):
                 await self._task
-            except asyncio.CancelledError:
-                pass
             self._task = None
         self.close()
 
@@ -138,3 +142,42 @@ def preempted_writes(seed: int, worst: float = 400e-6) -> Callable[[], float]:
         return worst * rng.random() if rng.random() < 0.3 else 20e-6
 
     return duration
+
+
+@dataclass
+class Rig:
+    """A bus on the fake clock, its simulated devices, the timed wire and the sim's log."""
+
+    bus: Bus
+    sim: MemorySim
+    timer: AutojumpTimer
+    wire: TimedTransport
+    log: list[LogRecord]
+
+
+@contextlib.asynccontextmanager
+async def rig(
+    ids: range = range(1, 16),
+    *,
+    models: Sequence[DeviceModel] | None = None,
+    write_time: Callable[[], float] = lambda: 20e-6,
+    turnaround: float = 120e-6,
+    **bus_options: object,
+) -> AsyncIterator[Rig]:
+    """A bus in fake time talking to LA models (IDs ``ids``) or ``models`` in memory."""
+    loop = asyncio.get_running_loop()
+    timer = AutojumpTimer(loop)
+    timer.start()
+    records: list[LogRecord] = []
+    if models is None:
+        models = [LAModel(i, turnaround_typical=turnaround, turnaround_max=turnaround) for i in ids]
+    try:
+        async with MemorySim.start(models, timer=timer, log=records.append) as sim:
+            wire = TimedTransport(sim.transport, timer, write_time)
+            bus_options.setdefault("host_margin", 2e-3)
+            families = {m.family for m in models}
+            bus = Bus(wire, name="fake", families=families, timer=timer, **bus_options)  # type: ignore[arg-type]
+            async with bus:
+                yield Rig(bus, sim, timer, wire, records)
+    finally:
+        await timer.stop()

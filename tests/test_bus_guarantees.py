@@ -18,57 +18,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-from collections.abc import AsyncIterator, Callable
-from dataclasses import dataclass
 
 import pytest
 
-from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
-from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.protocol.base import Family
 from motorbus.sim.bus import LogRecord
-from motorbus.sim.la import LAModel
-from motorbus.sim.memory import MemorySim
 from motorbus.streams import Streamer
-from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes
+from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes, rig
 
 MIN_SPACING_S = 1e-3
 PERIOD_S = 0.01
-
-
-@dataclass
-class Rig:
-    bus: Bus
-    sim: MemorySim
-    timer: AutojumpTimer
-    wire: TimedTransport
-    log: list[LogRecord]
-
-
-@contextlib.asynccontextmanager
-async def rig(
-    ids: range = range(1, 16),
-    *,
-    write_time: Callable[[], float] = lambda: 20e-6,
-    turnaround: float = 120e-6,
-    **bus_options: object,
-) -> AsyncIterator[Rig]:
-    loop = asyncio.get_running_loop()
-    timer = AutojumpTimer(loop)
-    timer.start()
-    records: list[LogRecord] = []
-    models = [LAModel(i, turnaround_typical=turnaround, turnaround_max=turnaround) for i in ids]
-    try:
-        async with MemorySim.start(models, timer=timer, log=records.append) as sim:
-            wire = TimedTransport(sim.transport, timer, write_time)
-            bus_options.setdefault("host_margin", 2e-3)
-            bus = Bus(wire, name="fake", families={Family.LA}, timer=timer, **bus_options)  # type: ignore[arg-type]
-            async with bus:
-                yield Rig(bus, sim, timer, wire, records)
-    finally:
-        await timer.stop()
 
 
 def gaps_from_completed_write(wire: TimedTransport) -> list[float]:
@@ -78,10 +39,8 @@ def gaps_from_completed_write(wire: TimedTransport) -> list[float]:
 
 async def request_loop(actuator: InspireLA, stop: asyncio.Event, done: list[int]) -> None:
     while not stop.is_set():
-        try:
+        with contextlib.suppress(MotorbusError):
             await actuator.status()
-        except MotorbusError:
-            pass
         done[0] += 1
 
 
@@ -186,9 +145,8 @@ def follow_frames_after_first_pause(records: list[LogRecord], ids: set[int]) -> 
     assert first is not None, "no pause was sent"
     after = []
     for f in frames[first:]:
-        if f[4] == 0xF3 and any(f[i] in ids for i in range(5, len(f) - 1, 3)):
-            after.append(f.hex(" "))
-        elif f[4] in (0x19, 0x20) and f[3] in ids:
+        broadcast = f[4] == 0xF3 and any(f[i] in ids for i in range(5, len(f) - 1, 3))
+        if broadcast or (f[4] in (0x19, 0x20) and f[3] in ids):
             after.append(f.hex(" "))
     return after
 
@@ -230,3 +188,25 @@ async def test_nothing_of_a_stream_is_sent_after_its_safe_stop(offset_ms: float,
             and bytes.fromhex(str(rec["hex"]))[6] == la.ControlAction.PAUSE.value
         }
         assert paused == set(range(1, 16))
+
+
+# -- one budget per bus ------------------------------------------------------------------
+
+
+async def test_two_streamers_on_one_bus_share_its_actuators_and_its_budget() -> None:
+    async with rig() as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        first, second = Streamer(r.bus), Streamer(r.bus)
+        stream = first.follow(actuators[0], lambda t, s: 500, period=PERIOD_S)
+        # The same actuator from another streamer of the same bus: refused.
+        with pytest.raises(LocalProtocolError, match="already streamed"):
+            second.follow(actuators[0], lambda t, s: 1500, period=PERIOD_S)
+        # Feedback round trips: one streamer allows at most what the bus allows, and a
+        # second streamer cannot add more on top of the first's.
+        fits = first.follow(actuators[1:7], lambda t, s: [1000] * 6, period=PERIOD_S, feedback=True)
+        with pytest.raises(LocalProtocolError, match="would need"):
+            second.follow(actuators[7:9], lambda t, s: [1000] * 2, period=PERIOD_S, feedback=True)
+        await stream.stop()
+        await fits.stop()
+        await first.close()
+        await second.close()

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from motorbus.bus.bus import Bus, BusState, Priority
     from motorbus.bus.events import BusStateChanged, FaultChanged, ProjectFinished, QuadDone
-    from motorbus.bus.manager import BusManager
+    from motorbus.bus.manager import BusManager, DeviceStop, StopReport
     from motorbus.devices.la import InspireLA, scan
     from motorbus.devices.project_stepper import (
         ProjectStepper,
@@ -26,11 +26,13 @@ if TYPE_CHECKING:
         DeviceFaultError,
         LocalProtocolError,
         MotorbusError,
+        NotSentError,
         RemoteProtocolError,
         ReplyTimeoutError,
     )
     from motorbus.protocol.base import Family
-    from motorbus.streams import SafeAction, Stream, Streamer
+    from motorbus.shutdown import install_signal_handlers, run
+    from motorbus.streams import SafeAction, Stream, StreamEnded, Streamer
     from motorbus.transport.serial import open_transport
 
 # Loaded on first use, so that ``import motorbus.protocol`` (sans-I/O) does not pull in
@@ -44,6 +46,12 @@ _LAZY = {
     "ProjectFinished": "motorbus.bus.events",
     "QuadDone": "motorbus.bus.events",
     "BusManager": "motorbus.bus.manager",
+    "DeviceStop": "motorbus.bus.manager",
+    "StopReport": "motorbus.bus.manager",
+    "NotSentError": "motorbus.errors",
+    "install_signal_handlers": "motorbus.shutdown",
+    "run": "motorbus.shutdown",
+    "StreamEnded": "motorbus.streams",
     "InspireLA": "motorbus.devices.la",
     "scan": "motorbus.devices.la",
     "ProjectStepper": "motorbus.devices.project_stepper",
@@ -82,11 +90,13 @@ __all__ = [
     "BusState",
     "BusStateChanged",
     "DeviceFaultError",
+    "DeviceStop",
     "Family",
     "FaultChanged",
     "InspireLA",
     "LocalProtocolError",
     "MotorbusError",
+    "NotSentError",
     "Priority",
     "ProjectFinished",
     "ProjectStepper",
@@ -97,9 +107,13 @@ __all__ = [
     "RemoteProtocolError",
     "ReplyTimeoutError",
     "SafeAction",
+    "StopReport",
     "Stream",
+    "StreamEnded",
     "Streamer",
     "__version__",
+    "install_signal_handlers",
     "open_transport",
+    "run",
     "scan",
 ]

@@ -53,6 +53,7 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_flag, wire_time
+from motorbus.shutdown import deferred_interrupts
 
 __all__ = [
     "PERIOD_MAX_S",
@@ -249,7 +250,8 @@ class Stream:
         self.stopping = True
         try:
             if safe:
-                await self.apply_safe_action()
+                with deferred_interrupts():
+                    await self.apply_safe_action()
         finally:
             self._finish(None)
 
@@ -416,6 +418,11 @@ class Streamer:
         self._active: tuple[float, float] | None = None
         _streamers_of(bus).add(self)
         bus.add_reservation_source(self._reservation)
+        # Whatever ends the program closes the bus: the streams stop safely first.
+        bus.add_close_hook(self._on_bus_close)
+
+    async def _on_bus_close(self) -> None:
+        await self.close(safe=True)
 
     def _bus_streams(self) -> list[Stream]:
         """Every running stream on this streamer's bus, whichever streamer serves it."""
@@ -602,9 +609,16 @@ class Streamer:
             self._ring()
 
     async def close(self, *, safe: bool = True) -> None:
-        """End every stream (applying safe actions if ``safe``) and stop the task."""
-        for s in list(self.streams):
-            await s.stop(safe=safe)
+        """End every stream (applying safe actions if ``safe``) and stop the task.
+
+        Every stream stops sending at once, before the first safe action is sent.
+        """
+        streams = list(self.streams)
+        for s in streams:
+            s.stopping = True
+        with deferred_interrupts():
+            for s in streams:
+                await s.stop(safe=safe)
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -765,9 +779,7 @@ class Streamer:
                     if first is None:
                         continue
                     futures.append(
-                        self.bus.submit(
-                            first, priority=Priority.HIGH, reserved=True, refresh=build
-                        )
+                        self.bus.submit(first, priority=Priority.HIGH, reserved=True, refresh=build)
                     )
             except MotorbusError as err:
                 fired.set_exception(err)
@@ -872,9 +884,7 @@ def _broadcast_builder(
     return build
 
 
-_STREAMERS: weakref.WeakKeyDictionary[Bus, weakref.WeakSet[Streamer]] = (
-    weakref.WeakKeyDictionary()
-)
+_STREAMERS: weakref.WeakKeyDictionary[Bus, weakref.WeakSet[Streamer]] = weakref.WeakKeyDictionary()
 
 
 def _streamers_of(bus: Bus) -> weakref.WeakSet[Streamer]:

@@ -8,9 +8,12 @@ tests skip, with the reason, when ser2net is not installed; ``.ci/run`` installs
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
 import socket
 import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -171,3 +174,70 @@ def broadcast_targets(frame: bytes) -> dict[int, int]:
     return {
         body[i]: int.from_bytes(body[i + 1 : i + size], "little") for i in range(0, len(body), size)
     }
+
+
+# -- running an example program as a child, for the exit-path tests ---------------------
+
+ROOT = Path(__file__).resolve().parents[2]
+EXAMPLE = ROOT / "examples" / "safe_stream.py"
+IDS = (1, 2, 3)
+#: Longest wait for the child to start streaming, and to exit after the signal.
+START_TIMEOUT_S = 20.0
+EXIT_TIMEOUT_S = 10.0
+
+
+def _default_sigint() -> None:
+    # A child started from a background job inherits SIGINT ignored, and Python then
+    # installs no KeyboardInterrupt handler; the test needs Ctrl-C's real behaviour.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def start_example(port: str, *extra: str, example: Path | None = None) -> subprocess.Popen[str]:
+    """Run the example on ``port`` for IDs 1-3 and wait until it prints "streaming"."""
+    # Behaviour, not speed: a generous host margin keeps a loaded machine from turning a
+    # slow reply into a timeout (tests/test_examples.py does the same).
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MOTORBUS_HOST_MARGIN_MS": "50"}
+    script = example or EXAMPLE
+    args = [sys.executable, str(script), "--port", port, "--baud", str(SIM_BAUD), "--ids", "1-3"]
+    proc = subprocess.Popen(
+        [*args, *extra],
+        cwd=EXAMPLE.parent,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        preexec_fn=_default_sigint,
+        start_new_session=True,  # our signal goes to the child alone
+    )
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:  # ends at EOF if the child dies before streaming
+        lines.append(line)
+        if line.strip() == "streaming":
+            return proc
+    proc.wait(EXIT_TIMEOUT_S)
+    err = proc.stderr.read() if proc.stderr else ""
+    pytest.fail(f"the example exited ({proc.returncode}) before streaming: {lines} {err}")
+
+
+def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    """Wait (bounded) for the child to exit; return its status and the rest of its output."""
+    try:
+        out, err = proc.communicate(timeout=EXIT_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"the example did not exit within {EXIT_TIMEOUT_S} s: {out} {err}")
+    return proc.returncode, out, err
+
+
+def assert_safe_action_after_last_broadcast(frames: list[bytes], sub: la.ControlAction) -> None:
+    """Each actuator's CMD_MC ``sub`` frame arrived after the last 0xF3 broadcast."""
+    broadcasts = [i for i, f in enumerate(frames) if is_broadcast_follow(f)]
+    assert broadcasts, "the stream sent no broadcast follow frame"
+    last_broadcast = broadcasts[-1]
+    later = frames[last_broadcast + 1 :]
+    for ident in IDS:
+        expected = la.Control(ident, sub).encode()
+        assert expected[:7] == bytes([0x55, 0xAA, 0x03, ident, 0x04, 0x00, int(sub)])
+        assert expected in later, f"no {sub.name} frame for la:{ident} after the last 0xF3"

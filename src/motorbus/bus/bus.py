@@ -46,11 +46,12 @@ import itertools
 import logging
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
+from motorbus import shutdown
 from motorbus.bus.events import (
     BusStateChanged,
     EventHub,
@@ -292,6 +293,8 @@ class Bus:
         self._rx_total = 0  # bytes handed to the reassembler since the port opened
         self._reservation_sources: list[ReservationSource] = []
         self._expected_shapes: tuple[FrameShape, ...] | None = None
+        self._close_hooks: list[Callable[[], Awaitable[None]]] = []
+        self._close_task: asyncio.Future[None] | None = None
         self._pump_handle: TimerHandle | None = None
         self._pump_at = 0.0
         self._pumping = False
@@ -324,6 +327,7 @@ class Bus:
         self._new_reassembler()
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
+        shutdown.register_bus(self)
         self._check_adapter_latency()
         self._publish_state("open")
 
@@ -346,8 +350,44 @@ class Bus:
         slack = min(self.config.turnaround[f] for f in self.families) + self.config.host_margin
         warn(slack)
 
+    def add_close_hook(self, hook: Callable[[], Awaitable[None]]) -> None:
+        """Run ``await hook()`` at the start of every ``close``, before the port closes.
+
+        Streams use it to stop safely (their safe action) whatever ends the program:
+        the bus is closed on every exit path.  A hook's error is logged; the others and
+        the close go on.
+        """
+        self._close_hooks.append(hook)
+
+    def remove_close_hook(self, hook: Callable[[], Awaitable[None]]) -> None:
+        """Forget a hook added with ``add_close_hook``; unknown ones are ignored."""
+        with contextlib.suppress(ValueError):
+            self._close_hooks.remove(hook)
+
     async def close(self) -> None:
-        """Fail what is queued, stop reconnecting and close the port; idempotent."""
+        """Stop what runs on the bus safely, fail what is queued, close the port.
+
+        Idempotent, and safe to call from several tasks at once (they all wait for the
+        one close).  Ctrl-C during the safe stop is deferred until it is done
+        (``motorbus.shutdown.deferred_interrupts``).
+        """
+        task = self._close_task
+        if task is None:
+            task = self._close_task = asyncio.ensure_future(self._close())
+        try:
+            await asyncio.shield(task)
+        finally:
+            if task.done() and self._close_task is task:
+                self._close_task = None
+
+    async def _close(self) -> None:
+        with shutdown.deferred_interrupts():
+            if self.state is BusState.OPEN:
+                for hook in list(self._close_hooks):
+                    try:
+                        await hook()
+                    except Exception as err:
+                        log.error("bus %s: a close hook failed: %s", self.name, err)
         self._closing = True
         task = self._reconnect_task
         if task is not None and not task.done():
@@ -359,10 +399,13 @@ class Bus:
             self._pump_handle.cancel()
             self._pump_handle = None
         self._fail_all(BusClosedError(f"bus {self.name} closed"))
-        await self.transport.close()
-        if self.state is not BusState.CLOSED:
-            self.state = BusState.CLOSED
-            self._publish_state("closed")
+        try:
+            await self.transport.close()
+        finally:
+            shutdown.unregister_bus(self)
+            if self.state is not BusState.CLOSED:
+                self.state = BusState.CLOSED
+                self._publish_state("closed")
 
     async def __aenter__(self) -> Bus:
         await self.open()
@@ -538,8 +581,17 @@ class Bus:
             if window is None:
                 continue
             begin, end = window
-            if start + occupancy > begin and start < end:
-                return end
+            if start >= end or start + occupancy <= begin:
+                continue  # after the window, or done before it begins
+            if start >= begin:
+                return end  # inside the window: wait for its end
+            following = source(end + 1e-9)
+            gap = math.inf if following is None else following[0] - end
+            if occupancy > gap:
+                # No gap between windows is long enough for its whole budget (a long
+                # timeout): it goes now; a tick waits only if the reply is really slow.
+                continue
+            return end
         return None
 
     # -- writer ------------------------------------------------------------------

@@ -26,6 +26,8 @@ A bus file (TOML)::
 
 from __future__ import annotations
 
+import contextlib
+import enum
 import logging
 import re
 import tomllib
@@ -37,25 +39,29 @@ from typing import Any
 
 import anyio
 
+from motorbus import shutdown
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus, Priority
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
-from motorbus.protocol import quad_stepper as q
-from motorbus.protocol.base import Family
+from motorbus.protocol.base import Command, Family
+from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Streamer
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import open_transport
 
-__all__ = ["BusManager", "BusSpec", "DeviceSpec", "parse_devices"]
+__all__ = ["BusManager", "BusSpec", "DeviceSpec", "DeviceStop", "StopReport", "parse_devices"]
 
 log = logging.getLogger("motorbus.manager")
 
 #: Longest a safe stop may take on the way out before the ports close anyway.
 SAFE_STOP_TIMEOUT_S = 2.0
+#: Retries of each safe-stop command (pause, e-stop, stop project, stop all are
+#: idempotent: sending one twice is harmless, missing one is not).
+SAFE_STOP_RETRIES = 2
 #: Ticks of the buses are spread over this span (the shortest stream period)...
 PHASE_SPAN_S = 0.010
 #: ... in this many phase groups.  Buses of one group share their wake-ups: on this
@@ -235,6 +241,44 @@ class BusSpec:
         return {kinds[d.kind] for d in self.devices} or set(Family)
 
 
+@dataclass(slots=True)
+class DeviceStop:
+    """What the safe stop did for one device: ``outcome`` is "confirmed" (it answered),
+    "sent" (a command that has no reply was written), "failed" or "pending"."""
+
+    bus: str
+    device: str
+    command: str
+    outcome: str = "pending"
+    detail: str = ""
+
+    def __str__(self) -> str:
+        extra = f": {self.detail}" if self.detail else ""
+        return f"bus {self.bus}: {self.device} {self.command} {self.outcome}{extra}"
+
+
+@dataclass(slots=True)
+class StopReport:
+    """The safe stop of every device of a ``BusManager``, one entry per command."""
+
+    entries: list[DeviceStop] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        """True only if every device acknowledged its stop or was sent it."""
+        return all(e.outcome in ("confirmed", "sent") for e in self.entries)
+
+    def unconfirmed(self) -> list[DeviceStop]:
+        """The entries that did not reach their device (failed or never finished)."""
+        return [e for e in self.entries if e.outcome not in ("confirmed", "sent")]
+
+    def __str__(self) -> str:
+        if self.ok:
+            return f"stopped safely: {len(self.entries)} stop commands confirmed or sent"
+        bad = self.unconfirmed()
+        return "safe stop INCOMPLETE, not confirmed:\n" + "\n".join(f"  {e}" for e in bad)
+
+
 class BusManager:
     """Opens many buses together, hands out their devices, and stops them safely.
 
@@ -247,6 +291,8 @@ class BusManager:
         self.safe_stop = safe_stop
         #: What the last safe stop could not do (empty if every device was reached).
         self.safe_stop_failures: list[str] = []
+        #: The last safe stop, device by device (None before the first close).
+        self.stop_report: StopReport | None = None
         self.specs: dict[str, BusSpec] = {}
         self.buses: dict[str, Bus] = {}
         self._transports: dict[str, Transport] = {}
@@ -340,54 +386,106 @@ class BusManager:
         except BaseException:
             await self._close_buses()
             raise
+        shutdown.register_manager(self)
 
     async def close(self) -> None:
-        """Safe-stop every device (shielded from cancellation, bounded in time), then close."""
-        with anyio.CancelScope(shield=True):
-            # Streams end first: a follow target sent after a pause would resume the
-            # actuator (manual 3.5.4), undoing the safe stop.
-            for streamer in self._streamers.values():
-                await streamer.close(safe=False)
-            if self.safe_stop:
-                with anyio.move_on_after(SAFE_STOP_TIMEOUT_S):
+        """Safe-stop every device (shielded from cancellation, bounded in time), then close.
+
+        Ctrl-C during the stop is deferred until it is done; one device's failure never
+        keeps the others from their stop, and the ports always close.  The outcome is in
+        ``stop_report`` (and its failures in ``safe_stop_failures``).
+        """
+        with anyio.CancelScope(shield=True), deferred_interrupts():
+            try:
+                # Streams end first: a follow target sent after a pause would resume the
+                # actuator (manual 3.5.4), undoing the safe stop.
+                for streamer in self._streamers.values():
+                    try:
+                        await streamer.close(safe=False)
+                    except Exception as err:
+                        log.error("ending the streams failed: %s", err)
+                if self.safe_stop and self.buses:
                     await self.stop_all_devices()
-            await self._close_buses()
+            finally:
+                await self._close_buses()
+                shutdown.unregister_manager(self)
 
     async def _close_buses(self) -> None:
         for streamer in self._streamers.values():
-            await streamer.close(safe=False)
+            with contextlib.suppress(Exception):
+                await streamer.close(safe=False)
         async with anyio.create_task_group() as tg:
             for bus in self.buses.values():
-                tg.start_soon(bus.close)
+                tg.start_soon(self._close_one, bus)
 
-    async def stop_all_devices(self) -> None:
-        """Bring every configured device to its safe state, all buses in parallel."""
-        async with anyio.create_task_group() as tg:
-            for name in self.buses:
-                tg.start_soon(self._stop_bus_devices, name)
+    @staticmethod
+    async def _close_one(bus: Bus) -> None:
+        try:
+            await bus.close()
+        except Exception as err:
+            log.error("closing bus %s failed: %s", bus.name, err)
 
-    async def _stop_bus_devices(self, name: str) -> None:
-        bus = self.buses[name]
+    async def stop_all_devices(self) -> StopReport:
+        """Bring every configured device to its safe state, all buses in parallel.
+
+        Bounded by ``SAFE_STOP_TIMEOUT_S``; what did not finish is reported as failed.
+        Returns the report (also kept in ``stop_report``).
+        """
+        report = StopReport()
+        plans = {name: self._stop_plan(name, report) for name in self.buses}
+        with anyio.move_on_after(SAFE_STOP_TIMEOUT_S):
+            async with anyio.create_task_group() as tg:
+                for name, plan in plans.items():
+                    tg.start_soon(self._run_stop_plan, name, plan)
+        for entry in report.entries:
+            if entry.outcome == "pending":
+                entry.outcome = "failed"
+                entry.detail = f"not confirmed within {SAFE_STOP_TIMEOUT_S:g} s"
+        self.stop_report = report
+        self.safe_stop_failures = [str(e) for e in report.unconfirmed()]
+        for failure in self.safe_stop_failures:
+            log.warning("safe stop: %s", failure)
+        return report
+
+    def _stop_plan(self, name: str, report: StopReport) -> list[tuple[DeviceStop, Command]]:
+        """The stop commands of every device on bus ``name``, each with its report entry."""
         spec = self.specs[name]
-        commands: list[Any] = []
+        bus = self.buses[name]
         action = SafeAction(spec.la_safe_action)
+        plan: list[tuple[DeviceStop, Command]] = []
         for dev in spec.devices:
-            if dev.kind == "la" and action is not SafeAction.HOLD:
-                sub = (
-                    la.ControlAction.ESTOP if action is SafeAction.ESTOP else la.ControlAction.PAUSE
-                )
-                commands.extend(la.Control(i, sub) for i in dev.ids)
-            elif dev.kind == "project_stepper":
-                commands += [ps.StopProject(), ps.ManualStop(motor=dev.motor)]
-            elif dev.kind == "quad_stepper":
-                commands.append(q.StopAll())
-        for cmd in commands:
+            devices: list[Any]
             try:
-                await bus.request(cmd, priority=Priority.EMERGENCY, retries=1)
-            except MotorbusError as err:
-                what = f"bus {name}: {type(cmd).__name__} {cmd}: {err}"
-                self.safe_stop_failures.append(what)
-                log.warning("safe stop failed on %s", what)
+                if dev.kind == "la":
+                    devices = [InspireLA(bus, i) for i in dev.ids]
+                elif dev.kind == "project_stepper":
+                    devices = [ProjectStepper(bus, motor=dev.motor)]
+                else:
+                    devices = [QuadStepper(bus)]
+                for device in devices:
+                    key = f"la:{device.id}" if dev.kind == "la" else dev.kind
+                    commands = (
+                        device.safe_stop_commands(action)
+                        if dev.kind == "la"
+                        else device.safe_stop_commands()
+                    )
+                    for cmd in commands:
+                        entry = DeviceStop(name, key, _describe(cmd))
+                        report.entries.append(entry)
+                        plan.append((entry, cmd))
+            except Exception as err:  # one device's bad setting must not stop the others
+                report.entries.append(DeviceStop(name, dev.kind, "stop", "failed", str(err)))
+        return plan
+
+    async def _run_stop_plan(self, name: str, plan: list[tuple[DeviceStop, Command]]) -> None:
+        bus = self.buses[name]
+        for entry, cmd in plan:
+            try:
+                await bus.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
+            except Exception as err:
+                entry.outcome, entry.detail = "failed", str(err)
+            else:
+                entry.outcome = "confirmed" if cmd.expects_reply else "sent"
 
     # -- devices ----------------------------------------------------------------------
 
@@ -420,3 +518,10 @@ class BusManager:
         """The streamer of bus ``bus`` (phase-offset from the other buses)."""
         self.bus(bus)
         return self._streamers[bus]
+
+
+def _describe(cmd: Command) -> str:
+    """A stop command as the report names it: ``Control(PAUSE)``, ``StopProject``..."""
+    action = getattr(cmd, "action", None)
+    name = type(cmd).__name__
+    return f"{name}({action.name})" if isinstance(action, enum.Enum) else name

@@ -33,6 +33,22 @@ class InspireLA:
     def __repr__(self) -> str:
         return f"InspireLA(id={self.id}, bus={self.bus.name!r})"
 
+    def safe_stop_commands(self, action: object = "pause") -> list[la.Control]:
+        """The commands that bring this actuator to a safe state, as values.
+
+        ``action`` is "pause" (power stage off; the next target resumes), "estop"
+        (power stage off until "work") or "hold" (nothing: it keeps its last target).
+        """
+        name = getattr(action, "value", action)
+        if name == "hold":
+            return []
+        if name not in ("pause", "estop"):
+            raise LocalProtocolError(
+                f"action={action!r} is not allowed: choose pause, estop or hold", field="action"
+            )
+        sub = la.ControlAction.ESTOP if name == "estop" else la.ControlAction.PAUSE
+        return [la.Control(self.id, sub)]
+
     async def _control(self, action: la.ControlAction, priority: Priority) -> la.Status:
         status: la.Status = await self.bus.request(la.Control(self.id, action), priority=priority)
         return status

@@ -39,6 +39,11 @@ class ProjectStepper:
         self.motor = motor
         self._stopped = asyncio.Event()
 
+    def safe_stop_commands(self) -> list[ps.ProjectStepperCommand]:
+        """The commands that stop everything this controller may be doing, as values:
+        stop the running project (0x5E), then stop manual motion of its motor (0x0D)."""
+        return [ps.StopProject(), ps.ManualStop(motor=self.motor)]
+
     async def _send_all(self, commands: list[ps.ProjectStepperCommand]) -> None:
         for cmd in commands:
             await self.bus.request(cmd)

@@ -34,6 +34,10 @@ class QuadStepper:
         # take turns.
         self._run_lock = asyncio.Lock()
 
+    def safe_stop_commands(self) -> list[q.QuadCommand]:
+        """The commands that stop every motor of this controller, as values (stop all)."""
+        return [q.StopAll()]
+
     async def configure(
         self,
         motor: int,

@@ -1,0 +1,325 @@
+"""One shutdown path for every ending: motion stops before the program does.
+
+However a program ends - it returns, raises, is cancelled, gets Ctrl-C once, twice or
+three times, or SIGTERM (systemd, ``docker stop``, ``timeout``) or SIGHUP - every open
+bus is closed the same way: the streams on it stop first, applying their safe action
+(pause or e-stop: nothing of a stream is written after that), a ``BusManager`` brings
+every configured device to its safe state, and only then do the ports close.
+
+* ``motorbus.run(main())`` is the one-line way in: ``asyncio.run`` with handlers for
+  SIGINT, SIGTERM and SIGHUP.  The first signal cancels ``main`` (its ``async with``
+  blocks run their safe stops); further signals during the stop are logged and
+  ignored, because the stop takes milliseconds and must finish; whatever is still open
+  afterwards is closed safely; the program then exits with status 128 + the signal
+  number (130 for Ctrl-C, 143 for SIGTERM).
+* ``install_signal_handlers()`` does the same inside a loop you run yourself.
+* Without either, motorbus still protects the two ways a plain ``asyncio.run`` program
+  would lose its safe stop: while a bus is open, SIGTERM and SIGHUP (if the program has
+  not set handlers of its own) close every open bus safely and then end the process as
+  the signal would have (status 143 / 129); and the stop paths defer Ctrl-C
+  (``deferred_interrupts``), so a second Ctrl-C cannot cut a safe stop short - it is
+  delivered when the stop is done.
+
+Set ``MOTORBUS_SIGNALS=0`` to keep motorbus from touching signal dispositions at all.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import os
+import signal
+import threading
+import weakref
+from collections.abc import Awaitable, Callable, Coroutine, Iterator
+from typing import Any, Protocol, TypeVar
+
+__all__ = [
+    "STOP_SIGNALS",
+    "SignalHandlers",
+    "deferred_interrupts",
+    "install_signal_handlers",
+    "run",
+    "stop_everything",
+]
+
+log = logging.getLogger("motorbus.shutdown")
+
+T = TypeVar("T")
+
+#: The signals that end a program and must stop the motion first.
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: Signals motorbus handles by itself while a bus is open, if nobody else does.
+_AUTO_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTERM, signal.SIGHUP)
+#: Longest the closing of everything may take after a signal (each bus bounds its own
+#: safe stop much lower; this is only a backstop).
+STOP_EVERYTHING_TIMEOUT_S = 10.0
+
+
+class _Closable(Protocol):
+    async def close(self) -> None: ...
+
+
+# Open resources, in the order they must be closed: managers (they stop their devices
+# and close their buses), then any bus still open (its streams stop first).
+_managers: weakref.WeakSet[Any] = weakref.WeakSet()
+_buses: weakref.WeakSet[Any] = weakref.WeakSet()
+
+
+def _enabled() -> bool:
+    return os.environ.get("MOTORBUS_SIGNALS", "1").strip() not in ("0", "off", "no", "false")
+
+
+def _in_main_thread() -> bool:
+    return threading.current_thread() is threading.main_thread()
+
+
+async def stop_everything() -> None:
+    """Close every open ``BusManager`` and ``Bus`` of this process, safely, in order.
+
+    Errors are logged and do not stop the others; bounded by
+    ``STOP_EVERYTHING_TIMEOUT_S``.
+    """
+    try:
+        async with asyncio.timeout(STOP_EVERYTHING_TIMEOUT_S):
+            for group in (_managers, _buses):
+                for item in list(group):
+                    try:
+                        await item.close()
+                    except Exception as err:
+                        log.error("closing %r on the way out failed: %s", item, err)
+    except TimeoutError:
+        log.error("closing everything took over %.0f s; gave up", STOP_EVERYTHING_TIMEOUT_S)
+
+
+# -- automatic protection while a bus is open -----------------------------------------------
+
+
+class _AutoGuard:
+    """SIGTERM/SIGHUP handlers installed while buses are open (see the module docstring)."""
+
+    def __init__(self) -> None:
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.installed: list[signal.Signals] = []
+        self.open_count = 0
+        self.stopping = False
+
+    def bus_opened(self) -> None:
+        self.open_count += 1
+        if self.installed or not _enabled() or not _in_main_thread():
+            return
+        loop = asyncio.get_running_loop()
+        for sig in _AUTO_SIGNALS:
+            if signal.getsignal(sig) is not signal.SIG_DFL:
+                continue  # the program (or install_signal_handlers) handles it
+            try:
+                loop.add_signal_handler(sig, self._on_signal, sig)
+            except (NotImplementedError, RuntimeError, ValueError):
+                continue
+            self.installed.append(sig)
+        self.loop = loop
+
+    def bus_closed(self) -> None:
+        self.open_count = max(0, self.open_count - 1)
+        if self.open_count or self.stopping:
+            return
+        self.uninstall()
+
+    def uninstall(self) -> None:
+        loop, installed = self.loop, self.installed
+        self.installed = []
+        if loop is None or loop.is_closed():
+            return
+        for sig in installed:
+            with contextlib.suppress(Exception):
+                loop.remove_signal_handler(sig)
+
+    def _on_signal(self, sig: signal.Signals) -> None:
+        if self.stopping:
+            log.warning("%s again: still stopping the motion safely", sig.name)
+            return
+        self.stopping = True
+        log.warning("%s: stopping the motion safely before exiting", sig.name)
+        assert self.loop is not None
+        self.loop.create_task(self._stop_then_die(sig), name=f"motorbus {sig.name} stop")
+
+    async def _stop_then_die(self, sig: signal.Signals) -> None:
+        try:
+            await stop_everything()
+        finally:
+            self.uninstall()
+            signal.signal(sig, signal.SIG_DFL)
+            signal.raise_signal(sig)  # end as the signal would have, now that it is safe
+
+
+_guard = _AutoGuard()
+
+
+def register_bus(bus: Any) -> None:
+    """A bus opened: protect it (called by ``Bus.open``)."""
+    _buses.add(bus)
+    _guard.bus_opened()
+
+
+def unregister_bus(bus: Any) -> None:
+    """A bus closed (called by ``Bus.close``)."""
+    if bus in _buses:
+        _buses.discard(bus)
+        _guard.bus_closed()
+
+
+def register_manager(manager: Any) -> None:
+    """A ``BusManager`` opened (called by it)."""
+    _managers.add(manager)
+
+
+def unregister_manager(manager: Any) -> None:
+    """A ``BusManager`` closed (called by it)."""
+    _managers.discard(manager)
+
+
+# -- deferring Ctrl-C during a stop ------------------------------------------------------------
+
+_defer_depth = 0
+_deferred: list[int] = []
+
+
+def _is_loop_noop(handler: object) -> bool:
+    # loop.add_signal_handler leaves this Python-level handler; the loop dispatches.
+    return getattr(handler, "__name__", "") == "_sighandler_noop"
+
+
+@contextlib.contextmanager
+def deferred_interrupts() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM/SIGHUP while a safe stop runs; deliver them afterwards.
+
+    asyncio raises ``KeyboardInterrupt`` into whatever runs when a second Ctrl-C comes,
+    which would abort a stop half way (some actuators paused, others not).  Inside this
+    block such signals are only recorded; when the outermost block ends, the first of
+    each is raised again, to the handler that was there before.  Only in the main
+    thread (where Python runs signal handlers); nested blocks are fine.
+    """
+    global _defer_depth
+    if not _in_main_thread() or not _enabled():
+        yield
+        return
+    saved: dict[signal.Signals, Any] = {}
+    if _defer_depth == 0:
+        for sig in STOP_SIGNALS:
+            handler = signal.getsignal(sig)
+            if not callable(handler) or _is_loop_noop(handler):
+                continue  # SIG_DFL/SIG_IGN, or the loop's own handler (ours ignores repeats)
+            saved[sig] = handler
+            signal.signal(sig, _record)
+    _defer_depth += 1
+    try:
+        yield
+    finally:
+        _defer_depth -= 1
+        if _defer_depth == 0:
+            for saved_sig, handler in saved.items():
+                signal.signal(saved_sig, handler)
+            pending = list(dict.fromkeys(_deferred))
+            _deferred.clear()
+            for signum in pending:
+                log.warning("delivering the deferred %s now that the stop is done", _name(signum))
+                signal.raise_signal(signum)
+
+
+def _record(signum: int, frame: object) -> None:
+    _deferred.append(signum)
+    log.warning("%s during a safe stop: deferred until the stop is done", _name(signum))
+
+
+def _name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return str(signum)
+
+
+# -- the helper an application installs --------------------------------------------------------
+
+
+class SignalHandlers:
+    """What ``install_signal_handlers`` set up; ``received`` lists the signals seen."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, task: asyncio.Task[Any]) -> None:
+        self.loop = loop
+        self.task = task
+        self.received: list[signal.Signals] = []
+        self._signals: list[signal.Signals] = []
+
+    @property
+    def first(self) -> signal.Signals | None:
+        """The signal that started the stop, if any."""
+        return self.received[0] if self.received else None
+
+    def _on_signal(self, sig: signal.Signals) -> None:
+        self.received.append(sig)
+        if len(self.received) == 1:
+            log.warning("%s: stopping the motion safely, then exiting", sig.name)
+            self.task.cancel()
+        else:
+            log.warning("%s again: still stopping the motion safely; please wait", sig.name)
+
+    def uninstall(self) -> None:
+        """Remove the handlers (the previous dispositions come back)."""
+        signals, self._signals = self._signals, []
+        if self.loop.is_closed():
+            return
+        for sig in signals:
+            with contextlib.suppress(Exception):
+                self.loop.remove_signal_handler(sig)
+
+
+def install_signal_handlers(
+    signals: tuple[signal.Signals, ...] = STOP_SIGNALS,
+    *,
+    task: asyncio.Task[Any] | None = None,
+) -> SignalHandlers:
+    """Make the first of ``signals`` cancel ``task`` (default: the current task).
+
+    Cancelling it runs its ``async with`` exits, i.e. every safe stop; signals after the
+    first are logged and ignored while that happens.  Call from inside the running loop.
+
+    Returns:
+        The handlers: ``received`` lists the signals seen, ``uninstall()`` removes them.
+    """
+    loop = asyncio.get_running_loop()
+    owner = task or asyncio.current_task()
+    if owner is None:
+        raise RuntimeError("install_signal_handlers() needs a task to cancel")
+    handlers = SignalHandlers(loop, owner)
+    for sig in signals:
+        loop.add_signal_handler(sig, handlers._on_signal, sig)
+        handlers._signals.append(sig)
+    return handlers
+
+
+def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]]) -> T:
+    """Run ``main`` like ``asyncio.run``, stopping every motion safely however it ends.
+
+    See the module docstring.  After a signal, raises ``SystemExit(128 + signal)``
+    once everything is stopped and closed.
+    """
+    state: dict[str, SignalHandlers] = {}
+
+    async def runner() -> T:
+        handlers = state["h"] = install_signal_handlers()
+        try:
+            coro = main if asyncio.iscoroutine(main) else main()
+            return await coro
+        finally:
+            with deferred_interrupts():
+                await stop_everything()
+            handlers.uninstall()
+
+    try:
+        return asyncio.run(runner())
+    except asyncio.CancelledError:
+        handlers = state.get("h")
+        if handlers is not None and handlers.first is not None:
+            raise SystemExit(128 + int(handlers.first)) from None
+        raise
