@@ -41,9 +41,12 @@ How each family is framed
   waited for: a request's checksum byte is ``55`` once in 256.)
 * A dump is consumed whole: once an acceptable dump header ``FF AA 3E P 00 00`` has
   matched, the reassembler waits for all 226 bytes, and ``EE DD``, ``AA 55`` or
-  ``FF AA`` inside it are data.  (On a stream that may carry requests, an 11-byte
-  request whose checksum holds is taken first: the 0x3E request itself starts with
-  the dump header.)
+  ``FF AA`` inside it are data.  On a stream that may carry requests as well
+  (``motorbus decode --direction any``, the default) a request whose checksum holds is
+  taken first, since the 0x3E request itself starts with the dump header; so a dump
+  whose first 11 (or, with the quad stepper possible, 9) bytes happen to satisfy a
+  request checksum, 1 dump in 256 (or 2), is cut there.  A host (``REPLY``) stream
+  never is.
 * ``EE DD`` (project finished, A0-06) is recognised only where a frame may start,
   never inside a frame.
 
