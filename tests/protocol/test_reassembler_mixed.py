@@ -267,6 +267,24 @@ def test_a_refused_reply_does_not_swallow_the_header_that_follows() -> None:
     ]
 
 
+@pytest.mark.parametrize("cut", range(1, 6))
+def test_a_refused_reply_split_across_reads_is_one_discarded_run(cut: int) -> None:
+    r = Reassembler(families=LA_PROJECT)
+    r.expect([])
+    items = r.feed(PROJECT_ACK[:cut]) + r.feed(PROJECT_ACK[cut:] + SHORT_ACK)
+    assert items == [
+        Discarded(PROJECT_ACK, "unexpected reply shape"),
+        Frame(Family.LA, Direction.REPLY, SHORT_ACK),
+    ]
+
+
+def test_a_refused_reply_cut_short_by_the_end_of_stream_is_discarded() -> None:
+    r = Reassembler(families=LA_PROJECT)
+    r.expect([])
+    assert r.feed(PROJECT_ACK[:4]) == []
+    assert r.end_of_stream() == [Discarded(PROJECT_ACK[:4], "unexpected reply shape")]
+
+
 # -- 5. every LA frame behind stray bytes, all families -----------------------------------
 
 STRAY_BYTE = st.one_of(st.sampled_from([0xFF, 0xAA, 0x55, 0xEE, 0xDD, 0x00]), st.integers(0, 255))

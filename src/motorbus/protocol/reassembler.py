@@ -459,7 +459,14 @@ class Reassembler:
                     return _WAIT, 0, None
             raw = buf[p : p + size]
             return _COMPLETE, size, Frame(self._stepper_family(raw), Direction.REPLY, raw)
-        return _INVALID, _OVERLAP if refused else _UNEXPECTED, None
+        if refused:
+            return _INVALID, _OVERLAP, None
+        # The refused reply may still be arriving: wait for its bytes (or a header), so
+        # that a reply split across reads is discarded as one run, as a whole one is.
+        still_arriving = avail < STEPPER_REPLY_SIZE and not final
+        if still_arriving and self._unexpected_run(buf, p) >= p + avail - 1:
+            return _INCOMPLETE, 0, None
+        return _INVALID, _UNEXPECTED, None
 
     def _la_inside(self, buf: bytes, p: int, size: int, final: bool) -> int:
         """Does a checksummed LA frame start inside the candidate ``buf[p : p + size]``?
