@@ -11,19 +11,53 @@ How each family is framed
   their own.  A header whose length or checksum is wrong costs one byte: the search
   for the next header starts at the following byte.
 * Stepper requests (``FF AA``, 11 bytes for the project stepper, 9 for the quad
-  stepper) carry a checksum and are validated the same way.
+  stepper) carry a checksum (the 8-bit sum of every byte before it) and are
+  validated the same way.  On a stream that may carry both (a simulator of a mixed
+  bus, ``motorbus decode``), both checksums decide: with 11 bytes at hand the
+  11-byte frame is taken if its checksum holds (whether or not the 9-byte one holds
+  too), else the 9-byte frame if its checksum holds.  The 11-byte frame can never
+  end in the ``FF AA`` of a next frame while the 9-byte checksum holds: a valid
+  9-byte frame sums to twice its checksum (an even number), and ``FF AA`` at bytes
+  9..10 would need it to sum to ``AA - FF = AB`` (odd).  Limit: with only 9 or 10
+  bytes at hand and the 9-byte checksum holding, the 9-byte frame is taken at once
+  (a device must not wait for bytes that never come), so an 11-byte request whose
+  byte 8 happens to equal the sum of bytes 0..7 (1 in 256) is cut short if the
+  stream pauses right after its byte 8 or 9.
 * Stepper replies (``FF AA`` + 4 bytes, or the 226-byte project dump) carry neither
   length nor checksum (A0-04, A1-09).  Only the caller knows what it asked, so it
   tells the reassembler which reply shapes are acceptable right now with
-  :meth:`Reassembler.expect`.  Without an expectation any 6-byte ``FF AA`` frame is
-  taken, and ``FF AA 3E P 00 00`` starts a 226-byte dump.
+  :meth:`Reassembler.expect`; ``expect([])`` means none is, and ``FF AA`` bytes are
+  then discarded as "unexpected reply shape".  Without an expectation
+  (``expect(None)``, the default) any 6-byte ``FF AA`` frame is taken, and
+  ``FF AA 3E P 00 00`` starts a 226-byte dump.
+* Checksummed frames win over checksum-less ones.  A 6-byte stepper reply (or a
+  stepper request, whose checksum may hold by accident) at ``p`` is refused
+  ("overlaps an LA frame", one byte) if a complete, checksum-valid LA frame starts
+  at ``p + 1 .. p + size - 1``: a stray ``FF`` before an ``AA 55`` status costs that
+  byte, not the status.  If such an LA frame is still incomplete, the stream waits
+  for it, unless a later valid frame already proves its header garbage, or the
+  stream has ended; an LA frame that turns out invalid leaves the stepper frame
+  to be taken.  (An LA header whose first byte is the candidate's last byte is not
+  waited for: a request's checksum byte is ``55`` once in 256.)
+* A dump is consumed whole: once an acceptable dump header ``FF AA 3E P 00 00`` has
+  matched, the reassembler waits for all 226 bytes, and ``EE DD``, ``AA 55`` or
+  ``FF AA`` inside it are data.  On a stream that may carry requests as well
+  (``motorbus decode --direction any``, the default) a request whose checksum holds is
+  taken first, since the 0x3E request itself starts with the dump header; so a dump
+  whose first 11 (or, with the quad stepper possible, 9) bytes happen to satisfy a
+  request checksum, 1 dump in 256 (or 2), is cut there.  A host (``REPLY``) stream
+  never is.
 * ``EE DD`` (project finished, A0-06) is recognised only where a frame may start,
-  never inside a frame: a 226-byte dump is consumed whole, so ``EE DD`` or ``FF AA``
-  inside it are data.
+  never inside a frame.
 
 A header that claims more bytes than have arrived waits for them - unless a later,
 complete, checksum-valid frame is already in the buffer, which proves the header was
 garbage; the reassembler then skips to that frame instead of stalling behind it.
+
+Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
+in order (``ProjectFinished.raw`` is ``EE DD``), so the stream offset of an item is
+the sum of ``len(raw)`` of the items before it; every byte fed is in a frame, an
+event, a discarded run, or the buffer.
 """
 
 from __future__ import annotations
@@ -119,8 +153,17 @@ class ReassemblerStats:
 
 # Outcome of trying to parse a frame at a position.
 _COMPLETE = 0
+#: The frame at this position lacks bytes of its own; a later valid frame may prove it garbage.
 _INCOMPLETE = 1
 _INVALID = 2
+#: Hold the stream here until more bytes come, with no skipping ahead: a dump whose header
+#: matched, or a checksum-less candidate with an unfinished LA frame starting inside it.
+_WAIT = 3
+
+# Verdicts of ``_la_inside``.
+_CLEAR = 0
+_REFUSE = 1
+_HOLD = 2
 
 
 class Reassembler:
@@ -146,19 +189,26 @@ class Reassembler:
         self.stats = ReassemblerStats()
         self._buf = b""
         self._expected: tuple[FrameShape, ...] | None = None
+        # (buffer, start, answer) of the last ``_later_valid_frame`` call.
+        self._later_memo: tuple[bytes, int, int] = (b"", 0, -1)
         la = Family.LA in self.families
         project = Family.PROJECT_STEPPER in self.families
         quad = Family.QUAD_STEPPER in self.families
         headers: list[bytes] = []
+        la_headers: list[bytes] = []
         if la and direction in (Direction.REPLY, None):
-            headers.append(LA_REPLY_HEADER)
+            la_headers.append(LA_REPLY_HEADER)
         if la and direction in (Direction.REQUEST, None):
-            headers.append(LA_REQUEST_HEADER)
+            la_headers.append(LA_REQUEST_HEADER)
+        headers += la_headers
         if project or quad:
             headers.append(FF_AA)
         if project and direction in (Direction.REPLY, None):
             headers.append(PROJECT_FINISHED_BYTES)
         self._headers = tuple(headers)
+        #: LA headers this stream may carry: a stepper candidate that one of them starts
+        #: inside of is checked against it (checksummed frames win).
+        self._la_headers = tuple(la_headers)
         self._project = project
         self._quad = quad
         # The hot path (one family, one header) gets a single bytes.find per frame.
@@ -170,7 +220,9 @@ class Reassembler:
         """Say which stepper reply shapes are acceptable from now on.
 
         ``None`` restores the default (any 6-byte ``FF AA`` reply, or a 226-byte dump
-        after ``FF AA 3E P 00 00``).  The bus calls this before writing a stepper
+        after ``FF AA 3E P 00 00``); an empty list means no stepper reply is acceptable
+        (``FF AA`` bytes are discarded as "unexpected reply shape"; LA frames, stepper
+        requests and ``EE DD`` still pass).  The bus calls this before writing a stepper
         request, listing the reply it awaits and any unsolicited "done" replies it
         still accepts.  Bytes already buffered are re-examined by the next ``feed``
         (``feed(b"")`` re-examines them at once).
@@ -193,6 +245,7 @@ class Reassembler:
             self._discard(out, rest[:cut], "overflow")
             rest = rest[cut:]
         self._buf = rest
+        self._later_memo = (b"", 0, -1)  # do not keep this call's buffer alive
         return out
 
     def end_of_stream(self) -> list[Item]:
@@ -241,9 +294,12 @@ class Reassembler:
                     return p
                 self._discard(out, buf[p:later], "header without its frame")
                 pos = later
+            elif state == _WAIT:
+                return p
             else:
-                self._discard(out, buf[p : p + 1], _reason(size))
-                pos = p + 1
+                end = self._unexpected_run(buf, p) if size == _UNEXPECTED else p + 1
+                self._discard(out, buf[p:end], _reason(size))
+                pos = end
         if pos >= n:
             return n
         # No header in buf[pos:]: keep a last byte that may be the first half of one.
@@ -335,41 +391,123 @@ class Reassembler:
             state, size, item = self._parse_stepper_request(buf, p, avail, final)
             if state != _INVALID or self.direction is Direction.REQUEST:
                 return state, size, item
-        return self._parse_stepper_reply(buf, p, avail)
+        return self._parse_stepper_reply(buf, p, avail, final)
 
     def _parse_stepper_request(
         self, buf: bytes, p: int, avail: int, final: bool
     ) -> tuple[int, int, Item | None]:
-        sizes: list[tuple[int, Family]] = []
-        if self._quad:
-            sizes.append((QUAD_REQUEST_SIZE, Family.QUAD_STEPPER))
-        if self._project:
-            sizes.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
-        waiting = False
-        for size, family in sizes:
-            if avail < size:
-                waiting = True
-                continue
-            end = p + size
-            if sum(buf[p : end - 1]) & 0xFF == buf[end - 1]:
-                return _COMPLETE, size, Frame(family, Direction.REQUEST, buf[p:end])
-        if waiting and not final:
-            return _INCOMPLETE, 0, None
-        return _INVALID, _BAD_CHECKSUM, None
+        """A checksummed ``FF AA`` request: 9 bytes (quad) or 11 (project).
 
-    def _parse_stepper_reply(self, buf: bytes, p: int, avail: int) -> tuple[int, int, Item | None]:
+        With both families possible, the two checksums decide (see the module
+        docstring); a candidate is refused if a checksum-valid LA frame starts inside it.
+        """
+        quad_ok = (
+            self._quad
+            and avail >= QUAD_REQUEST_SIZE
+            and sum(buf[p : p + QUAD_REQUEST_SIZE - 1]) & 0xFF == buf[p + QUAD_REQUEST_SIZE - 1]
+        )
+        candidates: list[tuple[int, Family]] = []
+        waiting = False
+        if self._project:
+            end = p + PROJECT_REQUEST_SIZE
+            if avail < PROJECT_REQUEST_SIZE:
+                waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
+            elif sum(buf[p : end - 1]) & 0xFF == buf[end - 1]:
+                # If the 9-byte checksum holds too, the 11-byte frame is preferred; it
+                # cannot end in the ``FF AA`` of a next frame (see the module docstring).
+                candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
+        if quad_ok:
+            candidates.append((QUAD_REQUEST_SIZE, Family.QUAD_STEPPER))
+        elif self._quad and avail < QUAD_REQUEST_SIZE:
+            waiting = True
+        refused = False
+        for size, family in candidates:
+            verdict = self._la_inside(buf, p, size, final)
+            if verdict == _CLEAR:
+                return _COMPLETE, size, Frame(family, Direction.REQUEST, buf[p : p + size])
+            if verdict == _HOLD:
+                return _WAIT, 0, None
+            refused = True
+        if waiting and not final and not refused:
+            return _INCOMPLETE, 0, None
+        return _INVALID, _OVERLAP if refused else _BAD_CHECKSUM, None
+
+    def _parse_stepper_reply(
+        self, buf: bytes, p: int, avail: int, final: bool
+    ) -> tuple[int, int, Item | None]:
         shapes = self._expected
         if shapes is None:
             shapes = (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if self._project else (_ANY_STEPPER_REPLY,)
         head = buf[p : p + min(avail, 8)]
+        refused = False
         for shape in shapes:  # in order of preference: the first fitting shape wins
             if not shape.matches(head):
                 continue
-            if avail < len(shape.pattern) or avail < shape.length:
+            size = shape.length
+            if avail < len(shape.pattern) or avail < size:
+                if size > STEPPER_REPLY_SIZE and avail >= len(shape.pattern) and not final:
+                    # A dump whose header matched is consumed whole: its data may hold
+                    # anything (AA 55, FF AA, EE DD), so nothing inside may cut it short.
+                    return _WAIT, 0, None
                 return _INCOMPLETE, 0, None  # fits so far: wait for the rest
-            raw = buf[p : p + shape.length]
-            return _COMPLETE, shape.length, Frame(self._stepper_family(raw), Direction.REPLY, raw)
+            if size <= STEPPER_REPLY_SIZE:
+                verdict = self._la_inside(buf, p, size, final)
+                if verdict == _REFUSE:
+                    refused = True
+                    continue
+                if verdict == _HOLD:
+                    return _WAIT, 0, None
+            raw = buf[p : p + size]
+            return _COMPLETE, size, Frame(self._stepper_family(raw), Direction.REPLY, raw)
+        if refused:
+            return _INVALID, _OVERLAP, None
+        # The refused reply may still be arriving: wait for its bytes (or a header), so
+        # that a reply split across reads is discarded as one run, as a whole one is.
+        still_arriving = avail < STEPPER_REPLY_SIZE and not final
+        if still_arriving and self._unexpected_run(buf, p) >= p + avail - 1:
+            return _INCOMPLETE, 0, None
         return _INVALID, _UNEXPECTED, None
+
+    def _la_inside(self, buf: bytes, p: int, size: int, final: bool) -> int:
+        """Does a checksummed LA frame start inside the candidate ``buf[p : p + size]``?
+
+        ``_REFUSE`` if a complete, checksum-valid one starts at ``p + 1 .. p + size - 1``
+        (checksummed frames win); ``_HOLD`` if one may still (its header is there but
+        its bytes are not, and no later valid frame proves that header garbage);
+        ``_CLEAR`` otherwise.  At the end of the stream nothing is held.
+        """
+        headers = self._la_headers
+        if not headers:
+            return _CLEAR
+        last = p + size - 1  # the last byte at which an inner frame may start
+        hold = False
+        for header in headers:
+            q = buf.find(header, p + 1, last + 2)
+            while q >= 0:
+                direction = Direction.REPLY if header == LA_REPLY_HEADER else Direction.REQUEST
+                state, _, _ = self._parse_la(buf, q, direction)
+                if state == _COMPLETE:
+                    return _REFUSE
+                if state == _INCOMPLETE and not final and not hold:
+                    hold = self._later_valid_frame(buf, q + 1) < 0
+                q = buf.find(header, q + 1, last + 2)
+        # A candidate whose last byte is the first half of an LA header is not held for
+        # the next byte: a request's checksum byte is 0x55 once in 256, and a simulator
+        # holding that request would stall the bus until the host timed out.
+        return _HOLD if hold else _CLEAR
+
+    def _unexpected_run(self, buf: bytes, p: int) -> int:
+        """End of the refused stepper reply at ``p``: up to 6 bytes, or the next header."""
+        n = len(buf)
+        end = p + 1
+        limit = min(p + STEPPER_REPLY_SIZE, n)
+        while end < limit:
+            if end == n - 1 and buf[end] in _HEADER_FIRST_BYTES:
+                break
+            if any(buf.startswith(h, end) for h in self._headers):
+                break
+            end += 1
+        return end
 
     def _stepper_family(self, raw: bytes) -> Family:
         if not self._quad:
@@ -387,8 +525,19 @@ class Reassembler:
         """Position of a complete checksum-valid frame after ``start``, or -1.
 
         Only self-validating frames count (LA frames, stepper requests): a stepper
-        reply has no checksum, so finding one proves nothing.
+        reply has no checksum, so finding one proves nothing.  The last answer is
+        remembered: asked again about the same buffer from a start between the last
+        start and the frame found, the answer is the same (so a run of garbage headers
+        costs one scan, not one per header).
         """
+        memo_buf, memo_start, memo_found = self._later_memo
+        if memo_buf is buf and memo_start <= start and (memo_found < 0 or start <= memo_found):
+            return memo_found
+        found = self._scan_for_valid_frame(buf, start)
+        self._later_memo = (buf, start, found)
+        return found
+
+    def _scan_for_valid_frame(self, buf: bytes, start: int) -> int:
         p = start
         n = len(buf)
         while p < n:
@@ -421,10 +570,12 @@ class Reassembler:
 _BAD_LENGTH = 1
 _BAD_CHECKSUM = 2
 _UNEXPECTED = 3
+_OVERLAP = 4
 _REASONS = {
     _BAD_LENGTH: "bad length",
     _BAD_CHECKSUM: "bad checksum",
     _UNEXPECTED: "unexpected reply shape",
+    _OVERLAP: "overlaps an LA frame",
 }
 
 
