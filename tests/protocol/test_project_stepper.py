@@ -73,7 +73,7 @@ KIND = "ffaa11_project_stepper"
 
 
 def vectors() -> list[dict[str, Any]]:
-    """The project stepper vectors (the loader skips clearly if the shared file is missing)."""
+    """The project stepper vectors (tests/data/vectors.json; a missing file is an error)."""
     return [v for v in load_vectors() if v["device_kind"] == KIND]
 
 
