@@ -1,4 +1,4 @@
-"""Tests of the Inspire LA "55 AA" protocol module (doc 002, PROTOCOLS.md part C)."""
+"""Tests of the Inspire LA "55 AA" protocol module (doc 002, docs/protocols.md part C)."""
 
 from __future__ import annotations
 
@@ -307,7 +307,7 @@ def test_split_broadcast() -> None:
     frames = split_broadcast(BroadcastMode.POSITION, targets)
     assert [len(f.entries) for f in frames] == [15, 15, 2]
     assert [e for f in frames for e in f.entries] == list(targets.items())
-    assert len(frames[0].encode()) == 51  # 5 + 1 + 3 * 15 (PROTOCOLS.md C.6)
+    assert len(frames[0].encode()) == 51  # 5 + 1 + 3 * 15 (docs/protocols.md C.6)
     assert split_broadcast(BroadcastMode.FOLLOW, []) == []
     with pytest.raises(LocalProtocolError, match="id=4"):
         split_broadcast(BroadcastMode.FOLLOW, [(4, 1), (5, 1), (4, 2)])

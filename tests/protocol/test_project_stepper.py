@@ -1,4 +1,4 @@
-"""Tests of the 11-byte FF AA project stepper protocol (doc 000, PROTOCOLS.md part A)."""
+"""Tests of the 11-byte FF AA project stepper protocol (doc 000, docs/protocols.md part A)."""
 
 from __future__ import annotations
 
