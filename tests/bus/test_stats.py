@@ -134,3 +134,20 @@ def test_bus_stats_snapshot_uses_the_histogram() -> None:
     snap = stats.as_dict()
     assert snap["latency"]["p50_us"] == pytest.approx(320, rel=0.01)  # type: ignore[index]
     assert snap["devices"]["la:1"]["latency"]["max_us"] == pytest.approx(2000)  # type: ignore[index]
+
+
+def test_percentile_scan_and_record_agree_on_buckets() -> None:
+    """``percentile`` scans only the buckets between min's and max's, as ``record`` fills."""
+    from motorbus.bus import stats
+
+    rng = random.Random(11)
+    for _ in range(2000):
+        x = 10 ** rng.uniform(-9, 3)
+        h = LatencyHistogram()
+        h.record(x)
+        assert h.counts[stats._bucket_of(x)] == 1
+    edges = [0.0, 1e-8, 1e-8 * 1.01, 100.0, 1e9]
+    for x in edges:
+        h = LatencyHistogram()
+        h.record(x)
+        assert h.counts[stats._bucket_of(x)] == 1, x
