@@ -69,7 +69,7 @@ from motorbus.sim.pty import PtySim
 from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, SerialTransport
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "bus.json"
-#: LA "D" interface rate (PROTOCOLS.md C.1).
+#: LA "D" interface rate (docs/protocols.md C.1).
 BAUD = 921600
 #: IDs the simulator serves, and one it does not (for the deadline phase).
 LA_IDS = (1, 2, 3)

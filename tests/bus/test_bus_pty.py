@@ -24,7 +24,7 @@ from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.transport.serial import BACKENDS, SerialTransport, available_backends
 
-LA_BAUD = 921600  # LA "D" interface (PROTOCOLS.md C.1)
+LA_BAUD = 921600  # LA "D" interface (docs/protocols.md C.1)
 QUAD_BAUD = 9600  # A1-01: the family default
 #: Deadlines here carry a generous host margin: a pty hop plus a thread on a shared
 #: machine is not what these tests measure (bench_bus.py does).

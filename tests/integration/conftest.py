@@ -2,7 +2,7 @@
 
 ``ser2net_server`` starts ``motorbus sim`` (LA IDs 1-3 at 921600 baud) on a pty and a
 ser2net 4.x in front of it with two accepters on 127.0.0.1: raw TCP (``socket://``)
-and RFC 2217 (``rfc2217://``), configured as PLATFORM.md section 4 recommends.  The
+and RFC 2217 (``rfc2217://``), configured as docs/platform.md section 4 recommends.  The
 tests skip, with the reason, when ser2net is not installed; ``.ci/run`` installs it.
 """
 

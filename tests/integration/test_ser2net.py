@@ -3,7 +3,7 @@
 Every installed serial backend talks to ``socket://127.0.0.1:PORT`` (ser2net's raw TCP
 accepter, ``chardelay: false``): request/reply, and a broadcast follow stream whose
 frames the simulator logs.  The RFC 2217 accepter is tried too; where a backend cannot
-use it (PLATFORM.md section 2), the test skips and says why.
+use it (docs/platform.md section 2), the test skips and says why.
 
 A new TCP connection to ser2net has a short settling window: on this machine the first
 round trip of a fresh connection took 9-25 ms instead of ~1 ms with the serialx and
@@ -154,12 +154,12 @@ async def test_rfc2217_accepter_is_reported(ser2net_server: Ser2netServer, backe
                 )
     except (TimeoutError, OSError, ReplyTimeoutError) as err:
         known = {
-            # PLATFORM.md section 2: "fails (known upstream bug)" for the pyserial family;
+            # docs/platform.md section 2: "fails (known upstream bug)" for the pyserial family;
             # pyserial's rfc2217 handler waits for an answer to SET_CONTROL that ser2net
             # does not give for a pty.
             "fast": "timeout while waiting for option",
             "pyserial-asyncio": "timeout while waiting for option",
-            # PLATFORM.md section 2: serialx "waits for a modem-state ack that ser2net does
+            # docs/platform.md section 2: serialx "waits for a modem-state ack that ser2net does
             # not send for a pty", so the open never completes.
             "serialx": "",
         }[backend]
@@ -169,7 +169,7 @@ async def test_rfc2217_accepter_is_reported(ser2net_server: Ser2netServer, backe
             assert known in str(err), f"{backend} failed in a new way: {err!r}"
         pytest.skip(
             f"rfc2217:// through ser2net does not work with backend {backend!r} "
-            f"(known, PLATFORM.md section 2; use socket:// with a raw TCP accepter): "
+            f"(known, docs/platform.md section 2; use socket:// with a raw TCP accepter): "
             f"{type(err).__name__}: {err}"
         )
     assert status.id == 1

@@ -1,4 +1,4 @@
-"""Tests of the Inspire LA "55 AA" protocol module (doc 002, PROTOCOLS.md part C)."""
+"""Tests of the Inspire LA "55 AA" protocol module (doc 002, docs/protocols.md part C)."""
 
 from __future__ import annotations
 
@@ -40,7 +40,7 @@ from motorbus.protocol.la import (
     split_broadcast,
     temperature_limit_writes,
 )
-from tests.vectors import VECTORS_PATH, vectors_of
+from tests.vectors import vectors_of
 
 
 def _la_vectors() -> list[dict[str, Any]]:
@@ -48,9 +48,6 @@ def _la_vectors() -> list[dict[str, Any]]:
 
 
 LA_VECTORS = _la_vectors()
-needs_vectors = pytest.mark.skipif(
-    not LA_VECTORS, reason=f"shared test vectors not found at {VECTORS_PATH}"
-)
 REQUEST_VECTORS = [v for v in LA_VECTORS if v["decoded"]["header"] == "55 AA"]
 REPLY_VECTORS = [v for v in LA_VECTORS if "reply_hex" in v]
 
@@ -85,13 +82,11 @@ def _command_for(decoded: dict[str, Any]) -> Command:
 # --- vectors ---------------------------------------------------------------------------------
 
 
-@needs_vectors
 def test_vectors_are_present() -> None:
     assert len(REQUEST_VECTORS) >= 19
     assert len(REPLY_VECTORS) >= 1
 
 
-@needs_vectors
 @pytest.mark.parametrize("vector", REQUEST_VECTORS, ids=_vid)
 def test_encoder_reproduces_document_request(vector: dict[str, Any]) -> None:
     cmd = _command_for(vector["decoded"])
@@ -101,7 +96,6 @@ def test_encoder_reproduces_document_request(vector: dict[str, Any]) -> None:
     assert frame_is_valid(expected)
 
 
-@needs_vectors
 @pytest.mark.parametrize("vector", REQUEST_VECTORS, ids=_vid)
 def test_document_reply_expectations(vector: dict[str, Any]) -> None:
     cmd = _command_for(vector["decoded"])
@@ -114,7 +108,6 @@ def test_document_reply_expectations(vector: dict[str, Any]) -> None:
         assert STATUS_FRAME_SIZE in cmd.reply_lengths()
 
 
-@needs_vectors
 def test_v3_documented_checksum_is_refused() -> None:
     (vector,) = [v for v in LA_VECTORS if not v.get("checksum", {}).get("ok", True)]
     documented = parse_hex(vector["request_hex"])
@@ -126,7 +119,6 @@ def test_v3_documented_checksum_is_refused() -> None:
     assert Follow(3, 1000, reply=False).encode() == parse_hex("55 AA 04 03 19 37 E8 03 42")
 
 
-@needs_vectors
 @pytest.mark.parametrize("vector", REPLY_VECTORS, ids=_vid)
 def test_document_read_reply_decodes(vector: dict[str, Any]) -> None:
     raw = parse_hex(vector["reply_hex"])
@@ -139,7 +131,6 @@ def test_document_read_reply_decodes(vector: dict[str, Any]) -> None:
 STATUS_VECTORS = [v for v in LA_VECTORS if v["decoded"].get("length") == 17]
 
 
-@needs_vectors
 @pytest.mark.parametrize("vector", STATUS_VECTORS, ids=_vid)
 def test_document_status_decodes(vector: dict[str, Any]) -> None:
     d = vector["decoded"]
@@ -160,7 +151,6 @@ def test_document_status_decodes(vector: dict[str, Any]) -> None:
     assert status.encode() == raw
 
 
-@needs_vectors
 def test_document_short_write_ack() -> None:
     (vector,) = [v for v in LA_VECTORS if "reserved_ack_byte" in v["decoded"]]
     raw = parse_hex(vector["expected_reply_hex"])
@@ -317,7 +307,7 @@ def test_split_broadcast() -> None:
     frames = split_broadcast(BroadcastMode.POSITION, targets)
     assert [len(f.entries) for f in frames] == [15, 15, 2]
     assert [e for f in frames for e in f.entries] == list(targets.items())
-    assert len(frames[0].encode()) == 51  # 5 + 1 + 3 * 15 (PROTOCOLS.md C.6)
+    assert len(frames[0].encode()) == 51  # 5 + 1 + 3 * 15 (docs/protocols.md C.6)
     assert split_broadcast(BroadcastMode.FOLLOW, []) == []
     with pytest.raises(LocalProtocolError, match="id=4"):
         split_broadcast(BroadcastMode.FOLLOW, [(4, 1), (5, 1), (4, 2)])

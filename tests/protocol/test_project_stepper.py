@@ -1,4 +1,4 @@
-"""Tests of the 11-byte FF AA project stepper protocol (doc 000, PROTOCOLS.md part A)."""
+"""Tests of the 11-byte FF AA project stepper protocol (doc 000, docs/protocols.md part A)."""
 
 from __future__ import annotations
 
@@ -73,7 +73,7 @@ KIND = "ffaa11_project_stepper"
 
 
 def vectors() -> list[dict[str, Any]]:
-    """The project stepper vectors (the loader skips clearly if the shared file is missing)."""
+    """The project stepper vectors (tests/data/vectors.json; a missing file is an error)."""
     return [v for v in load_vectors() if v["device_kind"] == KIND]
 
 

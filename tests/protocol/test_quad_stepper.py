@@ -36,11 +36,10 @@ from motorbus.protocol.quad_stepper import (
     is_done_reply,
     request_is_valid,
 )
-from tests.vectors import VECTORS_PATH, vectors_of
+from tests.vectors import vectors_of
 
 DEVICE_KIND = "ffaa9_4axis_stepper"
 VECTORS = vectors_of(DEVICE_KIND)
-needs_vectors = pytest.mark.skipif(not VECTORS, reason=f"test vectors missing: {VECTORS_PATH}")
 
 
 def _fits(shapes: tuple[FrameShape, ...], raw: bytes) -> bool:
@@ -65,12 +64,10 @@ EXPECTED_COMMANDS: dict[str, QuadCommand] = {
 }
 
 
-@needs_vectors
 def test_every_vector_is_in_the_table() -> None:
     assert {v["request_hex"] for v in VECTORS} == set(EXPECTED_COMMANDS)
 
 
-@needs_vectors
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: v["request_hex"])
 def test_vector(vector: dict[str, Any]) -> None:
     request = parse_hex(vector["request_hex"])

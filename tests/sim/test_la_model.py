@@ -32,7 +32,7 @@ from motorbus.protocol.la import (
     split_broadcast,
 )
 from motorbus.sim.la import AUTO_CLEAR_S, CONSECUTIVE_WINDOW_S, LAModel, PowerState
-from tests.vectors import VECTORS_PATH, vectors_of
+from tests.vectors import vectors_of
 
 
 def _request_vectors() -> list[dict[str, Any]]:
@@ -58,7 +58,6 @@ def _query(model: LAModel, now: float) -> Status:
 # --- document vectors ----------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not REQUEST_VECTORS, reason=f"shared vectors not found at {VECTORS_PATH}")
 @pytest.mark.parametrize("vector", REQUEST_VECTORS, ids=lambda v: str(v["description"])[:40])
 def test_model_answers_document_requests(vector: dict[str, Any]) -> None:
     request = parse_hex(vector.get("request_hex_corrected", vector["request_hex"]))

@@ -58,7 +58,7 @@ PPR = 1600  # subdivision 8 x 1.8 degrees (A.3)
 
 
 def vectors() -> list[dict[str, Any]]:
-    """The project stepper vectors (the loader skips clearly if the shared file is missing)."""
+    """The project stepper vectors (tests/data/vectors.json; a missing file is an error)."""
     return [v for v in load_vectors() if v["device_kind"] == "ffaa11_project_stepper"]
 
 

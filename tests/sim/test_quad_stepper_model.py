@@ -35,7 +35,7 @@ from motorbus.sim.quad_stepper import (
     MotorParams,
     QuadStepperModel,
 )
-from tests.vectors import VECTORS_PATH, vectors_of
+from tests.vectors import vectors_of
 
 VECTORS = vectors_of("ffaa9_4axis_stepper")
 
@@ -71,7 +71,6 @@ def configure(
 # --- vectors ------------------------------------------------------------------------------
 
 
-@pytest.mark.skipif(not VECTORS, reason=f"test vectors missing: {VECTORS_PATH}")
 @pytest.mark.parametrize("vector", VECTORS, ids=lambda v: v["request_hex"])
 def test_vector(vector: dict[str, Any]) -> None:
     model = QuadStepperModel()

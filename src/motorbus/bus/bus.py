@@ -3,7 +3,7 @@
 The bus owns one port.  Everything written to the port goes through one queue, in
 priority order (an emergency stop jumps it), and a frame's write starts only when
 
-* at least ``min_spacing`` (1 ms, LA manual 3.4.2) has passed since the previous
+* at least ``min_spacing`` (1 ms, LA manual 3.4.2, docs/protocols.md C.6) has passed since the previous
   write *returned* (and the previous frame's own wire time, if longer).  The anchor
   is the moment the write call came back, not a timestamp taken before it: a process
   preempted between reading the clock and writing would otherwise write later than
@@ -86,7 +86,7 @@ __all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
 log = logging.getLogger("motorbus.bus")
 
 #: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
-#: (LA manual 3.4.2, PROTOCOLS.md C.6).
+#: (LA manual 3.4.2, docs/protocols.md C.6).
 MIN_SPACING_S = 1e-3
 #: Worst-case device turnaround, request end to reply start.  LA: "120 us typical, up
 #: to 800 us" (manual 3.4.2).  The stepper manuals give none; A0-14 recommends a
@@ -98,7 +98,7 @@ DEFAULT_TURNAROUND: Mapping[Family, float] = {
     Family.QUAD_STEPPER: 30e-3,
 }
 #: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
-#: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, PLATFORM.md 5).  The
+#: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
 #: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
 #: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.  On a loaded or
 #: slow host, raise it for every bus at once with ``MOTORBUS_HOST_MARGIN_MS``.

@@ -2,37 +2,70 @@
 
 from __future__ import annotations
 
-import bisect
 import math
+from array import array
+from bisect import bisect_left
 from dataclasses import dataclass, field
+from itertools import accumulate
 
 __all__ = ["BusStats", "DeviceStats", "LatencyHistogram"]
 
-# Histogram buckets: 10 per decade from 10 us to 10 s (upper edges, seconds).
-_EDGES = tuple(10 ** (e / 10) * 1e-5 for e in range(0, 61))
+# Histogram buckets: each 1 % wider than the one before, from 10 ns to 100 s.  Bucket 0
+# holds everything up to 10 ns, the last one everything from 100 s on; bucket ``i`` in
+# between holds [_LOW * _RATIO**(i - 1), _LOW * _RATIO**i).
+_LOW = 1e-8
+_HIGH = 100.0
+_RATIO = 1.01
+_PER_LN = 1 / math.log(_RATIO)
+_BUCKETS = math.ceil(math.log(_HIGH / _LOW) * _PER_LN) + 2  # 2317
+_INV_LOW = 1 / _LOW
+_log = math.log
+
+
+def _bucket_of(seconds: float) -> int:
+    """The bucket ``record`` puts ``seconds`` in (``record`` inlines this for speed)."""
+    if seconds > _LOW:
+        i = int(_log(seconds * _INV_LOW) * _PER_LN) + 1
+        return i if i < _BUCKETS else _BUCKETS - 1
+    return 0
+
+
+def _new_counts() -> array[int]:
+    return array("Q", bytes(8 * _BUCKETS))
 
 
 @dataclass(slots=True)
 class LatencyHistogram:
-    """A fixed-size log-bucketed histogram of durations in seconds (about 26 % resolution).
+    """Durations in seconds: exact count/total/min/max/mean, percentiles within 0.5 %.
 
-    Percentiles are reported as the upper edge of the bucket holding them, so they
-    never understate; ``min``/``max``/``mean`` are exact.
+    Samples go into fixed log buckets each 1 % wide from 10 ns to 100 s (2317 counters,
+    18.5 KiB, allocated once: memory does not grow with the number of samples).  A
+    percentile is the nearest-rank sample (the ``ceil(count * p / 100)``-th smallest,
+    numpy's ``method="inverted_cdf"``) as the geometric middle of its bucket, clamped to
+    the exact ``min``/``max``: at most 0.5 % from the exact value between 10 ns and 100 s,
+    within 10 ns below that (as ``min``), and never above ``max``.  ``record`` is one
+    ``log`` and a few comparisons, so it stays cheap on the reply path.
     """
 
-    counts: list[int] = field(default_factory=lambda: [0] * (len(_EDGES) + 1))
+    counts: array[int] = field(default_factory=_new_counts)
     count: int = 0
     total: float = 0.0
     min: float = math.inf
     max: float = 0.0
 
     def record(self, seconds: float) -> None:
-        """Add one duration."""
-        self.counts[bisect.bisect_left(_EDGES, seconds)] += 1
+        """Add one duration (anything up to 10 ns, negative too, counts in the lowest bucket)."""
         self.count += 1
         self.total += seconds
-        self.min = min(self.min, seconds)
-        self.max = max(self.max, seconds)
+        if seconds < self.min:
+            self.min = seconds
+        if seconds > self.max:
+            self.max = seconds
+        if seconds > _LOW:
+            i = int(_log(seconds * _INV_LOW) * _PER_LN) + 1
+            self.counts[i if i < _BUCKETS else _BUCKETS - 1] += 1
+        else:
+            self.counts[0] += 1
 
     @property
     def mean(self) -> float:
@@ -40,16 +73,28 @@ class LatencyHistogram:
         return self.total / self.count if self.count else 0.0
 
     def percentile(self, p: float) -> float:
-        """The ``p``-th percentile (0..100) in seconds, bucket upper edge; 0 when empty."""
+        """The ``p``-th percentile (0..100) in seconds, nearest rank; 0 when empty."""
+        if not 0 <= p <= 100:
+            raise ValueError(f"p={p!r} is out of range: allowed 0..100")
         if not self.count:
             return 0.0
         rank = max(1, math.ceil(self.count * p / 100))
-        seen = 0
-        for i, c in enumerate(self.counts):
-            seen += c
-            if seen >= rank:
-                return min(_EDGES[i], self.max) if i < len(_EDGES) else self.max
-        return self.max
+        if rank >= self.count:
+            return self.max
+        if rank == 1:
+            return self.min
+        # Only the buckets between min's and max's hold samples: a short scan, in C.
+        lo, hi = _bucket_of(self.min), _bucket_of(self.max)
+        cumulative = list(accumulate(self.counts[lo : hi + 1]))
+        at = bisect_left(cumulative, rank)
+        if at >= len(cumulative):  # cannot happen while record() and _bucket_of agree
+            return self.max
+        bucket = lo + at
+        if bucket == 0:
+            return self.min  # within 10 ns of the sample
+        if bucket == _BUCKETS - 1:
+            return self.max
+        return min(max(_LOW * math.exp((bucket - 0.5) / _PER_LN), self.min), self.max)
 
     def summary(self) -> dict[str, float]:
         """Count, mean, p50, p99 and max, durations in microseconds."""

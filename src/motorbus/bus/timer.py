@@ -1,6 +1,6 @@
 """Timers that never fire early and, on Linux, hold deadlines to about 100 µs.
 
-asyncio cannot do either on its own (PLATFORM.md §1): the default loop rounds every
+asyncio cannot do either on its own (docs/platform.md §1): the default loop rounds every
 timeout *up* to a whole millisecond (an 800 µs reply timeout takes at least 1.1 ms), and
 uvloop rounds to the *nearest* millisecond against a millisecond clock, so its timers fire
 up to a millisecond early (1 % spurious reply timeouts, a 1 ms spacing rule broken 99.8 %
@@ -392,7 +392,7 @@ class TimerfdTimer(Timer):
     The fd is armed ``spin_lead`` seconds before the earliest pending deadline and
     watched with ``loop.add_reader``; the wake-up then spins on the clock for the rest.
     A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
-    (PLATFORM.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
+    (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
     sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
     Spinning the last part (a lead of 60-500 us that follows recent wake-up lateness)
     makes a deadline fire within ~25 us at p99, never early, for at most the lead in CPU

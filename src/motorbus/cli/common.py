@@ -51,7 +51,7 @@ STEPPER_BAUD = 9600
 #: Host-latency allowance on every reply deadline of the one-shot commands (seconds).
 #: The library's 2 ms default suits a tuned streaming loop; a command line tool starts
 #: cold (first read of a fresh port, a busy machine, a USB adapter's 1..16 ms latency
-#: timer, PLATFORM.md 5) and sends a handful of requests, so it trades a little time
+#: timer, docs/platform.md 5) and sends a handful of requests, so it trades a little time
 #: for no false timeouts.  ``stream`` keeps the library default: its budget check needs it.
 CLI_HOST_MARGIN_S = 0.050
 #: Longest duration any CLI option accepts, seconds (one day): a guard against typos

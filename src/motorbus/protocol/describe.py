@@ -6,7 +6,7 @@ a frame no decoder accepts becomes an ``"Unknown"`` description with the raw fie
 framing alone can tell, and the decoder's complaint in ``reason``.
 
 Stepper replies carry no type and no checksum, so the 6-byte ``FF AA`` replies of the
-two stepper families can look alike (AMBIGUITIES A0-05).  Which family a reply belongs
+two stepper families can look alike (docs/protocols.md A0-05).  Which family a reply belongs
 to is the caller's knowledge: ``family_hint`` supplies it, and without it the family the
 reassembler guessed is used, falling back to the other stepper family if that one's
 decoder refuses the bytes.

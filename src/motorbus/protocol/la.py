@@ -1,6 +1,6 @@
 """Inspire Robots micro servo linear actuator (LA/LAS/LAF/LASF/LAXC), "55 AA" UART protocol.
 
-Doc 002 (manual PRJ-01-TS-U-004 V1.8.3), digested in PROTOCOLS.md part C.  Pure code: no
+Doc 002 (manual PRJ-01-TS-U-004 V1.8.3), digested in docs/protocols.md part C.  Pure code: no
 asyncio, no clock, no I/O.
 
 Frames::
@@ -501,7 +501,7 @@ class _StatusFields(NamedTuple):
 
 
 class Status(_StatusFields):
-    """The 22-byte status frame (doc 002 section 3.5.4, PROTOCOLS.md C.4).
+    """The 22-byte status frame (doc 002 section 3.5.4, docs/protocols.md C.4).
 
     Attributes:
         id: actuator ID (B3).

@@ -1,4 +1,4 @@
-"""The 11-byte "FF AA" project stepper controller (doc 000, PROTOCOLS.md part A).
+"""The 11-byte "FF AA" project stepper controller (doc 000, docs/protocols.md part A).
 
 Pure code: no asyncio, no clock, no I/O.
 

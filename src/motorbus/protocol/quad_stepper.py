@@ -1,4 +1,4 @@
-"""The 9-byte "FF AA" 4-axis stepper controller protocol (doc 001, PROTOCOLS.md part B).
+"""The 9-byte "FF AA" 4-axis stepper controller protocol (doc 001, docs/protocols.md part B).
 
 Pure code: no asyncio, no clock, no I/O.
 
@@ -70,8 +70,8 @@ __all__ = [
 
 # --- frame layout --------------------------------------------------------------------------
 
-REQUEST_SIZE = 9  # doc 001 "协议采用9个字节每帧" (PROTOCOLS.md B.2)
-REPLY_SIZE = 6  # doc 001, every "回" line is 6 bytes (PROTOCOLS.md B.2)
+REQUEST_SIZE = 9  # doc 001 "协议采用9个字节每帧" (docs/protocols.md B.2)
+REPLY_SIZE = 6  # doc 001, every "回" line is 6 bytes (docs/protocols.md B.2)
 _BODY_SIZE = REQUEST_SIZE - len(FF_AA) - 1  # b2..b7: header and checksum excluded
 #: Not stated by doc 001; its vendor's sibling controller (doc 000) runs 9600 8N1 (A1-01).
 DEFAULT_BAUD = 9600

@@ -7,7 +7,7 @@ next call.  No clock, no asyncio; it never raises on any input.
 How each family is framed
 -------------------------
 * LA frames (``55 AA`` requests, ``AA 55`` replies) carry their length
-  (``Len = total - 5``, AMBIGUITIES A2-01) and a checksum, so they are validated on
+  (``Len = total - 5``, docs/protocols.md A2-01) and a checksum, so they are validated on
   their own.  A header whose length or checksum is wrong costs one byte: the search
   for the next header starts at the following byte.
 * Stepper requests (``FF AA``, 11 bytes for the project stepper, 9 for the quad

@@ -47,7 +47,7 @@ FAULT_KINDS = ("drop", "flip", "garbage", "late", "duplicate", "silent", "discon
 GARBAGE_MIN_BYTES = 1
 GARBAGE_MAX_BYTES = 8
 #: Default extra delay of a late reply: longer than the 5 ms (921600 bit/s) and 10 ms
-#: (115200 bit/s) LA timeouts of AMBIGUITIES A2-15 and the 50 ms stepper timeout of A0-14.
+#: (115200 bit/s) LA timeouts of docs/protocols.md A2-15 and the 50 ms stepper timeout of A0-14.
 DEFAULT_LATE_REPLY_DELAY_S = 0.06
 #: Default outage length for ``disconnect=AFTER`` without an explicit reconnect time.
 DEFAULT_RECONNECT_AFTER_S = 1.0

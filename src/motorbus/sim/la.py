@@ -1,4 +1,4 @@
-"""A simulated Inspire LA linear actuator (doc 002, PROTOCOLS.md part C).
+"""A simulated Inspire LA linear actuator (doc 002, docs/protocols.md part C).
 
 Pure: no clock, no I/O.  Every entry point takes ``now`` in seconds on the host's clock.
 

@@ -5,7 +5,7 @@ is its ``MemoryPeer``.  Each chunk the host writes goes to ``SimBus.receive`` wi
 current time; output is written when ``SimBus.next_wakeup`` comes due.
 
 Timer precision: by default wake-ups go through ``loop.call_later``, which the default
-event loop rounds UP to a whole millisecond (PLATFORM.md section 1), so replies arrive
+event loop rounds UP to a whole millisecond (docs/platform.md section 1), so replies arrive
 up to ~1 ms later than the emulated wire says (never earlier).  Pass ``timer=`` an
 object with ``now()`` and ``call_at(deadline, callback) -> handle`` (``handle.cancel()``)
 - ``motorbus.bus.timer.default_timer()`` has exactly that API and holds ~0.1 ms - for

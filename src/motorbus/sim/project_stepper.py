@@ -1,4 +1,4 @@
-"""Simulated 11-byte "FF AA" project stepper controller (doc 000, PROTOCOLS.md part A).
+"""Simulated 11-byte "FF AA" project stepper controller (doc 000, docs/protocols.md part A).
 
 Pure: time is passed in (seconds, float); nothing sleeps, reads a clock or does I/O.
 State is evaluated lazily: every call that passes ``now`` (``handle``, ``poll``,

@@ -6,7 +6,7 @@ Any serial client (pyserial, the motorbus bus, ser2net, minicom) opens ``sim.pat
 Why a thread and not asyncio: the simulator must deliver replies at emulated wire
 times with ~0.1 ms precision; ``select`` with a float timeout and ``time.monotonic``
 hold that, asyncio timers on the default loop round up to a whole millisecond
-(PLATFORM.md section 1).
+(docs/platform.md section 1).
 
 The slave end is put in raw mode and kept open by the simulator itself, so that reading
 the master does not fail with EIO while no client has the device open.  A disconnect

@@ -1,4 +1,4 @@
-"""A simulated 4-axis "FF AA" stepper controller (doc 001, PROTOCOLS.md part B).
+"""A simulated 4-axis "FF AA" stepper controller (doc 001, docs/protocols.md part B).
 
 Pure: no clock, no I/O.  Every entry point takes ``now`` in seconds on the host's clock.
 

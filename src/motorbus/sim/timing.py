@@ -1,7 +1,7 @@
 """Wire-time arithmetic for simulated serial links.
 
 A pseudo-terminal or an in-memory link delivers bytes instantly, whatever the baud
-rate (PLATFORM.md section 3), so the simulator computes how long bytes would have
+rate (docs/platform.md section 3), so the simulator computes how long bytes would have
 taken on a real UART and delivers them then.
 """
 

@@ -53,7 +53,7 @@ _BACKEND_MODULES: dict[str, tuple[str, str]] = {
     "serialx": ("serialx", "motorbus[serialx]"),
     "pyserial-asyncio": ("serial_asyncio", "motorbus[pyserial-asyncio]"),
 }
-#: Read size for serialx: its default 256 KiB buffer costs ~15 µs a read (PLATFORM.md §2)
+#: Read size for serialx: its default 256 KiB buffer costs ~15 µs a read (docs/platform.md §2)
 #: while a bus reply is tens of bytes.
 SERIALX_MAX_READ = 4096
 #: How long close() waits for the backend to release the port before aborting it.

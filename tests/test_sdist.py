@@ -1,0 +1,113 @@
+"""The sdist is complete: built from this tree, unpacked elsewhere, its own tests pass."""
+
+from __future__ import annotations
+
+import email.parser
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests import packaging
+
+pytestmark = [
+    pytest.mark.timeout(300),
+    pytest.mark.skipif(
+        not packaging.build_available(), reason="the 'build' front-end is not installed"
+    ),
+]
+
+#: Files a user who downloads the sdist needs to run the tests, examples and benchmarks.
+REQUIRED = (
+    "LICENSE",
+    "README.md",
+    "pyproject.toml",
+    ".ci/run",
+    "docs/protocols.md",
+    "docs/platform.md",
+    "docs/hardware.md",
+    "docs/remote-buses.md",
+    "src/motorbus/__init__.py",
+    "src/motorbus/py.typed",
+    "tests/data/vectors.json",
+    "tests/conftest.py",
+    "tests/protocol/test_la.py",
+    "tests/bus/test_timer_api.py",
+    "examples/la_basics.py",
+    "examples/project.toml",
+    "benchmarks/run.py",
+    "benchmarks/README.md",
+)
+
+
+@pytest.fixture(scope="module")
+def unpacked(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    archive, _ = packaging.sdist()
+    return packaging.unpack(archive, tmp_path_factory.mktemp("sdist"))
+
+
+def test_sdist_holds_tests_data_docs_examples_benchmarks(unpacked: Path) -> None:
+    missing = [name for name in REQUIRED if not (unpacked / name).is_file()]
+    assert not missing, f"not in the sdist: {missing}"
+    # every tracked source and test module made it
+    for folder in ("src/motorbus", "tests", "examples", "benchmarks"):
+        here = {p.relative_to(packaging.ROOT) for p in (packaging.ROOT / folder).rglob("*.py")}
+        there = {p.relative_to(unpacked) for p in (unpacked / folder).rglob("*.py")}
+        assert here <= there, f"missing from the sdist: {sorted(map(str, here - there))}"
+    assert not list(unpacked.rglob("__pycache__"))
+
+
+def test_sdist_metadata_and_licence(unpacked: Path) -> None:
+    _, log = packaging.sdist()
+    # setuptools warns about a licence table or licence classifiers: neither may appear
+    noisy = [
+        line
+        for line in log.splitlines()
+        if "deprecat" in line.lower()
+        or (
+            "licen" in line.lower()
+            and not line.startswith(("adding license file 'LICENSE'", "copying LICENSE"))
+        )
+    ]
+    assert not noisy, "\n".join(noisy)
+    meta = email.parser.Parser().parsestr((unpacked / "PKG-INFO").read_text(encoding="utf-8"))
+    assert meta["Name"] == "motorbus"
+    assert meta["License-Expression"] == "MIT"
+    assert meta.get_all("License-File") == ["LICENSE"]
+    assert meta["Requires-Python"] == ">=3.11"
+    classifiers = set(meta.get_all("Classifier") or [])
+    assert {
+        "Programming Language :: Python :: 3.11",
+        "Programming Language :: Python :: 3.13",
+        "Operating System :: POSIX :: Linux",
+        "Framework :: AsyncIO",
+        "Typing :: Typed",
+        "Development Status :: 3 - Alpha",
+    } <= classifiers
+    assert not any(c.startswith("License ::") for c in classifiers)
+    assert "Copyright (c) 2026 the motorbus authors" in (unpacked / "LICENSE").read_text()
+
+
+def test_smoke_tests_pass_from_the_unpacked_sdist(unpacked: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(unpacked / "src")}
+    where = subprocess.run(
+        [sys.executable, "-c", "import motorbus; print(motorbus.__file__)"],
+        cwd=unpacked,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert Path(where.stdout.strip()).is_relative_to(unpacked), where.stdout + where.stderr
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *packaging.SMOKE_TESTS],
+        cwd=unpacked,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=240,
+    )
+    assert run.returncode == 0, run.stdout[-4000:] + run.stderr[-2000:]
+    assert " passed" in run.stdout and " failed" not in run.stdout
