@@ -106,7 +106,29 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet in this checkout
             raise
         module.register(sub)
+    _plain_help(parser)
     return parser
+
+
+def _plain_text(text: str | None) -> str | None:
+    """Help text without reST markup: ``literal`` -> literal, ``Example::`` -> ``Example:``."""
+    if text is None:
+        return None
+    return text.replace("``", "").replace("::\n", ":\n")
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Strip reST markup from every description and help text (commands reuse docstrings)."""
+    parser.description = _plain_text(parser.description)
+    parser.epilog = _plain_text(parser.epilog)
+    for action in parser._actions:
+        if action.help is not None and action.help is not argparse.SUPPRESS:
+            action.help = _plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                choice.help = _plain_text(choice.help)
+            for child in dict.fromkeys(action.choices.values()):
+                _plain_help(child)
 
 
 def _split_global_flags(argv: Sequence[str]) -> tuple[list[str], set[str]]:
@@ -185,7 +207,7 @@ def _timeout_hint(args: argparse.Namespace) -> str:
         return ""
     ids = "the ID (motorbus scan lists the IDs that answer)" if args.command == "la" else ""
     check = " and ".join(x for x in (ids, f"--baud {baud}") if x)
-    return f" (check {check})"
+    return f" - check {check}"
 
 
 if __name__ == "__main__":
