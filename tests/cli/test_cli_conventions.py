@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import json
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -270,16 +271,33 @@ def test_help_texts_are_plain_text() -> None:
         assert "::\n" not in text, text
 
 
-def test_a_closed_pipe_ends_quietly(tmp_path: Path) -> None:
-    hex_in = tmp_path / "frames.txt"
-    hex_in.write_text("55 AA 04 01 21 37 14 05 76\n" * 20000, encoding="utf-8")
+def _session(path: Path, records: int) -> Path:
+    """A capture file of ``records`` status queries, 1 ms apart."""
+    query = "55 AA 03 01 04 00 22 2A"
+    record = {"kind": "frame", "family": "la", "direction": "request", "name": "Control"}
+    lines = [
+        json.dumps({"t": k / 1000, **record, "fields": {}, "hex": query}) for k in range(records)
+    ]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+@pytest.mark.parametrize("command", ["decode", "replay"])
+def test_a_closed_pipe_ends_quietly(tmp_path: Path, command: str) -> None:
+    if command == "decode":
+        source = tmp_path / "frames.txt"
+        source.write_text("55 AA 03 01 04 00 22 2A\n" * 20000, encoding="utf-8")
+        line = f"'{sys.executable}' -m motorbus decode < '{source}'"
+    else:
+        source = _session(tmp_path / "session.jsonl", 20000)
+        line = f"'{sys.executable}' -m motorbus replay '{source}'"
     err = tmp_path / "err.txt"
     r = subprocess.run(
-        f"'{sys.executable}' -m motorbus decode < '{hex_in}' 2> '{err}' | head -n 1",
+        f"{line} 2> '{err}' | head -n 1",
         shell=True,
         capture_output=True,
         text=True,
         timeout=60,
     )
-    assert r.stdout.startswith("la request MoveTo id=1 position=1300")
+    assert "la request Control" in r.stdout
     assert err.read_text(encoding="utf-8") == ""

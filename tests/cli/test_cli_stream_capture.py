@@ -6,6 +6,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
@@ -85,27 +86,45 @@ def f3_entries(frame_hex: str) -> list[tuple[int, int]]:
     return [(data[k], data[k + 1] | data[k + 2] << 8) for k in range(0, len(data), 3)]
 
 
+def settled_positions(sim: SimProcess) -> tuple[int, ...]:
+    """The positions of la:1-3 once each has reached its target (bounded wait)."""
+    deadline = time.monotonic() + CLI_TIMEOUT_S
+    while True:
+        r = cli("la", "status", "1-3", "--json", "--port", sim.path)
+        docs = json_lines(r.stdout)
+        if r.returncode == 0 and all(d["position"] == d["target"] for d in docs):
+            return tuple(d["position"] for d in docs)
+        assert time.monotonic() < deadline, f"the actuators never settled: {docs}"
+
+
+def is_subsequence(part: list[tuple[int, ...]], whole: list[tuple[int, ...]]) -> bool:
+    rest = iter(whole)
+    return all(any(row == other for other in rest) for row in part)
+
+
 def test_stream_ramps_from_the_reported_positions(la_sim: SimProcess, tmp_path: Path) -> None:
     r = cli("la", "move", "1", "100", "--port", la_sim.path)
     assert r.returncode == 0, r.stderr
-    r = cli("la", "status", "1-3", "--json", "--port", la_sim.path)
-    start = tuple(doc["position"] for doc in json_lines(r.stdout))
+    start = settled_positions(la_sim)
     before = len(broadcasts(la_sim))
     csv_file = write_csv(tmp_path / "path.csv", 5, header=True)
     r = cli(
         "stream", str(csv_file), "--ramp", "0.1", "--json", "--port", la_sim.path
     )  # 0.1 s at the default 10 ms: 10 ramp ticks, then the 5 rows
-    assert r.returncode == 0, r.stderr
     (summary,) = json_lines(r.stdout)
-    assert (summary["ramp_ticks"], summary["rows"], summary["ticks"]) == (10, 5, 15)
-    sent = [f3_entries(h) for h in broadcasts(la_sim)[before:]]
-    assert len(sent) == 15
+    # A tick may be skipped on a loaded machine (exit code 1): count, do not time.
+    assert r.returncode == (0 if summary["skipped"] == 0 else 1), r.stderr
+    assert (summary["ramp_ticks"], summary["rows"]) == (10, 5)
+    assert summary["ramp_from"] == list(start)
     first = (1000, 800, 1200)
     expected = ramp_rows(start, first, 10)
-    assert [tuple(p for _, p in entries) for entries in sent[:10]] == expected
-    assert expected[-1] == first and start[0] != first[0]
+    assert expected[-1] == first and start[0] == 100
     # Each ramp step moves a tenth of the way: no jump to the first row.
-    assert abs(sent[0][0][1] - start[0]) <= abs(first[0] - start[0]) / 10 + 1
+    assert expected[0][0] == 100 + (1000 - 100) // 10
+    rows = [(1000 + k, 800 + 2 * k, 1200 - k) for k in range(5)]
+    sent = [tuple(p for _, p in f3_entries(h)) for h in broadcasts(la_sim)[before:]]
+    assert len(sent) == summary["ticks"] == 15 - summary["skipped"]
+    assert is_subsequence(sent, expected + rows), sent
 
 
 def test_stream_refuses_to_start_when_an_actuator_is_silent(

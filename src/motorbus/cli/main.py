@@ -6,12 +6,15 @@ so one command's optional dependency never breaks another.
 
 Exit codes (documented in README):
     0  success
-    1  the command ran but failed: a reply timeout (a silent ID), a device error or bad
-       reply, a port that cannot open or was lost, a project verify mismatch, ``scan``
-       finding nothing, ``stream`` skipping ticks
+    1  the command ran but failed: a reply timeout (a silent ID, also one of several),
+       a device error or bad reply, a port that cannot open or was lost, a project verify
+       mismatch, ``scan`` finding nothing, ``stream`` skipping ticks or finding a listed
+       actuator silent, a ``project run``/``quad run`` that timed out (stopped unless
+       ``--keep-running``)
     2  usage error: bad arguments or bad input - a missing ``--port``, an ID, position,
-       register value or setting out of range, an unknown register name, a bad project or
-       CSV file (nothing was sent)
+       register value or setting out of range, an unknown register name, a missing or
+       bad project, CSV or bus file, ``la set-id`` onto an ID that answers (nothing was
+       sent)
     130 interrupted (Ctrl-C); the hardware commands first bring what they started to a
        safe state (``stream`` pauses its actuators, ``project run`` stops the project,
        ``quad run`` stops the motor).  ``capture`` and ``monitor`` end normally (0) on

@@ -291,6 +291,7 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
         "ids": trajectory.ids,
         "rows": len(rows) - len(ramp),
         "ramp_ticks": len(ramp),
+        "ramp_from": list(current),
         "period_s": args.period,
         **stream.stats.summary(),
     }
