@@ -161,13 +161,11 @@ def test_project_run_keep_running_says_how_to_stop(logged_project_sim: SimProces
     assert cli("project", "stop", *port).stdout == "project stopped\n"
 
 
-def test_ctrl_c_during_project_run_stops_it_and_exits_130(
-    logged_project_sim: SimProcess,
-) -> None:
+def interrupt_once_sent(sim: SimProcess, command: list[str], prefix: str) -> tuple[int, str]:
+    """Run ``motorbus COMMAND``, send SIGINT once the simulator got a ``prefix`` frame."""
     env = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
-    command = ["project", "run", "1", "--timeout", "60", "--port", logged_project_sim.path]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "motorbus", *command],
+        [sys.executable, "-m", "motorbus", *command, "--port", sim.path],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -175,20 +173,45 @@ def test_ctrl_c_during_project_run_stops_it_and_exits_130(
     )
     try:
         deadline = time.monotonic() + CLI_TIMEOUT_S
-        while not any(h.startswith(START_PROJECT_1) for h in rx_frames(logged_project_sim)):
+        while not any(h.startswith(prefix) for h in rx_frames(sim)):
             assert proc.poll() is None, proc.communicate()
-            assert time.monotonic() < deadline, "the project never started"
-            time.sleep(0.02)  # polling the simulator's log for the start frame
+            assert time.monotonic() < deadline, f"no {prefix} frame was sent"
+            time.sleep(0.02)  # polling the simulator's log for the frame
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=CLI_TIMEOUT_S)
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 130, err
+    return proc.returncode, err
+
+
+def test_ctrl_c_during_project_run_stops_it_and_exits_130(
+    logged_project_sim: SimProcess,
+) -> None:
+    code, err = interrupt_once_sent(
+        logged_project_sim, ["project", "run", "1", "--timeout", "60"], START_PROJECT_1
+    )
+    assert code == 130, err
     assert "Task exception was never retrieved" not in err
     assert "Traceback" not in err
     assert err.splitlines()[-1] == "motorbus: interrupted"
     assert frames_after(logged_project_sim, START_PROJECT_1) == [STOP_PROJECT]
+
+
+def test_ctrl_c_during_quad_run_stops_the_motor_and_exits_130(quad_sim: SimProcess) -> None:
+    port = ["--port", quad_sim.path]
+    r = cli(
+        "quad", "config", "4", "--subdivision", "8", "--pulses", "16777215",
+        "--start-hz", "10", "--accel", "0", "--rpm", "1", *port,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    before = len(rx_frames(quad_sim))
+    run = ["quad", "run", "4", "--timeout", "60"]
+    code, err = interrupt_once_sent(quad_sim, run, "FF AA 04 09")
+    assert code == 130, err
+    assert "Task exception was never retrieved" not in err and "Traceback" not in err
+    sent = rx_frames(quad_sim)[before:]
+    assert [h[:11] for h in sent] == ["FF AA 04 09", "FF AA 04 06"]  # run, then stop
 
 
 def test_quad_run_timeout_stops_the_motor(quad_sim: SimProcess) -> None:
