@@ -219,6 +219,24 @@ def test_the_user_bus_file_is_read_by_the_cli_and_by_bus_manager(
     assert json_lines(r.stdout)[0]["id"] == 1
 
 
+def test_the_user_bus_file_does_not_apply_to_a_port_given_on_the_line(
+    clean_env: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    user_file = clean_env / "motorbus" / "buses.toml"
+    user_file.parent.mkdir()
+    user_file.write_text('[[bus]]\nurl = "/dev/la"\nbaud = 921600\n', encoding="utf-8")
+    args = options(_default_baud=9600)
+    assert (resolve_port(args), args.baud) == ("/dev/la", 921600)  # the only bus
+    args = options(port="/dev/quad", _default_baud=9600)
+    assert (resolve_port(args), args.baud) == ("/dev/quad", 9600)  # not the file's 921600
+    monkeypatch.setenv(BUS_ENV, "nope")
+    with pytest.raises(UsageError, match=r"--bus nope: .* has no such bus: choose one of bus0"):
+        resolve_port(options(port="/dev/quad"))
+    user_file.unlink()
+    with pytest.raises(UsageError, match="--bus nope: no bus file: give --bus-file or create"):
+        resolve_port(options())
+
+
 def test_bad_toml_names_the_file_and_the_line(
     clean_env: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from motorbus.bus.bus import Bus
-from motorbus.bus.manager import default_bus_file
 from motorbus.cli.main import UsageError
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
@@ -134,24 +133,30 @@ def add_bus_options(
         add_json_option(parser)
 
 
-def _bus_table(args: argparse.Namespace) -> Mapping[str, Any] | None:
+def _bus_table(args: argparse.Namespace, *, port_given: bool) -> Mapping[str, Any] | None:
     """The ``[[bus]]`` table chosen by ``--bus-file``/``--bus`` (or their defaults).
+
+    A file named by ``--bus-file`` (or ``$MOTORBUS_BUS_FILE``) always applies; the
+    user's default file only when a bus is named or no port is given otherwise, so
+    its baud rate never silently applies to a port typed on the command line.
 
     Raises:
         UsageError: the file is missing, not TOML, or has no such bus (exit code 2).
     """
+    from motorbus.bus.manager import default_bus_file  # imported when needed: anyio & co.
+
     explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)
+    if not explicit and port_given and not name:
+        return None
     path = Path(explicit) if explicit else default_bus_file()
-    if path is None:
+    if path is None or not path.is_file():
+        if explicit:
+            raise UsageError(f"--bus-file {path}: no such file")
         if name:
             raise UsageError(
                 f"--bus {name}: no bus file: give --bus-file or create {_user_file_hint()}"
             )
-        return None
-    if not path.is_file():
-        if explicit:
-            raise UsageError(f"--bus-file {path}: no such file")
         return None  # the default user file is optional
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -192,9 +197,9 @@ def resolve_port(args: argparse.Namespace) -> str:
         UsageError: no port anywhere, a bad ``$MOTORBUS_BAUD``/``$MOTORBUS_BACKEND``,
             or a bad bus file (exit code 2).
     """
-    table = _bus_table(args)
-    file_values: Mapping[str, Any] = table or {}
     port: str | None = getattr(args, "port", None) or os.environ.get(PORT_ENV)
+    table = _bus_table(args, port_given=bool(port))
+    file_values: Mapping[str, Any] = table or {}
     if not port and "url" in file_values:
         port = str(file_values["url"])
     if not port:
