@@ -163,6 +163,10 @@ class ProjectStepper:
                 try:
                     await sub.next(limit)
                 except StopAsyncIteration:
+                    if not self._stop_requested:  # closed by someone else than stop_project
+                        raise MotorbusError(
+                            f"project {number}: the wait for its end was closed"
+                        ) from None
                     raise ProjectStopped(
                         f"project {number} was stopped before it finished"
                     ) from None
