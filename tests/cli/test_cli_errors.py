@@ -11,10 +11,10 @@ from collections.abc import Iterator
 
 import pytest
 
-from motorbus.cli.common import PORT_ENV
+from motorbus.cli.common import ENV_VARS
 from motorbus.cli.main import EXIT_FAILURE, EXIT_USAGE, main
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli, rx_frames
+from tests.cli.test_cli_la import NO_CONFIG_DIR, cli, rx_frames
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +29,9 @@ def run_main(
     capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch, *args: str
 ) -> tuple[int, str, str]:
     """``main(args)`` in-process: (exit code, stdout, stderr)."""
-    monkeypatch.delenv(PORT_ENV, raising=False)
+    for name in ENV_VARS:
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", NO_CONFIG_DIR)
     code = main(list(args))
     out, err = capsys.readouterr()
     return code, out, err
@@ -98,7 +100,8 @@ def test_missing_port_exits_2() -> None:
     r = cli("la", "status", "1")
     assert r.returncode == EXIT_USAGE
     assert one_line(r.stderr) == (
-        "motorbus la: --port is required (or set MOTORBUS_PORT): e.g. --port /dev/ttyUSB0"
+        "motorbus la: --port is required (or set MOTORBUS_PORT, or use --bus-file): "
+        "e.g. --port /dev/ttyUSB0"
     )
 
 

@@ -14,8 +14,8 @@ from typing import Any
 
 import pytest
 
-from motorbus.cli.common import PORT_ENV, LiveText, parse_ids
-from motorbus.cli.la import format_value, status_json, status_row
+from motorbus.cli.common import ENV_VARS, PORT_ENV, LiveText, parse_id_args, parse_ids
+from motorbus.cli.la import baud_code, format_value, status_json, status_row
 from motorbus.cli.main import build_parser
 from motorbus.cli.scan import ProgressBar
 from motorbus.errors import LocalProtocolError
@@ -26,9 +26,15 @@ from motorbus.sim.process import SimProcess
 CLI_TIMEOUT_S = 60
 
 
+#: A configuration directory with no motorbus/buses.toml: the user's own never leaks in.
+NO_CONFIG_DIR = "/nonexistent/motorbus-test-config"
+
+
 def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m motorbus ARGS``; ``MOTORBUS_PORT`` is unset unless ``env`` sets it."""
-    base = {k: v for k, v in os.environ.items() if k != PORT_ENV}
+    """Run ``python -m motorbus ARGS``; the ``MOTORBUS_*`` variables are unset and there is
+    no user bus file unless ``env`` sets them."""
+    base = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
+    base["XDG_CONFIG_HOME"] = NO_CONFIG_DIR
     return subprocess.run(
         [sys.executable, "-m", "motorbus", *args],
         capture_output=True,
@@ -105,6 +111,51 @@ def test_set_id_moves_the_actuator_and_back(la_sim: SimProcess) -> None:
     assert json_lines(r.stdout) == [{"old": 7, "new": 3, "saved": False}]
 
 
+@pytest.mark.parametrize("ids", [["1-3"], ["1,2,3"], ["1", "2", "3"], ["1-2", "3"]])
+def test_status_takes_lists_and_ranges(la_sim: SimProcess, ids: list[str]) -> None:
+    r = cli("la", "status", *ids, "--port", la_sim.path, "--json")
+    assert r.returncode == 0, r.stderr
+    assert [d["id"] for d in json_lines(r.stdout)] == [1, 2, 3]
+
+
+def test_a_silent_id_among_several_gets_a_row_and_exit_1(la_sim: SimProcess) -> None:
+    r = cli("la", "status", "1", "9", "2", "--port", la_sim.path)
+    assert r.returncode == 1
+    rows = r.stdout.splitlines()[1:]
+    assert [row.split()[0] for row in rows] == ["1", "9", "2"]
+    assert rows[1].split()[1:] == ["timeout", "(no", "reply)"]
+    assert rows[0].split()[3].endswith("°C")
+    assert r.stderr.splitlines() == [
+        "motorbus la: 1 actuator of 3 did not answer (la:9): check the IDs (motorbus scan "
+        "lists the ones that answer) and --baud 921600"
+    ]
+    r = cli("la", "pause", "9,1", "--port", la_sim.path, "--json")
+    assert r.returncode == 1
+    assert json_lines(r.stdout) == [{"id": 9, "error": "timeout"}, json_lines(r.stdout)[1]]
+    assert json_lines(r.stdout)[1]["id"] == 1
+
+
+def test_set_id_onto_an_id_that_answers_is_refused(la_sim: SimProcess) -> None:
+    before = rx_frames(la_sim)
+    r = cli("la", "set-id", "1", "2", "--port", la_sim.path)
+    assert (r.returncode, r.stdout) == (2, "")
+    assert r.stderr.startswith("motorbus la: new id=2 already answers on ")
+    assert "nothing written" in r.stderr and "--force" in r.stderr
+    sent = rx_frames(la_sim)[len(before) :]
+    # Only the look at la:2 (a status query, 0x04 sub 0x22) went out: no write.
+    assert sent and all(h.startswith("55 AA 03 02 04 00 22") for h in sent), sent
+    assert cli("la", "status", "1", "2", "--port", la_sim.path).returncode == 0
+
+
+def test_get_baud_shows_the_rate_and_the_code(la_sim: SimProcess) -> None:
+    r = cli("la", "get", "1", "baud", "--port", la_sim.path)
+    assert (r.returncode, r.stdout) == (0, "la:1 baud = 921600 (code 3)\n"), r.stderr
+    r = cli("--json", "la", "get", "1", "baud", "--port", la_sim.path)
+    assert json_lines(r.stdout) == [
+        {"id": 1, "register": "baud", "value": 3, "unit": "code", "baud": 921600}
+    ]
+
+
 def test_controls_answer_ok(la_sim: SimProcess) -> None:
     for action in ("pause", "enable"):
         r = cli("la", action, "1", "2", "--port", la_sim.path)
@@ -155,6 +206,28 @@ def test_parse_ids_refuses(text: str) -> None:
         parse_ids(text)
 
 
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("3-1", "--ids='3-1': reversed range 3-1: write 1-3"),
+        ("1-3,2", "--ids='1-3,2' lists ID 2 twice"),
+        ("1,x", "--ids='1,x': 'x' is not an ID or a range like 1-15"),
+        ("1-255", "--ids id=255 is out of range: allowed 1..254"),
+    ],
+)
+def test_parse_ids_messages(text: str, message: str) -> None:
+    with pytest.raises(LocalProtocolError) as info:
+        parse_ids(text)
+    assert str(info.value) == message
+
+
+def test_id_arguments_join_lists_and_ranges() -> None:
+    assert parse_id_args(["1-3", "7"]) == [1, 2, 3, 7]
+    assert parse_id_args(["1,2", "3"]) == [1, 2, 3]
+    with pytest.raises(LocalProtocolError, match="lists ID 2 twice"):
+        parse_id_args(["1-3", "2"])
+
+
 def test_status_formats() -> None:
     s = la.Status(4, target=1500, position=1490, temperature=31, current=250, force=-12, errors=5)
     assert status_json(s) == {
@@ -170,7 +243,7 @@ def test_status_formats() -> None:
         "4",
         "1500",
         "1490",
-        "31C",
+        "31°C",
         "250mA",
         "-12g",
         "stall,over_current",
@@ -180,8 +253,21 @@ def test_status_formats() -> None:
 
 def test_format_value() -> None:
     assert format_value(la.Register.OVER_CURRENT_LIMIT, 800) == "800 mA"
-    assert format_value(la.Register.RECOVERY_TEMPERATURE, 600) == "600 (60.0 degC)"
+    assert format_value(la.Register.RECOVERY_TEMPERATURE, 600) == "600 (60.0 °C)"
     assert format_value(la.Register.ID, 3) == "3"
+    assert format_value(la.Register.BAUD, 3) == "921600 (code 3)"
+    assert format_value(la.Register.BAUD, 0) == "19200 (code 0)"
+
+
+def test_baud_takes_a_code_or_its_rate_and_lists_both() -> None:
+    assert baud_code(2) == 2
+    assert baud_code(115200) == 2
+    with pytest.raises(LocalProtocolError) as info:
+        baud_code(9600)
+    assert str(info.value) == (
+        "baud=9600 is not allowed: give a code or its rate: 0 (19200 bit/s), "
+        "1 (57600 bit/s), 2 (115200 bit/s), 3 (921600 bit/s)"
+    )
 
 
 class _Tty:

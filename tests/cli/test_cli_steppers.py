@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 import tomllib
 from collections.abc import Iterator
 from pathlib import Path
@@ -10,11 +15,12 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from motorbus.cli.common import ENV_VARS
 from motorbus.cli.project import project_from_toml, project_to_dict, project_to_toml
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import project_stepper as ps
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli, json_lines, rx_frames
+from tests.cli.test_cli_la import CLI_TIMEOUT_S, NO_CONFIG_DIR, cli, json_lines, rx_frames
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "project.toml"
 
@@ -53,6 +59,19 @@ EXAMPLE_PROJECT = ps.Project(
 @pytest.fixture(scope="module")
 def project_sim() -> Iterator[SimProcess]:
     with SimProcess(["project-stepper"], baud=9600) as sim:
+        yield sim
+
+
+@pytest.fixture
+def logged_project_sim(tmp_path: Path) -> Iterator[SimProcess]:
+    """A project stepper holding project 1 as a project that repeats forever."""
+    with SimProcess(["project-stepper"], baud=9600, log_file=tmp_path / "frames.jsonl") as sim:
+        forever = tmp_path / "forever.toml"
+        text = EXAMPLE.read_text(encoding="utf-8").replace("repeat = 0", 'repeat = "forever"')
+        assert 'repeat = "forever"' in text
+        forever.write_text(text, encoding="utf-8")
+        r = cli("project", "upload", str(forever), "--no-save", "--port", sim.path)
+        assert r.returncode == 0, r.stderr
         yield sim
 
 
@@ -107,7 +126,134 @@ def test_quad_config_run_led(quad_sim: SimProcess) -> None:
     r = cli("quad", "led", "1", "on", *port)
     assert (r.returncode, r.stdout) == (0, "LED 1 on\n"), r.stderr
     r = cli("quad", "stop", "all", *port)
-    assert (r.returncode, r.stdout) == (0, "motor all stopped\n"), r.stderr
+    assert (r.returncode, r.stdout) == (0, "all motors stopped\n"), r.stderr
+
+
+START_PROJECT_1 = "FF AA 4E 01"
+STOP_PROJECT = "FF AA 5E 00 00 00 00 00 00 00 07"
+
+
+def frames_after(sim: SimProcess, prefix: str) -> list[str]:
+    """The frames the simulator received after the last one starting with ``prefix``."""
+    frames = rx_frames(sim)
+    starts = [n for n, h in enumerate(frames) if h.startswith(prefix)]
+    assert starts, f"no {prefix} frame in {frames}"
+    return frames[starts[-1] + 1 :]
+
+
+def test_project_run_timeout_stops_the_project(logged_project_sim: SimProcess) -> None:
+    port = ["--port", logged_project_sim.path]
+    r = cli("project", "run", "1", "--timeout", "0.5", *port)
+    assert (r.returncode, r.stdout) == (1, "")
+    assert r.stderr == (
+        "motorbus project: project 1 did not finish (no EE DD) within 0.5 s: "
+        "stopped it (0x5E sent)\n"
+    )
+    assert frames_after(logged_project_sim, START_PROJECT_1) == [STOP_PROJECT]
+
+
+def test_project_run_keep_running_says_how_to_stop(logged_project_sim: SimProcess) -> None:
+    port = ["--port", logged_project_sim.path]
+    r = cli("project", "run", "1", "--timeout", "0.5", "--keep-running", *port)
+    assert r.returncode == 1
+    assert r.stderr.endswith(": still running; `motorbus project stop` ends it\n"), r.stderr
+    assert frames_after(logged_project_sim, START_PROJECT_1) == []
+    assert cli("project", "stop", *port).stdout == "project stopped\n"
+
+
+def interrupt_once_sent(sim: SimProcess, command: list[str], prefix: str) -> tuple[int, str]:
+    """Run ``motorbus COMMAND``, send SIGINT once the simulator got a ``prefix`` frame."""
+    env = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "motorbus", *command, "--port", sim.path],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**env, "XDG_CONFIG_HOME": NO_CONFIG_DIR},
+    )
+    try:
+        deadline = time.monotonic() + CLI_TIMEOUT_S
+        while not any(h.startswith(prefix) for h in rx_frames(sim)):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"no {prefix} frame was sent"
+            time.sleep(0.02)  # polling the simulator's log for the frame
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=CLI_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, err
+
+
+def test_ctrl_c_during_project_run_stops_it_and_exits_130(
+    logged_project_sim: SimProcess,
+) -> None:
+    code, err = interrupt_once_sent(
+        logged_project_sim, ["project", "run", "1", "--timeout", "60"], START_PROJECT_1
+    )
+    assert code == 130, err
+    assert "Task exception was never retrieved" not in err
+    assert "Traceback" not in err
+    assert err.splitlines()[-1] == "motorbus: interrupted"
+    assert frames_after(logged_project_sim, START_PROJECT_1) == [STOP_PROJECT]
+
+
+def test_ctrl_c_during_quad_run_stops_the_motor_and_exits_130(quad_sim: SimProcess) -> None:
+    port = ["--port", quad_sim.path]
+    r = cli(
+        "quad", "config", "4", "--subdivision", "8", "--pulses", "16777215",
+        "--start-hz", "10", "--accel", "0", "--rpm", "1", *port,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    before = len(rx_frames(quad_sim))
+    run = ["quad", "run", "4", "--timeout", "60"]
+    code, err = interrupt_once_sent(quad_sim, run, "FF AA 04 09")
+    assert code == 130, err
+    assert "Task exception was never retrieved" not in err and "Traceback" not in err
+    sent = rx_frames(quad_sim)[before:]
+    assert [h[:11] for h in sent] == ["FF AA 04 09", "FF AA 04 06"]  # run, then stop
+
+
+def test_quad_run_timeout_stops_the_motor(quad_sim: SimProcess) -> None:
+    port = ["--port", quad_sim.path]
+    r = cli(
+        "quad", "config", "3", "--subdivision", "8", "--pulses", "16777215",
+        "--start-hz", "10", "--accel", "0", "--rpm", "1", *port,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    r = cli("quad", "run", "3", "--timeout", "0.5", *port)
+    assert (r.returncode, r.stdout) == (1, "")
+    assert r.stderr == (
+        "motorbus quad: motor 3 did not report done within 0.5 s: "
+        "stopped it (stop 0x06 to motor 3 sent)\n"
+    )
+    assert frames_after(quad_sim, "FF AA 03 09")[0].startswith("FF AA 03 06")  # run, then stop
+    r = cli("quad", "run", "3", "--timeout", "0.5", "--keep-running", *port)
+    assert r.returncode == 1
+    assert r.stderr.endswith(": still running; `motorbus quad stop 3` ends it\n"), r.stderr
+    assert frames_after(quad_sim, "FF AA 03 09") == []
+    assert cli("quad", "stop", "3", *port).stdout == "motor 3 stopped\n"
+
+
+def test_project_file_errors_name_the_file_and_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    text = EXAMPLE.read_text(encoding="utf-8").replace("distance = 1", "distance = -1", 1)
+    bad.write_text(text, encoding="utf-8")
+    r = cli("project", "upload", str(bad), "--port", "/dev/motorbus-no-such-port")
+    assert r.returncode == 2
+    assert r.stderr == (
+        f"motorbus project: {bad}: step 1: distance=-1 is out of range: allowed 0..16777215\n"
+    )
+    bad.write_text("number = 1\nsubdivision = [\nstep_angle = 1.8\n", encoding="utf-8")
+    r = cli("project", "upload", str(bad), "--port", "/dev/motorbus-no-such-port")
+    assert r.returncode == 2
+    assert r.stderr.startswith(f"motorbus project: {bad}: not valid TOML: ")
+    assert "line 3" in r.stderr
+    r = cli("project", "upload", str(tmp_path / "missing.toml"), "--port", "/dev/x")
+    assert (r.returncode, r.stderr) == (
+        2,
+        f"motorbus project: no such file: {tmp_path / 'missing.toml'}\n",
+    )
 
 
 # -- the TOML form ----------------------------------------------------------------------------

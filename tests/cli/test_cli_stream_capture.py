@@ -6,13 +6,14 @@ import json
 import os
 import subprocess
 import sys
+import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from motorbus.cli.stream import read_trajectory
+from motorbus.cli.stream import ramp_rows, read_trajectory
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
@@ -48,7 +49,9 @@ def broadcasts(sim: SimProcess) -> list[str]:
 def test_stream_20_rows_sends_20_ticks(la_sim: SimProcess, tmp_path: Path) -> None:
     before = len(broadcasts(la_sim))
     csv_file = write_csv(tmp_path / "path.csv", 20, header=True)
-    r = cli("stream", str(csv_file), "--period", "0.01", "--json", "--port", la_sim.path)
+    r = cli(
+        "stream", str(csv_file), "--period", "0.01", "--ramp", "0", "--json", "--port", la_sim.path
+    )
     assert r.returncode == 0, r.stderr
     (summary,) = json_lines(r.stdout)
     assert (summary["ticks"], summary["rows"], summary["skipped"]) == (20, 20, 0)
@@ -64,7 +67,7 @@ def test_stream_without_header_uses_ids_and_loops(la_sim: SimProcess, tmp_path: 
     csv_file = write_csv(tmp_path / "bare.csv", 5, header=False, period=0.05)
     r = cli(
         "stream", str(csv_file), "--ids", "3,2,1", "--loop", "2", "--feedback",
-        "--period", "0.05", "--json", "--port", la_sim.path,
+        "--period", "0.05", "--ramp", "0", "--json", "--port", la_sim.path,
     )  # fmt: skip
     (summary,) = json_lines(r.stdout)
     # A tick may be skipped on a loaded machine (exit code 1): count, do not time.
@@ -75,6 +78,94 @@ def test_stream_without_header_uses_ids_and_loops(la_sim: SimProcess, tmp_path: 
     follows = [h for h in rx_frames(la_sim)[before:] if h[12:14] == "20"]
     assert len(follows) == 3 * summary["ticks"]
     assert follows[0].startswith("55 AA 04 03 20 37 E8 03")
+
+
+def f3_entries(frame_hex: str) -> list[tuple[int, int]]:
+    """(id, position) of each entry of a 0xF3 broadcast (from the simulator's log)."""
+    data = bytes.fromhex(frame_hex)[5:-1]  # 55 AA Len FF F3 ... checksum
+    return [(data[k], data[k + 1] | data[k + 2] << 8) for k in range(0, len(data), 3)]
+
+
+def settled_positions(sim: SimProcess) -> tuple[int, ...]:
+    """The positions of la:1-3 once each has reached its target (bounded wait)."""
+    deadline = time.monotonic() + CLI_TIMEOUT_S
+    while True:
+        r = cli("la", "status", "1-3", "--json", "--port", sim.path)
+        docs = json_lines(r.stdout)
+        if r.returncode == 0 and all(d["position"] == d["target"] for d in docs):
+            return tuple(d["position"] for d in docs)
+        assert time.monotonic() < deadline, f"the actuators never settled: {docs}"
+
+
+def is_subsequence(part: list[tuple[int, ...]], whole: list[tuple[int, ...]]) -> bool:
+    rest = iter(whole)
+    return all(any(row == other for other in rest) for row in part)
+
+
+def test_stream_ramps_from_the_reported_positions(la_sim: SimProcess, tmp_path: Path) -> None:
+    r = cli("la", "move", "1", "100", "--port", la_sim.path)
+    assert r.returncode == 0, r.stderr
+    start = settled_positions(la_sim)
+    before = len(broadcasts(la_sim))
+    csv_file = write_csv(tmp_path / "path.csv", 5, header=True)
+    r = cli(
+        "stream", str(csv_file), "--ramp", "0.1", "--json", "--port", la_sim.path
+    )  # 0.1 s at the default 10 ms: 10 ramp ticks, then the 5 rows
+    (summary,) = json_lines(r.stdout)
+    # A tick may be skipped on a loaded machine (exit code 1): count, do not time.
+    assert r.returncode == (0 if summary["skipped"] == 0 else 1), r.stderr
+    assert (summary["ramp_ticks"], summary["rows"]) == (10, 5)
+    assert summary["ramp_from"] == list(start)
+    first = (1000, 800, 1200)
+    expected = ramp_rows(start, first, 10)
+    assert expected[-1] == first and start[0] == 100
+    # Each ramp step moves a tenth of the way: no jump to the first row.
+    assert expected[0][0] == 100 + (1000 - 100) // 10
+    rows = [(1000 + k, 800 + 2 * k, 1200 - k) for k in range(5)]
+    sent = [tuple(p for _, p in f3_entries(h)) for h in broadcasts(la_sim)[before:]]
+    assert len(sent) == summary["ticks"] == 15 - summary["skipped"]
+    assert is_subsequence(sent, expected + rows), sent
+
+
+def test_stream_refuses_to_start_when_an_actuator_is_silent(
+    la_sim: SimProcess, tmp_path: Path
+) -> None:
+    before = len(rx_frames(la_sim))
+    csv_file = write_csv(tmp_path / "bare.csv", 5, header=False)
+    r = cli("stream", str(csv_file), "--ids", "1,9,2", "--port", la_sim.path)
+    assert (r.returncode, r.stdout) == (1, "")
+    assert r.stderr == (
+        "motorbus stream: 1 actuator of 3 did not answer a status query (la:9): nothing "
+        "streamed; check --ids (motorbus scan lists the IDs that answer) and --baud 921600\n"
+    )
+    sent = rx_frames(la_sim)[before:]
+    assert sent and all(h[12:14] == "04" for h in sent), sent  # status queries only
+
+
+def test_skipped_ticks_exit_1_saying_why(tmp_path: Path) -> None:
+    # Every reply 30 ms late at a 10 ms period: feedback ticks cannot keep up.
+    with SimProcess(["la:1-2"], baud=921600, faults="late=1:0.03") as sim:
+        csv_file = write_csv(tmp_path / "path.csv", 20, header=True)
+        csv_file.write_text(
+            "\n".join(f"{k * 0.01:.2f},{1000 + k},{900 + k}" for k in range(20)) + "\n",
+            encoding="utf-8",
+        )
+        r = cli(
+            "stream", str(csv_file), "--ids", "1-2", "--feedback", "--ramp", "0",
+            "--port", sim.path,
+        )  # fmt: skip
+    assert r.returncode == 1
+    (line,) = [ln for ln in r.stderr.splitlines() if ln.startswith("motorbus stream: failed:")]
+    assert " skipped - those targets were never sent, because a tick started more than a " in line
+    assert line.endswith("feedback replies missing)")
+
+
+def test_stream_of_a_missing_file_exits_2(tmp_path: Path) -> None:
+    r = cli("stream", str(tmp_path / "nope.csv"), "--port", "/dev/motorbus-no-such-port")
+    assert (r.returncode, r.stderr) == (
+        2,
+        f"motorbus stream: no such file: {tmp_path / 'nope.csv'}\n",
+    )
 
 
 def test_read_trajectory(tmp_path: Path) -> None:

@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
+import gc
+
 import pytest
 
 from motorbus.devices.quad_stepper import QuadStepper
-from motorbus.errors import LocalProtocolError
+from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.sim.quad_stepper import QuadStepperModel
 from tests.conftest import sim_bus
 
@@ -45,3 +48,71 @@ async def test_stop_all_and_bad_input_sends_nothing() -> None:
         assert bus.stats.requests == sent
         await quad.stop_all()
         await quad.save()
+
+
+async def _long_move(quad: QuadStepper, motor: int = 1) -> None:
+    """A move that lasts hours: 16777215 pulses at 1 RPM."""
+    await quad.configure(
+        motor,
+        subdivision=8,
+        step_angle_x100=180,
+        pulses=16_777_215,
+        start_hz=10,
+        accel_hz=0,
+        speed_rpm=1,
+    )
+
+
+async def test_a_run_that_times_out_is_stopped_and_says_so() -> None:
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        quad = QuadStepper(bus)
+        await _long_move(quad)
+        with pytest.raises(ReplyTimeoutError) as info:
+            await quad.run(1, timeout=0.05)
+        assert str(info.value) == (
+            "motor 1 did not report done within 0.05 s: stopped it (stop 0x06 to motor 1 sent)"
+        )
+        assert not model.motors[1].running
+
+
+async def test_keep_running_leaves_the_motor_going_and_says_how_to_stop() -> None:
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        quad = QuadStepper(bus)
+        await _long_move(quad)
+        with pytest.raises(ReplyTimeoutError) as info:
+            await quad.run(1, timeout=0.05, keep_running=True)
+        assert str(info.value).endswith(": still running; `motorbus quad stop 1` ends it")
+        assert model.motors[1].running
+        await quad.stop(1)
+        assert not model.motors[1].running
+
+
+async def test_cancelled_runs_stop_the_motor_and_leave_no_unretrieved_exception() -> None:
+    loop = asyncio.get_running_loop()
+    reports: list[dict[str, object]] = []
+    previous = loop.get_exception_handler()
+    loop.set_exception_handler(lambda _loop, context: reports.append(context))
+    model = QuadStepperModel()
+    running_after_cancel: list[bool] = []
+    try:
+        async with sim_bus([model], baud=115200) as (bus, _):
+            quad = QuadStepper(bus)
+            await _long_move(quad, 2)
+            for _ in range(5):
+                run = asyncio.create_task(quad.run(2, timeout=10))
+                while not model.motors[2].running:
+                    await asyncio.sleep(0.005)
+                run.cancel()
+                with pytest.raises(asyncio.CancelledError):
+                    await run
+                running_after_cancel.append(model.motors[2].running)
+                if model.motors[2].running:
+                    await quad.stop(2)
+        gc.collect()
+        await asyncio.sleep(0)
+    finally:
+        loop.set_exception_handler(previous)
+    assert [str(c.get("message")) for c in reports] == []
+    assert running_after_cancel == [False] * 5  # each cancellation sent the stop

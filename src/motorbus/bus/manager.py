@@ -53,7 +53,15 @@ from motorbus.streams import SafeAction, Streamer
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import open_transport
 
-__all__ = ["BusManager", "BusSpec", "DeviceSpec", "DeviceStop", "StopReport", "parse_devices"]
+__all__ = [
+    "BusManager",
+    "BusSpec",
+    "DeviceSpec",
+    "DeviceStop",
+    "StopReport",
+    "default_bus_file",
+    "parse_devices",
+]
 
 log = logging.getLogger("motorbus.manager")
 
@@ -301,10 +309,17 @@ class BusManager:
     # -- building -----------------------------------------------------------------
 
     @classmethod
-    def from_toml(cls, path: str | Path, **kwargs: Any) -> BusManager:
-        """Load a bus file (see the module docstring)."""
+    def from_toml(cls, path: str | Path | None = None, **kwargs: Any) -> BusManager:
+        """Load a bus file (see the module docstring); default: :func:`default_bus_file`."""
+        if path is None:
+            path = default_bus_file()
+            if path is None:
+                raise FileNotFoundError("no bus file given and no home directory to look in")
         with open(path, "rb") as fh:
-            data = tomllib.load(fh)
+            try:
+                data = tomllib.load(fh)
+            except tomllib.TOMLDecodeError as err:
+                raise LocalProtocolError(f"{path}: not valid TOML: {err}", field="file") from err
         return cls.from_dict(data, **kwargs)
 
     @classmethod
@@ -525,3 +540,20 @@ def _describe(cmd: Command) -> str:
     action = getattr(cmd, "action", None)
     name = type(cmd).__name__
     return f"{name}({action.name})" if isinstance(action, enum.Enum) else name
+
+
+def default_bus_file() -> Path | None:
+    """The user's bus file: ``$XDG_CONFIG_HOME/motorbus/buses.toml`` (default
+    ``~/.config/motorbus/buses.toml``), whether or not it exists; ``None`` without a home.
+
+    ``BusManager.from_toml()`` without a path and the command line read it.
+    """
+    import os
+
+    base = os.environ.get("XDG_CONFIG_HOME")
+    if not base:
+        try:
+            base = str(Path.home() / ".config")
+        except RuntimeError:
+            return None
+    return Path(base) / "motorbus" / "buses.toml"

@@ -1,7 +1,11 @@
 """What the hardware commands share: bus options, opening a bus, ID lists, live output.
 
-Every hardware command takes ``--port URL`` (or the ``MOTORBUS_PORT`` environment
-variable), ``--baud`` (default per device family), ``--backend`` and ``--json``.
+Every hardware command takes ``--port URL``, ``--baud`` (default per device family),
+``--backend`` and ``--json``, or ``--bus-file F --bus NAME`` to take them from one
+``[[bus]]`` table of a BusManager TOML file.  Each setting comes from the first of:
+the command line, the environment (``MOTORBUS_PORT``, ``MOTORBUS_BAUD``,
+``MOTORBUS_BACKEND``; ``MOTORBUS_BUS_FILE``, ``MOTORBUS_BUS``), the bus file (default
+``$XDG_CONFIG_HOME/motorbus/buses.toml``, i.e. ``~/.config/motorbus/buses.toml``).
 Input is checked before the port opens, so bad input never puts a byte on the wire.
 """
 
@@ -13,8 +17,10 @@ import math
 import os
 import re
 import sys
-from collections.abc import AsyncIterator, Iterable
+import tomllib
+from collections.abc import AsyncIterator, Iterable, Mapping
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any, TextIO
 
 from motorbus.bus.bus import Bus
@@ -26,16 +32,24 @@ from motorbus.transport.base import Transport
 from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, open_transport
 
 __all__ = [
+    "BACKEND_ENV",
+    "BAUD_ENV",
+    "BUS_ENV",
+    "BUS_FILE_ENV",
+    "ENV_VARS",
     "LA_BAUD",
     "PORT_ENV",
     "STEPPER_BAUD",
     "LiveText",
     "add_bus_options",
+    "add_ids_argument",
     "add_json_option",
     "check_seconds",
     "open_bus",
     "open_port",
+    "parse_id_args",
     "parse_ids",
+    "plural",
     "print_json",
     "resolve_port",
     "say",
@@ -44,6 +58,16 @@ __all__ = [
 
 #: Environment variable that supplies ``--port`` when it is not given.
 PORT_ENV = "MOTORBUS_PORT"
+#: ... ``--baud``.
+BAUD_ENV = "MOTORBUS_BAUD"
+#: ... ``--backend``.
+BACKEND_ENV = "MOTORBUS_BACKEND"
+#: ... ``--bus-file``.
+BUS_FILE_ENV = "MOTORBUS_BUS_FILE"
+#: ... ``--bus``.
+BUS_ENV = "MOTORBUS_BUS"
+#: Every environment variable the bus options read.
+ENV_VARS = (PORT_ENV, BAUD_ENV, BACKEND_ENV, BUS_FILE_ENV, BUS_ENV)
 #: Factory baud rate of the LA actuators, D-type interface (LA manual 3.1, control table 12).
 LA_BAUD = 921600
 #: Baud rate of both FF AA stepper controllers (doc 000 A.1; doc 001 A1-01).
@@ -67,7 +91,10 @@ def add_json_option(parser: argparse.ArgumentParser) -> None:
 def add_bus_options(
     parser: argparse.ArgumentParser, *, default_baud: int | None, json_option: bool = True
 ) -> None:
-    """Add ``--port``, ``--baud``, ``--backend`` (and ``--json``) to ``parser``.
+    """Add ``--port``, ``--baud``, ``--backend``, ``--bus-file``, ``--bus`` (and ``--json``).
+
+    The values are resolved later, by :func:`resolve_port`: an option left out is
+    taken from the environment, then from the bus file, then from the defaults.
 
     Args:
         parser: the command's parser.
@@ -78,30 +105,125 @@ def add_bus_options(
     parser.add_argument(
         "--port",
         metavar="URL",
-        default=os.environ.get(PORT_ENV),
-        help=f"serial port or pyserial URL (default: ${PORT_ENV})",
+        help=f"serial port or pyserial URL (default: ${PORT_ENV}, then the bus file)",
     )
-    baud_help = f"bit/s (default {default_baud})" if default_baud else "bit/s"
-    parser.add_argument("--baud", type=int, default=default_baud, help=baud_help)
+    baud_help = f"bit/s (default: ${BAUD_ENV}, the bus file, then {default_baud})"
+    if not default_baud:
+        baud_help = f"bit/s (default: ${BAUD_ENV}, the bus file, then the family's rate)"
+    parser.add_argument("--baud", type=int, help=baud_help)
     parser.add_argument(
         "--backend",
         choices=BACKENDS,
-        default=DEFAULT_BACKEND,
-        help=f"serial backend (default {DEFAULT_BACKEND})",
+        help=f"serial backend (default: ${BACKEND_ENV}, the bus file, then {DEFAULT_BACKEND})",
     )
+    parser.add_argument(
+        "--bus-file",
+        metavar="FILE",
+        help=f"BusManager TOML file to take url, baud and backend from (default: "
+        f"${BUS_FILE_ENV}, then ~/.config/motorbus/buses.toml if it exists)",
+    )
+    parser.add_argument(
+        "--bus",
+        metavar="NAME",
+        help=f"the [[bus]] table of the bus file to use (default: ${BUS_ENV}; "
+        "needed if the file has several)",
+    )
+    parser.set_defaults(_default_baud=default_baud)
     if json_option:
         add_json_option(parser)
 
 
-def resolve_port(args: argparse.Namespace) -> str:
-    """Return ``--port`` (or ``$MOTORBUS_PORT``).
+def _bus_table(args: argparse.Namespace, *, port_given: bool) -> Mapping[str, Any] | None:
+    """The ``[[bus]]`` table chosen by ``--bus-file``/``--bus`` (or their defaults).
+
+    A file named by ``--bus-file`` (or ``$MOTORBUS_BUS_FILE``) always applies; the
+    user's default file only when a bus is named or no port is given otherwise, so
+    its baud rate never silently applies to a port typed on the command line.
 
     Raises:
-        UsageError: neither is set (exit code 2).
+        UsageError: the file is missing, not TOML, or has no such bus (exit code 2).
     """
-    port: str | None = getattr(args, "port", None)
+    from motorbus.bus.manager import default_bus_file  # imported when needed: anyio & co.
+
+    explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
+    name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)
+    if not explicit and port_given and not name:
+        return None
+    path = Path(explicit) if explicit else default_bus_file()
+    if path is None or not path.is_file():
+        if explicit:
+            raise UsageError(f"--bus-file {path}: no such file")
+        if name:
+            raise UsageError(
+                f"--bus {name}: no bus file: give --bus-file or create {_user_file_hint()}"
+            )
+        return None  # the default user file is optional
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as err:
+        raise UsageError(f"{path}: not valid TOML: {err}") from err
+    except OSError as err:
+        raise UsageError(f"{path}: cannot read: {_one_line(err)}") from err
+    tables = data.get("bus")
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        raise UsageError(f"{path}: needs [[bus]] tables (name, url, baud, backend, ...)")
+    names = [str(t.get("name", f"bus{i}")) for i, t in enumerate(tables)]
+    if name:
+        if name not in names:
+            raise UsageError(
+                f"--bus {name}: {path} has no such bus: choose one of {', '.join(names)}"
+            )
+        table: Mapping[str, Any] = tables[names.index(name)]
+        return table
+    if len(tables) == 1:
+        only: Mapping[str, Any] = tables[0]
+        return only
+    if explicit:
+        raise UsageError(f"{path} has {len(tables)} buses: choose one with --bus {'|'.join(names)}")
+    return None  # a user file with several buses only applies when one is named
+
+
+def _user_file_hint() -> str:
+    return "~/.config/motorbus/buses.toml"
+
+
+def resolve_port(args: argparse.Namespace) -> str:
+    """Fill in ``args.port``, ``args.baud`` and ``args.backend``; return the port.
+
+    Each comes from the command line, else the environment, else the bus file
+    (``--bus-file``/``--bus``), else the default (baud: the family's; backend: fast).
+
+    Raises:
+        UsageError: no port anywhere, a bad ``$MOTORBUS_BAUD``/``$MOTORBUS_BACKEND``,
+            or a bad bus file (exit code 2).
+    """
+    port: str | None = getattr(args, "port", None) or os.environ.get(PORT_ENV)
+    table = _bus_table(args, port_given=bool(port))
+    file_values: Mapping[str, Any] = table or {}
+    if not port and "url" in file_values:
+        port = str(file_values["url"])
     if not port:
-        raise UsageError(f"--port is required (or set {PORT_ENV}): e.g. --port /dev/ttyUSB0")
+        raise UsageError(
+            f"--port is required (or set {PORT_ENV}, or use --bus-file): e.g. --port /dev/ttyUSB0"
+        )
+    args.port = port
+    if getattr(args, "baud", None) is None:
+        env_baud = os.environ.get(BAUD_ENV)
+        if env_baud:
+            try:
+                args.baud = int(env_baud)
+            except ValueError:
+                raise UsageError(f"{BAUD_ENV}={env_baud!r} is not an integer bit rate") from None
+        elif "baud" in file_values:
+            args.baud = file_values["baud"]
+        else:
+            args.baud = getattr(args, "_default_baud", None)
+    if getattr(args, "backend", None) is None:
+        backend = os.environ.get(BACKEND_ENV) or file_values.get("backend") or DEFAULT_BACKEND
+        if backend not in BACKENDS:
+            allowed = ", ".join(BACKENDS)
+            raise UsageError(f"backend={backend!r} is not allowed: choose one of {allowed}")
+        args.backend = str(backend)
     return port
 
 
@@ -125,27 +247,72 @@ def check_seconds(field: str, value: float | None, lo: float = 0.0) -> float | N
 _RANGE = re.compile(r"\s*(\d+)\s*(?:-\s*(\d+))?\s*")
 
 
-def parse_ids(text: str, field: str = "--ids") -> list[int]:
-    """Parse an LA ID list such as ``"1-3,7"`` into ``[1, 2, 3, 7]`` (order kept, no repeats).
+def parse_ids(
+    text: str, field: str = "--ids", lo: int = la.ID_MIN, hi: int = la.ID_MAX
+) -> list[int]:
+    """Parse an ID list such as ``"1-3,7"`` into ``[1, 2, 3, 7]`` (order kept, no repeats).
+
+    Args:
+        text: comma-separated IDs and ranges ``A-B`` (``A <= B``).
+        field: the option or argument named in errors.
+        lo, hi: the allowed IDs (LA actuators: 1..254).
 
     Raises:
-        LocalProtocolError: a bad token, an ID outside 1..254, an ID listed twice.
+        LocalProtocolError: a bad token, a reversed range, an ID outside ``lo..hi``,
+            an ID listed twice.
     """
     ids: list[int] = []
+    id_field = field if field == "id" else f"{field} id"
     for part in text.split(","):
         m = _RANGE.fullmatch(part)
         if m is None:
             raise LocalProtocolError(
-                f"{field}={text!r}: {part!r} is not an ID or a range like 1-15",
+                f"{field}={text!r}: {part.strip()!r} is not an ID or a range like 1-15",
                 field=field,
                 value=text,
             )
-        lo = check_int(f"{field} id", int(m.group(1)), la.ID_MIN, la.ID_MAX)
-        hi = check_int(f"{field} id", int(m.group(2) or lo), lo, la.ID_MAX)
-        ids.extend(range(lo, hi + 1))
-    if len(set(ids)) != len(ids):
-        raise LocalProtocolError(f"{field}={text!r} lists an ID twice", field=field, value=text)
+        first = check_int(id_field, int(m.group(1)), lo, hi)
+        last = check_int(id_field, int(m.group(2) or first), lo, hi)
+        if last < first:
+            raise LocalProtocolError(
+                f"{field}={text!r}: reversed range {first}-{last}: write {last}-{first}",
+                field=field,
+                value=text,
+            )
+        ids.extend(range(first, last + 1))
+    twice = sorted({i for i in ids if ids.count(i) > 1})
+    if twice:
+        raise LocalProtocolError(
+            f"{field}={text!r} lists ID {twice[0]} twice", field=field, value=text
+        )
     return ids
+
+
+def parse_id_args(values: Iterable[str], field: str = "id") -> list[int]:
+    """Join ID arguments such as ``["1-3", "7,9", "12"]`` into one list (see :func:`parse_ids`).
+
+    Raises:
+        LocalProtocolError: a bad token or range, an ID out of range or listed twice.
+    """
+    ids: list[int] = []
+    for value in values:
+        ids.extend(parse_ids(value, field))
+    return parse_ids(",".join(map(str, ids)), field) if ids else ids
+
+
+def add_ids_argument(parser: argparse.ArgumentParser) -> None:
+    """Add the positional ``ID...`` of a multi-actuator command (``1 2 3``, ``1-3,7``)."""
+    parser.add_argument(
+        "ids",
+        metavar="ID",
+        nargs="+",
+        help="actuator IDs 1..254: one or more of 3, 1,2,3 or 1-3,7",
+    )
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """``1 timeout``, ``2 timeouts``: a count with its noun in the right number."""
+    return f"{n} {word if n == 1 else (many or word + 's')}"
 
 
 def check_ids(values: Iterable[int], field: str = "id") -> list[int]:
@@ -202,11 +369,44 @@ async def open_bus(
     try:
         await bus.open()
     except OSError as err:
-        raise OSError(f"cannot open port {transport.url}: {_one_line(err)}") from err
+        raise OSError(port_error(transport.url, err, args.baud)) from err
     try:
         yield bus
     finally:
         await bus.close()
+
+
+_ERRNO_TEXT = re.compile(r"\[Errno -?\d+\] ([^:\]]+)")
+
+
+def port_error(url: str, err: BaseException, baud: int | None) -> str:
+    """One line saying why ``url`` did not open, which ports exist, and what to check.
+
+    pyserial nests its errors (``could not open port X: [Errno 2] could not open port
+    X: [Errno 2] No such file or directory: 'X'``); the innermost reason is enough.
+    """
+    reasons = _ERRNO_TEXT.findall(str(err))
+    reason = reasons[-1].strip() if reasons else _one_line(err)
+    if isinstance(err, OSError) and err.strerror and not reasons:
+        reason = err.strerror
+    return f"cannot open port {url}: {reason}; {available_ports()}"
+
+
+def available_ports() -> str:
+    """``available ports: /dev/ttyUSB0 (FT232R), ...`` or ``no serial ports found``."""
+    try:
+        from serial.tools import list_ports
+
+        found = sorted(list_ports.comports(), key=lambda p: p.device)
+    except Exception:  # a listing failure must not hide the real error
+        found = []
+    if not found:
+        return "no serial ports found on this machine"
+    names = [
+        f"{p.device} ({p.description})" if p.description and p.description != "n/a" else p.device
+        for p in found
+    ]
+    return "available ports: " + ", ".join(names)
 
 
 def _one_line(err: BaseException) -> str:

@@ -8,12 +8,15 @@ Example::
 Hex comes from the arguments or, if there are none, from standard input, one chunk a
 line (spaces optional; the three families may be mixed).  Every frame, ``EE DD`` event
 and run of garbage becomes one line, or one JSON object a line with ``--json``.
-Garbage is reported, not an error: the exit status is 0 unless the input is not hex (2).
+Opcodes and command bytes are shown in hex in text lines (opcode=0x5E); JSON keeps
+them as integers.  Garbage is reported, not an error: the exit status is 0 unless the
+input is not hex (2).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Iterable, Iterator
@@ -23,7 +26,10 @@ from motorbus.protocol.base import Direction, Family, parse_hex
 from motorbus.protocol.describe import Description, describe
 from motorbus.protocol.reassembler import Discarded, Item, Reassembler
 
-__all__ = ["GarbageJoiner", "add_arguments", "decode_lines", "register", "run"]
+__all__ = ["GarbageJoiner", "add_arguments", "decode_lines", "register", "run", "text_line"]
+
+#: Fields that hold an opcode or a command byte: shown as 0x.. in text lines.
+HEX_FIELDS = frozenset({"opcode", "command", "cmd", "sub"})
 
 #: ``--direction`` values; ``any`` lets the reassembler look for requests and replies.
 DIRECTION_ANY = "any"
@@ -142,6 +148,17 @@ def decode_lines(
         yield describe(item, family_hint=family)
 
 
+def text_line(description: Description) -> str:
+    """``description`` as one line, with opcodes and command bytes in hex (``opcode=0x5E``)."""
+    fields = {
+        key: f"0x{value:02X}"
+        if key in HEX_FIELDS and isinstance(value, int) and not isinstance(value, bool)
+        else value
+        for key, value in description.fields.items()
+    }
+    return dataclasses.replace(description, fields=fields).to_line()
+
+
 def run(args: argparse.Namespace, stdin: TextIO | None = None) -> int:
     """Run ``motorbus decode``; return the exit status (0).
 
@@ -162,7 +179,7 @@ def run(args: argparse.Namespace, stdin: TextIO | None = None) -> int:
         if args.json:
             out.write(json.dumps(description.to_json(), ensure_ascii=False) + "\n")
         else:
-            out.write(description.to_line() + "\n")
+            out.write(text_line(description) + "\n")
         # A live pipe (a sniffer feeding stdin) should see each frame as it completes.
         out.flush()
     return 0

@@ -6,30 +6,37 @@ so one command's optional dependency never breaks another.
 
 Exit codes (documented in README):
     0  success
-    1  the command ran but failed: a reply timeout (a silent ID), a device error or bad
-       reply, a port that cannot open or was lost, a project verify mismatch, ``scan``
-       finding nothing, ``stream`` skipping ticks
+    1  the command ran but failed: a reply timeout (a silent ID, also one of several),
+       a device error or bad reply, a port that cannot open or was lost, a project verify
+       mismatch, ``scan`` finding nothing, ``stream`` skipping ticks or finding a listed
+       actuator silent, a ``project run``/``quad run`` that timed out (stopped unless
+       ``--keep-running``)
     2  usage error: bad arguments or bad input - a missing ``--port``, an ID, position,
-       register value or setting out of range, an unknown register name, a bad project or
-       CSV file (nothing was sent)
+       register value or setting out of range, an unknown register name, a missing or
+       bad project, CSV or bus file, ``la set-id`` onto an ID that answers (nothing was
+       sent)
     130 interrupted (Ctrl-C); the hardware commands first bring what they started to a
        safe state (``stream`` pauses its actuators, ``project run`` stops the project,
        ``quad run`` stops the motor).  ``capture`` and ``monitor`` end normally (0) on
        Ctrl-C, which is how an open-ended run ends.
 
 Every error is one line ``motorbus COMMAND: message`` on standard error; ``--debug``
-shows the traceback instead.
+shows the traceback instead.  ``--debug`` and ``--json`` may stand anywhere on the
+line, before or after the command.  Output cut short by a closed pipe (``| head``)
+ends the command quietly.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import logging
+import os
 import sys
 from collections.abc import Sequence
 
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "main"]
 
@@ -57,13 +64,42 @@ class UsageError(MotorbusError):
     """Bad command-line input; reported as one line with exit code 2."""
 
 
+class CommandFailed(MotorbusError):
+    """The command ran and failed for the reason in the message; exit code 1."""
+
+
+#: Options every command accepts wherever they stand on the line.
+GLOBAL_FLAGS = ("--debug", "--json")
+
+
+def version() -> str:
+    """The installed motorbus version."""
+    try:
+        return importlib.metadata.version("motorbus")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The top-level parser with every command registered."""
     parser = argparse.ArgumentParser(
         prog="motorbus",
         description="Drive buses of serial motion devices (Inspire LA actuators, FF AA steppers).",
     )
-    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    parser.add_argument("--version", action="version", version=f"motorbus {version()}")
+    # Both are taken out of the line before parsing (see main); these entries document them.
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="show tracebacks and debug logs (anywhere on the line)",
+    )
+    parser.add_argument(
+        "--json",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print JSON instead of text, for the commands that print data (anywhere on the line)",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
         try:
@@ -73,13 +109,56 @@ def build_parser() -> argparse.ArgumentParser:
                 continue  # command not built yet in this checkout
             raise
         module.register(sub)
+    _plain_help(parser)
     return parser
+
+
+def _plain_text(text: str | None) -> str | None:
+    """Help text without reST markup: ``literal`` -> literal, ``Example::`` -> ``Example:``."""
+    if text is None:
+        return None
+    return text.replace("``", "").replace("::\n", ":\n")
+
+
+def _plain_help(parser: argparse.ArgumentParser) -> None:
+    """Strip reST markup from every description and help text (commands reuse docstrings)."""
+    parser.description = _plain_text(parser.description)
+    parser.epilog = _plain_text(parser.epilog)
+    for action in parser._actions:
+        if action.help is not None and action.help is not argparse.SUPPRESS:
+            action.help = _plain_text(action.help)
+        if isinstance(action, argparse._SubParsersAction):
+            for choice in action._choices_actions:
+                choice.help = _plain_text(choice.help)
+            for child in dict.fromkeys(action.choices.values()):
+                _plain_help(child)
+
+
+def _split_global_flags(argv: Sequence[str]) -> tuple[list[str], set[str]]:
+    """Take ``--debug``/``--json`` out of ``argv`` wherever they stand (not after ``--``)."""
+    rest: list[str] = []
+    flags: set[str] = set()
+    for n, arg in enumerate(argv):
+        if arg == "--":
+            rest.extend(argv[n:])
+            break
+        if arg in GLOBAL_FLAGS:
+            flags.add(arg)
+        else:
+            rest.append(arg)
+    return rest, flags
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    rest, flags = _split_global_flags(sys.argv[1:] if argv is None else argv)
+    args = parser.parse_args(rest)
+    args.debug = "--debug" in flags
+    if "--json" in flags:
+        if not hasattr(args, "json"):
+            parser.error(f"--json: motorbus {args.command} prints no data to put in JSON")
+        args.json = True
     logging.basicConfig(
         level=logging.DEBUG if args.debug else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
@@ -90,20 +169,48 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         code: int = func(args)
+        sys.stdout.flush()  # a closed pipe shows here, inside the handler below
         return code
     except KeyboardInterrupt:
         print("motorbus: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # ``motorbus replay f.jsonl | head``: the reader has all it wanted.  Point
+        # stdout at /dev/null so the interpreter's final flush does not complain.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
+    except FileNotFoundError as err:
+        if args.debug:
+            raise
+        name = err.filename if err.filename is not None else err
+        print(f"motorbus {args.command}: no such file: {name}", file=sys.stderr)
+        return EXIT_USAGE
     except (LocalProtocolError, UsageError, ValueError) as err:
         if args.debug:
             raise
         print(f"motorbus {args.command}: {err}", file=sys.stderr)
         return EXIT_USAGE
+    except ReplyTimeoutError as err:
+        if args.debug:
+            raise
+        print(f"motorbus {args.command}: {err}{_timeout_hint(args)}", file=sys.stderr)
+        return EXIT_FAILURE
     except (MotorbusError, OSError) as err:
         if args.debug:
             raise
         print(f"motorbus {args.command}: {err}", file=sys.stderr)
         return EXIT_FAILURE
+
+
+def _timeout_hint(args: argparse.Namespace) -> str:
+    """What to check when a device is silent: its ID and the baud rate (not after a run)."""
+    baud = getattr(args, "baud", None)
+    if baud is None or getattr(args, "action", None) == "run":
+        return ""
+    ids = "the ID (motorbus scan lists the IDs that answer)" if args.command == "la" else ""
+    check = " and ".join(x for x in (ids, f"--baud {baud}") if x)
+    return f" - check {check}"
 
 
 if __name__ == "__main__":

@@ -30,7 +30,13 @@ A project file (TOML)::
     start_input = "none"       # none, in1, in2, in5
     stop_input = "none"
 
-Keys other than these are refused, so a typo is not silently ignored.
+Keys other than these are refused, so a typo is not silently ignored.  Errors name
+the file, and the key as written in it (a TOML syntax error also names the line).
+
+"project run" waits for the end of the project (EE DD).  If it does not come within
+--timeout seconds the project is stopped (0x5E) and the exit code is 1; with
+--keep-running it is left running ("motorbus project stop" ends it).  Ctrl-C stops the
+project too, and exits with 130.
 """
 
 from __future__ import annotations
@@ -104,7 +110,17 @@ def register(subparsers: Any) -> None:
     _common(p)
     p = sub.add_parser("run", help="start project N and wait for its end (EE DD)")
     p.add_argument("number", metavar="N", type=int, help="project 1..4")
-    p.add_argument("--timeout", type=float, default=600.0, help="seconds (default 600)")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="seconds to wait for the end; then the project is stopped (default 600)",
+    )
+    p.add_argument(
+        "--keep-running",
+        action="store_true",
+        help="on timeout leave the project running instead of stopping it",
+    )
     _common(p)
     for name, text in (
         ("read", "print project N in the TOML form upload takes"),
@@ -152,6 +168,28 @@ def _enum_value(kind: type[E], field: str, value: object) -> E:
     )
 
 
+#: Protocol field names in error messages -> the key a project file uses for them.
+_FILE_KEYS = {
+    "run_distance": "distance",
+    "repeat_count": "repeat",
+    "loop_start": "[loop] start",
+    "loop_end": "[loop] end",
+    "loop_count": "[loop] count",
+}
+
+
+def _as_written(err: LocalProtocolError) -> LocalProtocolError:
+    """``err`` with the protocol's field name replaced by the key the file uses."""
+    message = str(err)
+    for field, key in _FILE_KEYS.items():
+        if err.field == field or message.startswith(f"{field}="):
+            message = message.replace(f"{field}=", f"{key}=", 1)
+            if field == "repeat_count":
+                message = message.replace("allowed 0..255", 'allowed 0..254, or "forever"')
+            return LocalProtocolError(message, field=key, value=err.value)
+    return err
+
+
 def _step_from(table: object, n: int) -> ps.StepSpec:
     where = f"step {n}"
     if not isinstance(table, dict):
@@ -175,7 +213,8 @@ def _step_from(table: object, n: int) -> ps.StepSpec:
             stop_input=_enum_value(ps.GatingInput, "stop_input", table.get("stop_input", 0)),
         )
     except LocalProtocolError as err:
-        raise LocalProtocolError(f"{where}: {err}", field=err.field, value=err.value) from err
+        named = _as_written(err)
+        raise LocalProtocolError(f"{where}: {named}", field=named.field, value=err.value) from err
 
 
 def project_from_dict(data: Mapping[str, Any]) -> ps.Project:
@@ -199,30 +238,49 @@ def project_from_dict(data: Mapping[str, Any]) -> ps.Project:
     repeat = data.get("repeat", 0)
     if repeat == REPEAT_FOREVER_NAME:
         repeat = ps.REPEAT_FOREVER
-    return ps.Project(
-        number=data["number"],
-        subdivision=data["subdivision"],
-        step_angle_x100=step_angle_x100("step_angle", data["step_angle"], ps.MAX_STEP_ANGLE_X100),
-        distance_per_rev=data["distance_per_rev"],
-        steps=tuple(_step_from(s, n) for n, s in enumerate(steps, start=1)),
-        loop_start=loop.get("start", 0),
-        loop_end=loop.get("end", 0),
-        loop_count=loop.get("count", 0),
-        repeat_count=repeat,
-    )
+    elif repeat == ps.REPEAT_FOREVER:
+        raise LocalProtocolError(
+            f'repeat={repeat} is out of range: allowed 0..{ps.REPEAT_FOREVER - 1}, or "forever"',
+            field="repeat",
+            value=repeat,
+        )
+    steps_specs = tuple(_step_from(s, n) for n, s in enumerate(steps, start=1))
+    try:
+        return ps.Project(
+            number=data["number"],
+            subdivision=data["subdivision"],
+            step_angle_x100=step_angle_x100(
+                "step_angle", data["step_angle"], ps.MAX_STEP_ANGLE_X100
+            ),
+            distance_per_rev=data["distance_per_rev"],
+            steps=steps_specs,
+            loop_start=loop.get("start", 0),
+            loop_end=loop.get("end", 0),
+            loop_count=loop.get("count", 0),
+            repeat_count=repeat,
+        )
+    except LocalProtocolError as err:
+        raise _as_written(err) from err
 
 
-def project_from_toml(text: str) -> ps.Project:
-    """Parse a project file's text.
+def project_from_toml(text: str, path: str | Path | None = None) -> ps.Project:
+    """Parse a project file's text; ``path``, if given, prefixes every error.
 
     Raises:
-        LocalProtocolError: not TOML, or not a valid project (the message says where).
+        LocalProtocolError: not TOML (the message names the line), or not a valid
+            project (the message names the key as written in the file).
     """
+    where = f"{path}: " if path is not None else ""
     try:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
-        raise LocalProtocolError(f"not valid TOML: {err}", field="file") from err
-    return project_from_dict(data)
+        raise LocalProtocolError(f"{where}not valid TOML: {err}", field="file") from err
+    try:
+        return project_from_dict(data)
+    except LocalProtocolError as err:
+        if not where:
+            raise
+        raise LocalProtocolError(f"{where}{err}", field=err.field, value=err.value) from err
 
 
 def project_to_dict(project: ps.Project) -> dict[str, Any]:
@@ -295,7 +353,8 @@ def run(args: argparse.Namespace) -> int:
     """
     project: ps.Project | None = None
     if args.action == "upload":
-        project = project_from_toml(Path(args.file).read_text(encoding="utf-8"))
+        path = Path(args.file)
+        project = project_from_toml(path.read_text(encoding="utf-8"), path)
     elif args.action != "stop":
         check_int("project", args.number, 1, ps.MAX_PROJECT)
     if args.action == "run":
@@ -317,12 +376,11 @@ async def _run(args: argparse.Namespace, project: ps.Project | None) -> int:
                 f"project {project.number} ({len(project.steps)} steps) {', '.join(done)}",
             )
         elif action == "run":
-            try:
-                await stepper.run_project(args.number, timeout=args.timeout)
-            except asyncio.CancelledError:
-                # Ctrl-C: the motor must not keep running a project nobody watches.
-                await stepper.stop_project()
-                raise
+            # On timeout run_project stops the project (unless --keep-running) and says
+            # so; on Ctrl-C (cancellation) it stops it before the port closes.
+            await stepper.run_project(
+                args.number, timeout=args.timeout, keep_running=args.keep_running
+            )
             say(args, {"project": args.number, "finished": True}, f"project {args.number} done")
         elif action == "read":
             dump = await stepper.read_project(args.number)

@@ -11,7 +11,9 @@ Examples::
     motorbus quad save
 
 Motors are 1..4; LEDs 1..4 (5 = all); home inputs YL1..YL13 (0 = none: homing that
-only a stop ends).
+only a stop ends).  "quad run" stops the motor if its done reply does not come within
+--timeout seconds (exit code 1); --keep-running leaves it running instead.  Ctrl-C
+stops the motor too, and exits with 130.
 """
 
 from __future__ import annotations
@@ -51,7 +53,17 @@ def register(subparsers: Any) -> None:
     p = sub.add_parser("run", help="run motor M's configured move")
     p.add_argument("motor", metavar="M", type=int, help="motor 1..4")
     p.add_argument("--no-wait", action="store_true", help="return after the ack, not the done")
-    p.add_argument("--timeout", type=float, default=600.0, help="seconds to wait (default 600)")
+    p.add_argument(
+        "--timeout",
+        type=float,
+        default=600.0,
+        help="seconds to wait for done; then the motor is stopped (default 600)",
+    )
+    p.add_argument(
+        "--keep-running",
+        action="store_true",
+        help="on timeout leave the motor running instead of stopping it",
+    )
     _common(p)
     p = sub.add_parser("stop", help="stop motor M, or all")
     p.add_argument("motor", metavar="M|all", help="motor 1..4 or 'all'")
@@ -126,11 +138,14 @@ async def _run(args: argparse.Namespace) -> int:
         quad = QuadStepper(bus)
         action: str = args.action
         if action == "run":
-            try:
-                await quad.run(args.motor, wait=not args.no_wait, timeout=args.timeout)
-            except asyncio.CancelledError:
-                await quad.stop(args.motor)  # Ctrl-C: do not leave the motor running
-                raise
+            # On timeout run() stops the motor (unless --keep-running) and says so; on
+            # Ctrl-C (cancellation) it stops it before the port closes.
+            await quad.run(
+                args.motor,
+                wait=not args.no_wait,
+                timeout=args.timeout,
+                keep_running=args.keep_running,
+            )
             what = "started" if args.no_wait else "done"
             say(args, {"motor": args.motor, "result": what}, f"motor {args.motor} {what}")
         elif action == "stop":
@@ -138,7 +153,8 @@ async def _run(args: argparse.Namespace) -> int:
                 await quad.stop_all()
             else:
                 await quad.stop(args.motor)
-            say(args, {"motor": args.motor, "stopped": True}, f"motor {args.motor} stopped")
+            what = "all motors" if args.motor == ALL else f"motor {args.motor}"
+            say(args, {"motor": args.motor, "stopped": True}, f"{what} stopped")
         elif action == "home":
             await quad.home(args.motor, args.input)
             say(

@@ -3,18 +3,28 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.bus.events import ProjectFinished
-from motorbus.errors import LocalProtocolError, MotorbusError, RemoteProtocolError
+from motorbus.bus.events import ProjectFinished, Subscription
+from motorbus.errors import (
+    LocalProtocolError,
+    MotorbusError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 
+log = logging.getLogger("motorbus.project_stepper")
+
 #: Host-side ceiling on a project run when the caller gives none (the manual gives no
 #: figure; A0-06 asks for a per-run timeout).
 DEFAULT_RUN_TIMEOUT_S = 600.0
+#: What to tell a user who let a timed-out project keep running.
+STOP_HINT = "`motorbus project stop` ends it"
 
 
 class ProjectStopped(MotorbusError):
@@ -37,7 +47,10 @@ class ProjectStepper:
         ps.ManualStop(motor=motor)  # validates the motor byte (refuses 0x00 and opcodes)
         self.bus = bus
         self.motor = motor
-        self._stopped = asyncio.Event()
+        # The subscription a run_project() is waiting on; stop_project() closes it,
+        # which ends that wait at once (no helper task, so nothing can be orphaned).
+        self._run_sub: Subscription[ProjectFinished] | None = None
+        self._stop_requested = False
 
     def safe_stop_commands(self) -> list[ps.ProjectStepperCommand]:
         """The commands that stop everything this controller may be doing, as values:
@@ -122,39 +135,74 @@ class ProjectStepper:
         """Start project ``number`` and return at once (``EE DD`` comes as an event)."""
         await self.bus.request(ps.StartProject(number))
 
-    async def run_project(self, number: int, *, timeout: float | None = None) -> None:
+    async def run_project(
+        self, number: int, *, timeout: float | None = None, keep_running: bool = False
+    ) -> None:
         """Start project ``number`` and return when it finishes (the controller's ``EE DD``).
 
         The event subscription is registered before the start command is written, so
         a project that ends at once is not missed.
 
+        A run that does not finish in time is stopped (0x5E) unless ``keep_running``.
+        A cancelled run (Ctrl-C, an enclosing timeout) always sends the stop before the
+        cancellation goes on: a project nobody waits for must not keep the motor going.
+
+        Args:
+            number: the project, 1..4.
+            timeout: seconds to wait for ``EE DD`` (default 600).
+            keep_running: on timeout, leave the project running instead of stopping it.
+
         Raises:
-            ReplyTimeoutError: no ``EE DD`` within ``timeout`` seconds (default 600).
+            ReplyTimeoutError: no ``EE DD`` within ``timeout``; the message says whether
+                the project was stopped ("stopped it (0x5E sent)") or is still running.
             ProjectStopped: ``stop_project`` was called meanwhile.
         """
-        if timeout is not None:
-            check_timeout("timeout", timeout)
-        self._stopped.clear()
+        limit = DEFAULT_RUN_TIMEOUT_S if timeout is None else check_timeout("timeout", timeout)
+        check_flag("keep_running", keep_running)
+        start = ps.StartProject(number)  # validates the number before anything is sent
+        self._stop_requested = False
         with self.bus.events.subscribe(ProjectFinished) as sub:
-            await self.bus.request(ps.StartProject(number))
-            finished = asyncio.ensure_future(
-                sub.next(DEFAULT_RUN_TIMEOUT_S if timeout is None else timeout)
-            )
-            stopped = asyncio.ensure_future(self._stopped.wait())
+            self._run_sub = sub
             try:
-                await asyncio.wait((finished, stopped), return_when=asyncio.FIRST_COMPLETED)
+                await self.bus.request(start)
+                try:
+                    await sub.next(limit)
+                except StopAsyncIteration:
+                    if not self._stop_requested:  # closed by someone else than stop_project
+                        raise MotorbusError(
+                            f"project {number}: the wait for its end was closed"
+                        ) from None
+                    raise ProjectStopped(
+                        f"project {number} was stopped before it finished"
+                    ) from None
+                except ReplyTimeoutError:
+                    waited = f"project {number} did not finish (no EE DD) within {limit:g} s"
+                    if keep_running:
+                        raise ReplyTimeoutError(f"{waited}: still running; {STOP_HINT}") from None
+                    raise ReplyTimeoutError(f"{waited}: {await self._stop_after(number)}") from None
+            except asyncio.CancelledError:
+                await self._stop_after(number)
+                raise
             finally:
-                stopped.cancel()
-                if not finished.done():
-                    finished.cancel()
-            if finished.done() and not finished.cancelled():
-                finished.result()  # raises the timeout, if that is how it ended
-                return
-            raise ProjectStopped(f"project {number} was stopped before it finished")
+                self._run_sub = None
+
+    async def _stop_after(self, number: int) -> str:
+        """Send stop project after a run ended without ``EE DD``; say what happened."""
+        try:
+            await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)
+        except (MotorbusError, OSError) as err:
+            log.warning("project %d: stop project (0x5E) failed: %s", number, err)
+            return f"the stop (0x5E) failed ({err}): it may still be running; {STOP_HINT}"
+        return "stopped it (0x5E sent)"
 
     async def stop_project(self) -> None:
-        """Stop the running project (0x5E); jumps the queue.  No ``EE DD`` follows."""
-        self._stopped.set()
+        """Stop the running project (0x5E); jumps the queue.  No ``EE DD`` follows.
+
+        A ``run_project`` waiting on this controller ends with ``ProjectStopped``.
+        """
+        self._stop_requested = True
+        if self._run_sub is not None:
+            self._run_sub.close()  # ends the run's wait with StopAsyncIteration
         await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)
 
     # -- manual motion and settings ---------------------------------------------------

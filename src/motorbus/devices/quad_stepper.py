@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
+from motorbus.errors import MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["QuadStepper"]
+
+log = logging.getLogger("motorbus.quad_stepper")
 
 #: Host-side ceiling on waiting for a "done" reply when the caller gives none:
 #: the manual documents no duration (A1-09), and a long move at low speed can take
@@ -74,24 +78,65 @@ class QuadStepper:
         for cmd in commands:
             await self.bus.request(cmd)
 
-    async def run(self, motor: int, *, wait: bool = True, timeout: float | None = None) -> None:
+    async def run(
+        self,
+        motor: int,
+        *,
+        wait: bool = True,
+        timeout: float | None = None,
+        keep_running: bool = False,
+    ) -> None:
         """Start a motor's configured run; with ``wait``, return when it reports done.
+
+        A run whose done reply does not come in time is stopped (stop that motor; if
+        that is not acknowledged, stop all) unless ``keep_running``.  A cancelled call
+        (Ctrl-C, an enclosing timeout) always sends the stop before the cancellation
+        goes on.
 
         Raises:
             ReplyTimeoutError: no ack, or no done reply within ``timeout`` seconds
-                (default ``DEFAULT_DONE_TIMEOUT_S``).
+                (default ``DEFAULT_DONE_TIMEOUT_S``); the message says whether the
+                motor was stopped.
         """
         cmd = q.Run(motor)
         check_flag("wait", wait)
-        if timeout is not None:
-            check_timeout("timeout", timeout)
-        if not wait:
-            await self.bus.request(cmd)
-            return
-        async with self._run_lock:
-            with self.bus.events.subscribe(QuadDone, lambda e: e.kind == "run") as sub:
+        check_flag("keep_running", keep_running)
+        limit = DEFAULT_DONE_TIMEOUT_S if timeout is None else check_timeout("timeout", timeout)
+        try:
+            if not wait:
                 await self.bus.request(cmd)
-                await sub.next(DEFAULT_DONE_TIMEOUT_S if timeout is None else timeout)
+                return
+            async with self._run_lock:
+                with self.bus.events.subscribe(QuadDone, lambda e: e.kind == "run") as sub:
+                    await self.bus.request(cmd)
+                    try:
+                        await sub.next(limit)
+                    except ReplyTimeoutError:
+                        waited = f"motor {motor} did not report done within {limit:g} s"
+                        if keep_running:
+                            raise ReplyTimeoutError(
+                                f"{waited}: still running; `motorbus quad stop {motor}` ends it"
+                            ) from None
+                        stopped = await self._stop_after(motor)
+                        raise ReplyTimeoutError(f"{waited}: {stopped}") from None
+        except asyncio.CancelledError:
+            await self._stop_after(motor)
+            raise
+
+    async def _stop_after(self, motor: int) -> str:
+        """Stop ``motor`` after a run was abandoned (stop all if that fails); say what was done."""
+        try:
+            await self.stop(motor)
+        except (MotorbusError, OSError) as err:
+            log.warning("motor %d: stop failed (%s); sending stop all", motor, err)
+        else:
+            return f"stopped it (stop 0x{q.CMD_STOP:02X} to motor {motor} sent)"
+        try:
+            await self.stop_all()
+        except (MotorbusError, OSError) as err:
+            log.warning("stop all failed: %s", err)
+            return f"the stop got no answer ({err}): it may still be running"
+        return f"stopped it (stop 0x{q.CMD_STOP:02X} to all motors sent)"
 
     async def run_all(self) -> None:
         """Start all four motors (the manual documents no done reply for this, A1-04)."""
