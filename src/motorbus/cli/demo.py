@@ -153,7 +153,7 @@ async def _demo(args: argparse.Namespace) -> int:
         arrivals = [
             r["t"]
             for r in la_sim.log_records()
-            if r["dir"] == "rx" and r["hex"].startswith(F3_PREFIX, 9)
+            if r["direction"] == "request" and r["hex"].startswith(F3_PREFIX, 9)
         ]
         summary = _summary(mgr, stream, log, arrivals)
     (out / "summary.json").write_text(json.dumps(summary, indent=2), encoding="utf-8")
