@@ -45,6 +45,7 @@ from typing import Any, TextIO
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.cli.common import (
+    CLI_HOST_MARGIN_S,
     LA_BAUD,
     STEPPER_BAUD,
     add_bus_options,
@@ -495,6 +496,7 @@ async def _replay(
         _Tee(transport, on_sent, on_received),
         name=transport.url,
         families=families,
+        host_margin=CLI_HOST_MARGIN_S,
         reconnect=False,
     )
     try:
@@ -508,7 +510,8 @@ async def _replay(
             delay = started + (item.t - t0) - time.monotonic()
             if delay > 0:
                 await asyncio.sleep(delay)
-            futures.append(bus.submit(item.cmd, priority=item.priority))
+            # No retries: a replay sends what was recorded, once.
+            futures.append(bus.submit(item.cmd, retries=0, priority=item.priority))
         outcomes = await asyncio.gather(*futures, return_exceptions=True)
         await asyncio.sleep(args.wait)
     finally:
