@@ -63,8 +63,8 @@ def test_demo_json_writes_one_document_to_stdout(tmp_path: Path) -> None:
         text=True,
         timeout=DEMO_TIMEOUT_S,
     )
-    summary = json.loads(r.stdout)  # the whole of stdout is one JSON document
     assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)  # the whole of stdout is one JSON document
     assert summary["project"] == "done" and summary["quad"] == "done"
     assert summary["stream_host"]["ticks"] > 0
     assert json.loads((out / "summary.json").read_text(encoding="utf-8")) == summary
