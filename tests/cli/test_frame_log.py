@@ -263,3 +263,19 @@ def test_dry_run_needs_to(burst: Path) -> None:
     r = run("replay", str(burst), "--dry-run")
     assert r.returncode == 2
     assert r.stderr == "motorbus replay: --dry-run and --yes go with --to URL\n"
+
+
+def test_a_reply_the_simulator_corrupted_shows_what_a_listener_would_see() -> None:
+    reply = la.Status(1, target=0, position=0).encode()
+    record = framelog.from_sim(
+        {
+            "t": 1.0,
+            "dir": "tx",
+            "hex": hexof(reply + b"\x00\x13"),
+            "family": "la",
+            "fault": "garbage",
+        }
+    )
+    assert (record["kind"], record["fault"]) == ("frame", "garbage")
+    shown = framelog.describe_record(record)
+    assert [(d.kind, d.name) for d in shown] == [("frame", "Status"), ("garbage", "garbage")]

@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import serial
 
 from motorbus.protocol import la
@@ -93,3 +94,11 @@ def test_capture_on_the_tap_records_what_a_bus_and_the_simulator_said(tmp_path: 
         ("reply", "Status"),
     ]
     assert records[-2]["fields"] == {"id": 3, "position": 1500, "reply": True}
+
+
+def test_a_regular_file_at_the_tap_path_is_never_overwritten(tmp_path: Path) -> None:
+    precious = tmp_path / "tap"
+    precious.write_text("keep me")
+    with pytest.raises(FileExistsError, match="not a symlink"):
+        PtySim([LAModel(id=1)], tap=precious).start()
+    assert precious.read_text() == "keep me"
