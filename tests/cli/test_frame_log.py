@@ -279,3 +279,34 @@ def test_a_reply_the_simulator_corrupted_shows_what_a_listener_would_see() -> No
     assert (record["kind"], record["fault"]) == ("frame", "garbage")
     shown = framelog.describe_record(record)
     assert [(d.kind, d.name) for d in shown] == [("frame", "Status"), ("garbage", "garbage")]
+
+
+@pytest.mark.parametrize(("answer", "sent"), [(b"y\n", True), (b"n\n", False)])
+def test_motion_is_sent_after_a_yes_at_the_terminal(
+    burst: Path, la_sim: SimProcess, answer: bytes, sent: bool
+) -> None:
+    master, slave = os.openpty()
+    before = len(la_sim.log_records())
+    try:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "motorbus", "replay", str(burst), "--to", la_sim.path,
+             "--wait", "0.1"],
+            stdin=slave,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )  # fmt: skip
+        os.write(master, answer)  # read once the question is asked; the tty buffers it
+        out, err = proc.communicate(timeout=CLI_TIMEOUT_S)
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert "has 1 motion command (MoveTo) among 3 requests. Send them to" in err
+    wire = [x["hex"] for x in received_since(la_sim, before) if x["direction"] == "request"]
+    if sent:
+        assert proc.returncode == 0, err
+        assert wire == [hexof(QUERY_1), hexof(QUERY_2), hexof(MOVE_1)]
+    else:
+        assert proc.returncode == 2
+        assert err.endswith("motorbus replay: not sent\n")
+        assert wire == [] and out == ""
