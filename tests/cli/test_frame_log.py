@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from motorbus.cli.capture import load_records
 from motorbus.cli.common import PORT_ENV
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
@@ -310,3 +311,13 @@ def test_motion_is_sent_after_a_yes_at_the_terminal(
         assert proc.returncode == 2
         assert err.endswith("motorbus replay: not sent\n")
         assert wire == [] and out == ""
+
+
+def test_replay_times_run_on_across_sessions(tmp_path: Path) -> None:
+    """The simulator appends a session per run; its clock restarts, replay's does not."""
+    path = write_log(
+        tmp_path / "two.jsonl",
+        [HEADER, request(0.5, QUERY_1), request(1.0, QUERY_2), HEADER, request(0.2, QUERY_1),
+         request(0.4, QUERY_2)],
+    )  # fmt: skip
+    assert [r["t"] for r in load_records(path)] == [0.0, 0.5, 0.5, 0.7]
