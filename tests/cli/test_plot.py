@@ -6,6 +6,8 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 from motorbus.cli.plot import render
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
@@ -74,3 +76,27 @@ def test_monitor_plot_draws_each_id_from_a_simulator() -> None:
     heads = [line for line in lines if line.startswith("la:")]
     assert [h.split()[0] for h in heads] == ["la:1", "la:2"] * 3
     assert any("#" in line for line in lines)  # the simulated actuators sit on target
+
+
+def test_window_plot_puts_each_series_on_its_line() -> None:
+    """The window's drawing, on the non-interactive backend (no display needed)."""
+    matplotlib = pytest.importorskip("matplotlib")
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from motorbus.cli.plot import WindowPlot
+
+    window = WindowPlot([1])
+    try:
+        window.update(
+            [(0.0, {1: status(10, 100, 5)}), (0.5, {1: "timeout"}), (1.0, {1: status(60, 100, 7)})]
+        )
+        ax_pos, ax_force = window.ax_pos, window.ax_force
+        series = {line.get_label(): list(line.get_ydata()) for line in ax_pos.get_lines()}
+        assert series == {"position 1": [10, 60], "target 1": [100, 100]}
+        assert [list(line.get_ydata()) for line in ax_force.get_lines()] == [[5, 7]]
+        assert list(ax_pos.get_lines()[0].get_xdata()) == [0.0, 1.0]
+        assert window.open
+    finally:
+        plt.close(window.fig)
+    assert not window.open
