@@ -308,6 +308,7 @@ def run_replay(args: argparse.Namespace) -> int:
     if args.baud is None:
         args.baud = min((FAMILY_BAUD[f] for f in families), default=LA_BAUD)
     plan = _plan(records, Path(args.file))
+    families |= {item.cmd.family for item in plan}
     if args.dry_run:
         for item in plan:
             d = describe_command(item.cmd)
@@ -332,7 +333,7 @@ def _print_record(args: argparse.Namespace, record: dict[str, Any]) -> None:
     fault = record.get("fault")
     if record["kind"] == framelog.KIND_LINK:
         if args.json:
-            print_json({k: v for k, v in record.items() if k != "session"})
+            print_json({k: v for k, v in record.items() if k not in ("session", "line")})
         else:
             print(f"{t:10.6f}  link {record.get('name')}" + (f"  fault={fault}" if fault else ""))
         return
@@ -354,7 +355,8 @@ def _plan(records: list[dict[str, Any]], path: Path) -> list[_Planned]:
             encode to the recorded bytes (naming the record and its bytes); nothing is sent.
     """
     plan: list[_Planned] = []
-    for n, record in enumerate(records, start=1):
+    for record in records:
+        n = record.get("line", "?")
         if record["kind"] != KIND_FRAME or record.get("direction") != Direction.REQUEST.value:
             continue
         raw = parse_hex(str(record["hex"]))
@@ -363,13 +365,13 @@ def _plan(records: list[dict[str, Any]], path: Path) -> list[_Planned]:
             cmd = _DECODERS[family](raw)
         except (MotorbusError, ValueError) as err:
             raise LocalProtocolError(
-                f"{path} record {n}: request {format_hex(raw)} cannot be re-sent: {err}; "
+                f"{path} line {n}: request {format_hex(raw)} cannot be re-sent: {err}; "
                 "nothing was sent",
                 field="file",
             ) from err
         if cmd.encode() != raw:
             raise LocalProtocolError(
-                f"{path} record {n}: request {format_hex(raw)} decodes to "
+                f"{path} line {n}: request {format_hex(raw)} decodes to "
                 f"{type(cmd).__name__}, which encodes as {format_hex(cmd.encode())}; "
                 "nothing was sent",
                 field="file",

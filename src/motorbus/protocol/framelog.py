@@ -157,8 +157,9 @@ class FrameLog:
     Attributes:
         headers: the header of each session, in file order (``{}`` for a session that
             had none: a capture written before version 1).
-        records: every record, each with ``"session"`` (index into ``headers``) added
-            and old simulator records translated (:func:`from_sim`).
+        records: every record, each with ``"session"`` (index into ``headers``) and
+            ``"line"`` (its line number) added, old simulator records translated
+            (:func:`from_sim`).
         translated: how many old simulator records were translated.
     """
 
@@ -201,7 +202,8 @@ def read_frame_log(lines: Iterable[str], name: str = "frame log") -> FrameLog:
         if "kind" not in value and all(k in value for k in _SIM_KEYS):
             value = from_sim(value)
             log.translated += 1
-        log.records.append({**_check_record(value, where), "session": len(log.headers) - 1})
+        record = _check_record(value, where)
+        log.records.append({**record, "session": len(log.headers) - 1, "line": n})
     return log
 
 
