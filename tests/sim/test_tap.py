@@ -4,8 +4,10 @@ carrying a copy of every byte both ways, so ``capture`` can be tried without har
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -20,6 +22,20 @@ QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_SIZE = 22
 READ_TIMEOUT_S = 5.0  # an upper bound for a failing test, never a timing assertion
 CLI_TIMEOUT_S = 60
+#: The capture's own time limit, only a backstop: the test ends it with SIGINT.
+CAPTURE_CAP_S = 120
+
+
+def wait_for_lines(path: Path, n: int, timeout: float = CLI_TIMEOUT_S) -> None:
+    """Return once ``path`` has ``n`` complete lines; fail after ``timeout`` seconds."""
+    deadline = time.monotonic() + timeout
+    while True:
+        text = path.read_text(encoding="utf-8") if path.exists() else ""
+        if text.count("\n") >= n:
+            return
+        if time.monotonic() > deadline:
+            pytest.fail(f"{path} has {text.count(chr(10))} lines, not {n}, after {timeout} s")
+        time.sleep(0.02)
 
 
 def open_port(path: str | Path, timeout: float = READ_TIMEOUT_S) -> serial.Serial:
@@ -62,7 +78,7 @@ def test_capture_on_the_tap_records_what_a_bus_and_the_simulator_said(tmp_path: 
     with SimProcess(["la:1-3"], baud=921600, log_file=sim_log, tap=tap) as sim:
         capture = subprocess.Popen(
             [sys.executable, "-m", "motorbus", "capture", "--port", str(tap), "--family", "la",
-             "--seconds", "3", "--out", str(out)],
+             "--seconds", str(CAPTURE_CAP_S), "--out", str(out)],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -78,6 +94,10 @@ def test_capture_on_the_tap_records_what_a_bus_and_the_simulator_said(tmp_path: 
                 timeout=CLI_TIMEOUT_S,
             )
             assert r.returncode == 0, r.stderr
+        # Six frames (two queries, a move, their replies) after the header; then Ctrl-C,
+        # the ordinary end of a capture.
+        wait_for_lines(out, 1 + 6)
+        capture.send_signal(signal.SIGINT)
         _, err = capture.communicate(timeout=CLI_TIMEOUT_S)
         assert capture.returncode == 0, err
         wire = [(r["kind"], r["direction"], r["hex"]) for r in sim.log_records()]
