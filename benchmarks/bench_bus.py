@@ -378,7 +378,7 @@ def request_starts(log_file: Path) -> list[float]:
     with log_file.open(encoding="utf-8") as f:
         for line in f:
             record = json.loads(line)
-            if record["dir"] == "rx":
+            if record.get("direction") == "request":  # frame-log records, not the header
                 starts.append(float(record["t"]) - wire)
     return starts
 

@@ -68,7 +68,8 @@ def _at(result: dict[str, Any], buses: int, key: str) -> float:
 
 def f3_arrivals(sim: SimProcess) -> list[float]:
     """Times (s) at which the simulator finished receiving each 0xF3 broadcast."""
-    return [r["t"] for r in sim.log_records() if r["dir"] == "rx" and r["hex"][9:14] == "FF F3"]
+    records = sim.log_records()
+    return [r["t"] for r in records if r["direction"] == "request" and r["hex"][9:14] == "FF F3"]
 
 
 def trajectory(t: float) -> list[float]:

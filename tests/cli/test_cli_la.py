@@ -51,7 +51,7 @@ def json_lines(out: str) -> list[Any]:
 
 def rx_frames(sim: SimProcess) -> list[str]:
     """Hex of every frame the simulator received so far."""
-    return [r["hex"] for r in sim.log_records() if r["dir"] == "rx"]
+    return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
 
 
 @pytest.fixture(scope="module")

@@ -242,7 +242,13 @@ def test_capture_records_a_query_and_its_reply(bare_pty: tuple[int, str], tmp_pa
     r = capture(master, port, out, QUERY + b"\x00" + REPLY)
     assert r.returncode == 0, r.stderr
     assert "motorbus capture: 2 frame, 1 garbage" in r.stderr
-    records = [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines()]
+    header, *records = [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines()]
+    assert (header["format"], header["version"], header["source"]) == (
+        "motorbus-frame-log",
+        1,
+        "capture",
+    )
+    assert (header["port"], header["baud"], header["families"]) == (port, 921600, ["la"])
     assert [(x["kind"], x["direction"], x["name"]) for x in records] == [
         ("frame", "request", "Control"),
         ("garbage", None, "garbage"),
@@ -289,4 +295,7 @@ def test_replay_refuses_a_file_that_is_not_a_capture(tmp_path: Path) -> None:
     bad.write_text('{"t": 0}\n', encoding="utf-8")
     r = cli("replay", str(bad))
     assert r.returncode == 2
-    assert r.stderr.startswith(f"motorbus replay: {bad} line 1 is not a capture record")
+    assert r.stderr == (
+        f"motorbus replay: {bad} line 1 is not a frame-log record: missing key 'kind' "
+        "(every record has t, kind, hex)\n"
+    )

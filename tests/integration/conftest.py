@@ -153,8 +153,8 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
 
 
 def received_frames(records: list[dict[str, Any]]) -> list[bytes]:
-    """The frames the simulator received (``"rx"`` records), in arrival order."""
-    return [bytes.fromhex(str(r["hex"])) for r in records if r.get("dir") == "rx"]
+    """The frames the simulator received (``"request"`` records), in arrival order."""
+    return [bytes.fromhex(str(r["hex"])) for r in records if r.get("direction") == "request"]
 
 
 def is_broadcast_follow(frame: bytes) -> bool:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -85,8 +86,13 @@ def test_garbage_fault_is_seen_on_the_wire(tmp_path: Path) -> None:
         f[:4] == bytes.fromhex("AA 55 11 01") and sum(f[2:-1]) & 0xFF == f[-1] for f in frames
     )
     assert sim.bus.stats.faults_injected["garbage"] == 1
-    lines = log_file.read_text().splitlines()
-    assert len(lines) == 2 and '"dir": "rx"' in lines[0] and '"fault": "garbage"' in lines[1]
+    header, *lines = [json.loads(line) for line in log_file.read_text().splitlines()]
+    assert (header["format"], header["version"]) == ("motorbus-frame-log", 1)
+    assert (header["source"], header["port"], header["families"]) == ("sim", sim.path, ["la"])
+    assert [(r["kind"], r["direction"], r.get("fault")) for r in lines] == [
+        ("frame", "request", None),
+        ("frame", "reply", "garbage"),
+    ]
 
 
 def test_disconnect_fault_closes_the_pty_and_serves_a_new_one(tmp_path: Path) -> None:

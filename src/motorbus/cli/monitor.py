@@ -10,17 +10,25 @@ lines (or, with ``--json``, one JSON object a line).  An actuator that does not 
 shows as ``timeout`` and does not stop the monitor.  ``--count N`` ends after N
 refreshes; otherwise Ctrl-C ends it (exit code 0).  Without ``--ids`` the bus is
 scanned first.
+
+``--plot`` draws position, target and force of each actuator against time instead of
+the table: in the terminal with plain characters (``--plot`` or ``--plot terminal``),
+or in a matplotlib window (``--plot window``, which needs a display).  The terminal
+plot shows the last refreshes that fit its width.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import collections
+import shutil
 import sys
 import time
 from typing import Any
 
 from motorbus.bus.bus import Bus
+from motorbus.cli import plot
 from motorbus.cli.common import (
     LA_BAUD,
     LiveText,
@@ -31,6 +39,7 @@ from motorbus.cli.common import (
     print_json,
 )
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
+from motorbus.cli.main import UsageError
 from motorbus.cli.scan import SCAN_TIMEOUT_S
 from motorbus.devices.la import InspireLA, scan
 from motorbus.errors import ReplyTimeoutError
@@ -43,6 +52,8 @@ __all__ = ["register", "run"]
 MIN_INTERVAL_S = 0.01
 #: Largest ``--count``.
 MAX_COUNT = 10**9
+#: Refreshes a plot window keeps (at 0.2 s a refresh, the last 10 minutes).
+WINDOW_SAMPLES = 3000
 
 
 def register(subparsers: Any) -> None:
@@ -58,6 +69,13 @@ def register(subparsers: Any) -> None:
         "--interval", type=float, default=0.2, help="seconds between refreshes (default 0.2)"
     )
     p.add_argument("--count", type=int, help="stop after N refreshes")
+    p.add_argument(
+        "--plot",
+        nargs="?",
+        const="terminal",
+        choices=("terminal", "window"),
+        help="plot position, target and force against time (default: in the terminal)",
+    )
     add_bus_options(p, default_baud=LA_BAUD)
     p.set_defaults(func=run)
 
@@ -72,6 +90,11 @@ def run(args: argparse.Namespace) -> int:
     check_seconds("--interval", args.interval, MIN_INTERVAL_S)
     if args.count is not None:
         check_int("--count", args.count, 1, MAX_COUNT)
+    plot_mode = getattr(args, "plot", None)
+    if plot_mode is not None and args.json:
+        raise UsageError("--plot and --json do not go together: choose one")
+    if plot_mode == "window":
+        plot.check_window()
     try:
         return asyncio.run(_monitor(args, ids))
     except KeyboardInterrupt:
@@ -88,6 +111,7 @@ async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
                 return 1
         refreshes = 0
         started = time.monotonic()
+        plotter = _Plotter(getattr(args, "plot", None), ids, live)
         while args.count is None or refreshes < args.count:
             if refreshes:
                 await asyncio.sleep(args.interval)
@@ -106,11 +130,41 @@ async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
                     }
                 )
                 continue
+            if plotter.mode is not None:
+                if not plotter.show(elapsed, dict(zip(ids, rows, strict=True))):
+                    break  # the plot window was closed
+                continue
             lines = [f"refresh {refreshes}  t={elapsed:6.2f}s  bus {bus.name}", STATUS_HEADER]
             for i, s in zip(ids, rows, strict=True):
                 lines.append(status_row(s) if isinstance(s, la.Status) else f"  {i:3d}  {s}")
             live.show(lines)
     return 0
+
+
+class _Plotter:
+    """Keeps the refreshes a plot shows and draws them (``--plot``)."""
+
+    def __init__(self, mode: str | None, ids: list[int], live: LiveText) -> None:
+        self.mode = mode
+        self.ids = ids
+        self.live = live
+        self.window = plot.WindowPlot(ids) if mode == "window" else None
+        columns = shutil.get_terminal_size().columns - plot.LABEL_WIDTH - 1
+        self.width = max(plot.MIN_WIDTH, columns)
+        self.samples: collections.deque[plot.Sample] = collections.deque(
+            maxlen=self.width if self.window is None else WINDOW_SAMPLES
+        )
+
+    def show(self, t: float, statuses: dict[int, la.Status | str]) -> bool:
+        """Add a refresh and redraw; False once a plot window was closed."""
+        self.samples.append((t, statuses))
+        if self.window is not None:
+            if not self.window.open:
+                return False
+            self.window.update(list(self.samples))
+            return True
+        self.live.show(plot.render(list(self.samples), self.ids, width=self.width))
+        return True
 
 
 async def _poll(bus: Bus, ids: list[int]) -> list[la.Status | str]:

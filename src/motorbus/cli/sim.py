@@ -8,6 +8,13 @@ Example::
 The first line of standard output is the slave device path, followed by the link if
 one was asked for; point any serial client at either.  SIGINT or SIGTERM stops the
 simulator, which prints a one-line summary and exits with status 0.
+
+``--log FILE`` appends a frame log (docs/frame-log.md) to FILE: a header line, then one
+JSON line per frame either way.  ``--tap PATH`` opens a second, listen-only pty linked
+at PATH that carries a copy of every byte both ways, so that a sniffer can listen::
+
+    motorbus sim --link /tmp/ttyLA --tap /tmp/ttyLA.tap la:1-3 &
+    motorbus capture --port /tmp/ttyLA.tap --family la --out session.jsonl
 """
 
 from __future__ import annotations
@@ -55,7 +62,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "silent,silent=2:3,disconnect=5:1",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of turnarounds and faults")
-    parser.add_argument("--log", metavar="FILE", help="append one JSON line per frame to FILE")
+    parser.add_argument(
+        "--log", metavar="FILE", help="append a frame log (one JSON line per frame) to FILE"
+    )
+    parser.add_argument(
+        "--tap",
+        metavar="PATH",
+        help="also serve a listen-only pty, linked at PATH, carrying a copy of every byte "
+        "both ways (for motorbus capture --port PATH)",
+    )
     parser.add_argument(
         "--spin",
         action="store_true",
@@ -110,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
                 link=args.link,
                 log_file=args.log,
                 spin=getattr(args, "spin", False),
+                tap=getattr(args, "tap", None),
             ).start()
         except (OSError, LocalProtocolError) as err:
             print(f"motorbus sim: error: {err}", file=sys.stderr)
@@ -117,6 +133,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             line = sim.path if sim.link is None else f"{sim.path} {sim.link}"
             print(line, flush=True)
+            if sim.tap is not None:
+                tap = f"motorbus sim: tap on {sim.tap_path} ({sim.tap})"
+                print(tap, file=sys.stderr, flush=True)
             while signal.sigtimedwait(_STOP_SIGNALS, _LIVENESS_PERIOD_S) is None:
                 if not sim.running:
                     print(f"motorbus sim: error: simulator stopped: {sim.error}", file=sys.stderr)

@@ -7,7 +7,9 @@
 * ``MemorySim``: serves a ``SimBus`` over an in-memory link on the asyncio loop.
 * ``PtySim``: serves a ``SimBus`` on a pseudo-terminal from a thread.
 
-Log records (``SimBus(log=...)``, ``motorbus sim --log``) are dicts, one per frame:
+Log records of ``SimBus(log=...)`` are dicts, one per frame (the ``--log`` file of
+``motorbus sim`` and ``PtySim(log_file=...)`` is a frame log, docs/frame-log.md, into
+which ``motorbus.protocol.framelog.from_sim`` translates them):
 
 * ``"t"``: seconds since serving started (when the frame's last byte was on the wire);
 * ``"dir"``: ``"rx"`` (host -> device), ``"tx"`` (device -> host) or ``"link"``;

@@ -7,7 +7,6 @@ the end-to-end tests need.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -16,6 +15,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import TracebackType
 from typing import Any
+
+from motorbus.protocol import framelog
 
 __all__ = ["SimProcess"]
 
@@ -34,6 +35,7 @@ class SimProcess:
         log_file: record every frame both ways as JSON lines to this path.
         link: create this symlink to the pty.
         spin: busy-poll the port for precise timestamps (``motorbus sim --spin``).
+        tap: serve a listen-only copy of the traffic on a pty linked here (``--tap``).
     """
 
     def __init__(
@@ -46,6 +48,7 @@ class SimProcess:
         log_file: str | os.PathLike[str] | None = None,
         link: str | os.PathLike[str] | None = None,
         spin: bool = False,
+        tap: str | os.PathLike[str] | None = None,
     ) -> None:
         self.args = [sys.executable, "-m", "motorbus", "sim"]
         if spin:
@@ -59,8 +62,11 @@ class SimProcess:
             self.args += ["--log", os.fspath(log_file)]
         if link is not None:
             self.args += ["--link", os.fspath(link)]
+        if tap is not None:
+            self.args += ["--tap", os.fspath(tap)]
         self.args += list(devices)
         self.log_file = Path(log_file) if log_file is not None else None
+        self.tap = Path(tap) if tap is not None else None
         self.proc: subprocess.Popen[str] | None = None
         self.path = ""
         self.summary = ""
@@ -99,15 +105,17 @@ class SimProcess:
         return self.summary
 
     def log_records(self) -> list[dict[str, Any]]:
-        """The frames the simulator logged (``log_file`` must have been given)."""
+        """The frame-log records the simulator wrote so far, headers left out.
+
+        ``log_file`` must have been given.  Each is a record of docs/frame-log.md:
+        ``r["direction"] == "request"`` for what the simulator received (frames and
+        garbage), ``"reply"`` for what it sent.  A line still being written is skipped.
+        """
         if self.log_file is None or not self.log_file.exists():
             return []
-        records = []
         with self.log_file.open(encoding="utf-8") as fh:
-            for line in fh:
-                if line.strip():
-                    records.append(json.loads(line))
-        return records
+            lines = [line for line in fh if line.endswith("\n")]
+        return framelog.read_frame_log(lines, str(self.log_file)).records
 
     def __enter__(self) -> SimProcess:
         return self.start()

@@ -12,16 +12,29 @@ The slave end is put in raw mode and kept open by the simulator itself, so that 
 the master does not fail with EIO while no client has the device open.  A disconnect
 fault closes both ends (the client sees EIO / connection lost, as on a USB unplug),
 removes the symlink, and when the outage ends opens a new pty and re-points the link.
+
+The log file (``log_file``) is a frame log (``motorbus.protocol.framelog``,
+docs/frame-log.md): a header line when serving starts, then one record per frame.
+
+The tap (``tap=PATH``) is a second pty, linked at PATH, on which the simulator writes a
+copy of every byte it reads from the host and of every byte it sends back, in the order
+it handles them: a listener there (``motorbus capture --port PATH``) hears the bus as a
+sniffer on an RS-485 line would.  The simulator does not keep the tap's slave open, so
+it can tell when nobody listens (the master polls as hung up); it then copies nothing,
+and what a listener left unread is flushed when it goes, so the next one starts fresh.
+What the tap could not take is counted (``tap_dropped_bytes``), never waited for.
 """
 
 from __future__ import annotations
 
 import contextlib
+import datetime
 import errno
 import json
 import logging
 import os
 import select
+import termios
 import threading
 import time
 import tty
@@ -30,6 +43,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
+from motorbus.protocol import framelog
 from motorbus.sim.bus import LinkEvent, LogRecord, SimBus
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.model import DeviceModel
@@ -53,14 +67,22 @@ class PtySim:
         seed: seeds turnarounds and faults (reproducible runs).
         link: optional path of a symlink to the slave device; an existing symlink is
             replaced, any other existing file is refused (``FileExistsError``).
-        log_file: optional path; one JSON object per frame, flushed line by line.
-        log: optional callback with the same records (called from the sim thread).
+        log_file: optional path; a frame log (header, then one record per frame),
+            appended to and flushed line by line.
+        log: optional callback with the ``SimBus`` log records (called from the sim
+            thread; these are the simulator's own ``{t, dir, hex, family, fault}`` dicts,
+            which ``framelog.from_sim`` translates).
         spin: busy-poll the port for precise timestamps (uses a whole core).
+        tap: optional path of a symlink to a listen-only pty carrying a copy of every
+            byte both ways (same rules as ``link``).
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
         path: the slave device path (changes after a disconnect fault).
         dropped_bytes: output dropped because nobody drained the pty buffer.
+        tap_path: the tap's slave device path ("" without a tap).
+        tap_bytes: bytes copied to the tap while someone listened.
+        tap_dropped_bytes: bytes a listener on the tap did not drain in time.
         error: the exception that stopped the sim thread, if any.
     """
 
@@ -75,8 +97,10 @@ class PtySim:
         log_file: str | os.PathLike[str] | None = None,
         log: Callable[[LogRecord], None] | None = None,
         spin: bool = False,
+        tap: str | os.PathLike[str] | None = None,
     ) -> None:
         self.link = Path(link) if link is not None else None
+        self.tap = Path(tap) if tap is not None else None
         #: Busy-poll the port instead of sleeping in select(): arrival timestamps and
         #: reply times then do not include this thread's own wake-up latency (100-500 us
         #: on a VM whose idle cores sleep deeply), at the cost of a whole core.  For
@@ -95,6 +119,12 @@ class PtySim:
         )
         self.path = ""
         self.dropped_bytes = 0
+        self.tap_path = ""
+        self.tap_bytes = 0
+        self.tap_dropped_bytes = 0
+        self._tap_master: int | None = None
+        self._tap_poll: select.poll | None = None
+        self._tap_listening = False
         self.error: BaseException | None = None
         self._master: int | None = None
         self._slave: int | None = None
@@ -134,15 +164,19 @@ class PtySim:
         """
         if self._thread is not None:
             return self
-        if self.link is not None and self.link.exists() and not self.link.is_symlink():
-            raise FileExistsError(
-                errno.EEXIST,
-                f"refusing to replace {self.link}: it is not a symlink",
-                str(self.link),
-            )
+        for path in (self.link, self.tap):
+            if path is not None and path.exists() and not path.is_symlink():
+                raise FileExistsError(
+                    errno.EEXIST, f"refusing to replace {path}: it is not a symlink", str(path)
+                )
         if self._log_path is not None:
             self._log_stream = self._log_path.open("a", encoding="utf-8")
         self._open_pty()
+        if self.tap is not None:
+            self._open_tap(self.tap)
+        if self._log_stream is not None:
+            self._log_stream.write(json.dumps(self._log_header()) + "\n")
+            self._log_stream.flush()
         self._wake_r, self._wake_w = os.pipe()
         self._stopping.clear()
         self.bus.epoch = time.monotonic()
@@ -160,6 +194,7 @@ class PtySim:
             self._thread.join()
             self._thread = None
         self._close_pty()
+        self._close_tap()
         for fd in (self._wake_r, self._wake_w):
             if fd is not None:
                 os.close(fd)
@@ -196,6 +231,74 @@ class PtySim:
             tmp.symlink_to(self.path)
             os.replace(tmp, self.link)
         self._open.set()
+
+    def _log_header(self) -> dict[str, object]:
+        now = datetime.datetime.now(datetime.UTC)
+        return framelog.header(
+            "sim",
+            started_utc=now.isoformat(timespec="microseconds").replace("+00:00", "Z"),
+            families={m.family for m in self.models},
+            baud=self.bus.baud,
+            port=self.path,
+            link=str(self.link) if self.link is not None else None,
+            tap=str(self.tap) if self.tap is not None else None,
+        )
+
+    def _open_tap(self, link: Path) -> None:
+        master, slave = os.openpty()
+        try:
+            tty.setraw(slave)  # kept by the tty while the master is open
+            self.tap_path = os.ttyname(slave)
+        finally:
+            # Not kept open: with no slave open the master polls as hung up, which is
+            # how the simulator knows that nobody listens.
+            os.close(slave)
+        os.set_blocking(master, False)
+        self._tap_master = master
+        self._tap_poll = select.poll()
+        self._tap_poll.register(master, select.POLLOUT)
+        tmp = link.with_name(f".{link.name}.{os.getpid()}.tmp")
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        tmp.symlink_to(self.tap_path)
+        os.replace(tmp, link)
+
+    def _close_tap(self) -> None:
+        if self._tap_master is not None:
+            with contextlib.suppress(OSError):
+                os.close(self._tap_master)
+        self._tap_master = None
+        self._tap_poll = None
+        link = self.tap
+        if link is not None and link.is_symlink():
+            with contextlib.suppress(OSError):
+                if os.readlink(link) == self.tap_path:
+                    link.unlink()
+
+    def _copy_to_tap(self, data: bytes) -> None:
+        """Copy ``data`` to the tap if someone listens; never blocks."""
+        master, poller = self._tap_master, self._tap_poll
+        if master is None or poller is None:
+            return
+        events = poller.poll(0)
+        if events and events[0][1] & select.POLLHUP:
+            if self._tap_listening:
+                # The listener went: drop what it left unread, or the next one would
+                # start with stale bytes.
+                self._tap_listening = False
+                with contextlib.suppress(OSError):
+                    termios.tcflush(master, termios.TCOFLUSH)
+            return
+        self._tap_listening = True
+        try:
+            n = os.write(master, data)
+        except BlockingIOError:
+            n = 0
+        except OSError as err:
+            _log.debug("writing the tap failed: %s", err)
+            n = 0
+        self.tap_bytes += n
+        self.tap_dropped_bytes += len(data) - n
 
     def _close_pty(self) -> None:
         self._open.clear()
@@ -256,12 +359,17 @@ class PtySim:
                     _log.warning("reading the pty master failed: %s", err)
                     continue
                 if data:
-                    bus.receive(data, time.monotonic())
+                    now = time.monotonic()
+                    if self._tap_master is not None:
+                        self._copy_to_tap(data)
+                    bus.receive(data, now)
 
     def _write(self, data: bytes) -> None:
         master = self._master
         if master is None:
             return
+        if self._tap_master is not None:
+            self._copy_to_tap(data)
         view = memoryview(data)
         while view:
             try:
@@ -278,7 +386,7 @@ class PtySim:
 
     def _write_log(self, record: LogRecord) -> None:
         if self._log_stream is not None:
-            self._log_stream.write(json.dumps(record) + "\n")
+            self._log_stream.write(json.dumps(framelog.from_sim(record)) + "\n")
             self._log_stream.flush()
         if self._user_log is not None:
             self._user_log(record)

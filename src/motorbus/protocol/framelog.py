@@ -1,0 +1,287 @@
+"""The frame log: one JSON-lines format for what crossed a bus (docs/frame-log.md).
+
+Written by ``motorbus capture``, by ``motorbus sim --log`` (and so by the demo's
+``la-bus-frames.jsonl``), read by ``motorbus replay``.  Pure code: the callers open the
+files and read the clock; this module builds, checks and translates the JSON values.
+
+A log is a sequence of *sessions*.  Each starts with a header line::
+
+    {"format": "motorbus-frame-log", "version": 1, "source": "capture", ...}
+
+followed by one record a line::
+
+    {"t": 0.012345, "kind": "frame", "direction": "request", "family": "la",
+     "name": "Control", "fields": {...}, "hex": "55 AA 03 01 04 00 22 2A"}
+
+``t`` counts seconds from the start of its session.  The simulator appends to its log,
+so one file can hold several sessions; a reader keeps them apart by their headers.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol.base import Direction, Family, parse_hex
+from motorbus.protocol.describe import (
+    KIND_EVENT,
+    KIND_FRAME,
+    KIND_GARBAGE,
+    NAME_GARBAGE,
+    Description,
+    describe,
+)
+from motorbus.protocol.reassembler import Reassembler
+
+__all__ = [
+    "FORMAT",
+    "KINDS",
+    "KIND_LINK",
+    "REQUIRED_KEYS",
+    "SOURCES",
+    "TIME_DECIMALS",
+    "VERSION",
+    "FrameLog",
+    "describe_record",
+    "from_description",
+    "from_sim",
+    "header",
+    "read_frame_log",
+]
+
+#: Value of the header's ``format`` key.
+FORMAT = "motorbus-frame-log"
+#: Version of the format this module writes; a reader refuses newer versions.
+VERSION = 1
+#: Decimal places of ``t`` (one microsecond).
+TIME_DECIMALS = 6
+#: A change of the simulated link (disconnect fault): ``name`` is ``"down"`` or ``"up"``.
+KIND_LINK = "link"
+KINDS = frozenset((KIND_FRAME, KIND_EVENT, KIND_GARBAGE, KIND_LINK))
+#: Who wrote a session.
+SOURCES = frozenset(("capture", "sim"))
+#: Keys every record has.
+REQUIRED_KEYS = ("t", "kind", "hex")
+#: Keys of the simulator's own log callback records (``SimBus(log=...)``), which the
+#: simulator wrote to its ``--log`` file before version 1.
+_SIM_KEYS = ("t", "dir", "hex")
+_DISCARDED = "discarded: "
+
+
+def header(
+    source: str,
+    *,
+    started_utc: str,
+    families: Iterable[Family | str],
+    baud: int | None = None,
+    port: str | None = None,
+    **extra: Any,
+) -> dict[str, Any]:
+    """Return the header line of a new session.
+
+    Args:
+        source: ``"capture"`` or ``"sim"``.
+        started_utc: wall-clock time of ``t = 0``, ISO 8601 in UTC (``...Z``).
+        families: the device families on the bus.
+        baud: the line rate in bit/s.
+        port: the device path the writer served or listened on.
+        extra: writer-specific keys (the simulator adds ``link`` and ``tap``).
+    """
+    names = sorted(f.value if isinstance(f, Family) else str(f) for f in families)
+    doc: dict[str, Any] = {
+        "format": FORMAT,
+        "version": VERSION,
+        "source": source,
+        "started_utc": started_utc,
+        "families": names,
+        "baud": baud,
+        "port": port,
+    }
+    doc.update({k: v for k, v in extra.items() if v is not None})
+    return doc
+
+
+def from_description(t: float, d: Description) -> dict[str, Any]:
+    """Return the record of a described item seen ``t`` seconds into the session."""
+    return {"t": round(t, TIME_DECIMALS), **d.to_json()}
+
+
+def from_sim(record: Mapping[str, Any]) -> dict[str, Any]:
+    """Translate one record of the simulator's log callback into a frame-log record.
+
+    The simulator knows what it cut and sent, so the record says ``kind``, ``direction``
+    and ``family`` without decoding (which would cost the simulator's thread ~50 us a
+    frame); ``name`` and ``fields`` are left out, and readers decode ``hex`` themselves
+    (:func:`describe_record`).
+
+    Raises:
+        KeyError: ``t``, ``dir`` or ``hex`` is missing.
+    """
+    direction = str(record["dir"])
+    t = round(float(record["t"]), TIME_DECIMALS)
+    hex_ = str(record["hex"])
+    family = record.get("family")
+    fault = record.get("fault")
+    out: dict[str, Any]
+    if direction == "link":
+        out = {"t": t, "kind": KIND_LINK, "direction": None, "family": None}
+        out["name"] = "down" if fault == "disconnect" else "up"
+        out["hex"] = ""
+    elif direction == "rx":
+        out = {"t": t, "direction": Direction.REQUEST.value, "family": family}
+        if family is None:
+            out["kind"] = KIND_GARBAGE
+            out["name"] = NAME_GARBAGE
+            reason = str(fault or "discarded")
+            out["reason"] = reason.removeprefix(_DISCARDED)
+            fault = None
+        else:
+            out["kind"] = KIND_FRAME
+        out["hex"] = hex_
+    else:
+        out = {"t": t, "direction": Direction.REPLY.value, "family": family}
+        out["kind"] = KIND_EVENT if hex_ == "EE DD" else KIND_FRAME
+        out["hex"] = hex_
+    if fault is not None:
+        out["fault"] = str(fault)
+    return out
+
+
+@dataclass(slots=True)
+class FrameLog:
+    """What :func:`read_frame_log` found.
+
+    Attributes:
+        headers: the header of each session, in file order (``{}`` for a session that
+            had none: a capture written before version 1).
+        records: every record, each with ``"session"`` (index into ``headers``) and
+            ``"line"`` (its line number) added, old simulator records translated
+            (:func:`from_sim`).
+        translated: how many old simulator records were translated.
+    """
+
+    headers: list[dict[str, Any]] = field(default_factory=list)
+    records: list[dict[str, Any]] = field(default_factory=list)
+    translated: int = 0
+
+
+def read_frame_log(lines: Iterable[str], name: str = "frame log") -> FrameLog:
+    """Parse the lines of a frame log (blank lines are skipped).
+
+    Also reads what older versions wrote: captures without a header line, and the
+    simulator's ``{t, dir, hex, family, fault}`` lines, translated with :func:`from_sim`.
+
+    Raises:
+        LocalProtocolError: a line that is not JSON, not an object, lacks a required
+            key, has a bad ``t``/``kind``/``hex``, or a header of another format or a
+            newer version.  The message names ``name``, the line number and the key.
+    """
+    log = FrameLog()
+    for n, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        where = f"{name} line {n}"
+        try:
+            value = json.loads(line)
+        except ValueError as err:
+            raise LocalProtocolError(f"{where} is not JSON: {err}", field="file") from err
+        if not isinstance(value, dict):
+            raise LocalProtocolError(
+                f"{where} is not a frame-log record: a JSON {type(value).__name__}, "
+                "expected an object",
+                field="file",
+            )
+        if "format" in value:
+            log.headers.append(_check_header(value, where))
+            continue
+        if not log.headers:
+            log.headers.append({})
+        if "kind" not in value and all(k in value for k in _SIM_KEYS):
+            value = from_sim(value)
+            log.translated += 1
+        record = _check_record(value, where)
+        log.records.append({**record, "session": len(log.headers) - 1, "line": n})
+    return log
+
+
+def _check_header(value: dict[str, Any], where: str) -> dict[str, Any]:
+    if value.get("format") != FORMAT:
+        raise LocalProtocolError(
+            f"{where}: format={value.get('format')!r} is not {FORMAT!r}", field="file"
+        )
+    version = value.get("version")
+    if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= VERSION:
+        raise LocalProtocolError(
+            f"{where}: version={version!r} is not one this motorbus reads (1..{VERSION})",
+            field="file",
+        )
+    return value
+
+
+def _check_record(value: dict[str, Any], where: str) -> dict[str, Any]:
+    for key in REQUIRED_KEYS:
+        if key not in value:
+            raise LocalProtocolError(
+                f"{where} is not a frame-log record: missing key {key!r} "
+                f"(every record has {', '.join(REQUIRED_KEYS)})",
+                field="file",
+            )
+    t = value["t"]
+    if isinstance(t, bool) or not isinstance(t, int | float) or t != t:
+        raise LocalProtocolError(f"{where}: t={t!r} is not a number of seconds", field="file")
+    kind = value["kind"]
+    if kind not in KINDS:
+        raise LocalProtocolError(
+            f"{where}: kind={kind!r} is not one of {', '.join(sorted(KINDS))}", field="file"
+        )
+    try:
+        parse_hex(str(value["hex"])) if value["hex"] else b""
+    except ValueError as err:
+        raise LocalProtocolError(f"{where}: hex={value['hex']!r}: {err}", field="file") from err
+    return value
+
+
+def describe_record(record: Mapping[str, Any]) -> list[Description]:
+    """The description(s) of a record, for printing.
+
+    A record that carries ``name`` (a capture) is described from its own keys.  One
+    without (the simulator's) is decoded from ``hex``: cut with the reassembler of its
+    direction and family, so a reply the simulator corrupted on purpose (``fault``)
+    shows as the frame and garbage a listener would see.  A link record gives ``[]``.
+    """
+    kind = str(record["kind"])
+    if kind == KIND_LINK:
+        return []
+    hex_ = str(record["hex"])
+    if "name" in record:
+        return [
+            Description(
+                kind=kind,
+                family=record.get("family"),
+                direction=record.get("direction"),
+                name=str(record["name"]),
+                fields=dict(record.get("fields") or {}),
+                hex=hex_,
+                reason=record.get("reason"),
+            )
+        ]
+    if kind == KIND_GARBAGE:
+        return [Description(KIND_GARBAGE, None, None, NAME_GARBAGE, {}, hex_, record.get("reason"))]
+    raw = parse_hex(hex_)
+    direction = _enum(Direction, record.get("direction"))
+    family = _enum(Family, record.get("family"))
+    cutter = Reassembler(
+        direction=direction, families=(family,) if family is not None else tuple(Family)
+    )
+    items = cutter.feed(raw) + cutter.end_of_stream()
+    return [describe(item, family_hint=family) for item in items]
+
+
+def _enum(cls: Any, value: object) -> Any:
+    try:
+        return cls(value) if value is not None else None
+    except ValueError:
+        return None
