@@ -3,8 +3,9 @@
 The bus owns one port.  Everything written to the port goes through one queue, in
 priority order (an emergency stop jumps it), and a frame's write starts only when
 
-* at least ``min_spacing`` (1 ms, LA manual 3.4.2, docs/protocols.md C.6) has passed since the previous
-  write *returned* (and the previous frame's own wire time, if longer).  The anchor
+* at least ``min_spacing`` (1 ms, LA manual 3.4.2, docs/protocols.md C.6) has passed
+  since the previous write *returned* (and the previous frame's own wire time, if
+  longer).  The anchor
   is the moment the write call came back, not a timestamp taken before it: a process
   preempted between reading the clock and writing would otherwise write later than
   its timestamp says, and the kernel would see two frames closer than the rule;
