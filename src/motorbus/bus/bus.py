@@ -37,6 +37,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
+from motorbus import realtime
 from motorbus.bus.events import (
     BusStateChanged,
     EventHub,
@@ -271,6 +272,7 @@ class Bus:
         if self.state is BusState.OPEN:
             return
         self._closing = False
+        realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
         self._check_adapter_latency()

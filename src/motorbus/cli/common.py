@@ -19,6 +19,7 @@ from typing import Any, TextIO
 
 from motorbus.bus.bus import Bus
 from motorbus.cli.main import UsageError
+from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
@@ -89,6 +90,7 @@ def add_bus_options(
         default=DEFAULT_BACKEND,
         help=f"serial backend (default {DEFAULT_BACKEND})",
     )
+    add_realtime_option(parser)
     if json_option:
         add_json_option(parser)
 

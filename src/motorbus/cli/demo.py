@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from motorbus.bus.manager import BusManager
+from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
@@ -58,6 +59,7 @@ def register(sub: Any) -> None:
     p.add_argument("--out", default="motorbus-demo", help="folder for the plot and summary")
     p.add_argument("--backend", default="fast", help="serial backend: fast, serialx, ...")
     p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_realtime_option(p)
     p.set_defaults(func=run)
 
 
