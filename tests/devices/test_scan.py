@@ -73,7 +73,8 @@ async def test_the_budget_follows_replies_measured_before_the_scan(
         bus.stats.device("la:1").latency.record(0.004)  # this host answers in 4 ms
         assert await scan(bus, [1, 2], report=report) == [1]
     assert report.passes[0].budget_s == pytest.approx(device.SCAN_MEASURED_FACTOR * 0.004)
-    assert report.passes[1].budget_s >= report.passes[0].budget_s + 600e-6
+    extra = device.SCAN_SECOND_PASS_EXTRA_S
+    assert report.passes[1].budget_s >= report.passes[0].budget_s + extra
 
 
 async def test_the_adaptive_budget_never_exceeds_the_ceiling() -> None:

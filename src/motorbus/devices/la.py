@@ -223,7 +223,7 @@ def _tenths(field: str, degrees: object) -> int:
 #: that misses it is still seen (a late reply) and its ID is asked again, patiently.
 SCAN_HOST_ALLOWANCE_S = 300e-6
 #: The second pass gives every ID at least this much more than the first pass did...
-SCAN_SECOND_PASS_EXTRA_S = 600e-6
+SCAN_SECOND_PASS_EXTRA_S = 400e-6
 #: ... or this share of the first pass's budget, whichever is more (slow baud rates).
 SCAN_SECOND_PASS_SHARE = 0.25
 #: The budget follows what the bus measured: at least this times the p99 reply latency
@@ -394,24 +394,40 @@ async def scan(
         out.passes.append(this)
         pass_start = clock()
         late_before = {i: budget.late_count(i) for i in remaining}
-        for i in remaining:
-            per_id = max(regular, SCAN_LATE_BUDGET_S) if i in late else regular
-            this.tried.append(i)
-            try:
-                await bus.request(
+        # The whole pass is queued at once: the bus sends each query from the timer
+        # callback that ends the previous one, without a round through this task
+        # (requests of a higher priority still go first).
+        queued = [
+            (
+                i,
+                bus.submit(
                     la.Control(i, la.ControlAction.QUERY_STATUS),
-                    timeout=per_id,
+                    timeout=max(regular, SCAN_LATE_BUDGET_S) if i in late else regular,
                     retries=0,
                     priority=Priority.BACKGROUND,
-                )
-            except ReplyTimeoutError:
-                hit = False
-            else:
-                hit = True
-                found.add(i)
-                this.found.append(i)
-            if progress is not None and (hit or last):
-                progress(i, total, hit)
+                ),
+            )
+            for i in remaining
+        ]
+        try:
+            for i, future in queued:
+                this.tried.append(i)
+                try:
+                    await future
+                except ReplyTimeoutError:
+                    hit = False
+                else:
+                    hit = True
+                    found.add(i)
+                    this.found.append(i)
+                if progress is not None and (hit or last):
+                    progress(i, total, hit)
+        finally:
+            for _, future in queued:
+                if not future.done():
+                    future.cancel()  # the scan was cancelled or failed: drop the rest
+                elif not future.cancelled():
+                    future.exception()  # retrieved: no "never retrieved" warning
         this.seconds = clock() - pass_start
         remaining = [i for i in remaining if i not in found]
         # A late reply to ID i arrives while a later ID is being asked: count them now.
