@@ -94,15 +94,40 @@ async def test_stepper_latencies_do_not_shape_the_la_budget() -> None:
 
 
 async def test_a_late_answer_is_asked_again_patiently() -> None:
-    # Every reply is held back 5 ms: beyond both adaptive budgets, so only the late
+    # Every reply is held back 25 ms: beyond both adaptive budgets, so only the late
     # reply says the actuator is there; the second pass gives it SCAN_LATE_BUDGET_S.
-    faults = FaultConfig(late_reply_rate=1.0, late_reply_delay_s=0.005)
+    faults = FaultConfig(late_reply_rate=1.0, late_reply_delay_s=0.025)
     async with sim_bus([LAModel(2)], faults=faults) as (bus, _):
         report = ScanReport()
-        assert await scan(bus, range(2, 13), report=report) == [2]
-    assert report.passes[0].found == [] and report.passes[0].late == [2]
+        seen: list[tuple[int, bool]] = []
+        found = await scan(
+            bus, range(2, 40), report=report, progress=lambda i, n, hit: seen.append((i, hit))
+        )
+    assert found == [2], (
+        report.as_dict()["passes"],
+        bus.stats.as_dict()["devices"]["la:2"],
+        bus.stats.late_replies,
+        bus.stats.unexpected_frames,
+    )
+    assert report.passes[0].found == [] and report.passes[0].late == [2], report.as_dict()
     assert report.passes[1].found == [2]
     assert bus.stats.late_replies >= 1
+    assert sorted(seen) == [(2, True)] + [(i, False) for i in range(3, 40)]
+
+
+async def test_a_late_answer_in_the_second_pass_gets_one_patient_query() -> None:
+    # la:7 misses its first query, and its second answer comes 25 ms late: it is
+    # asked a third time, with SCAN_LATE_BUDGET_S.
+    faults = FaultConfig(late_reply_rate=1.0, late_reply_delay_s=0.025)
+    async with sim_bus([LAModel(7, silent_replies=1)], faults=faults) as (bus, _):
+        report = ScanReport()
+        seen: list[int] = []
+        assert await scan(
+            bus, range(1, 40), report=report, progress=lambda i, n, h: seen.append(i)
+        ) == [7]
+    assert report.passes[0].late == [] and report.passes[1].found == [7]
+    assert report.passes[1].tried.count(7) == 2
+    assert sorted(seen) == list(range(1, 40))  # still once per ID
 
 
 async def test_an_id_that_only_ever_answers_late_is_reported_not_found() -> None:
@@ -123,14 +148,14 @@ async def test_one_pass_and_a_fixed_timeout_are_the_old_scan() -> None:
         found = await scan(
             bus,
             range(1, 6),
-            timeout=0.010,
+            timeout=0.050,
             passes=1,
             progress=lambda i, n, hit: seen.append(i),
             report=report,
         )
     assert found == [1]  # 4 missed its only query
     assert seen == [1, 2, 3, 4, 5]  # one pass: progress in ID order
-    assert [p.budget_s for p in report.passes] == [0.010]
+    assert [p.budget_s for p in report.passes] == [0.050]
 
 
 async def test_a_fixed_timeout_holds_for_both_passes() -> None:
@@ -165,7 +190,8 @@ async def test_the_report_is_json_ready() -> None:
         await scan(bus, [1, 2], report=report)
     doc = report.as_dict()
     assert doc["found"] == [1] and len(doc["passes"]) == 2  # type: ignore[arg-type]
-    assert doc["passes"][0]["tried"] == 2 and doc["passes"][1]["tried"] == 1  # type: ignore[index]
+    assert doc["passes"][0]["tried"] == 2  # type: ignore[index]
+    assert set(doc["passes"][0]) == {"budget_ms", "tried", "found", "late", "seconds"}  # type: ignore[index]
 
 
 def test_the_model_option_silences_only_the_first_replies() -> None:

@@ -234,8 +234,13 @@ SCAN_MEASURED_FACTOR = 1.25
 #: the floor at slow baud rates.
 SCAN_BUDGET_MAX_S = 0.010
 #: An ID whose answer came after its budget (a late reply: it is there, the host is
-#: slow) is asked again in the second pass with this budget.
+#: slow) is asked again with this budget: in the second pass, or at its end if the
+#: late answer came during it.
 SCAN_LATE_BUDGET_S = 0.050
+#: After each pass of a two-pass scan, the scan waits this long (or two budgets, if
+#: more) for late answers to the last IDs asked: an ID is only asked again patiently
+#: if its late answer was seen.
+SCAN_LATE_DRAIN_S = 0.010
 #: Scans run one or two passes.
 SCAN_PASSES_MAX = 2
 
@@ -354,9 +359,10 @@ async def scan(
     800 us by the manual), plus :data:`SCAN_HOST_ALLOWANCE_S` - or more, if the
     replies already measured on the bus (``bus.stats``) need it.  A second pass asks
     the IDs that did not answer again with a longer budget (an actuator that missed
-    the first query is found too); an ID whose answer came after its budget gets
-    :data:`SCAN_LATE_BUDGET_S`.  An absent ID costs its budget (at least the 1 ms bus
-    spacing): 254 IDs take ~0.9 s at 921600 bit/s, instead of ~2.8 s with a fixed 10 ms.
+    the first query is found too); an ID whose answer came after its budget is asked
+    once more with :data:`SCAN_LATE_BUDGET_S`.  An absent ID costs its budget (at least
+    the 1 ms bus spacing): 254 IDs take ~0.85 s at 921600 bit/s on an unloaded host,
+    instead of ~2.8 s with a fixed 10 ms.
 
     Args:
         bus: an open bus carrying ``Family.LA``.
@@ -364,8 +370,8 @@ async def scan(
         timeout: a fixed per-ID budget in seconds for every pass (default: adaptive).
         passes: 1 (each ID asked once) or 2 (default: the missing IDs again).
         progress: called once per ID when its outcome is final, as
-            ``progress(id, total, found)``: in the first pass for the IDs that answer,
-            in the last pass for the others.
+            ``progress(id, total, found)``: as soon as an ID answers, and for the IDs
+            that did not, at the end of the scan (with one pass: at once).
         report: a :class:`ScanReport` to fill in (budgets, passes, late IDs, timing).
 
     Returns:
@@ -378,63 +384,123 @@ async def scan(
     if timeout is not None:
         check_timeout("timeout", timeout, REQUEST_TIMEOUT_MAX_S)
     check_int("passes", passes, 1, SCAN_PASSES_MAX)
-    budget = _ScanBudget(bus, timeout)
+    scanner = _Scanner(bus, _ScanBudget(bus, timeout), candidates, progress)
     out = report if report is not None else ScanReport()
-    out.floor_s = budget.floor
-    clock = bus.timer.now
-    started = clock()
-    total = len(candidates)
-    found: set[int] = set()
-    late: set[int] = set()
+    out.floor_s = scanner.budget.floor
+    started = scanner.clock()
     remaining = candidates
     for n in range(passes):
+        remaining = await scanner.run_pass(n, passes, remaining, out)
+    if passes > 1:
+        # Misses are final only now: an ID whose late answer came during the scan
+        # was asked patiently at the end of the last pass.
+        for i in remaining:
+            scanner.tell(i, False)
+    out.found = sorted(scanner.found)
+    out.late = sorted(i for i in remaining if scanner.answered_late(i))
+    out.seconds = scanner.clock() - started
+    return out.found
+
+
+class _Scanner:
+    """The state of one :func:`scan` across its passes."""
+
+    def __init__(
+        self,
+        bus: Bus,
+        budget: _ScanBudget,
+        candidates: list[int],
+        progress: Callable[[int, int, bool], None] | None,
+    ) -> None:
+        self.bus = bus
+        self.budget = budget
+        self.total = len(candidates)
+        self.progress = progress
+        self.clock = bus.timer.now
+        self.found: set[int] = set()
+        self.patient: set[int] = set()  # asked with SCAN_LATE_BUDGET_S already
+        self._late_at_start = {i: budget.late_count(i) for i in candidates}
+
+    def tell(self, ident: int, hit: bool) -> None:
+        if self.progress is not None:
+            self.progress(ident, self.total, hit)
+
+    def answered_late(self, ident: int) -> bool:
+        """A reply from ``ident`` came after its budget at some point of this scan."""
+        return self.budget.late_count(ident) > self._late_at_start[ident]
+
+    async def run_pass(
+        self, n: int, passes: int, remaining: list[int], out: ScanReport
+    ) -> list[int]:
+        """Ask ``remaining`` once (the late ones patiently); return the IDs still missing."""
         last = n == passes - 1
+        budget = self.budget
         regular = budget.first if n == 0 else budget.second()
+        late_budget = max(regular, SCAN_LATE_BUDGET_S)
         this = ScanPass(regular)
         out.passes.append(this)
-        pass_start = clock()
+        pass_start = self.clock()
         late_before = {i: budget.late_count(i) for i in remaining}
-        # The whole pass is queued at once: the bus sends each query from the timer
-        # callback that ends the previous one, without a round through this task
-        # (requests of a higher priority still go first).
-        queued = [
-            (
-                i,
-                bus.submit(
-                    la.Control(i, la.ControlAction.QUERY_STATUS),
-                    timeout=max(regular, SCAN_LATE_BUDGET_S) if i in late else regular,
-                    retries=0,
-                    priority=Priority.BACKGROUND,
-                ),
-            )
-            for i in remaining
-        ]
-        try:
-            for i, future in queued:
-                this.tried.append(i)
-                try:
-                    await future
-                except ReplyTimeoutError:
-                    hit = False
-                else:
-                    hit = True
-                    found.add(i)
-                    this.found.append(i)
-                if progress is not None and (hit or last):
-                    progress(i, total, hit)
-        finally:
-            for _, future in queued:
-                if not future.done():
-                    future.cancel()  # the scan was cancelled or failed: drop the rest
-                elif not future.cancelled():
-                    future.exception()  # retrieved: no "never retrieved" warning
-        this.seconds = clock() - pass_start
-        remaining = [i for i in remaining if i not in found]
-        # A late reply to ID i arrives while a later ID is being asked: count them now.
-        newly_late = {i for i in remaining if budget.late_count(i) > late_before[i]}
-        this.late = sorted(newly_late)
-        late = newly_late | (late & set(remaining))
-    out.found = sorted(found)
-    out.late = sorted(late)
-    out.seconds = clock() - started
-    return out.found
+
+        def result(ident: int, hit: bool) -> None:
+            this.tried.append(ident)
+            if hit:
+                self.found.add(ident)
+                this.found.append(ident)
+                self.tell(ident, True)
+            elif passes == 1:
+                self.tell(ident, False)  # one pass: every outcome is final at once
+
+        patient = {i for i in remaining if n > 0 and self.answered_late(i)}
+        self.patient |= patient
+        asks = [(i, late_budget if i in patient else regular) for i in remaining]
+        await _ask_all(self.bus, asks, result)
+        remaining = [i for i in remaining if i not in self.found]
+        if remaining and passes > 1:
+            # Late answers to the last IDs asked are still on their way: wait for them.
+            await self.bus.timer.sleep_until(self.clock() + max(SCAN_LATE_DRAIN_S, 2 * regular))
+        if last and passes > 1:
+            again = [i for i in remaining if self.answered_late(i) and i not in self.patient]
+            self.patient.update(again)
+            await _ask_all(self.bus, [(i, late_budget) for i in again], result)
+            remaining = [i for i in remaining if i not in self.found]
+        this.seconds = self.clock() - pass_start
+        this.late = sorted(i for i in late_before if budget.late_count(i) > late_before[i])
+        return remaining
+
+
+async def _ask_all(
+    bus: Bus, asks: list[tuple[int, float]], result: Callable[[int, bool], None]
+) -> None:
+    """Status-query each ``(id, budget)`` once; ``result(id, answered)`` in order.
+
+    The whole list is queued at once: the bus sends each query from the timer callback
+    that ends the previous one, without a round through this task (requests of a
+    higher priority still go first).
+    """
+    queued = [
+        (
+            ident,
+            bus.submit(
+                la.Control(ident, la.ControlAction.QUERY_STATUS),
+                timeout=per_id,
+                retries=0,
+                priority=Priority.BACKGROUND,
+            ),
+        )
+        for ident, per_id in asks
+    ]
+    try:
+        for ident, future in queued:
+            try:
+                await future
+            except ReplyTimeoutError:
+                result(ident, False)
+            else:
+                result(ident, True)
+    finally:
+        for _, future in queued:
+            if not future.done():
+                future.cancel()  # the scan was cancelled or failed: drop the rest
+            elif not future.cancelled():
+                future.exception()  # retrieved: no "never retrieved" warning
