@@ -211,6 +211,10 @@ def test_gc_state_after_enable_and_disable(monkeypatch: pytest.MonkeyPatch) -> N
     assert gc.get_threshold() == (threshold[0], threshold[1], realtime.GEN2_THRESHOLD_OFF)
     assert gc.isenabled() and realtime.gc_controlled()
     assert realtime.refreeze() >= report.gc_frozen
+    again = realtime.enable(lock_memory=False)  # a second call keeps the saved thresholds
+    assert gc.get_threshold()[2] == realtime.GEN2_THRESHOLD_OFF and again._threshold is None
+    realtime.disable(again)
+    assert realtime.gc_controlled()
     realtime.disable(report)
     assert gc.get_freeze_count() == 0 and gc.get_threshold() == threshold
     assert not realtime.gc_controlled()

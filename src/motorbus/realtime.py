@@ -316,6 +316,10 @@ def gc_controlled() -> bool:
 
 
 def _control_gc(report: RealtimeReport) -> None:
+    if _gc.active:  # an earlier enable() controls it already: freeze what is new
+        report.gc_frozen = refreeze()
+        report.applied.append(f"gc already controlled, refrozen ({report.gc_frozen} objects)")
+        return
     threshold = gc.get_threshold()
     report._threshold = threshold
     report._gc_was_enabled = gc.isenabled()

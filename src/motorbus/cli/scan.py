@@ -14,8 +14,10 @@ Each ID gets a status query; the IDs that did not answer get a second one with a
 longer budget (``--passes 1`` turns that off).  The per-ID budget adapts to the bus:
 the wire time of the query and its reply at the baud rate, the actuator's worst-case
 turnaround (800 us), a small host allowance, or more if the replies seen need it; an
-actuator whose answer came late is asked again with 50 ms.  254 IDs take about 0.9 s
-at 921600 bit/s.  ``--timeout`` fixes the budget instead.
+actuator whose answer came late is asked again with 50 ms.  254 IDs take about 0.85 s
+at 921600 bit/s (more on a busy machine, where each absent ID also waits for its
+wake-up: ``--realtime`` helps), against ~2.8 s with the old fixed 10 ms.  ``--timeout``
+fixes the budget instead.
 
 ``--baud all`` tries every rate an LA actuator can be set to (19200, 57600, 115200,
 921600 bit/s), reopening the port at each, and prints which IDs answered at which.
