@@ -160,3 +160,16 @@ async def test_scan_bauds_passes_the_budget_options_through() -> None:
     assert opened == [921600, 115200]
     assert [p.budget_s for p in reports[921600].passes] == [0.004]
     assert reports[921600].found == [5] and reports[115200].found == []
+
+
+def test_realtime_option_and_variable_reach_the_bus(scan_sim: SimProcess) -> None:
+    r = cli("--debug", "scan", "--ids", "2", "--realtime=20", "--port", scan_sim.path)
+    assert (r.returncode, r.stdout) == (0, "2\n"), r.stderr
+    (line,) = [ln for ln in r.stderr.splitlines() if "real-time mode:" in ln]
+    assert "SCHED_FIFO 20" in line or "refused sched_fifo" in line  # applied, or said why not
+    r = cli("scan", "--ids", "2", "--port", scan_sim.path, env={"MOTORBUS_REALTIME": "abc"})
+    assert r.returncode == 2 and r.stdout == ""
+    assert r.stderr.strip() == (
+        "motorbus scan: MOTORBUS_REALTIME='abc' is not allowed: use 0 or empty (off), "
+        "1 (on, priority 50) or a SCHED_FIFO priority 2..99"
+    )
