@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any
 
-from motorbus import shutdown
+from motorbus import realtime, shutdown
 from motorbus.bus.events import (
     BusStateChanged,
     EventHub,
@@ -326,6 +326,7 @@ class Bus:
             return
         self._closing = False
         self._new_reassembler()
+        realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
         shutdown.register_bus(self)

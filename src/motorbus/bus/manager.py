@@ -39,7 +39,7 @@ from typing import Any
 
 import anyio
 
-from motorbus import shutdown
+from motorbus import realtime, shutdown
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus, Priority
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
@@ -374,6 +374,7 @@ class BusManager:
 
     async def open(self) -> None:
         """Open every bus concurrently; if one fails, close the others and raise."""
+        realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
         for i, (name, spec) in enumerate(self.specs.items()):
             transport = self._transports.get(name) or open_transport(
                 spec.url,

@@ -25,6 +25,7 @@ from typing import Any, TextIO
 
 from motorbus.bus.bus import Bus
 from motorbus.cli.main import UsageError
+from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
@@ -128,6 +129,7 @@ def add_bus_options(
         help=f"the [[bus]] table of the bus file to use (default: ${BUS_ENV}; "
         "needed if the file has several)",
     )
+    add_realtime_option(parser)
     parser.set_defaults(_default_baud=default_baud)
     if json_option:
         add_json_option(parser)

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
 from motorbus.bus.manager import BusManager
+from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
@@ -75,6 +76,7 @@ def register(sub: Any) -> None:
         action="store_true",
         help="print the summary as one JSON document on stdout (everything else on stderr)",
     )
+    add_realtime_option(p)
     p.set_defaults(func=run)
 
 

@@ -2,36 +2,85 @@
 
 Example::
 
-    $ motorbus scan --port /dev/ttyUSB0 --ids 1-20
+    $ motorbus scan --port /dev/ttyUSB0
     1,2,3
+    $ motorbus scan --port /dev/ttyUSB0 --baud all
+    19200: none
+    57600: none
+    115200: 7
+    921600: 1,2,3
 
-Each ID gets one status query (no retry).  Progress goes to standard error: a bar
-redrawn in place on a terminal, a line every tenth of the way otherwise.  The IDs that
-answered are printed as a comma-separated list (ready for ``--ids``), or as JSON.
-The exit code is 1 if no actuator answered.
+Each ID gets a status query; the IDs that did not answer get a second one with a
+longer budget (``--passes 1`` turns that off).  The per-ID budget adapts to the bus:
+the wire time of the query and its reply at the baud rate, the actuator's worst-case
+turnaround (800 us), a small host allowance, or more if the replies seen need it; an
+actuator whose answer came late is asked again with 50 ms.  254 IDs take about 0.85 s
+at 921600 bit/s (more on a busy machine, where each absent ID also waits for its
+wake-up: ``--realtime`` helps), against ~2.8 s with the old fixed 10 ms.  ``--timeout``
+fixes the budget instead.
+
+``--baud all`` tries every rate an LA actuator can be set to (19200, 57600, 115200,
+921600 bit/s), reopening the port at each, and prints which IDs answered at which.
+
+Progress goes to standard error: a bar redrawn in place on a terminal, a line every
+tenth of the way otherwise, then one summary line.  The IDs that answered are printed
+as a comma-separated list (ready for ``--ids``), or as JSON.  The exit code is 1 if no
+actuator answered.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import copy
 import sys
+from collections.abc import Callable, Sequence
+from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
+from motorbus.bus.bus import Bus
 from motorbus.cli.common import LA_BAUD, add_bus_options, check_seconds, open_bus, parse_ids
 from motorbus.cli.common import print_json as _print_json
-from motorbus.devices.la import scan
-from motorbus.protocol.base import Family
+from motorbus.devices.la import SCAN_PASSES_MAX, ScanReport, scan
+from motorbus.protocol import la
+from motorbus.protocol.base import Family, check_int
 
-__all__ = ["SCAN_TIMEOUT_S", "ProgressBar", "register", "run"]
+__all__ = [
+    "ALL_BAUDS",
+    "SCAN_TIMEOUT_S",
+    "ProgressBar",
+    "parse_baud",
+    "register",
+    "run",
+    "scan_bauds",
+]
 
-#: Default reply budget per ID (seconds): the LA answers within 800 us (manual 3.4.2);
-#: 10 ms also covers a USB adapter's latency timer, and keeps a full scan near 3 s.
-SCAN_TIMEOUT_S = 0.010
+#: Default reply budget per ID: ``None`` is adaptive (see ``motorbus.devices.la.scan``).
+#: Scans used a fixed 10 ms before, which kept 254 IDs near 3 s.
+SCAN_TIMEOUT_S: float | None = None
+#: ``--baud all``: every rate of the LA baud codes (control table 12, slowest first).
+ALL_BAUDS = tuple(code.baud for code in la.BaudCode)
 #: Width of the text progress bar, in characters.
 BAR_WIDTH = 30
 #: Without a terminal, a progress line is printed every this share of the IDs.
 LINE_EVERY_SHARE = 0.1
+
+
+def parse_baud(text: str) -> int | None:
+    """``--baud``: a rate in bit/s, or ``all`` (returned as ``None``).
+
+    Raises:
+        argparse.ArgumentTypeError: anything else.
+    """
+    if text.strip().lower() == "all":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"--baud={text!r} is not a rate in bit/s or 'all' "
+            f"({', '.join(str(b) for b in ALL_BAUDS)})"
+        ) from None
 
 
 def register(subparsers: Any) -> None:
@@ -41,15 +90,28 @@ def register(subparsers: Any) -> None:
         help="find the LA actuators that answer on a bus",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
+        conflict_handler="resolve",  # our --baud (which takes "all") replaces the common one
     )
     p.add_argument("--ids", default="1-254", help="IDs to try, e.g. 1-20,100 (default 1-254)")
     p.add_argument(
         "--timeout",
         type=float,
         default=SCAN_TIMEOUT_S,
-        help=f"reply budget per ID in seconds (default {SCAN_TIMEOUT_S})",
+        help="fixed reply budget per ID in seconds (default: adaptive, ~1.4 ms at 921600)",
+    )
+    p.add_argument(
+        "--passes",
+        type=int,
+        default=SCAN_PASSES_MAX,
+        help=f"1: ask each ID once; 2: ask the missing IDs again (default {SCAN_PASSES_MAX})",
     )
     add_bus_options(p, default_baud=LA_BAUD)
+    p.add_argument(
+        "--baud",
+        type=parse_baud,
+        default=LA_BAUD,
+        help=f"bit/s (default {LA_BAUD}), or 'all': {', '.join(str(b) for b in ALL_BAUDS)}",
+    )
     p.set_defaults(func=run)
 
 
@@ -60,11 +122,15 @@ class ProgressBar:
         out: the stream (default standard error).
         tty: redraw one line in place (default: ``out.isatty()``); else print a line
             every :data:`LINE_EVERY_SHARE` of the way.
+        label: printed before the counts (``--baud all`` names the rate).
     """
 
-    def __init__(self, out: TextIO | None = None, *, tty: bool | None = None) -> None:
+    def __init__(
+        self, out: TextIO | None = None, *, tty: bool | None = None, label: str = ""
+    ) -> None:
         self.out = out if out is not None else sys.stderr
         self.tty = self.out.isatty() if tty is None else tty
+        self.label = label
         self.done = 0
         self.found: list[int] = []
         self._next_line = 0.0
@@ -78,33 +144,99 @@ class ProgressBar:
         found_text = f"found {len(self.found)}" + (
             f" (last la:{self.found[-1]})" if self.found else ""
         )
+        label = f"{self.label} " if self.label else ""
         if self.tty:
             filled = round(BAR_WIDTH * share)
             bar = "#" * filled + "." * (BAR_WIDTH - filled)
             end = "\n" if self.done == total else ""
-            self.out.write(f"\r[{bar}] {self.done}/{total} {found_text}{end}")
+            self.out.write(f"\r{label}[{bar}] {self.done}/{total} {found_text}{end}")
             self.out.flush()
         elif share >= self._next_line or self.done == total:
             self._next_line = share + LINE_EVERY_SHARE
-            self.out.write(f"scan: {self.done}/{total} tried, {found_text}\n")
+            self.out.write(f"scan: {label}{self.done}/{total} tried, {found_text}\n")
             self.out.flush()
+
+
+BusOpener = Callable[[int], AbstractAsyncContextManager[Bus]]
+
+
+async def scan_bauds(
+    open_at: BusOpener,
+    ids: Sequence[int],
+    bauds: Sequence[int] = ALL_BAUDS,
+    *,
+    timeout: float | None = None,
+    passes: int = SCAN_PASSES_MAX,
+    progress: Callable[[int], Callable[[int, int, bool], None] | None] | None = None,
+) -> dict[int, ScanReport]:
+    """Scan ``ids`` at each rate of ``bauds``, opening a fresh bus at each.
+
+    Args:
+        open_at: ``open_at(baud)`` is an async context manager yielding an open bus at
+            that rate (the port is closed and reopened between rates).
+        ids: the IDs to try at every rate.
+        bauds: the rates in bit/s, in order.
+        timeout, passes: as for :func:`motorbus.devices.la.scan`.
+        progress: ``progress(baud)`` gives the progress callback of that rate's scan.
+
+    Returns:
+        The report of each rate, by rate.
+    """
+    reports: dict[int, ScanReport] = {}
+    for baud in bauds:
+        report = ScanReport()
+        async with open_at(baud) as bus:
+            await scan(
+                bus,
+                ids,
+                timeout=timeout,
+                passes=passes,
+                progress=progress(baud) if progress is not None else None,
+                report=report,
+            )
+        reports[baud] = report
+    return reports
 
 
 def run(args: argparse.Namespace) -> int:
     """Run ``motorbus scan``; return 0 if some actuator answered, else 1.
 
     Raises:
-        LocalProtocolError: a bad ``--ids`` or ``--timeout`` (before anything is sent).
+        LocalProtocolError: a bad ``--ids``, ``--timeout`` or ``--passes`` (before
+            anything is sent).
     """
     ids = parse_ids(args.ids)
     check_seconds("--timeout", args.timeout, 1e-4)
+    check_int("--passes", args.passes, 1, SCAN_PASSES_MAX)
+    if args.baud is not None:
+        check_int("--baud", args.baud, 1, 10_000_000)
     return asyncio.run(_scan(args, ids))
 
 
+def _summary(label: str, ids: Sequence[int], report: ScanReport) -> str:
+    budgets = "/".join(f"{p.budget_s * 1e3:.2f}" for p in report.passes)
+    text = (
+        f"scan: {label}{len(ids)} IDs in {report.seconds:.2f} s "
+        f"(budget per ID {budgets} ms), found {len(report.found)}"
+    )
+    if report.late:
+        text += (
+            f"; {', '.join(f'la:{i}' for i in report.late)} answered only after "
+            "the budget: try --timeout 0.1"
+        )
+    return text
+
+
 async def _scan(args: argparse.Namespace, ids: list[int]) -> int:
+    if args.baud is None:
+        return await _scan_all(args, ids)
     progress = ProgressBar()
+    report = ScanReport()
     async with open_bus(args, [Family.LA]) as bus:
-        found = await scan(bus, ids, timeout=args.timeout, progress=progress)
+        found = await scan(
+            bus, ids, timeout=args.timeout, passes=args.passes, progress=progress, report=report
+        )
+    print(_summary("", ids, report), file=sys.stderr)
     if args.json:
         _print_json({"ids": found, "tried": len(ids)})
     elif found:
@@ -113,3 +245,37 @@ async def _scan(args: argparse.Namespace, ids: list[int]) -> int:
         print(f"motorbus scan: no actuator answered ({len(ids)} IDs tried)", file=sys.stderr)
         return 1
     return 0
+
+
+async def _scan_all(args: argparse.Namespace, ids: list[int]) -> int:
+    def open_at(baud: int) -> AbstractAsyncContextManager[Bus]:
+        at = copy.copy(args)
+        at.baud = baud
+        return _opened(at)
+
+    reports = await scan_bauds(
+        open_at,
+        ids,
+        timeout=args.timeout,
+        passes=args.passes,
+        progress=lambda baud: ProgressBar(label=f"{baud}:"),
+    )
+    for baud, report in reports.items():
+        print(_summary(f"{baud} bit/s: ", ids, report), file=sys.stderr)
+    if args.json:
+        _print_json({"bauds": {str(b): r.found for b, r in reports.items()}, "tried": len(ids)})
+    else:
+        for baud, report in reports.items():
+            print(f"{baud}: {','.join(str(i) for i in report.found) or 'none'}")
+    if not any(r.found for r in reports.values()):
+        print(
+            f"motorbus scan: no actuator answered at any baud rate ({len(ids)} IDs tried at "
+            f"each of {', '.join(str(b) for b in reports)})",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _opened(args: argparse.Namespace) -> AbstractAsyncContextManager[Bus]:
+    return open_bus(args, [Family.LA])

@@ -163,6 +163,7 @@ class LAModel(DeviceModel):
             including targets it ignored (cmd code 0x02 for a target-register write,
             0xF2/0xF3 for broadcasts).
         ignored: number of frames refused by ``decode_request``.
+        silenced: replies not sent because of ``silent_replies``.
         load_g: the load on the force sensor in grams (tests set it).
         ambient: the temperature the motor cools toward, degC.
         temperature: the present motor temperature, degC.
@@ -187,6 +188,7 @@ class LAModel(DeviceModel):
         force_sensor: bool = True,
         cooling_rate: float = DEFAULT_COOLING_RATE,
         position: float = 0.0,
+        silent_replies: int = 0,
     ) -> None:
         """Create an actuator in its power-on state with the factory control table.
 
@@ -208,6 +210,9 @@ class LAModel(DeviceModel):
             force_sensor: LAF/LASF model with a force sensor (else force reads 0).
             cooling_rate: cooling of an overheated motor, degC per second.
             position: initial position, 0..2000.
+            silent_replies: the first this many replies are not sent (model choice: an
+                actuator that misses its first queries, e.g. still starting up); the
+                requests still take effect.  Counted in ``silenced``.
 
         Raises:
             LocalProtocolError: a value out of range or not one of the choices.
@@ -245,6 +250,8 @@ class LAModel(DeviceModel):
         self.load_g = 0
         self.received: list[tuple[float, int, int]] = []
         self.ignored = 0
+        self._silent_left = check_int("silent_replies", silent_replies, 0, 1_000_000)
+        self.silenced = 0
 
         self._ram = bytearray(TABLE_BYTES)
         self._ram[0:2] = TABLE_HEADER
@@ -386,8 +393,16 @@ class LAModel(DeviceModel):
         """Process one request frame received at ``now``; return the reply frames.
 
         Refused frames are counted in ``ignored``; frames for other IDs, broadcasts and the
-        no-reply commands return ``[]``.
+        no-reply commands return ``[]``; so do the first ``silent_replies`` replies.
         """
+        replies = self._handle(request, now)
+        if replies and self._silent_left:
+            self._silent_left -= 1
+            self.silenced += 1
+            return []
+        return replies
+
+    def _handle(self, request: bytes, now: float) -> list[bytes]:
         try:
             cmd = _decode_shared(request)
         except RemoteProtocolError:
