@@ -163,8 +163,7 @@ def check_timeout(field: str, value: object, maximum: float = math.inf) -> float
     shown = "" if maximum == math.inf else f"..{maximum:g}"
     if number is None:
         raise LocalProtocolError(
-            f"{field} must be a number of seconds 0{shown}, got {value!r} "
-            f"({type(value).__name__})",
+            f"{field} must be a number of seconds 0{shown}, got {value!r} ({type(value).__name__})",
             field=field,
             value=value,
         )

@@ -1166,7 +1166,8 @@ class Broadcast(LACommand):
         seen: set[int] = set()
         # The checks return plain ints: numpy integers are stored as ints too.
         entries = tuple(
-            (_check_id(ident, allow_broadcast=False), _check_position(pos)) for ident, pos in entries
+            (_check_id(ident, allow_broadcast=False), _check_position(pos))
+            for ident, pos in entries
         )
         for ident, _pos in entries:
             if ident in seen:
