@@ -228,13 +228,13 @@ def _check_devices(devices: Sequence[DeviceSpec]) -> list[DeviceSpec]:
     if twice:
         # Two actuators with one ID on a bus answer together (A2-12).
         raise LocalProtocolError(
-            f"la ids {twice} are listed twice: each ID once per bus", field="devices"
+            f"devices: la ids {twice} are listed twice: each ID once per bus", field="devices"
         )
     kinds = [d.kind for d in devices if d.kind != "la"]
     for kind in sorted(set(kinds)):
         if kinds.count(kind) > 1:
             raise LocalProtocolError(
-                f"{kind} is listed twice: at most one per bus", field="devices"
+                f"devices: {kind} is listed twice: at most one per bus", field="devices"
             )
     return list(devices)
 
@@ -439,7 +439,7 @@ class BusManager:
     ) -> None:
         """Add a bus from code; ``options`` are the ``BusSpec`` fields (backend, rs485...)."""
         spec = BusSpec.from_mapping(
-            {"name": name, "url": url, "baud": baud, "devices": list(devices), **options},
+            {"name": name, "url": url, "baud": baud, "devices": devices, **options},
             len(self.specs),
         )
         self.add_spec(spec, transport)
