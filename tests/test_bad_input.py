@@ -511,6 +511,7 @@ BAD_TARGET_ITEMS: tuple[Any, ...] = (
     {1.7: 1000},  # ... and 1.7 became ID 1
     {True: 1000},
     ["1000"],  # a text position used to be parsed by float()
+    "1000",  # ... and a text row was split into characters
     [None],
     [NAN],
     [True],

@@ -313,6 +313,10 @@ class Stream:
                     field="targets",
                 )
             return {self.ids[0]: _position(item, "target")}
+        if isinstance(item, str | bytes):  # a sequence, but of characters
+            raise LocalProtocolError(
+                f"targets must be positions, not text: got {item!r}", field="targets"
+            )
         # A numpy row (a 1-D array, or a row of a 2-D array of ticks x actuators):
         # tolist() gives plain floats/ints, which take the fast path below.
         tolist = getattr(item, "tolist", None)
