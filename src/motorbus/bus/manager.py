@@ -116,7 +116,7 @@ _BUS_KEYS = {
 
 
 _DEVICE_KINDS = ("la", "project_stepper", "quad_stepper")
-_SAFE_ACTIONS = ("pause", "estop", "hold")
+_SAFE_ACTIONS = tuple(a.value for a in SafeAction)
 #: Range of ``min_spacing_ms`` and ``host_margin_ms`` in a bus file, milliseconds.
 MIN_SPACING_MS_MAX = 100.0
 HOST_MARGIN_MS_MAX = 10_000.0

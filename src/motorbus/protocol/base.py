@@ -112,7 +112,7 @@ def check_int(field: str, value: object, lo: int, hi: int) -> int:
     Integer-like objects (numpy integer scalars: anything with ``__index__``) are
     accepted and returned as a plain ``int``; floats are refused, even ``2.0``.
     """
-    number = _as_int(value)
+    number = value if type(value) is int else _as_int(value)
     if number is None:
         raise LocalProtocolError(
             f"{field} must be an integer in {lo}..{hi}, got {value!r} ({type(value).__name__})",
@@ -304,11 +304,15 @@ class Command(abc.ABC):
         return bool(self.reply_lengths())
 
 
+#: Field values ``_plain_fields`` leaves alone without a closer look.
+_PLAIN_TYPES = frozenset((int, bool, float, str, bytes, type(None), tuple))
+
+
 def _plain_fields(cmd: Command) -> None:
     """Replace integer-like field values (numpy scalars) of a dataclass command by ints."""
-    for name in getattr(cmd, "__dataclass_fields__", ()):
+    for name in cmd.__dataclass_fields__:  # type: ignore[attr-defined]
         value = getattr(cmd, name)
-        if type(value) is int or isinstance(value, int | float | str | bytes | enum.Enum):
+        if type(value) in _PLAIN_TYPES or isinstance(value, int | enum.Enum):
             continue
         number = _as_int(value)
         if number is not None:
