@@ -43,6 +43,24 @@ def test_check_int_accepts_numpy_integers_and_returns_plain_ints(kind: Any) -> N
     assert got == 0x73 and type(got) is int
 
 
+class _Index:
+    """Not numpy: any object with ``__index__`` is an integer."""
+
+    def __init__(self, value: int) -> None:
+        self.value = value
+
+    def __index__(self) -> int:
+        return self.value
+
+
+def test_any_index_object_is_an_integer() -> None:
+    got = check_int("id", _Index(9), 1, 254)
+    assert got == 9 and type(got) is int
+    cmd = la.MoveTo(_Index(3), _Index(1500))  # type: ignore[arg-type]
+    assert (cmd.id, cmd.position) == (3, 1500)
+    assert cmd.encode() == la.MoveTo(3, 1500).encode()
+
+
 @pytest.mark.parametrize(
     "bad",
     [np.True_, np.False_, np.float64(2.0), np.float32(2.0), np.array([1, 2]), np.array(2.0)],
@@ -159,7 +177,9 @@ def _follow_targets(model: LAModel) -> list[int]:
     return [target for _, cmd, target in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
 
 
-@pytest.mark.parametrize("period", [np.float32(0.01), np.float64(0.02), np.float32(0.05)])
+@pytest.mark.parametrize(
+    "period", [np.float32(0.01), np.float32(0.02), np.float64(0.02), np.float32(0.05)], ids=repr
+)
 async def test_follow_takes_a_numpy_period(period: Any) -> None:
     model = LAModel(1)
     async with sim_bus([model]) as (bus, _sim):
