@@ -8,9 +8,9 @@ numbers; text is not a number; NaN and infinity are refused wherever a duration 
 The ranges, and why:
 
 * baud: 300..4,000,000 bit/s.  Every rate the three manuals list (9600 for the
-  steppers, 115200..921600 for the LA) is inside; a FTDI or CH340 adapter cannot do
-  more than 3..4 Mbit/s, and below 300 bit/s one LA frame would take a third of a
-  second.  Bauds such as 1 or 7 are typing mistakes, not serial rates.
+  steppers, up to 921600 for the LA) is inside, with room above for faster adapters;
+  below 300 bit/s one 22-byte LA status frame would take most of a second.  Bauds such
+  as 1 or 7 are typing mistakes, not serial rates, and 10**12 used to reach the OS.
 * min_spacing: 0..1 s (the LA manual asks for >= 1 ms between frames; 0 turns the
   spacing off for devices that need none).
 * host_margin: 0..10 s; turnaround: 0..1 s per family; late_guard: 0..2 s (a late
