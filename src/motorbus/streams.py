@@ -295,6 +295,8 @@ class Stream:
         kind = type(item)
         if kind is list or kind is tuple:  # the common case first: no ABC checks
             return self._normalise_values(item)
+        if kind is float or kind is int:
+            return self._normalise_scalar(item)
         if isinstance(item, Mapping):
             targets = {target_id(i): _position(v, f"targets[{i}]") for i, v in item.items()}
             unknown = set(targets) - set(self.ids)
@@ -306,13 +308,7 @@ class Stream:
                 )
             return targets
         if isinstance(item, (int, float)) or _is_scalar(item):
-            if len(self.ids) != 1:
-                raise LocalProtocolError(
-                    f"a single target was given for {len(self.ids)} actuators; give one "
-                    "per actuator or a mapping {id: position}",
-                    field="targets",
-                )
-            return {self.ids[0]: _position(item, "target")}
+            return self._normalise_scalar(item)
         if isinstance(item, str | bytes):  # a sequence, but of characters
             raise LocalProtocolError(
                 f"targets must be positions, not text: got {item!r}", field="targets"
@@ -322,6 +318,15 @@ class Stream:
         tolist = getattr(item, "tolist", None)
         values = tolist() if callable(tolist) else list(item)
         return self._normalise_values(values)
+
+    def _normalise_scalar(self, item: Any) -> Targets:
+        if len(self.ids) != 1:
+            raise LocalProtocolError(
+                f"a single target was given for {len(self.ids)} actuators; give one "
+                "per actuator or a mapping {id: position}",
+                field="targets",
+            )
+        return {self.ids[0]: _position(item, "target")}
 
     def _normalise_values(self, values: Sequence[Any]) -> Targets:
         if len(values) != len(self.ids):

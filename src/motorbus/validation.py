@@ -164,7 +164,8 @@ def is_scalar(item: Any) -> bool:
 
 def target_position(value: Any, name: str) -> int:
     """A follow target as an int 0..2000 (floats, numpy scalars included, are rounded)."""
-    number = as_real(value)
+    kind = type(value)
+    number = value if kind is float or kind is int else as_real(value)
     if number is None and getattr(value, "ndim", None) == 0:
         number = as_real(value.item())  # a 0-d numpy array
     if number is None:
