@@ -545,6 +545,14 @@ def test_serial_transport_refuses_implausible_bauds(baud: Any) -> None:
     assert SerialTransport("/dev/ttyUSB0", baudrate=300).baudrate == 300
 
 
+@pytest.mark.parametrize("option", ["rs485", "remove_echo", "low_latency"])
+@pytest.mark.parametrize("bad", ["false", 0, 1, None], ids=repr)
+def test_serial_transport_refuses_flags_that_are_not_bools(option: str, bad: Any) -> None:
+    # rs485="false" used to turn RS-485 on.
+    with pytest.raises(LocalProtocolError, match=f"{option} must be True or False"):
+        SerialTransport("/dev/ttyUSB0", baudrate=9600, **{option: bad})
+
+
 MANAGER_BUS = {"name": "arm", "url": "memory://arm", "baud": 921600}
 MANAGER_CASES: list[tuple[str, dict[str, Any]]] = [
     ("baud", {"baud": 0}),

@@ -30,6 +30,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
 from motorbus.errors import BusClosedError, LocalProtocolError
+from motorbus.protocol.base import check_flag
 from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
 from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
 from motorbus.validation import check_baud
@@ -184,6 +185,8 @@ class SerialTransport(CountingTransport):
         """
         # A plausible serial rate (motorbus.validation): 10**12 used to reach the OS.
         baudrate = check_baud("baudrate", baudrate)
+        rs485, remove_echo = check_flag("rs485", rs485), check_flag("remove_echo", remove_echo)
+        low_latency = check_flag("low_latency", low_latency)
         self._connect = _load_backend(backend)
         if rs485 and backend == "serialx":
             raise LocalProtocolError(
