@@ -472,7 +472,7 @@ class Streamer:
             )
         if not group:
             raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
-        # (LA manual 3.5.3: a fixed interval of 10-50 ms); the slack admits float32 0.01.
+        # 10..50 ms (LA manual 3.5.3); the slack admits a float32 0.01 (0.00999999978).
         period = check_number("period", period, PERIOD_MIN_S, PERIOD_MAX_S, "s", slack=1e-9)
         check_flag("feedback", feedback)
         check_flag("poll_status", poll_status)
