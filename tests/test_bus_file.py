@@ -9,6 +9,7 @@ and values out of range.  Each is tried through ``BusManager.from_dict``, throug
 
 from __future__ import annotations
 
+import asyncio
 import math
 import re
 from pathlib import Path
@@ -364,3 +365,26 @@ async def test_open_raises_an_unexpected_error_when_it_is_the_only_one() -> None
     mgr.add_bus("only", "memory://only", baud=921600, transport=host)
     with pytest.raises(_Broken, match="boom"):
         await mgr.open()
+
+
+async def test_an_open_cancelled_halfway_closes_the_buses_already_open() -> None:
+    host, _peer = memory_pair()
+    hanging = asyncio.Event()
+
+    async def hang(*_args: object) -> None:
+        hanging.set()
+        await asyncio.Event().wait()  # a port that never finishes opening
+
+    host.open = hang  # type: ignore[method-assign]
+    async with MemorySim.start([LAModel(1)], timer=default_timer()) as sim:
+        mgr = BusManager()
+        mgr.add_bus("ok", "memory://ok", baud=921600, devices=["la:1"], transport=sim.transport)
+        mgr.add_bus("hangs", "memory://hangs", baud=921600, transport=host)
+        task = asyncio.create_task(mgr.open())
+        await asyncio.wait_for(hanging.wait(), 5)
+        await mgr.buses["ok"].wait_state(BusState.OPEN, timeout=5)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert mgr.buses["ok"].state is BusState.CLOSED
+        assert not sim.transport.is_open

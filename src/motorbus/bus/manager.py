@@ -503,11 +503,13 @@ class BusManager:
             async with anyio.create_task_group() as tg:
                 for name, bus in self.buses.items():
                     tg.start_soon(open_one, name, bus)
-        except BaseException:
-            await self._close_buses()
+        except BaseException:  # cancelled while opening: still close what was opened
+            with anyio.CancelScope(shield=True):
+                await self._close_buses()
             raise
         if self.open_errors:
-            await self._close_buses()
+            with anyio.CancelScope(shield=True):
+                await self._close_buses()
             raise self._open_failure()
 
     def _open_failure(self) -> Exception:
