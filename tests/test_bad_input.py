@@ -11,7 +11,9 @@ the values that must be refused.
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
+import inspect
 import subprocess
 import sys
 from collections.abc import Awaitable, Callable
@@ -28,13 +30,14 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
-from motorbus.protocol.base import Command
+from motorbus.protocol.base import Command, Family
 from motorbus.sim.la import LAModel
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.quad_stepper import QuadStepperModel
-from motorbus.streams import Streamer
+from motorbus.streams import StreamEnded, Streamer
 from motorbus.transport.memory import memory_pair
+from motorbus.transport.serial import SerialTransport
 from tests.conftest import sim_bus
 
 #: Wrong types for an integer (or enum) argument.  ``True`` is refused: it is not a number.
@@ -407,11 +410,33 @@ async def test_device_call_refuses_and_sends_nothing(family: str, call: Call, ba
 
 # -- Bus(...) and BusManager -------------------------------------------------------------------
 
+NAN = float("nan")
+INF = float("inf")
 BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
-    "min_spacing": (-0.001, 2.0),
-    "host_margin": (-1.0, 11.0),
-    "retries": ("1", 1.5, None, True, -1, 11),
+    "name": (5, "", b"bus"),
+    "families": ([], "la", ["la"], 5, None),
+    "min_spacing": (-0.001, 2.0, NAN, INF, "1", None, True),
+    "host_margin": (-1.0, 11.0, NAN, INF, -INF, "0.002", None, True),
+    "turnaround": (
+        {Family.LA: NAN},
+        {Family.LA: -0.001},
+        {Family.LA: INF},
+        {Family.LA: 1.5},
+        {Family.LA: "0.001"},
+        {Family.LA: True},
+        {"la": 0.001},
+        0.001,
+        [Family.LA],
+    ),
+    "retries": ("1", 1.5, 2.7, NAN, None, True, -1, 11),
+    "late_guard": (NAN, INF, -0.001, 2.5, "0.02", None, True),
+    "reconnect": ("yes", 1, 0, None),
 }
+
+
+def test_every_bus_option_is_in_the_table() -> None:
+    options = set(inspect.signature(Bus).parameters) - {"transport", "timer"}
+    assert options == set(BUS_OPTIONS)
 
 
 @pytest.mark.parametrize(
@@ -423,6 +448,109 @@ async def test_bus_constructor_refuses(option: str, bad: Any) -> None:
     with pytest.raises(LocalProtocolError, match=option):
         Bus(host, **{option: bad})
     assert not host.is_open
+
+
+@pytest.mark.parametrize("turnaround", [NAN, -0.997])
+async def test_bus_refuses_a_nan_or_negative_turnaround_before_any_request(
+    turnaround: float,
+) -> None:
+    # A NaN turnaround used to fail the first request and hang the later ones (and leave a
+    # NaN deadline in the loop-wide timer); a negative one timed out "within -997 ms".
+    host, _peer = memory_pair()
+    with pytest.raises(LocalProtocolError, match=r"turnaround\[LA\]=.* is out of range"):
+        Bus(host, turnaround={Family.LA: turnaround})
+
+
+@pytest.mark.parametrize("late_guard", [NAN, -0.001])
+async def test_bus_refuses_a_nan_or_negative_late_guard(late_guard: float) -> None:
+    host, _peer = memory_pair()
+    with pytest.raises(LocalProtocolError, match=r"late_guard=.* is out of range: allowed 0\.\.2"):
+        Bus(host, late_guard=late_guard)
+
+
+async def test_bus_refuses_text_for_a_duration_with_a_named_error() -> None:
+    host, _peer = memory_pair()
+    with pytest.raises(LocalProtocolError, match=r"min_spacing must be a number 0\.\.1 s, got '1'"):
+        Bus(host, min_spacing="1")  # type: ignore[arg-type]
+
+
+STREAMER_PHASES = (NAN, INF, -INF, "x", "0.001", None, True, -0.001, 0.051)
+
+
+@pytest.mark.parametrize("phase", STREAMER_PHASES, ids=[repr(p) for p in STREAMER_PHASES])
+async def test_streamer_refuses_bad_phase(phase: Any) -> None:
+    host, _peer = memory_pair()
+    bus = Bus(host)
+    with pytest.raises(LocalProtocolError, match="phase") as info:
+        Streamer(bus, phase=phase)
+    assert info.value.field == "phase" and "0..0.05 s" in str(info.value)
+
+
+async def test_streamer_refuses_what_is_not_a_bus() -> None:
+    with pytest.raises(LocalProtocolError, match="bus must be a Bus"):
+        Streamer("memory://arm")  # type: ignore[arg-type]
+
+
+FOLLOW_PERIODS = (NAN, INF, "0.02", None, True, 0.005, 0.0501, -0.02)
+
+
+@pytest.mark.parametrize("period", FOLLOW_PERIODS, ids=[repr(p) for p in FOLLOW_PERIODS])
+async def test_follow_refuses_bad_period_and_sends_nothing(period: Any) -> None:
+    async with sim_bus([LAModel(1)]) as (bus, sim):
+        streamer = Streamer(bus)
+        with pytest.raises(LocalProtocolError, match="period") as info:
+            streamer.follow(InspireLA(bus, 1), [1000] * 3, period=period)
+        assert "0.01..0.05 s" in str(info.value)
+        assert streamer.streams == []
+        assert (bus.stats.requests, sim.bus.stats.bytes_in) == (0, 0)
+        await streamer.close()
+
+
+BAD_TARGET_ITEMS: tuple[Any, ...] = (
+    {"1": 1000},  # a text ID used to become int("1")
+    {1.7: 1000},  # ... and 1.7 became ID 1
+    {True: 1000},
+    ["1000"],  # a text position used to be parsed by float()
+    "1000",  # ... and a text row was split into characters
+    [None],
+    [NAN],
+    [True],
+)
+
+
+@pytest.mark.parametrize("item", BAD_TARGET_ITEMS, ids=[repr(i) for i in BAD_TARGET_ITEMS])
+async def test_a_bad_target_ends_the_stream_before_it_is_sent(item: Any) -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        streamer = Streamer(bus)
+        stream = streamer.follow(InspireLA(bus, 1), [item], period=0.01)
+        with pytest.raises(StreamEnded) as info:
+            await asyncio.wait_for(stream.wait(), 5)
+        assert isinstance(info.value.__cause__, LocalProtocolError)
+        assert "targets" in str(info.value.__cause__) or "target" in str(info.value.__cause__)
+        assert [cmd for _, cmd, _ in model.received] == []
+        await streamer.close()
+
+
+SERIAL_BAUDS = (0, 1, 7, 299, 4_000_001, 10**12, 9600.0, "9600", True)
+
+
+@pytest.mark.parametrize("baud", SERIAL_BAUDS, ids=[repr(b) for b in SERIAL_BAUDS])
+def test_serial_transport_refuses_implausible_bauds(baud: Any) -> None:
+    # 10**12 used to reach the OS ("signed integer is greater than maximum"); 1 and 7
+    # were accepted.
+    with pytest.raises(LocalProtocolError, match="baudrate") as info:
+        SerialTransport("/dev/ttyUSB0", baudrate=baud)
+    assert "300..4000000" in str(info.value)
+    assert SerialTransport("/dev/ttyUSB0", baudrate=300).baudrate == 300
+
+
+@pytest.mark.parametrize("option", ["rs485", "remove_echo", "low_latency"])
+@pytest.mark.parametrize("bad", ["false", 0, 1, None], ids=repr)
+def test_serial_transport_refuses_flags_that_are_not_bools(option: str, bad: Any) -> None:
+    # rs485="false" used to turn RS-485 on.
+    with pytest.raises(LocalProtocolError, match=f"{option} must be True or False"):
+        SerialTransport("/dev/ttyUSB0", baudrate=9600, **{option: bad})
 
 
 MANAGER_BUS = {"name": "arm", "url": "memory://arm", "baud": 921600}

@@ -54,6 +54,7 @@ from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_flag, wire_time
 from motorbus.shutdown import deferred_interrupts
+from motorbus.validation import PHASE_MAX_S, check_number, is_scalar, target_id, target_position
 
 __all__ = [
     "PERIOD_MAX_S",
@@ -335,8 +336,13 @@ class Stream:
         return self._normalise(item)
 
     def _normalise(self, item: Any) -> Targets:
+        kind = type(item)
+        if kind is list or kind is tuple:  # the common case first: no ABC checks
+            return self._normalise_values(item)
+        if kind is float or kind is int:
+            return self._normalise_scalar(item)
         if isinstance(item, Mapping):
-            targets = {int(i): _position(v, f"targets[{i}]") for i, v in item.items()}
+            targets = {target_id(i): _position(v, f"targets[{i}]") for i, v in item.items()}
             unknown = set(targets) - set(self.ids)
             if unknown:
                 raise LocalProtocolError(
@@ -346,14 +352,27 @@ class Stream:
                 )
             return targets
         if isinstance(item, (int, float)) or _is_scalar(item):
-            if len(self.ids) != 1:
-                raise LocalProtocolError(
-                    f"a single target was given for {len(self.ids)} actuators; give one "
-                    "per actuator or a mapping {id: position}",
-                    field="targets",
-                )
-            return {self.ids[0]: _position(item, "target")}
-        values = list(item)
+            return self._normalise_scalar(item)
+        if isinstance(item, str | bytes):  # a sequence, but of characters
+            raise LocalProtocolError(
+                f"targets must be positions, not text: got {item!r}", field="targets"
+            )
+        # A numpy row (a 1-D array, or a row of a 2-D array of ticks x actuators):
+        # tolist() gives plain floats/ints, which take the fast path below.
+        tolist = getattr(item, "tolist", None)
+        values = tolist() if callable(tolist) else list(item)
+        return self._normalise_values(values)
+
+    def _normalise_scalar(self, item: Any) -> Targets:
+        if len(self.ids) != 1:
+            raise LocalProtocolError(
+                f"a single target was given for {len(self.ids)} actuators; give one "
+                "per actuator or a mapping {id: position}",
+                field="targets",
+            )
+        return {self.ids[0]: _position(item, "target")}
+
+    def _normalise_values(self, values: Sequence[Any]) -> Targets:
         if len(values) != len(self.ids):
             raise LocalProtocolError(
                 f"targets has {len(values)} values for {len(self.ids)} actuators",
@@ -372,29 +391,8 @@ class Stream:
 
 
 _PLAIN_NUMBERS = (int, float)
-
-
-def _is_scalar(item: Any) -> bool:
-    return hasattr(item, "__index__") or (
-        hasattr(item, "__float__") and not hasattr(item, "__len__")
-    )
-
-
-def _position(value: Any, name: str) -> int:
-    """A target as an int 0..2000 (floats are rounded)."""
-    if isinstance(value, bool):
-        raise LocalProtocolError(f"{name} must be a number, got {value!r}", field=name)
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise LocalProtocolError(f"{name} must be a number, got {value!r}", field=name) from None
-    if math.isnan(number) or not la.POSITION_MIN <= number <= la.POSITION_MAX:
-        raise LocalProtocolError(
-            f"{name}={value} is out of range: allowed {la.POSITION_MIN}..{la.POSITION_MAX}",
-            field=name,
-            value=value,
-        )
-    return round(number)
+_is_scalar = is_scalar
+_position = target_position
 
 
 class Streamer:
@@ -407,6 +405,9 @@ class Streamer:
     """
 
     def __init__(self, bus: Bus, *, phase: float = 0.0) -> None:
+        if not isinstance(bus, Bus):
+            raise LocalProtocolError(f"bus must be a Bus, got {bus!r}", field="bus", value=bus)
+        phase = check_number("phase", phase, 0.0, PHASE_MAX_S, "s")
         self.bus = bus
         self.phase = phase
         self.streams: list[Stream] = []
@@ -546,15 +547,8 @@ class Streamer:
             )
         if not group:
             raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
-        if isinstance(period, bool) or not isinstance(period, (int, float)):
-            raise LocalProtocolError(f"period must be seconds, got {period!r}", field="period")
-        if not PERIOD_MIN_S - 1e-12 <= period <= PERIOD_MAX_S + 1e-12:
-            raise LocalProtocolError(
-                f"period={period} s is out of range: allowed {PERIOD_MIN_S}..{PERIOD_MAX_S} s "
-                "(LA manual 3.5.3: a fixed interval of 10-50 ms)",
-                field="period",
-                value=period,
-            )
+        # 10..50 ms (LA manual 3.5.3); the slack admits a float32 0.01 (0.00999999978).
+        period = check_number("period", period, PERIOD_MIN_S, PERIOD_MAX_S, "s", slack=1e-9)
         check_flag("feedback", feedback)
         check_flag("poll_status", poll_status)
         try:

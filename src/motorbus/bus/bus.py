@@ -74,6 +74,8 @@ from motorbus.protocol.base import (
     Command,
     Family,
     FrameShape,
+    check_flag,
+    check_int,
     check_timeout,
     format_hex,
     wire_time,
@@ -81,6 +83,16 @@ from motorbus.protocol.base import (
 from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
 from motorbus.protocol.reassembler import ProjectFinished as ProjectFinishedItem
 from motorbus.transport.base import Transport
+from motorbus.validation import (
+    HOST_MARGIN_MAX_S,
+    LATE_GUARD_MAX_S,
+    MIN_SPACING_MAX_S,
+    RETRIES_MAX,
+    check_families,
+    check_name,
+    check_number,
+    check_turnaround,
+)
 
 __all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
 
@@ -257,18 +269,15 @@ class Bus:
         timer: Timer | None = None,
         wire_floor: bool = False,
     ) -> None:
-        if not 0 <= min_spacing <= 1:
-            raise LocalProtocolError(
-                f"min_spacing={min_spacing} is out of range: allowed 0..1 s", field="min_spacing"
-            )
-        if not 0 <= host_margin <= 10:
-            raise LocalProtocolError(
-                f"host_margin={host_margin} is out of range: allowed 0..10 s", field="host_margin"
-            )
-        if isinstance(retries, bool) or not isinstance(retries, int) or not 0 <= retries <= 10:
-            raise LocalProtocolError(
-                f"retries={retries!r} is out of range: allowed 0..10", field="retries"
-            )
+        # Every option checked (type, finiteness, range) before anything is built.
+        name = check_name("name", name, optional=True)
+        families = check_families(families)
+        min_spacing = check_number("min_spacing", min_spacing, 0.0, MIN_SPACING_MAX_S, "s")
+        host_margin = check_number("host_margin", host_margin, 0.0, HOST_MARGIN_MAX_S, "s")
+        turnaround = check_turnaround(turnaround)
+        retries = check_int("retries", retries, 0, RETRIES_MAX)
+        late_guard = check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s")
+        reconnect = check_flag("reconnect", reconnect)
         self.transport = transport
         self.name = name or transport.url
         self.families = frozenset(families)

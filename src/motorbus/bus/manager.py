@@ -22,6 +22,28 @@ A bus file (TOML)::
     url = "socket://10.0.0.5:7012"
     baud = 9600
     devices = ["project-stepper:motor=3", "quad-stepper"]
+
+Every key is typed and range-checked when the file is loaded, not when it is opened;
+nothing is coerced (``"false"`` is not a bool, ``2.7`` is not an integer, ``true`` is
+not a number).  A bad key raises ``LocalProtocolError`` on one line naming the file,
+the bus (``name`` or ``#index``), the key, the value and what is allowed:
+
+==================  ===============================================================
+name                non-empty string, unique (default ``busN``)
+url                 non-empty string (required)
+baud                integer 300..4000000 (required)
+backend             fast | serialx | pyserial-asyncio (rs485 needs fast or
+                    pyserial-asyncio)
+rs485, remove_echo  true | false (default false)
+low_latency         true | false (default true)
+min_spacing_ms      finite number 0..100 (default 1; the LA manual asks >= 1 ms)
+host_margin_ms      finite number 0..10000 (default 2, 20 for socket:// and rfc2217://)
+retries             integer 0..10 (default 1)
+la_safe_action      pause | estop | hold (default pause)
+devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, ranges
+                    low-high), ``project-stepper[:motor=N]`` (N a valid motor byte,
+                    see ``protocol.project_stepper.check_motor``), ``quad-stepper``
+==================  ===============================================================
 """
 
 from __future__ import annotations
@@ -44,14 +66,20 @@ from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus, Priority
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
-from motorbus.errors import LocalProtocolError
+from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
-from motorbus.protocol.base import Command, Family
+from motorbus.protocol.base import Command, Family, check_flag, check_int
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Streamer
 from motorbus.transport.base import Transport
-from motorbus.transport.serial import open_transport
+from motorbus.transport.serial import BACKENDS, open_transport
+from motorbus.validation import (
+    RETRIES_MAX,
+    check_baud,
+    check_name,
+    check_number,
+)
 
 __all__ = [
     "BusManager",
@@ -101,69 +129,178 @@ _BUS_KEYS = {
 }
 
 
+_DEVICE_KINDS = ("la", "project_stepper", "quad_stepper")
+_SAFE_ACTIONS = tuple(a.value for a in SafeAction)
+#: Range of ``min_spacing_ms`` and ``host_margin_ms`` in a bus file, milliseconds.
+MIN_SPACING_MS_MAX = 100.0
+HOST_MARGIN_MS_MAX = 10_000.0
+
+
 @dataclass(frozen=True, slots=True)
 class DeviceSpec:
-    """A device on a bus: ``kind`` is "la", "project_stepper" or "quad_stepper"."""
+    """A device on a bus: ``kind`` is "la", "project_stepper" or "quad_stepper".
+
+    Checked on construction: LA IDs 1..254 (at least one), the project stepper's motor
+    byte by the protocol's own rule (``ps.check_motor``, which ``ManualStop`` applies
+    when the manager stops it on the way out).
+    """
 
     kind: str
     ids: tuple[int, ...] = ()
     motor: int = ps.DEFAULT_MOTOR
 
+    def __post_init__(self) -> None:
+        if self.kind not in _DEVICE_KINDS:
+            raise LocalProtocolError(
+                f"kind={self.kind!r} is unknown: choose one of {', '.join(_DEVICE_KINDS)}",
+                field="devices",
+                value=self.kind,
+            )
+        ids = tuple(check_int("id", i, la.ID_MIN, la.ID_MAX) for i in self.ids)
+        if self.kind == "la" and not ids:
+            raise LocalProtocolError("an la device needs at least one ID", field="devices")
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "motor", ps.check_motor(self.motor))
+
+
+def _device_error(item: object, why: str) -> LocalProtocolError:
+    return LocalProtocolError(
+        f"devices: {item!r}: {why}; forms: la:1-15, la:1,4,7 (IDs {la.ID_MIN}..{la.ID_MAX}), "
+        "project-stepper[:motor=N], quad-stepper",
+        field="devices",
+        value=item,
+    )
+
 
 def parse_devices(items: Sequence[str]) -> list[DeviceSpec]:
     """Parse device strings: ``"la:1-15"``, ``"la:1,4,7"``, ``"project-stepper[:motor=N]"``,
     ``"quad-stepper"``.  Raises ``LocalProtocolError`` naming the bad item."""
+    if isinstance(items, str | bytes) or not isinstance(items, Sequence):
+        raise LocalProtocolError(
+            f"devices must be a list of strings, got {items!r} ({type(items).__name__})",
+            field="devices",
+            value=items,
+        )
     out: list[DeviceSpec] = []
     for item in items:
-        kind, _, rest = str(item).partition(":")
+        if not isinstance(item, str):
+            raise _device_error(item, f"a device is a string, not {type(item).__name__}")
+        kind, _, rest = item.partition(":")
         kind = kind.strip().replace("_", "-")
         if kind == "la":
             ids: list[int] = []
-            for part in filter(None, rest.split(",")):
-                m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+))?\s*", part)
+            for part in filter(None, (p.strip() for p in rest.split(","))):
+                m = re.fullmatch(r"(\d+)\s*(?:-\s*(\d+))?", part)
                 if not m:
-                    raise LocalProtocolError(
-                        f"device {item!r}: {part!r} is not an ID or a range like 1-15",
-                        field="devices",
-                    )
+                    raise _device_error(item, f"{part!r} is not an ID or a range like 1-15")
                 lo = int(m.group(1))
                 hi = int(m.group(2) or lo)
                 for i in (lo, hi):
                     if not la.ID_MIN <= i <= la.ID_MAX:
-                        raise LocalProtocolError(
-                            f"device {item!r}: id={i} is out of range: allowed 1..254",
-                            field="devices",
+                        raise _device_error(
+                            item, f"id={i} is out of range: allowed {la.ID_MIN}..{la.ID_MAX}"
                         )
+                if hi < lo:
+                    raise _device_error(item, f"{part!r} is a reversed range: write {hi}-{lo}")
                 ids.extend(range(lo, hi + 1))
             if not ids:
-                raise LocalProtocolError(
-                    f"device {item!r} lists no IDs: write la:1-15 or la:1,4,7", field="devices"
-                )
+                raise _device_error(item, "it lists no IDs")
             out.append(DeviceSpec("la", tuple(ids)))
         elif kind == "project-stepper":
             motor = ps.DEFAULT_MOTOR
-            if rest:
-                m = re.fullmatch(r"\s*motor\s*=\s*(\d+)\s*", rest)
+            if rest.strip():
+                m = re.fullmatch(r"\s*motor\s*=\s*(0[xX][0-9a-fA-F]+|\d+)\s*", rest)
                 if not m:
-                    raise LocalProtocolError(
-                        f"device {item!r}: options are 'motor=N'", field="devices"
-                    )
-                motor = int(m.group(1))
+                    raise _device_error(item, "the only option is motor=N")
+                try:
+                    motor = ps.check_motor(int(m.group(1), 0))
+                except LocalProtocolError as err:
+                    raise _device_error(item, str(err)) from None
             out.append(DeviceSpec("project_stepper", motor=motor))
         elif kind == "quad-stepper":
+            if rest.strip():
+                raise _device_error(item, "quad-stepper takes no options")
             out.append(DeviceSpec("quad_stepper"))
         else:
-            raise LocalProtocolError(
-                f"device {item!r}: kind {kind!r} is unknown: use la:IDS, project-stepper or "
-                "quad-stepper",
-                field="devices",
-            )
+            raise _device_error(item, f"kind {kind!r} is unknown")
     return out
+
+
+def _check_devices(devices: Sequence[DeviceSpec]) -> list[DeviceSpec]:
+    """Refuse an ID listed twice, or a stepper controller listed twice, on one bus."""
+    if isinstance(devices, str | bytes) or not isinstance(devices, Sequence):
+        raise LocalProtocolError(
+            f"devices must be a list of DeviceSpec, got {devices!r}", field="devices"
+        )
+    bad = [d for d in devices if not isinstance(d, DeviceSpec)]
+    if bad:
+        raise LocalProtocolError(
+            f"devices must be DeviceSpec values, got {bad[0]!r}", field="devices", value=bad[0]
+        )
+    ids = [i for d in devices for i in d.ids]
+    twice = sorted({i for i in ids if ids.count(i) > 1})
+    if twice:
+        # Two actuators with one ID on a bus answer together (A2-12).
+        raise LocalProtocolError(
+            f"devices: la ids {twice} are listed twice: each ID once per bus", field="devices"
+        )
+    kinds = [d.kind for d in devices if d.kind != "la"]
+    for kind in sorted(set(kinds)):
+        if kinds.count(kind) > 1:
+            raise LocalProtocolError(
+                f"devices: {kind} is listed twice: at most one per bus", field="devices"
+            )
+    return list(devices)
+
+
+def _check_choice(key: str, value: object, allowed: Sequence[str]) -> str:
+    if not isinstance(value, str) or value not in allowed:
+        raise LocalProtocolError(
+            f"{key}={value!r} is not allowed: choose one of {' | '.join(allowed)}",
+            field=key,
+            value=value,
+        )
+    return value
+
+
+def _check_fields(values: Mapping[str, Any]) -> dict[str, Any]:
+    """Check the scalar keys of a bus (all but ``devices``); return them in plain types."""
+    checks: dict[str, Any] = {
+        "name": lambda v: check_name("name", v),
+        "url": lambda v: check_name("url", v),
+        "baud": lambda v: check_baud("baud", v),
+        "backend": lambda v: _check_choice("backend", v, BACKENDS),
+        "rs485": lambda v: check_flag("rs485", v),
+        "remove_echo": lambda v: check_flag("remove_echo", v),
+        "low_latency": lambda v: check_flag("low_latency", v),
+        "min_spacing_ms": lambda v: check_number(
+            "min_spacing_ms", v, 0.0, MIN_SPACING_MS_MAX, "ms"
+        ),
+        "host_margin_ms": lambda v: check_number(
+            "host_margin_ms", v, 0.0, HOST_MARGIN_MS_MAX, "ms"
+        ),
+        "retries": lambda v: check_int("retries", v, 0, RETRIES_MAX),
+        "la_safe_action": lambda v: _check_choice("la_safe_action", v, _SAFE_ACTIONS),
+    }
+    out = {key: checks[key](value) for key, value in values.items() if key in checks}
+    if out.get("rs485") and out.get("backend") == "serialx":
+        raise LocalProtocolError(
+            "rs485=true is not supported with backend='serialx' (it has no RS-485 mode): "
+            "use backend='fast' or 'pyserial-asyncio'",
+            field="rs485",
+            value=True,
+        )
+    return out
+
+
+def _labelled(where: str, err: LocalProtocolError) -> LocalProtocolError:
+    """``err`` with ``where`` (file, bus) in front of its message, field and value kept."""
+    return LocalProtocolError(f"{where}: {err}", field=err.field, value=err.value)
 
 
 @dataclass(slots=True)
 class BusSpec:
-    """How to open one bus and what is on it."""
+    """How to open one bus and what is on it (every field checked on construction)."""
 
     name: str
     url: str
@@ -178,66 +315,46 @@ class BusSpec:
     retries: int = 1
     la_safe_action: str = "pause"
 
+    def __post_init__(self) -> None:
+        values = {key: getattr(self, key) for key in _BUS_KEYS if key != "devices"}
+        try:
+            checked = _check_fields(values)
+            self.devices = _check_devices(self.devices)
+        except LocalProtocolError as err:
+            raise _labelled(f"bus {self.name!r}", err) from None
+        for key, value in checked.items():
+            setattr(self, key, value)
+
     @classmethod
     def from_mapping(cls, data: Mapping[str, Any], index: int = 0) -> BusSpec:
-        """Build from one ``[[bus]]`` table; unknown keys are refused by name."""
+        """Build from one ``[[bus]]`` table; unknown keys are refused by name, every
+        value is typed and range-checked (see the module docstring)."""
+        name = data.get("name") if isinstance(data, Mapping) else None
+        where = f"bus {name!r} (#{index + 1})" if isinstance(name, str) else f"bus #{index + 1}"
+        if not isinstance(data, Mapping):
+            raise LocalProtocolError(
+                f"{where} must be a table of keys, got {data!r}", field="bus", value=data
+            )
         unknown = set(data) - _BUS_KEYS
         if unknown:
             raise LocalProtocolError(
-                f"bus #{index + 1}: unknown keys {sorted(unknown)}; allowed: {sorted(_BUS_KEYS)}",
+                f"{where}: unknown keys {sorted(unknown)}; allowed: {sorted(_BUS_KEYS)}",
                 field="bus",
             )
         for key in ("url", "baud"):
             if key not in data:
-                raise LocalProtocolError(f"bus #{index + 1}: '{key}' is required", field=key)
-        baud = data["baud"]
-        if isinstance(baud, bool) or not isinstance(baud, int) or baud <= 0:
-            raise LocalProtocolError(
-                f"bus #{index + 1}: baud={baud!r} must be a positive integer", field="baud"
+                raise LocalProtocolError(f"{where}: '{key}' is required", field=key)
+        try:
+            checked = _check_fields({"name": f"bus{index}", **data})
+            devices = _check_devices(parse_devices(data.get("devices", [])))
+        except LocalProtocolError as err:
+            raise _labelled(where, err) from None
+        if "host_margin_ms" not in checked:
+            remote = checked["url"].startswith(REMOTE_SCHEMES)
+            checked["host_margin_ms"] = (
+                REMOTE_HOST_MARGIN_MS if remote else DEFAULT_HOST_MARGIN_S * 1e3
             )
-        safe = data.get("la_safe_action", "pause")
-        if safe not in {a.value for a in SafeAction}:
-            raise LocalProtocolError(
-                f"bus #{index + 1}: la_safe_action={safe!r}: choose pause, estop or hold",
-                field="la_safe_action",
-            )
-        devices = parse_devices(list(data.get("devices", [])))
-        ids = [i for d in devices for i in d.ids]
-        twice = sorted({i for i in ids if ids.count(i) > 1})
-        if twice:
-            # Two actuators with one ID on a bus answer together (A2-12).
-            raise LocalProtocolError(
-                f"bus #{index + 1}: la ids {twice} are listed twice: each ID once per bus",
-                field="devices",
-            )
-        kinds = [d.kind for d in devices if d.kind != "la"]
-        for kind in set(kinds):
-            if kinds.count(kind) > 1:
-                raise LocalProtocolError(
-                    f"bus #{index + 1}: {kind} is listed twice: at most one per bus",
-                    field="devices",
-                )
-        return cls(
-            name=str(data.get("name", f"bus{index}")),
-            url=str(data["url"]),
-            baud=baud,
-            devices=devices,
-            backend=str(data.get("backend", "fast")),
-            rs485=bool(data.get("rs485", False)),
-            remove_echo=bool(data.get("remove_echo", False)),
-            low_latency=bool(data.get("low_latency", True)),
-            min_spacing_ms=float(data.get("min_spacing_ms", 1.0)),
-            host_margin_ms=float(
-                data.get(
-                    "host_margin_ms",
-                    REMOTE_HOST_MARGIN_MS
-                    if str(data["url"]).startswith(REMOTE_SCHEMES)
-                    else DEFAULT_HOST_MARGIN_S * 1e3,
-                )
-            ),
-            retries=int(data.get("retries", 1)),
-            la_safe_action=safe,
-        )
+        return cls(devices=devices, **checked)
 
     def families(self) -> set[Family]:
         """The protocol families its devices speak (all three if none are listed)."""
@@ -305,12 +422,22 @@ class BusManager:
         self.buses: dict[str, Bus] = {}
         self._transports: dict[str, Transport] = {}
         self._streamers: dict[str, Streamer] = {}
+        #: Why each bus that failed in the last ``open`` failed (bus name -> error).
+        self.open_errors: dict[str, Exception] = {}
 
     # -- building -----------------------------------------------------------------
 
     @classmethod
     def from_toml(cls, path: str | Path | None = None, **kwargs: Any) -> BusManager:
-        """Load a bus file (see the module docstring); default: :func:`default_bus_file`."""
+        """Load a bus file (see the module docstring); every key is checked here.
+
+        ``path`` defaults to :func:`default_bus_file` (the user's config file).
+
+        Raises:
+            LocalProtocolError: the file is not TOML, or a key is unknown, of the wrong
+                type or out of range (the message names the file, the bus and the key).
+            OSError: the file cannot be read.
+        """
         if path is None:
             path = default_bus_file()
             if path is None:
@@ -319,24 +446,43 @@ class BusManager:
             try:
                 data = tomllib.load(fh)
             except tomllib.TOMLDecodeError as err:
-                raise LocalProtocolError(f"{path}: not valid TOML: {err}", field="file") from err
-        return cls.from_dict(data, **kwargs)
+                raise LocalProtocolError(f"{path}: not a valid TOML file: {err}") from None
+        try:
+            return cls.from_dict(data, **kwargs)
+        except LocalProtocolError as err:
+            raise _labelled(str(path), err) from None
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any], **kwargs: Any) -> BusManager:
-        """Build from parsed TOML: ``{"bus": [{...}, ...]}``."""
+        """Build from parsed TOML: ``{"bus": [{...}, ...]}``; every key is checked here."""
+        if not isinstance(data, Mapping):
+            raise LocalProtocolError(f"a bus file is a table, got {data!r}", field="bus")
+        unknown = sorted(set(data) - {"bus"})
+        if unknown:
+            raise LocalProtocolError(
+                f"unknown top-level keys {unknown}; allowed: ['bus'] ([[bus]] tables)",
+                field="bus",
+            )
         tables = data.get("bus")
         if not isinstance(tables, list) or not tables:
             raise LocalProtocolError("the bus file needs at least one [[bus]] table", field="bus")
         mgr = cls(**kwargs)
         for i, table in enumerate(tables):
-            mgr.add_spec(BusSpec.from_mapping(table, i))
+            spec = BusSpec.from_mapping(table, i)
+            try:
+                mgr.add_spec(spec)
+            except LocalProtocolError as err:
+                raise _labelled(f"bus {spec.name!r} (#{i + 1})", err) from None
         return mgr
 
     def add_spec(self, spec: BusSpec, transport: Transport | None = None) -> None:
         """Add a bus; ``transport`` overrides opening ``spec.url`` (e.g. an in-memory link)."""
+        if not isinstance(spec, BusSpec):
+            raise LocalProtocolError(f"spec must be a BusSpec, got {spec!r}", field="spec")
         if spec.name in self.specs:
-            raise LocalProtocolError(f"bus name {spec.name!r} is used twice", field="name")
+            raise LocalProtocolError(
+                f"name={spec.name!r} is used twice: each bus needs its own name", field="name"
+            )
         self.specs[spec.name] = spec
         if transport is not None:
             self._transports[spec.name] = transport
@@ -353,7 +499,7 @@ class BusManager:
     ) -> None:
         """Add a bus from code; ``options`` are the ``BusSpec`` fields (backend, rs485...)."""
         spec = BusSpec.from_mapping(
-            {"name": name, "url": url, "baud": baud, "devices": list(devices), **options},
+            {"name": name, "url": url, "baud": baud, "devices": devices, **options},
             len(self.specs),
         )
         self.add_spec(spec, transport)
@@ -373,36 +519,74 @@ class BusManager:
         await self.close()
 
     async def open(self) -> None:
-        """Open every bus concurrently; if one fails, close the others and raise."""
+        """Open every bus concurrently; if any fails, close the others and raise.
+
+        What is raised is the first failure (in bus order) that is an ``OSError`` or a
+        ``MotorbusError`` - so ``except OSError`` catches a missing port - else the first
+        failure; a note on it names its bus, and the failures of the other buses are
+        attached as further notes and kept in :attr:`open_errors` (bus name -> error).
+        """
         realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
-        for i, (name, spec) in enumerate(self.specs.items()):
-            transport = self._transports.get(name) or open_transport(
-                spec.url,
-                baudrate=spec.baud,
-                backend=spec.backend,
-                rs485=spec.rs485,
-                remove_echo=spec.remove_echo,
-                low_latency=spec.low_latency,
-            )
-            bus = Bus(
-                transport,
-                name=name,
-                families=spec.families(),
-                min_spacing=spec.min_spacing_ms / 1e3,
-                host_margin=spec.host_margin_ms / 1e3,
-                retries=spec.retries,
-            )
-            self.buses[name] = bus
-            phase = (i % PHASE_GROUPS) * PHASE_SPAN_S / PHASE_GROUPS
-            self._streamers[name] = Streamer(bus, phase=phase)
+        self.open_errors = {}
+        try:
+            for i, (name, spec) in enumerate(self.specs.items()):
+                transport = self._transports.get(name) or open_transport(
+                    spec.url,
+                    baudrate=spec.baud,
+                    backend=spec.backend,
+                    rs485=spec.rs485,
+                    remove_echo=spec.remove_echo,
+                    low_latency=spec.low_latency,
+                )
+                bus = Bus(
+                    transport,
+                    name=name,
+                    families=spec.families(),
+                    min_spacing=spec.min_spacing_ms / 1e3,
+                    host_margin=spec.host_margin_ms / 1e3,
+                    retries=spec.retries,
+                )
+                self.buses[name] = bus
+                phase = (i % PHASE_GROUPS) * PHASE_SPAN_S / PHASE_GROUPS
+                self._streamers[name] = Streamer(bus, phase=phase)
+        except BaseException:
+            self.buses.clear()
+            self._streamers.clear()
+            raise
+
+        async def open_one(name: str, bus: Bus) -> None:
+            try:
+                await bus.open()
+            except Exception as err:  # gathered; cancellation is not
+                self.open_errors[name] = err
+
         try:
             async with anyio.create_task_group() as tg:
-                for bus in self.buses.values():
-                    tg.start_soon(bus.open)
-        except BaseException:
-            await self._close_buses()
+                for name, bus in self.buses.items():
+                    tg.start_soon(open_one, name, bus)
+        except BaseException:  # cancelled while opening: still close what was opened
+            with anyio.CancelScope(shield=True):
+                await self._close_buses()
             raise
+        if self.open_errors:
+            with anyio.CancelScope(shield=True):
+                await self._close_buses()
+            raise self._open_failure()
         shutdown.register_manager(self)
+
+    def _open_failure(self) -> Exception:
+        failed = [(n, self.open_errors[n]) for n in self.specs if n in self.open_errors]
+        name, first = next(
+            ((n, e) for n, e in failed if isinstance(e, OSError | MotorbusError)), failed[0]
+        )
+        first.add_note(f"while opening bus {name!r} ({self.specs[name].url})")
+        for other, err in failed:
+            if other != name:
+                first.add_note(
+                    f"bus {other!r} ({self.specs[other].url}) failed too: "
+                    f"{type(err).__name__}: {err}"
+                )
+        return first
 
     async def close(self) -> None:
         """Safe-stop every device (shielded from cancellation, bounded in time), then close.

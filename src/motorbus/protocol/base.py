@@ -9,6 +9,8 @@ from __future__ import annotations
 import abc
 import enum
 import math
+import numbers
+import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -25,6 +27,7 @@ __all__ = [
     "Direction",
     "Family",
     "FrameShape",
+    "as_real",
     "check_choice",
     "check_flag",
     "check_int",
@@ -74,28 +77,60 @@ def sum8(data: bytes | bytearray | memoryview) -> int:
     return sum(data) & 0xFF
 
 
+def _is_bool(value: object) -> bool:
+    # ``bool`` and numpy's ``bool_`` (which is no ``bool`` subclass): a flag is not a number.
+    if isinstance(value, bool):
+        return True
+    kind = type(value)
+    return kind.__name__ in ("bool_", "bool") and kind.__module__ == "numpy"
+
+
+def _as_int(value: object) -> int | None:
+    """``value`` as a plain int if it is an integer (an ``int`` or any object with
+    ``__index__``, such as a numpy integer scalar), else None.  Bools are not integers."""
+    if type(value) is int:
+        return value
+    if _is_bool(value):
+        return None
+    if isinstance(value, int):
+        return int(value)  # an IntEnum member or another int subclass
+    index = getattr(type(value), "__index__", None)
+    if index is None:
+        return None
+    try:
+        return operator.index(value)  # type: ignore[arg-type]
+    except TypeError:  # e.g. a numpy array of more than one element
+        return None
+
+
 def check_int(field: str, value: object, lo: int, hi: int) -> int:
-    """Return ``value`` if it is an ``int`` in ``lo..hi``; else raise ``LocalProtocolError``.
+    """Return ``value`` as an ``int`` if it is an integer in ``lo..hi``; else raise
+    ``LocalProtocolError``.
 
     The error names the field, the value and the allowed range, so a user can fix the
     call without reading the source.  ``bool`` is refused: ``True`` is not a position.
+    Integer-like objects (numpy integer scalars: anything with ``__index__``) are
+    accepted and returned as a plain ``int``; floats are refused, even ``2.0``.
     """
-    if isinstance(value, bool) or not isinstance(value, int):
+    number = value if type(value) is int else _as_int(value)
+    if number is None:
         raise LocalProtocolError(
             f"{field} must be an integer in {lo}..{hi}, got {value!r} ({type(value).__name__})",
             field=field,
             value=value,
         )
-    if not lo <= value <= hi:
+    if not lo <= number <= hi:
         raise LocalProtocolError(
-            f"{field}={value} is out of range: allowed {lo}..{hi}", field=field, value=value
+            f"{field}={number} is out of range: allowed {lo}..{hi}", field=field, value=value
         )
-    return value
+    return number
 
 
 def check_choice(field: str, value: object, allowed: Sequence[int], meaning: str = "") -> int:
-    """Return ``value`` if it is one of ``allowed``; else raise ``LocalProtocolError``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value not in allowed:
+    """Return ``value`` (as an ``int``) if it is one of ``allowed``; else raise
+    ``LocalProtocolError``."""
+    number = _as_int(value)
+    if number is None or number not in allowed:
         shown = ", ".join(str(a) for a in allowed)
         extra = f" ({meaning})" if meaning else ""
         raise LocalProtocolError(
@@ -103,40 +138,54 @@ def check_choice(field: str, value: object, allowed: Sequence[int], meaning: str
             field=field,
             value=value,
         )
-    return value
+    return value if isinstance(value, int) else number
+
+
+def as_real(value: object) -> float | None:
+    """``value`` as a float if it is a real number (int, float, numpy scalar, Fraction...),
+    else None.  Bools and text are not numbers; NaN and infinity are returned as such."""
+    if type(value) is float or type(value) is int:
+        return float(value)
+    if _is_bool(value) or not isinstance(value, numbers.Real):
+        number = _as_int(value)  # an integer-like object that is not registered as Real
+        return None if number is None else float(number)
+    return float(value)
 
 
 def check_timeout(field: str, value: object, maximum: float = math.inf) -> float:
-    """Return ``value`` (seconds) if it is a finite number in ``0..maximum``.
+    """Return ``value`` (seconds) as a float if it is a finite number in ``0..maximum``.
 
     Raises:
         LocalProtocolError: a bool, a non-number, NaN, infinity or out of range (a NaN
             deadline used to reach the timer and break its callback).
     """
-    if (
-        isinstance(value, bool)
-        or not isinstance(value, int | float)
-        or not math.isfinite(value)
-        or not 0 <= value <= maximum
-    ):
-        shown = "" if maximum == math.inf else f"..{maximum:g}"
+    number = as_real(value)
+    shown = "" if maximum == math.inf else f"..{maximum:g}"
+    if number is None:
+        raise LocalProtocolError(
+            f"{field} must be a number of seconds 0{shown}, got {value!r} ({type(value).__name__})",
+            field=field,
+            value=value,
+        )
+    if not math.isfinite(number) or not 0 <= number <= maximum:
         raise LocalProtocolError(
             f"{field}={value!r} is out of range: allowed 0{shown} seconds (a finite number)",
             field=field,
             value=value,
         )
-    return float(value)
+    return number
 
 
 def check_flag(field: str, value: object) -> bool:
-    """Return ``value`` if it is a bool; a truthy string or None must not pick a command."""
-    if not isinstance(value, bool):
+    """Return ``value`` if it is a bool (or a numpy ``bool_``); a truthy string, a number
+    or None must not pick a command."""
+    if not _is_bool(value):
         raise LocalProtocolError(
             f"{field} must be True or False, got {value!r} ({type(value).__name__})",
             field=field,
             value=value,
         )
-    return value
+    return bool(value)
 
 
 def parse_hex(text: str) -> bytes:
@@ -203,6 +252,23 @@ class Command(abc.ABC):
 
     __slots__ = ()
 
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        # Every command validates in ``__post_init__``; run ``_plain_fields`` first, so
+        # that a numpy integer given for an ID or a position is checked and stored as
+        # the plain int that ``encode`` (``int.to_bytes``) needs.
+        super().__init_subclass__(**kwargs)
+        post = cls.__dict__.get("__post_init__")
+        if post is None or getattr(post, "_plain_fields", False):
+            return
+
+        def __post_init__(self: Command) -> None:
+            _plain_fields(self)
+            post(self)
+
+        __post_init__._plain_fields = True  # type: ignore[attr-defined]
+        __post_init__.__doc__ = post.__doc__
+        cls.__post_init__ = __post_init__  # type: ignore[attr-defined]
+
     #: Which device family understands this command.
     family: ClassVar[Family]
     #: True for commands that start motion: the bus never retries them blindly.
@@ -236,6 +302,21 @@ class Command(abc.ABC):
     def expects_reply(self) -> bool:
         """True if the device answers this request."""
         return bool(self.reply_lengths())
+
+
+#: Field values ``_plain_fields`` leaves alone without a closer look.
+_PLAIN_TYPES = frozenset((int, bool, float, str, bytes, type(None), tuple))
+
+
+def _plain_fields(cmd: Command) -> None:
+    """Replace integer-like field values (numpy scalars) of a dataclass command by ints."""
+    for name in cmd.__dataclass_fields__:  # type: ignore[attr-defined]
+        value = getattr(cmd, name)
+        if type(value) in _PLAIN_TYPES or isinstance(value, int | enum.Enum):
+            continue
+        number = _as_int(value)
+        if number is not None:
+            object.__setattr__(cmd, name, number)
 
 
 def require_reply(cmd: Command, raw: bytes) -> None:

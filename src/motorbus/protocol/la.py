@@ -1164,9 +1164,12 @@ class Broadcast(LACommand):
             ) from None
         check_int("len(entries)", len(entries), 1, MAX_BROADCAST_ENTRIES)
         seen: set[int] = set()
-        for ident, pos in entries:
-            _check_id(ident, allow_broadcast=False)
-            _check_position(pos)
+        # The checks return plain ints: numpy integers are stored as ints too.
+        entries = tuple(
+            (_check_id(ident, allow_broadcast=False), _check_position(pos))
+            for ident, pos in entries
+        )
+        for ident, _pos in entries:
             if ident in seen:
                 raise LocalProtocolError(
                     f"id={ident} appears twice in one broadcast: each actuator once",

@@ -30,8 +30,10 @@ from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
 from motorbus.errors import BusClosedError, LocalProtocolError
+from motorbus.protocol.base import check_flag
 from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
 from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
+from motorbus.validation import check_baud
 
 __all__ = [
     "BACKENDS",
@@ -181,12 +183,10 @@ class SerialTransport(CountingTransport):
             LocalProtocolError: unknown backend, bad baudrate, or RS-485 with serialx.
             ImportError: the backend's package is missing (names the pip extra).
         """
-        if isinstance(baudrate, bool) or not isinstance(baudrate, int) or baudrate <= 0:
-            raise LocalProtocolError(
-                f"baudrate must be a positive integer (bits per second), got {baudrate!r}",
-                field="baudrate",
-                value=baudrate,
-            )
+        # A plausible serial rate (motorbus.validation): 10**12 used to reach the OS.
+        baudrate = check_baud("baudrate", baudrate)
+        rs485, remove_echo = check_flag("rs485", rs485), check_flag("remove_echo", remove_echo)
+        low_latency = check_flag("low_latency", low_latency)
         self._connect = _load_backend(backend)
         if rs485 and backend == "serialx":
             raise LocalProtocolError(
