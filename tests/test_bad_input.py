@@ -431,6 +431,7 @@ BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
     "retries": ("1", 1.5, 2.7, NAN, None, True, -1, 11),
     "late_guard": (NAN, INF, -0.001, 2.5, "0.02", None, True),
     "reconnect": ("yes", 1, 0, None),
+    "wire_floor": ("yes", 1, 0, None),
 }
 
 

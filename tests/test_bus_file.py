@@ -286,7 +286,7 @@ def test_unknown_keys_are_refused_with_the_allowed_list() -> None:
 def test_invalid_toml_and_missing_files(tmp_path: Path) -> None:
     path = tmp_path / "broken.toml"
     path.write_text("[[bus]\nurl = 1\n", encoding="utf-8")
-    with pytest.raises(LocalProtocolError, match=re.escape(f"{path}: not a valid TOML file")):
+    with pytest.raises(LocalProtocolError, match=re.escape(f"{path}: not valid TOML")):
         BusManager.from_toml(path)
     with pytest.raises(FileNotFoundError):
         BusManager.from_toml(tmp_path / "missing.toml")

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from types import TracebackType
 from typing import Any, TypeAlias
 
+from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
@@ -654,6 +655,13 @@ class Streamer:
                 if s.origin + s.next_tick * s.period <= deadline + COALESCE_WINDOW_S
             ]
             await self._serve_tick(due, deadline)
+            if self.streams:
+                # Idle time until the next tick: where real-time mode runs the garbage
+                # collector's full collections (a no-op otherwise; motorbus.realtime).
+                upcoming = min(s.origin + s.next_tick * s.period for s in self.streams)
+                idle = upcoming - PREPARE_S - timer.now()
+                if idle > 0:
+                    realtime.idle_hook(idle)
 
     async def _serve_tick(self, due: list[Stream], deadline: float) -> None:
         """Prepare the tick's frames ahead of ``deadline``, send them at it, then

@@ -278,6 +278,7 @@ class Bus:
         retries = check_int("retries", retries, 0, RETRIES_MAX)
         late_guard = check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s")
         reconnect = check_flag("reconnect", reconnect)
+        wire_floor = check_flag("wire_floor", wire_floor)
         self.transport = transport
         self.name = name or transport.url
         self.families = frozenset(families)

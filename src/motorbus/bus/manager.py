@@ -446,7 +446,7 @@ class BusManager:
             try:
                 data = tomllib.load(fh)
             except tomllib.TOMLDecodeError as err:
-                raise LocalProtocolError(f"{path}: not a valid TOML file: {err}") from None
+                raise LocalProtocolError(f"{path}: not valid TOML: {err}", field="file") from None
         try:
             return cls.from_dict(data, **kwargs)
         except LocalProtocolError as err:

@@ -343,6 +343,9 @@ def _summary(
     return {
         "frames": sum(b.requests for b in stats),
         "timeouts": sum(b.timeouts for b in stats),
+        # Timeouts decided over 1 ms after their deadline: the host stalled, not the device.
+        "timeouts_in_host_stall": sum(b.timeouts_in_host_stall for b in stats),
+        "host_stall_max_ms": max((b.host_stall_max for b in stats), default=0.0) * 1e3,
         "late_replies": sum(b.late_replies for b in stats),
         "garbage_bytes": sum(b.garbage_bytes for b in stats),
         "stream_host": stream.stats.summary(),
@@ -354,17 +357,40 @@ def _summary(
     }
 
 
+def _timeout_cause(s: dict[str, Any]) -> str:
+    """What the timeouts of a fault-free run were: the host stalling, or unexplained."""
+    total, stalled = s["timeouts"], s["timeouts_in_host_stall"]
+    if not total:
+        return ""
+    if stalled == total:
+        return (
+            f" (all decided while this host stalled, up to {s['host_stall_max_ms']:.1f} ms: "
+            "the simulators answered, the bus could not look in time)"
+        )
+    if stalled:
+        return (
+            f" ({stalled} decided while this host stalled, up to "
+            f"{s['host_stall_max_ms']:.1f} ms; {total - stalled} with the host on time)"
+        )
+    return " (with the host on time: see the bus stats in summary.json)"
+
+
 def _print_summary(s: dict[str, Any]) -> None:
     sim = s["stream_sim"]
     host = s["stream_host"]
     print("summary")
     print(f"  frames sent            {s['frames']}")
-    print(f"  timeouts               {s['timeouts']}")
-    print(f"  late replies           {s['late_replies']}")
+    print(f"  timeouts               {s['timeouts']}{_timeout_cause(s)}")
+    late = s["late_replies"]
+    print(
+        f"  late replies           {late}"
+        + (" (the answers to those timeouts, counted, never mismatched)" if late else "")
+    )
     print(f"  garbage bytes          {s['garbage_bytes']}")
     print(
         f"  stream ticks (host)    {host['ticks']} sent, {host['late']} late, "
-        f"{host['skipped']} skipped, {host['polls']} status polls"
+        f"{host['skipped']} skipped, {host['slipped']} slipped, {host['polls']} status polls "
+        f"({host['polls_skipped']} skipped: no free slot)"
     )
     print(
         f"  tick jitter (sim side) p50 {sim['tick_jitter_p50_us']:.0f} µs, "
