@@ -126,7 +126,9 @@ class RecordingClock:
         self.last = self.inner.now()
         return self.last
 
-    def call_at(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+    def call_at(
+        self, deadline: float, callback: Callable[[], None], *, precise: bool = True
+    ) -> TimerHandle:
         """Delegate to the inner timer, noting how late the callback runs."""
         inner = self.inner
 
@@ -134,7 +136,7 @@ class RecordingClock:
             self.fired.append(inner.now() - deadline)
             callback()
 
-        return inner.call_at(deadline, run)
+        return inner.call_at(deadline, run, precise=precise)
 
 
 def record_tx(bus: Bus, clock: RecordingClock, into: list[float]) -> None:

@@ -59,9 +59,11 @@ class RecordingClock:
         self.last = self.inner.now()
         return self.last
 
-    def call_at(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+    def call_at(
+        self, deadline: float, callback: Callable[[], None], *, precise: bool = True
+    ) -> TimerHandle:
         """Delegate to the inner timer."""
-        return self.inner.call_at(deadline, callback)
+        return self.inner.call_at(deadline, callback, precise=precise)
 
 
 @dataclass

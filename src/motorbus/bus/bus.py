@@ -632,20 +632,26 @@ class Bus:
                 if held is not None:
                     start = held
                 if start > now:
-                    self._pump_later(start)
+                    # Spinning the timer's last microseconds costs CPU; it is worth it
+                    # for a tick's frame or a user's request, not for a background poll
+                    # (the spacing rule is a minimum: a late poll breaks nothing).
+                    self._pump_later(
+                        start, precise=job.reserved or job.priority < Priority.BACKGROUND
+                    )
                     return
                 heapq.heappop(heap)
                 self._transmit(job)
         finally:
             self._pumping = False
 
-    def _pump_later(self, start: float) -> None:
-        if self._pump_handle is not None:
-            if self._pump_at == start:
+    def _pump_later(self, start: float, *, precise: bool = True) -> None:
+        handle = self._pump_handle
+        if handle is not None:
+            if self._pump_at == start and handle.precise == precise:
                 return
-            self._pump_handle.cancel()
+            handle.cancel()
         self._pump_at = start
-        self._pump_handle = self.timer.call_at(start, self._on_pump_timer)
+        self._pump_handle = self.timer.call_at(start, self._on_pump_timer, precise=precise)
 
     def _on_pump_timer(self) -> None:
         self._pump_handle = None

@@ -326,6 +326,8 @@ class _TimerfdApi:
                 ctypes.c_void_p,
             )
             self._libc.timerfd_settime.restype = ctypes.c_int
+            self._settime = self._libc.timerfd_settime
+        self._specs: dict[int, tuple[_ITimerSpec, Any]] = {}
 
     def create(self) -> int:
         flags = _TFD_NONBLOCK | _TFD_CLOEXEC
@@ -342,9 +344,15 @@ class _TimerfdApi:
         if self._libc is None:
             self._os_settime_ns(fd, flags=_TFD_TIMER_ABSTIME, initial=deadline_ns, interval=0)
             return
-        spec = _ITimerSpec()
-        spec.it_value.tv_sec, spec.it_value.tv_nsec = divmod(deadline_ns, _NS_PER_S)
-        if self._libc.timerfd_settime(fd, _TFD_TIMER_ABSTIME, ctypes.byref(spec), None) < 0:
+        # Called several times a tick: one preallocated struct per fd (each timer, and so
+        # each loop and thread, has its own fd), no per-call objects.
+        found = self._specs.get(fd)
+        if found is None:
+            spec = _ITimerSpec()
+            found = self._specs[fd] = (spec, ctypes.byref(spec))
+        value = found[0].it_value
+        value.tv_sec, value.tv_nsec = divmod(deadline_ns, _NS_PER_S)
+        if self._settime(fd, _TFD_TIMER_ABSTIME, found[1], None) < 0:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
 

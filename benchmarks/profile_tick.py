@@ -1,0 +1,92 @@
+"""Where the CPU of one bus-tick goes: README's stream under cProfile, per tick.
+
+Streams 15 actuators at 10 ms (one 0xF3 broadcast a tick, ``poll_status=True``) over a
+real pty to ``motorbus sim`` in a child process for ``--seconds``, under cProfile, and
+prints the functions that take the most CPU, in microseconds per tick (self time and
+cumulative), plus the process CPU per tick measured without the profiler in the same
+run.  Writes ``benchmarks/results/profile_tick.json``.
+
+Usage: ``python benchmarks/profile_tick.py [--seconds 5] [--top 25] [--out PATH]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import cProfile
+import json
+import math
+import pstats
+import time
+from pathlib import Path
+from typing import Any
+
+import motorbus
+from motorbus.sim.process import SimProcess
+
+DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "profile_tick.json"
+PERIOD_S = 0.01
+IDS = range(1, 16)
+
+
+async def stream(path: str, seconds: float) -> dict[str, Any]:
+    transport = motorbus.open_transport(path, baudrate=921600)
+    async with motorbus.Bus(transport, families=[motorbus.Family.LA]) as bus:
+        actuators = [motorbus.InspireLA(bus, i) for i in IDS]
+        for a in actuators:
+            await a.enable()
+        ticks = round(seconds / PERIOD_S)
+        rows = [[1000 + 400 * math.sin(k / 50 + i / 3) for i in range(15)] for k in range(ticks)]
+        cpu0 = time.process_time()
+        s = motorbus.Streamer(bus).follow(actuators, rows, period=PERIOD_S, poll_status=True)
+        await s.wait()
+        cpu = time.process_time() - cpu0
+        return {"ticks": s.stats.ticks, "cpu_s": cpu, "stats": s.stats.summary()}
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--top", type=int, default=25)
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    args = p.parse_args()
+    with SimProcess(["la:1-15"], baud=921600) as sim:
+        plain = asyncio.run(stream(sim.path, args.seconds))
+        profiler = cProfile.Profile()
+        profiler.enable()
+        profiled = asyncio.run(stream(sim.path, args.seconds))
+        profiler.disable()
+    ticks = max(1, profiled["ticks"])
+    stats = pstats.Stats(profiler)
+    rows = []
+    for (file, line, func), (_, calls, self_t, cum_t, _) in stats.stats.items():  # type: ignore[attr-defined]
+        rows.append(
+            {
+                "function": f"{Path(file).name}:{line}({func})",
+                "calls_per_tick": calls / ticks,
+                "self_us_per_tick": self_t / ticks * 1e6,
+                "cum_us_per_tick": cum_t / ticks * 1e6,
+            }
+        )
+    rows.sort(key=lambda r: r["self_us_per_tick"], reverse=True)
+    per_tick_us = plain["cpu_s"] / max(1, plain["ticks"]) * 1e6
+    print(
+        f"process CPU per tick without the profiler: {per_tick_us:.0f} us "
+        f"({plain['ticks']} ticks, {plain['cpu_s']:.2f} s CPU)"
+    )
+    print(f"{'self us/tick':>12} {'cum us/tick':>12} {'calls/tick':>10}  function")
+    for r in rows[: args.top]:
+        print(
+            f"{r['self_us_per_tick']:12.1f} {r['cum_us_per_tick']:12.1f} "
+            f"{r['calls_per_tick']:10.1f}  {r['function']}"
+        )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(
+        json.dumps({"cpu_us_per_tick": per_tick_us, "plain": plain, "top": rows[:100]}, indent=2)
+    )
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
