@@ -76,7 +76,7 @@ from typing import Any
 
 import serial
 
-from kernel_clock import KernelWriteTrace, busiest_fd, grid_jitter, write_gaps
+from kernel_clock import KernelWriteTrace, grid_jitter, port_figures, write_gaps
 from motorbus.bus.bus import Bus
 from motorbus.bus.manager import BusManager
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
@@ -440,65 +440,14 @@ def mixed_workload(
         "sim_gaps_under_1000us": sim_gaps.under,
         "sim_tick_jitter_p99_us": sim_ticks.p99_us,
         "sim_tick_jitter_max_us": sim_ticks.max_us,
-        **kernel_port_figures(
+        **port_figures(
             trace,
+            FRAME_SIZES,
             tick_bytes=BROADCAST_BYTES,
             period=MIXED_PERIOD_S,
             expected_ticks=round(seconds / MIXED_PERIOD_S),
         ),
     }
-    return out
-
-
-def kernel_port_figures(
-    trace: KernelWriteTrace,
-    *,
-    tick_bytes: int | None = None,
-    period: float = MIXED_PERIOD_S,
-    expected_ticks: int = 0,
-) -> dict[str, Any]:
-    """Spacing (and tick jitter) of the writes to the port, on the kernel's clock."""
-    if not trace.measured:
-        return {"kernel_measured": False, "kernel_why": trace.why}
-    fd = busiest_fd(trace.calls, FRAME_SIZES)
-    if fd is None:
-        return {"kernel_measured": False, "kernel_why": "no frame-sized write(2) was recorded"}
-    calls = trace.of(fd)
-    starts = [c.start for c in calls]
-    gaps = write_gaps(starts)
-    # The spacing rule counts from when the previous write returned.
-    after_return = [b.start - a.end for a, b in itertools.pairwise(calls) if a.end is not None]
-    durations = sorted(c.duration for c in calls if c.duration is not None)
-    out: dict[str, Any] = {
-        "kernel_measured": True,
-        "kernel_fd": fd,
-        "kernel_writes": len(calls),
-        "kernel_odd_size_writes": sum(1 for c in calls if c.count not in FRAME_SIZES),
-        "kernel_min_gap_us": gaps.min_us,
-        "kernel_gaps_under_1000us": gaps.under,
-        "kernel_min_gap_after_return_us": min(after_return) * 1e6 if after_return else math.nan,
-        "kernel_write_p50_us": percentile(durations, 0.5) * 1e6,
-        "kernel_write_p99_us": percentile(durations, 0.99) * 1e6,
-        "kernel_write_max_us": durations[-1] * 1e6 if durations else math.nan,
-    }
-    if tick_bytes is not None:
-        ticks = grid_jitter([c.start for c in calls if c.count == tick_bytes], period)
-        # Ticks the stream should have sent in its run (targets for `seconds`), or the
-        # grid slots between the first and the last tick, whichever is more.
-        slots = max(expected_ticks, ticks.ticks - ticks.extra + ticks.missed)
-        out.update(
-            {
-                "kernel_ticks": ticks.ticks,
-                "kernel_ticks_sent_pct": 100 * (ticks.ticks - ticks.extra) / slots
-                if slots
-                else math.nan,
-                "kernel_tick_jitter_p50_us": ticks.p50_us,
-                "kernel_tick_jitter_p99_us": ticks.p99_us,
-                "kernel_tick_jitter_max_us": ticks.max_us,
-                "kernel_late_ticks": ticks.late,
-                "kernel_missed_ticks": ticks.missed,
-            }
-        )
     return out
 
 
@@ -676,7 +625,7 @@ def main(argv: list[str] | None = None) -> int:
                     pstats.Stats(profiler, stream=text).sort_stats("tottime").print_stats(25)
                     res["profile"] = text.getvalue()
             sim_starts = request_starts(log_file)
-        res["rate_kernel"] = kernel_port_figures(trace)
+        res["rate_kernel"] = port_figures(trace, FRAME_SIZES)
         with served(args.sim, None) as path:
             res["deadline"] = runner.run(deadline_precision(path, args.backend, args.n))
         res["timer"] = runner.run(timer_name())

@@ -54,6 +54,8 @@ __all__ = [
     "grid_jitter",
     "not_measured",
     "parse_perf_script",
+    "port_figures",
+    "worst_tick_figures",
     "write_gaps",
 ]
 
@@ -243,7 +245,11 @@ def _fit(ks: Sequence[int], ts: Sequence[float]) -> tuple[float, float]:
 
 
 def grid_jitter(
-    times: Sequence[float], period: float, late_threshold: float = LATE_S
+    times: Sequence[float],
+    period: float,
+    late_threshold: float = LATE_S,
+    *,
+    by_index: bool = False,
 ) -> GridJitter:
     """Fit ``t_k = a + k * P`` to periodic ``times`` (s) and measure the residuals.
 
@@ -252,12 +258,32 @@ def grid_jitter(
     period) and the grid fitted again (so a late first tick does not shift every slot).
     A constant latency and a steady clock-rate difference are thus not counted; every
     wobble is.
+
+    With ``by_index`` the k-th time is held to slot k and only a is fitted (P is the
+    nominal period): for a sender with no grid (a sleep loop), whose drift is then
+    counted as jitter, as it would be by a device expecting the period.
     """
     ordered = sorted(times)
     nan = math.nan
     if len(ordered) < 2 or period <= 0:
         return GridJitter(len(ordered), nan, nan, nan, 0, 0, 0, nan, nan)
     t0 = ordered[0]
+    if by_index:
+        a = sum(t - k * period for k, t in enumerate(ordered)) / len(ordered)
+        residuals = [t - (a + k * period) for k, t in enumerate(ordered)]
+        magnitudes = sorted(abs(r) for r in residuals)
+        span = ordered[-1] - ordered[0]
+        return GridJitter(
+            ticks=len(ordered),
+            p50_us=_percentile(magnitudes, 0.50) * 1e6,
+            p99_us=_percentile(magnitudes, 0.99) * 1e6,
+            max_us=magnitudes[-1] * 1e6,
+            late=sum(1 for r in residuals if r > late_threshold),
+            missed=0,
+            extra=0,
+            period_us=span / (len(ordered) - 1) * 1e6,
+            drift_ppm=(span / (len(ordered) - 1) - period) / period * 1e6,
+        )
     ks = [round((t - t0) / period) for t in ordered]
     if ks[-1] == ks[0]:
         return GridJitter(len(ordered), nan, nan, nan, 0, 0, len(ordered) - 1, nan, nan)
@@ -295,6 +321,89 @@ def _round(value: float, digits: int = 0) -> float | None:
 def not_measured(why: str) -> dict[str, Any]:
     """The report entry of a kernel figure that could not be taken."""
     return {"measured": False, "why": why}
+
+
+def port_figures(
+    trace: KernelWriteTrace,
+    frame_sizes: Sequence[int],
+    *,
+    tick_bytes: int | None = None,
+    period: float = 0.010,
+    expected_ticks: int = 0,
+    by_index: bool = False,
+) -> dict[str, Any]:
+    """Spacing (and tick jitter) of the writes to the port, on the kernel's clock.
+
+    The port is the fd with the most writes of ``frame_sizes`` bytes; ``kernel_*`` keys
+    (µs; NaN where nothing to measure), or ``kernel_measured: False`` and ``kernel_why``.
+    With ``tick_bytes``, the writes of that size are ticks of a ``period`` grid:
+    jitter from a least-squares grid, late and missed ticks, and the share of the
+    ``expected_ticks`` (or of the grid's slots, if more) that were sent.
+    """
+    if not trace.measured:
+        return {"kernel_measured": False, "kernel_why": trace.why}
+    fd = busiest_fd(trace.calls, frame_sizes)
+    if fd is None:
+        return {"kernel_measured": False, "kernel_why": "no frame-sized write(2) was recorded"}
+    calls = trace.of(fd)
+    starts = [c.start for c in calls]
+    gaps = write_gaps(starts)
+    # The spacing rule counts from when the previous write returned.
+    after_return = [b.start - a.end for a, b in itertools.pairwise(calls) if a.end is not None]
+    durations = sorted(c.duration for c in calls if c.duration is not None)
+    out: dict[str, Any] = {
+        "kernel_measured": True,
+        "kernel_fd": fd,
+        "kernel_writes": len(calls),
+        "kernel_odd_size_writes": sum(1 for c in calls if c.count not in frame_sizes),
+        "kernel_min_gap_us": gaps.min_us,
+        "kernel_gaps_under_1000us": gaps.under,
+        "kernel_min_gap_after_return_us": min(after_return) * 1e6 if after_return else math.nan,
+        "kernel_write_p50_us": _percentile(durations, 0.5) * 1e6 if durations else math.nan,
+        "kernel_write_p99_us": _percentile(durations, 0.99) * 1e6 if durations else math.nan,
+        "kernel_write_max_us": durations[-1] * 1e6 if durations else math.nan,
+    }
+    if tick_bytes is not None:
+        ticks = grid_jitter(
+            [c.start for c in calls if c.count == tick_bytes], period, by_index=by_index
+        )
+        # Ticks the stream should have sent in its run (targets for `seconds`), or the
+        # grid slots between the first and the last tick, whichever is more.
+        slots = max(expected_ticks, ticks.ticks - ticks.extra + ticks.missed)
+        out.update(
+            {
+                "kernel_ticks": ticks.ticks,
+                "kernel_ticks_sent_pct": 100 * (ticks.ticks - ticks.extra) / slots
+                if slots
+                else math.nan,
+                "kernel_tick_jitter_p50_us": ticks.p50_us,
+                "kernel_tick_jitter_p99_us": ticks.p99_us,
+                "kernel_tick_jitter_max_us": ticks.max_us,
+                "kernel_late_ticks": ticks.late,
+                "kernel_missed_ticks": ticks.missed,
+            }
+        )
+    return out
+
+
+def worst_tick_figures(trace: KernelWriteTrace, tick_bytes: int, period: float) -> dict[str, Any]:
+    """Every fd with writes of ``tick_bytes`` bytes is a bus: its grid jitter, worst bus."""
+    if not trace.measured:
+        return {"kernel_measured": False, "kernel_why": trace.why}
+    fds = sorted({c.fd for c in trace.calls if c.count == tick_bytes and c.fd > 2})
+    fits = [grid_jitter(trace.starts(fd, [tick_bytes]), period) for fd in fds]
+    gaps = [write_gaps(trace.starts(fd)) for fd in fds]
+    if not fits:
+        return {"kernel_measured": False, "kernel_why": "no tick-sized write(2) was recorded"}
+    return {
+        "kernel_measured": True,
+        "kernel_buses": len(fds),
+        "kernel_tick_jitter_p99_us": max(f.p99_us for f in fits),
+        "kernel_tick_jitter_max_us": max(f.max_us for f in fits),
+        "kernel_late_ticks": sum(f.late for f in fits),
+        "kernel_missed_ticks": sum(f.missed for f in fits),
+        "kernel_min_gap_us": min(g.min_us for g in gaps),
+    }
 
 
 # -- recording -----------------------------------------------------------------------------

@@ -140,6 +140,15 @@ def test_grid_jitter_late_first_tick_does_not_shift_the_grid() -> None:
     assert j.max_us == pytest.approx(2500.0, abs=150.0)
 
 
+def test_grid_jitter_by_index_counts_a_slow_loop_s_drift_as_jitter() -> None:
+    times = [k * 0.0101 for k in range(100)]  # a sleep loop 1 % slow
+    held = kc.grid_jitter(times, 0.010, by_index=True)
+    # The grid's origin is fitted: the drift (99 x 100 us) shows half early, half late.
+    assert held.max_us == pytest.approx(4950.0, rel=1e-3)
+    assert held.late == 40 and held.missed == 0
+    assert held.drift_ppm == pytest.approx(10_000.0, rel=1e-3)
+
+
 def test_grid_jitter_needs_two_slots() -> None:
     assert math.isnan(kc.grid_jitter([1.0], 0.01).p99_us)
     same = kc.grid_jitter([1.0, 1.0001], 0.01)
