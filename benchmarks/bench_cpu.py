@@ -203,11 +203,11 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="run length per case")
     parser.add_argument("--buses", default="1,16,32,64")
-    parser.add_argument("--quick", action="store_true", help="3 s per case")
+    parser.add_argument("--quick", action="store_true", help="2 s per case")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.quick:
-        args.seconds = 3.0
+        args.seconds = 2.0
     try:
         counts = [int(x) for x in args.buses.split(",") if x]
     except ValueError:
