@@ -89,7 +89,6 @@ def go_realtime() -> str:
     except ImportError:
         realtime = None
     if realtime is not None and hasattr(realtime, "enable"):
-        os.environ.setdefault("MOTORBUS_REALTIME", "1")
         try:
             realtime.enable(RT_PRIORITY)
         except TypeError:  # an enable() without a priority argument

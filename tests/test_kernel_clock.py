@@ -174,3 +174,49 @@ def test_trace_not_root_says_why(monkeypatch: pytest.MonkeyPatch) -> None:
     trace.stop()
     assert not trace.measured
     assert "not root" in trace.why and "perf_event_paranoid=2" in trace.why
+
+
+def _call(fd: int, count: int, start: float, duration: float = 5e-6) -> kc.WriteCall:
+    return kc.WriteCall(1, 1, fd, count, start, start + duration, count)
+
+
+def test_port_figures_pick_the_port_and_measure_spacing_and_ticks() -> None:
+    calls = [_call(2, 100, 0.0)]  # stderr: never the port
+    for k in range(100):  # a broadcast every 10 ms, a poll 2 ms after it
+        calls.append(_call(7, 51, 1.0 + k * 0.010))
+        calls.append(_call(7, 8, 1.0 + k * 0.010 + 0.002, duration=20e-6))
+    calls.append(_call(7, 8, 1.0 + 99 * 0.010 + 0.0025))  # 500 µs after the last poll
+    calls.append(_call(9, 8, 3.0))  # another fd, fewer writes
+    trace = kc.KernelWriteTrace(measured=True, why="", calls=calls)
+    k = kc.port_figures(trace, [8, 51], tick_bytes=51, period=0.010, expected_ticks=101)
+    assert k["kernel_measured"] is True and k["kernel_fd"] == 7
+    assert k["kernel_writes"] == 201
+    assert k["kernel_min_gap_us"] == pytest.approx(500.0)
+    assert k["kernel_gaps_under_1000us"] == 1
+    assert k["kernel_min_gap_after_return_us"] == pytest.approx(480.0)
+    assert k["kernel_write_max_us"] == pytest.approx(20.0)
+    assert k["kernel_ticks"] == 100 and k["kernel_missed_ticks"] == 0
+    assert k["kernel_ticks_sent_pct"] == pytest.approx(100 * 100 / 101)
+    assert k["kernel_tick_jitter_max_us"] == pytest.approx(0.0, abs=1e-3)
+
+
+def test_port_figures_and_worst_bus_say_why_when_not_measured() -> None:
+    trace = kc.KernelWriteTrace(measured=False, why="perf is not installed")
+    assert kc.port_figures(trace, [8]) == {
+        "kernel_measured": False,
+        "kernel_why": "perf is not installed",
+    }
+    assert kc.worst_tick_figures(trace, 51, 0.01)["kernel_why"] == "perf is not installed"
+    empty = kc.KernelWriteTrace(measured=True, why="", calls=[_call(2, 8, 0.0)])
+    assert kc.port_figures(empty, [8])["kernel_measured"] is False
+
+
+def test_worst_tick_figures_takes_the_worst_bus() -> None:
+    calls = [_call(5, 51, k * 0.010) for k in range(50)]
+    calls += [_call(6, 51, k * 0.010 + (0.002 if k == 20 else 0.0)) for k in range(50)]
+    trace = kc.KernelWriteTrace(measured=True, why="", calls=calls)
+    w = kc.worst_tick_figures(trace, 51, 0.010)
+    assert w["kernel_buses"] == 2
+    assert w["kernel_late_ticks"] == 1
+    assert w["kernel_tick_jitter_max_us"] == pytest.approx(2000.0, abs=100.0)
+    assert w["kernel_min_gap_us"] == pytest.approx(8000.0, abs=1.0)
