@@ -17,6 +17,12 @@ of one core with p99 <= 1 ms.  Here the receiving end is ``pty_recorder.py``, on
 process that only timestamps arrivals on all the ptys: 32 full simulators would need
 more than this machine's 2 cores by themselves.
 
+Kernel clock (``kernel_clock.py``): both parts also run under ``perf record`` of this
+process's write(2) calls (CLOCK_MONOTONIC).  The 0xF3 broadcasts written to each port
+are fitted to a least-squares 10 ms grid there, beside the simulator's figures: the
+simulator's timestamps carry its own wake-up lateness, the kernel's do not.  Where perf
+cannot run the kernel figures are ``null`` and ``kernel_why`` says why.
+
     python benchmarks/bench_stream.py [--quick] [--seconds 30] [--scaling-seconds 10]
         [--out PATH] [--samples PATH]
 """
@@ -39,6 +45,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from kernel_clock import KernelWriteTrace, port_figures, worst_tick_figures
 from motorbus.bus.manager import BusManager
 from motorbus.bus.timer import default_timer
 from motorbus.protocol import la
@@ -49,6 +56,12 @@ PERIOD_S = 0.010
 N_ACTUATORS = 15
 BAUD = 921600
 RESULTS = Path(__file__).resolve().parent / "results" / "stream.json"
+#: Bytes of a 15-entry 0xF3 broadcast, the frame of every tick here.
+BROADCAST_BYTES = len(
+    la.split_broadcast(la.BroadcastMode.FOLLOW, dict.fromkeys(range(1, N_ACTUATORS + 1), 1000))[
+        0
+    ].encode()
+)
 GOALS = {
     "one_bus_p99_le_300us": lambda r: r["tick_jitter_p99_us"] <= 300,
     "one_bus_max_le_2ms": lambda r: r["tick_jitter_max_us"] <= 2000,
@@ -135,15 +148,24 @@ def one_bus(seconds: float, backend: str, tmp: Path) -> dict[str, Any]:
         # Not busy-polling (spin=True): on 2 cores a spinning simulator takes the core
         # the streams need; measured, it made the jitter worse, not better.
         with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD, log_file=log) as sim:
-            if runner == "streamer":
-                host = asyncio.run(stream_buses([sim.path], seconds, backend))
-            else:
-                asyncio.run(naive_loop(sim.path, seconds, backend))
-                host = {}
+            with KernelWriteTrace() as trace:
+                if runner == "streamer":
+                    host = asyncio.run(stream_buses([sim.path], seconds, backend))
+                else:
+                    asyncio.run(naive_loop(sim.path, seconds, backend))
+                    host = {}
             sim.stop()
             arrivals = f3_arrivals(sim)
         timing = tick_timing(arrivals, PERIOD_S, by_index=(runner == "naive"))
-        out[label] = {**timing.as_dict(), **host}
+        kernel = port_figures(
+            trace,
+            [BROADCAST_BYTES],
+            tick_bytes=BROADCAST_BYTES,
+            period=PERIOD_S,
+            expected_ticks=round(seconds / PERIOD_S),
+            by_index=(runner == "naive"),  # as on the simulator side: k-th frame, slot k
+        )
+        out[label] = {**timing.as_dict(), **host, "kernel": kernel}
         # Kept for --samples only; main() picks its report keys by name.
         out[label]["offsets_s"] = list(timing.offsets)
         if runner == "naive":
@@ -177,6 +199,13 @@ class Recorder:
         ]
 
 
+def _num(value: Any) -> Any:
+    """A figure for the JSON report: rounded, None for NaN or absent."""
+    if isinstance(value, float):
+        return round(value) if math.isfinite(value) else None
+    return value
+
+
 def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[str, Any]:
     rows: dict[str, list[Any]] = {
         k: []
@@ -187,14 +216,20 @@ def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[
             "tick_jitter_p99_us",
             "tick_jitter_max_us",
             "missed_ticks",
+            "kernel_tick_jitter_p99_us",
+            "kernel_tick_jitter_max_us",
+            "kernel_late_ticks",
+            "kernel_missed_ticks",
         )
     }
     for n in counts:
         recorder = Recorder(n, tmp / f"scale{n}.json")
         try:
-            host = asyncio.run(stream_buses(recorder.paths, seconds, backend))
+            with KernelWriteTrace() as trace:
+                host = asyncio.run(stream_buses(recorder.paths, seconds, backend))
         finally:
             arrivals = recorder.stop()
+        kernel = worst_tick_figures(trace, BROADCAST_BYTES, PERIOD_S)
         timings = [tick_timing(a, PERIOD_S) for a in arrivals]
         rows["buses"].append(n)
         rows["cpu_percent"].append(round(host["cpu_percent"], 1))
@@ -202,11 +237,24 @@ def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[
         rows["tick_jitter_p99_us"].append(round(max(t.jitter_p99 for t in timings) * 1e6))
         rows["tick_jitter_max_us"].append(round(max(t.jitter_max for t in timings) * 1e6))
         rows["missed_ticks"].append(sum(t.missed for t in timings))
+        for key in (
+            "kernel_tick_jitter_p99_us",
+            "kernel_tick_jitter_max_us",
+            "kernel_late_ticks",
+            "kernel_missed_ticks",
+        ):
+            rows[key].append(_num(kernel.get(key)))
         print(
             f"  {n:3d} buses: CPU {host['cpu_percent']:5.1f} % "
             f"({host['cpu_percent'] / n:.2f} %/bus), worst-bus p99 "
             f"{rows['tick_jitter_p99_us'][-1]} us, max {rows['tick_jitter_max_us'][-1]} us, "
-            f"missed {rows['missed_ticks'][-1]}",
+            f"missed {rows['missed_ticks'][-1]}; kernel clock: "
+            + (
+                f"p99 {rows['kernel_tick_jitter_p99_us'][-1]} us, "
+                f"max {rows['kernel_tick_jitter_max_us'][-1]} us"
+                if kernel["kernel_measured"]
+                else f"not measured ({kernel['kernel_why']})"
+            ),
             flush=True,
         )
     return rows
@@ -254,6 +302,8 @@ def main() -> int:
         "naive_tick_jitter_max_us": round(naive["tick_jitter_max_us"]),
         "naive_drift_ppm": round(naive["drift_ppm"], 1),
         "naive_mean_period_us": round(naive["mean_period_us"], 1),
+        **kernel_keys(ours["kernel"], ""),
+        **kernel_keys(naive["kernel"], "naive_"),
         "scaling": scale,
         "seconds": args.seconds,
         "scaling_seconds": args.scaling_seconds,
@@ -279,6 +329,17 @@ def main() -> int:
     ):
         print(f"{label:34}{ours[key]:12.0f}{naive[key]:14.0f}")
     print(f"{'missed ticks':34}{ours['missed_ticks']:12d}{'-':>14}")
+    for label, key in (
+        ("kernel clock: tick jitter p50 (us)", "kernel_tick_jitter_p50_us"),
+        ("kernel clock: tick jitter p99 (us)", "kernel_tick_jitter_p99_us"),
+        ("kernel clock: tick jitter max (us)", "kernel_tick_jitter_max_us"),
+        ("kernel clock: late ticks (> 1 ms)", "kernel_late_ticks"),
+        ("kernel clock: missed ticks", "kernel_missed_ticks"),
+    ):
+        a, b = result[key], result[f"naive_{key}"]
+        print(f"{label:34}{'n/a' if a is None else a:>12}{'n/a' if b is None else b:>14}")
+    if not result["kernel_measured"]:
+        print(f"kernel clock not measured: {result['kernel_why']}")
     print(f"{'mean period (us)':34}{PERIOD_S * 1e6:12.0f}{naive['mean_period_us']:14.0f}")
     print()
     for name, ok in result["goals"].items():
@@ -296,6 +357,33 @@ def main() -> int:
         args.samples.write_text(json.dumps(samples) + "\n", encoding="utf-8")
         print(f"wrote {args.samples}")
     return 0
+
+
+def kernel_keys(k: dict[str, Any], prefix: str) -> dict[str, Any]:
+    """The one-bus kernel-clock figures under ``<prefix>kernel_*`` keys (README)."""
+    keys = (
+        "tick_jitter_p50_us",
+        "tick_jitter_p99_us",
+        "tick_jitter_max_us",
+        "late_ticks",
+        "missed_ticks",
+        "ticks",
+        "ticks_sent_pct",
+        "min_gap_us",
+        "gaps_under_1000us",
+        "write_p50_us",
+        "write_max_us",
+    )
+    out: dict[str, Any] = {
+        f"{prefix}kernel_measured": bool(k.get("kernel_measured")),
+        f"{prefix}kernel_why": k.get("kernel_why") or None,
+    }
+    for key in keys:
+        value = k.get(f"kernel_{key}")
+        if isinstance(value, float):
+            value = round(value, 1) if math.isfinite(value) else None
+        out[f"{prefix}kernel_{key}"] = value
+    return out
 
 
 def default_timer_name() -> str:

@@ -5,6 +5,10 @@ their device paths (one line, space-separated), and records the ``time.monotonic
 at which each complete LA request frame arrived on each of them.  On SIGINT or
 SIGTERM it writes ``{"frames": [[[t, cmd], ...] per pty]}`` to OUT.json and exits.
 
+With ``--answer`` (``pty_recorder.py N OUT.json --answer``) it also answers every request
+addressed to LA IDs 1-15 at once, from an ``LAModel`` per ID and pty (no wire-time
+emulation): bench_cpu.py needs its status polls answered on many buses.
+
 Why not the full simulator: bench_stream's scaling run drives up to 32 buses of 15
 actuators, and 32 simulator processes need more CPU than this 2-core machine has
 (about 7 % of a core each at 100 frames/s), so they would measure their own
@@ -23,10 +27,15 @@ import tty
 
 from motorbus.protocol.base import Direction, Family
 from motorbus.protocol.reassembler import Frame, Reassembler
+from motorbus.sim.la import LAModel
+
+#: LA IDs answered with ``--answer``.
+ANSWERED_IDS = range(1, 16)
 
 
 def main() -> int:
     count, out = int(sys.argv[1]), sys.argv[2]
+    answer = "--answer" in sys.argv[3:]
     masters: list[int] = []
     slaves: list[int] = []
     paths: list[str] = []
@@ -40,6 +49,7 @@ def main() -> int:
     index = {fd: i for i, fd in enumerate(masters)}
     reassemblers = [Reassembler(direction=Direction.REQUEST, families=[Family.LA]) for _ in masters]
     frames: list[list[tuple[float, int]]] = [[] for _ in masters]
+    models = [{i: LAModel(i) for i in ANSWERED_IDS} if answer else {} for _ in masters]
     stop = False
 
     def on_signal(signum: int, frame: object) -> None:
@@ -63,6 +73,10 @@ def main() -> int:
             for item in reassemblers[i].feed(data):
                 if type(item) is Frame:
                     frames[i].append((now, item.raw[4]))
+                    model = models[i].get(item.raw[3])
+                    if model is not None:
+                        for reply in model.handle(bytes(item.raw), now):
+                            os.write(fd, reply)
     with open(out, "w", encoding="utf-8") as fh:
         json.dump({"frames": frames}, fh)
     return 0

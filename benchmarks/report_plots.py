@@ -1,4 +1,4 @@
-"""PNG plots for the benchmark report (``run.py``): jitter, RTT, scaling, timer lateness.
+"""PNG plots for the benchmark report (``run.py``): jitter, RTT, scaling, timers, CPU.
 
 Every plot is drawn on its own ``matplotlib.figure.Figure`` (no pyplot state) with the
 Agg backend, so it works without a display and inside tests.  Each plotting function
@@ -26,6 +26,7 @@ PLOT_FILES = {
     "rtt_cdf": "rtt_cdf.png",
     "scaling": "scaling.png",
     "timer_lateness": "timer_lateness.png",
+    "cpu": "cpu.png",
 }
 DPI = 110
 #: Timer lateness axis: linear within +-10 µs, logarithmic beyond (early values are < 0).
@@ -213,6 +214,35 @@ def plot_timer_lateness(timer_samples: Mapping[str, Any] | None, path: Path) -> 
     return save(fig, path)
 
 
+def plot_cpu(cpu: Mapping[str, Any], path: Path) -> Path | None:
+    """CPU % of one core against bus count: motorbus and the minimal loop, the goals.
+
+    Args:
+        cpu: the ``cpu`` section of results.json (bench_cpu.py).
+        path: PNG to write.
+    """
+    buses = cpu.get("buses") or []
+    if not buses:
+        return None
+    fig = Figure(figsize=(6.4, 4.0))
+    ax = fig.add_subplot()
+    for key, label, style in (
+        ("cpu_percent", "motorbus", "o-"),
+        ("minimal_cpu_percent", "minimal asyncio loop", "s--"),
+    ):
+        values = cpu.get(key) or []
+        pairs = [(b, v) for b, v in zip(buses, values, strict=False) if v is not None]
+        if pairs:
+            ax.plot([b for b, _ in pairs], [v for _, v in pairs], style, label=label)
+    ax.axhline(35, color="red", linewidth=0.8, linestyle=":", label="goal at 32 buses: < 35 %")
+    ax.set_xlabel("buses (15 actuators, one 0xF3 broadcast + one status poll per 10 ms)")
+    ax.set_ylabel("CPU (% of one core)")
+    ax.set_title("CPU per bus-tick, same writes and reads")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+    return save(fig, path)
+
+
 def make_plots(
     results: Mapping[str, Any], samples: Mapping[str, Any], out: Path
 ) -> tuple[dict[str, str], dict[str, str]]:
@@ -240,6 +270,7 @@ def make_plots(
         "timer_lateness": plot_timer_lateness(
             samples.get("timer"), out / PLOT_FILES["timer_lateness"]
         ),
+        "cpu": plot_cpu(results.get("cpu", {}), out / PLOT_FILES["cpu"]),
     }
     plots = {name: path.name for name, path in drawn.items() if path is not None}
     skipped = {name: "no data" for name, path in drawn.items() if path is None}

@@ -3,8 +3,9 @@
 Each benchmark script runs as its own subprocess, one after the other (running them side
 by side would make them compete for this machine's two cores): the reassembler, the bus
 once per installed serial backend and once on uvloop, the stream with its scaling run,
-and the timers.  Their JSON reports and raw samples land in ``DIR/raw/`` and their output
-in ``DIR/logs/``; this script then writes to ``DIR``:
+the timers, the stream under load (two CPU hogs, plain and real-time) and the CPU per
+bus-tick against a minimal loop.  Their JSON reports and raw samples land in
+``DIR/raw/`` and their output in ``DIR/logs/``; this script then writes to ``DIR``:
 
 * ``results.json``: every figure under a stable key (documented in benchmarks/README.md);
 * ``report.md``: machine and date, a line per goal, and tables of each figure with the
@@ -40,15 +41,19 @@ from bench_bus import (
     GOAL_EARLY,
     GOAL_LATE_P99_US,
     GOAL_MIN_GAP_US,
-    GOAL_RATE,
+    GOAL_PROMPT_TIMEOUTS,
     GOAL_RATIO,
+    GOAL_TICKS_SENT_PCT,
 )
+from bench_cpu import GOAL_32_CPU_PERCENT as GOAL_CPU_32_PERCENT
+from bench_cpu import GOAL_RATIO as GOAL_CPU_RATIO
+from bench_load import GOAL_RT_MAX_US, GOAL_RT_P99_US
 from bench_reassembler import GOAL_DECODED_PER_S, GOAL_FRAMES_PER_S, GOAL_RATIO_VS_PYMODBUS
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results" / "latest"
 #: Bumped whenever a key of results.json changes meaning or disappears.
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: The bus configuration the headline figures come from (the library's defaults).
 MAIN_BACKEND = "fast"
 MAIN_LOOP = "asyncio"
@@ -73,6 +78,84 @@ GOAL_STREAM_DRIFT_PPM = 100.0
 GOAL_SCALING_BUSES = 32
 GOAL_SCALING_CPU_PERCENT = 50.0
 GOAL_SCALING_P99_US = 1000.0
+#: Goals on the kernel's clock (kernel_clock.py): what the bus wrote, not when a
+#: receiver woke up.
+GOAL_RATE = 950.0
+GOAL_KERNEL_P99_US = 150.0
+GOAL_KERNEL_MAX_US = 1000.0
+#: Keys of the kernel-clock figures of one phase of bench_bus (after a prefix).
+KERNEL_PHASE_KEYS = (
+    "kernel_measured",
+    "kernel_why",
+    "kernel_min_gap_us",
+    "kernel_gaps_under_1000us",
+    "kernel_min_gap_after_return_us",
+    "kernel_write_p50_us",
+    "kernel_write_p99_us",
+    "kernel_write_max_us",
+    "kernel_writes",
+)
+KERNEL_TICK_KEYS = (
+    "kernel_ticks",
+    "kernel_ticks_sent_pct",
+    "kernel_tick_jitter_p50_us",
+    "kernel_tick_jitter_p99_us",
+    "kernel_tick_jitter_max_us",
+    "kernel_late_ticks",
+    "kernel_missed_ticks",
+)
+MIXED_KEYS = (
+    "mixed_seconds",
+    "mixed_stream_stalled",
+    "mixed_frames_sim",
+    "mixed_requests",
+    "mixed_request_failures",
+    "mixed_host_ticks",
+    "mixed_host_late",
+    "mixed_host_skipped",
+    "mixed_polls",
+    "mixed_poll_timeouts",
+    "mixed_bus_requests",
+    "mixed_bus_timeouts",
+    "mixed_sim_min_gap_us",
+    "mixed_sim_gaps_under_1000us",
+    "mixed_sim_tick_jitter_p99_us",
+    "mixed_sim_tick_jitter_max_us",
+    *(f"mixed_{k}" for k in KERNEL_PHASE_KEYS + KERNEL_TICK_KEYS),
+    "mixed_prompt_pacing",
+    "mixed_prompt_poll_timeouts",
+    "mixed_prompt_bus_timeouts",
+)
+LOAD_KEYS = (
+    "kernel_measured",
+    "kernel_why",
+    "tick_jitter_p50_us",
+    "tick_jitter_p99_us",
+    "tick_jitter_max_us",
+    "late_ticks",
+    "missed_ticks",
+    "ticks",
+    "ticks_sent_pct",
+    "min_gap_us",
+    "gaps_under_1000us",
+    "write_max_us",
+    "host_late",
+    "host_skipped",
+    "polls",
+    "poll_timeouts",
+)
+CPU_KEYS = (
+    "buses",
+    "cpu_percent",
+    "minimal_cpu_percent",
+    "ratio",
+    "ticks",
+    "minimal_ticks",
+    "replies",
+    "minimal_replies",
+    "late_ticks",
+    "skipped_ticks",
+)
 
 REASSEMBLER_KEYS = (
     "frames_per_s",
@@ -106,6 +189,8 @@ BUS_KEYS = (
     "timeout_early_count",
     "timeout_timer_fire_late_p50_us",
     "timeout_timer_fire_late_p99_us",
+    *(f"rate_{k}" for k in KERNEL_PHASE_KEYS),
+    *MIXED_KEYS,
     "n",
     "rate_seconds",
 )
@@ -137,6 +222,17 @@ STREAM_KEYS = (
     "naive_drift_ppm",
     "naive_mean_period_us",
     "seconds",
+    "kernel_measured",
+    "kernel_why",
+    "kernel_tick_jitter_p50_us",
+    "kernel_tick_jitter_p99_us",
+    "kernel_tick_jitter_max_us",
+    "kernel_late_ticks",
+    "kernel_missed_ticks",
+    "kernel_min_gap_us",
+    "kernel_gaps_under_1000us",
+    "naive_kernel_tick_jitter_p99_us",
+    "naive_kernel_tick_jitter_max_us",
 )
 SCALING_KEYS = (
     "buses",
@@ -145,6 +241,10 @@ SCALING_KEYS = (
     "tick_jitter_p99_us",
     "tick_jitter_max_us",
     "missed_ticks",
+    "kernel_tick_jitter_p99_us",
+    "kernel_tick_jitter_max_us",
+    "kernel_late_ticks",
+    "kernel_missed_ticks",
 )
 TIMER_ROW_KEYS = (
     "loop",
@@ -227,10 +327,14 @@ def plan(quick: bool, backends: Sequence[str], loops: Sequence[str]) -> list[Ste
     pairs += [(MAIN_BACKEND, loop) for loop in loops if loop != MAIN_LOOP]
     for backend, loop in pairs:
         args = (*q, "--backend", backend, "--loop", loop)
+        if (backend, loop) != (MAIN_BACKEND, MAIN_LOOP):
+            args += ("--mixed-seconds", "0")  # the mixed workload: headline run only
         steps.append(Step(bus_step_name(backend, loop), "bench_bus.py", args, samples=True))
     steps.append(Step("stream", "bench_stream.py", q, samples=True))
     seconds = TIMER_SECONDS_QUICK if quick else TIMER_SECONDS_FULL
     steps.append(Step("timer", "bench_timer.py", ("--seconds", f"{seconds:g}"), samples=True))
+    steps.append(Step("load", "bench_load.py", q, samples=False))
+    steps.append(Step("cpu", "bench_cpu.py", q, samples=False))
     return steps
 
 
@@ -375,6 +479,8 @@ def build_results(
     main_bus = reports.get(bus_step_name(MAIN_BACKEND, MAIN_LOOP))
     stream = reports.get("stream")
     timer = reports.get("timer")
+    load = reports.get("load")
+    cpu = reports.get("cpu")
 
     reassembler_out = pick(reassembler, REASSEMBLER_KEYS)
     reassembler_out["every_undamaged_frame_found"] = (
@@ -401,6 +507,20 @@ def build_results(
         if scaling_out[key] is None:
             scaling_out[key] = []
     scaling_out["seconds"] = (stream or {}).get("scaling_seconds")
+
+    load_out = {
+        "seconds": (load or {}).get("seconds"),
+        "hogs": (load or {}).get("hogs"),
+        "rt_method": (load or {}).get("rt_method"),
+        "plain": pick((load or {}).get("plain"), LOAD_KEYS),
+        "rt": pick((load or {}).get("rt"), LOAD_KEYS),
+    }
+    cpu_out = pick(cpu, CPU_KEYS)
+    for key in CPU_KEYS:
+        if cpu_out[key] is None:
+            cpu_out[key] = []
+    cpu_out["max_ratio"] = clean((cpu or {}).get("max_ratio"))
+    cpu_out["seconds"] = (cpu or {}).get("seconds")
 
     timer_out = {
         "seconds_per_run": (timer or {}).get("seconds_per_run"),
@@ -438,6 +558,8 @@ def build_results(
         "stream": stream_out,
         "scaling": scaling_out,
         "timer": timer_out,
+        "load": load_out,
+        "cpu": cpu_out,
         "goals": {},
         "runs": dict(runs),
         "errors": errors,
@@ -457,8 +579,8 @@ class Goal:
 
     Attributes:
         name: key under ``goals`` in results.json.
-        figure: dotted path of the figure in results.json; ``scaling.<key>@N`` is the
-            entry of the scaling list ``<key>`` for N buses.
+        figure: dotted path of the figure in results.json; ``scaling.<key>@N`` (or
+            ``cpu.<key>@N``) is the entry of that section's list ``<key>`` for N buses.
         op: one of :data:`OPS`.
         target: the bound.
     """
@@ -503,10 +625,32 @@ GOALS = (
         True,
     ),
     Goal("bus.rtt_le_1.3x_minimal_client", "bus.rtt_ratio_vs_minimal", "<=", GOAL_RATIO),
-    Goal("bus.commands_ge_970_per_s", "bus.commands_per_s", ">=", GOAL_RATE),
-    Goal("bus.min_gap_ge_1000us", "bus.min_gap_us", ">=", GOAL_MIN_GAP_US),
+    Goal("bus.commands_ge_950_per_s", "bus.commands_per_s", ">=", GOAL_RATE),
+    Goal("bus.min_gap_ge_1000us", "bus.mixed_kernel_min_gap_us", ">=", GOAL_MIN_GAP_US),
+    Goal("bus.no_gap_under_1ms", "bus.mixed_kernel_gaps_under_1000us", "==", 0),
+    Goal("bus.rate_min_gap_ge_1000us", "bus.rate_kernel_min_gap_us", ">=", GOAL_MIN_GAP_US),
+    Goal("bus.rate_no_gap_under_1ms", "bus.rate_kernel_gaps_under_1000us", "==", 0),
+    Goal(
+        "bus.mixed_ticks_sent_ge_99pct",
+        "bus.mixed_kernel_ticks_sent_pct",
+        ">=",
+        GOAL_TICKS_SENT_PCT,
+    ),
+    Goal(
+        "bus.mixed_prompt_no_poll_timeout",
+        "bus.mixed_prompt_poll_timeouts",
+        "==",
+        GOAL_PROMPT_TIMEOUTS,
+    ),
     Goal("bus.timeout_never_early", "bus.timeout_early_count", "==", GOAL_EARLY),
     Goal("bus.timeout_late_p99_le_150us", "bus.timeout_late_p99_us", "<=", GOAL_LATE_P99_US),
+    Goal(
+        "stream.kernel_p99_le_150us",
+        "stream.kernel_tick_jitter_p99_us",
+        "<=",
+        GOAL_KERNEL_P99_US,
+    ),
+    Goal("stream.kernel_max_le_1ms", "stream.kernel_tick_jitter_max_us", "<=", GOAL_KERNEL_MAX_US),
     Goal("stream.p99_le_300us", "stream.tick_jitter_p99_us", "<=", GOAL_STREAM_P99_US),
     Goal("stream.max_le_2ms", "stream.tick_jitter_max_us", "<=", GOAL_STREAM_MAX_US),
     Goal("stream.no_missed_tick", "stream.missed_ticks", "==", 0),
@@ -523,6 +667,13 @@ GOALS = (
         "<=",
         GOAL_SCALING_P99_US,
     ),
+    Goal("load.rt_p99_le_100us", "load.rt.tick_jitter_p99_us", "<=", GOAL_RT_P99_US),
+    Goal("load.rt_max_le_500us", "load.rt.tick_jitter_max_us", "<=", GOAL_RT_MAX_US),
+    Goal("load.rt_no_missed_tick", "load.rt.missed_ticks", "==", 0),
+    Goal("load.rt_no_late_tick", "load.rt.late_ticks", "==", 0),
+    Goal("load.rt_min_gap_ge_1000us", "load.rt.min_gap_us", ">=", GOAL_MIN_GAP_US),
+    Goal("cpu.ratio_le_1.5x_minimal", "cpu.max_ratio", "<=", GOAL_CPU_RATIO),
+    Goal("cpu.32_buses_lt_35pct", "cpu.cpu_percent@32", "<", GOAL_CPU_32_PERCENT),
 )
 
 
@@ -535,7 +686,8 @@ def lookup(results: Mapping[str, Any], figure: str) -> Any:
             return None
         value = value[part]
     if buses:
-        counts = results.get("scaling", {}).get("buses") or []
+        section = path.split(".")[0]  # "scaling" or "cpu": each has its own "buses"
+        counts = results.get(section, {}).get("buses") or []
         if int(buses) not in counts or not isinstance(value, list):
             return None
         value = value[counts.index(int(buses))]
@@ -669,7 +821,41 @@ MAIN_ROWS = (
         "/s",
         "ideal at 1 ms spacing",
         f"={IDEAL_COMMANDS_PER_S:g}",
-        "bus.commands_ge_970_per_s",
+        "bus.commands_ge_950_per_s",
+    ),
+    Row(
+        "bus smallest write gap, mixed workload (kernel clock)",
+        "bus.mixed_kernel_min_gap_us",
+        "µs",
+        "spacing rule",
+        f"={SPACING_US:g}",
+        "bus.min_gap_ge_1000us",
+    ),
+    Row(
+        "bus write gaps under 1 ms, mixed workload (kernel clock)",
+        "bus.mixed_kernel_gaps_under_1000us",
+        "",
+        goal="bus.no_gap_under_1ms",
+    ),
+    Row(
+        "bus smallest write gap, rate run (kernel clock)",
+        "bus.rate_kernel_min_gap_us",
+        "µs",
+        "spacing rule",
+        f"={SPACING_US:g}",
+        "bus.rate_min_gap_ge_1000us",
+    ),
+    Row(
+        "bus ticks sent with 3 request loops (kernel clock)",
+        "bus.mixed_kernel_ticks_sent_pct",
+        "%",
+        goal="bus.mixed_ticks_sent_ge_99pct",
+    ),
+    Row(
+        "bus polls timed out, prompt device",
+        "bus.mixed_prompt_poll_timeouts",
+        "",
+        goal="bus.mixed_prompt_no_poll_timeout",
     ),
     Row(
         "bus smallest start gap (simulator)",
@@ -677,7 +863,6 @@ MAIN_ROWS = (
         "µs",
         "spacing rule",
         f"={SPACING_US:g}",
-        "bus.min_gap_ge_1000us",
     ),
     Row(
         "bus 800 µs timeout, lateness p99",
@@ -690,6 +875,22 @@ MAIN_ROWS = (
         "bus.timeout_early_count",
         "",
         goal="bus.timeout_never_early",
+    ),
+    Row(
+        "stream tick jitter p99 (kernel clock)",
+        "stream.kernel_tick_jitter_p99_us",
+        "µs",
+        "naive sleep loop p99 (kernel)",
+        "stream.naive_kernel_tick_jitter_p99_us",
+        "stream.kernel_p99_le_150us",
+    ),
+    Row(
+        "stream tick jitter max (kernel clock)",
+        "stream.kernel_tick_jitter_max_us",
+        "µs",
+        "naive sleep loop max (kernel)",
+        "stream.naive_kernel_tick_jitter_max_us",
+        "stream.kernel_max_le_1ms",
     ),
     Row(
         "stream tick jitter p99",
@@ -789,6 +990,145 @@ def variants_table(results: Mapping[str, Any], kind: str, reference: str) -> lis
     return table(header, rows)
 
 
+#: (label, kernel-clock figure, simulator-clock figure) for the side-by-side table.
+KERNEL_VS_SIM = (
+    ("rate run: smallest start gap (µs)", "bus.rate_kernel_min_gap_us", "bus.min_gap_us"),
+    (
+        "rate run: gaps under 1 ms",
+        "bus.rate_kernel_gaps_under_1000us",
+        "bus.gaps_under_1000us",
+    ),
+    (
+        "rate run: smallest gap from a write's return (µs)",
+        "bus.rate_kernel_min_gap_after_return_us",
+        "",
+    ),
+    ("rate run: write(2) duration p50 (µs)", "bus.rate_kernel_write_p50_us", ""),
+    ("rate run: write(2) duration p99 (µs)", "bus.rate_kernel_write_p99_us", ""),
+    ("rate run: write(2) duration max (µs)", "bus.rate_kernel_write_max_us", ""),
+    ("mixed: smallest start gap (µs)", "bus.mixed_kernel_min_gap_us", "bus.mixed_sim_min_gap_us"),
+    (
+        "mixed: gaps under 1 ms",
+        "bus.mixed_kernel_gaps_under_1000us",
+        "bus.mixed_sim_gaps_under_1000us",
+    ),
+    ("mixed: write(2) duration max (µs)", "bus.mixed_kernel_write_max_us", ""),
+    (
+        "mixed: tick jitter p99 (µs)",
+        "bus.mixed_kernel_tick_jitter_p99_us",
+        "bus.mixed_sim_tick_jitter_p99_us",
+    ),
+    (
+        "mixed: tick jitter max (µs)",
+        "bus.mixed_kernel_tick_jitter_max_us",
+        "bus.mixed_sim_tick_jitter_max_us",
+    ),
+    ("mixed: ticks sent (%)", "bus.mixed_kernel_ticks_sent_pct", ""),
+    (
+        "stream: tick jitter p50 (µs)",
+        "stream.kernel_tick_jitter_p50_us",
+        "stream.tick_jitter_p50_us",
+    ),
+    (
+        "stream: tick jitter p99 (µs)",
+        "stream.kernel_tick_jitter_p99_us",
+        "stream.tick_jitter_p99_us",
+    ),
+    (
+        "stream: tick jitter max (µs)",
+        "stream.kernel_tick_jitter_max_us",
+        "stream.tick_jitter_max_us",
+    ),
+    ("stream: missed ticks", "stream.kernel_missed_ticks", "stream.missed_ticks"),
+    (
+        "naive sleep loop: tick jitter p99 (µs)",
+        "stream.naive_kernel_tick_jitter_p99_us",
+        "stream.naive_tick_jitter_p99_us",
+    ),
+    (
+        "naive sleep loop: tick jitter max (µs)",
+        "stream.naive_kernel_tick_jitter_max_us",
+        "stream.naive_tick_jitter_max_us",
+    ),
+)
+
+
+def kernel_table(results: Mapping[str, Any]) -> list[str]:
+    """Kernel-clock figures beside the same figures at the simulator."""
+    rows = [
+        [
+            label,
+            fmt(lookup(results, kernel)),
+            fmt(lookup(results, sim)) if sim else "-",
+        ]
+        for label, kernel, sim in KERNEL_VS_SIM
+    ]
+    return table(("figure", "kernel clock (write(2) entry)", "simulator's clock"), rows)
+
+
+def kernel_notes(results: Mapping[str, Any]) -> list[str]:
+    """Why a phase has no kernel figures, if it has none."""
+    notes = []
+    for name, flag, why in (
+        ("bus rate run", "bus.rate_kernel_measured", "bus.rate_kernel_why"),
+        ("bus mixed workload", "bus.mixed_kernel_measured", "bus.mixed_kernel_why"),
+        ("stream", "stream.kernel_measured", "stream.kernel_why"),
+        ("load (real-time)", "load.rt.kernel_measured", "load.rt.kernel_why"),
+    ):
+        if lookup(results, flag) is False:
+            notes.append(f"- {name}: kernel clock not measured: {lookup(results, why)}")
+    pacing = lookup(results, "bus.mixed_prompt_pacing")
+    if pacing and pacing != "measured":
+        notes.append(f"- polls against a prompt device: {pacing}")
+    if lookup(results, "bus.mixed_stream_stalled"):
+        notes.append("- mixed workload: the stream STALLED (ended by the benchmark's watchdog)")
+    return notes
+
+
+def load_table(results: Mapping[str, Any]) -> list[str]:
+    """The stream under two CPU hogs, plain against real-time."""
+    load = results.get("load", {})
+    rows = [
+        [key, fmt(load.get("plain", {}).get(key)), fmt(load.get("rt", {}).get(key))]
+        for key in LOAD_KEYS
+        if key not in ("kernel_measured", "kernel_why")
+    ]
+    return table(("figure (kernel clock; µs)", "plain", "real-time"), rows)
+
+
+def cpu_table(results: Mapping[str, Any]) -> list[str]:
+    """CPU per bus count: ours, the minimal loop, the ratio."""
+    c = results.get("cpu", {})
+    rows = []
+    for i, buses in enumerate(c.get("buses") or []):
+
+        def at(key: str, i: int = i) -> Any:
+            values = c.get(key) or []
+            return values[i] if i < len(values) else None
+
+        rows.append(
+            [
+                str(buses),
+                fmt(at("cpu_percent"), "%"),
+                fmt(at("minimal_cpu_percent"), "%"),
+                fmt(at("ratio")),
+                f"{fmt(at('ticks'))} / {fmt(at('minimal_ticks'))}",
+                f"{fmt(at('replies'))} / {fmt(at('minimal_replies'))}",
+                f"{fmt(at('late_ticks'))} / {fmt(at('skipped_ticks'))}",
+            ]
+        )
+    header = (
+        "buses",
+        "ours (one core = 100 %)",
+        "minimal loop",
+        "ratio",
+        "ticks ours / minimal",
+        "replies ours / minimal",
+        "ours late / skipped",
+    )
+    return table(header, rows)
+
+
 def scaling_table(results: Mapping[str, Any]) -> list[str]:
     """CPU and jitter per bus count."""
     s = results.get("scaling", {})
@@ -807,9 +1147,22 @@ def scaling_table(results: Mapping[str, Any]) -> list[str]:
                 fmt(at("tick_jitter_p99_us"), "µs"),
                 fmt(at("tick_jitter_max_us"), "µs"),
                 fmt(at("missed_ticks")),
+                fmt(at("kernel_tick_jitter_p99_us"), "µs"),
+                fmt(at("kernel_tick_jitter_max_us"), "µs"),
+                fmt(at("kernel_late_ticks")),
             ]
         )
-    header = ("buses", "CPU (one core = 100 %)", "CPU per bus", "worst-bus p99", "max", "missed")
+    header = (
+        "buses",
+        "CPU (one core = 100 %)",
+        "CPU per bus",
+        "worst-bus p99",
+        "max",
+        "missed",
+        "kernel: worst p99",
+        "kernel: max",
+        "kernel: late",
+    )
     return table(header, rows)
 
 
@@ -873,8 +1226,33 @@ def render_report(results: Mapping[str, Any]) -> str:
     lines += variants_table(results, "backends", MAIN_BACKEND)
     lines += ["", f"## Bus per event loop (backend `{MAIN_BACKEND}`)", ""]
     lines += variants_table(results, "loops", MAIN_LOOP)
+    lines += [
+        "",
+        "## Kernel clock beside the simulator's",
+        "",
+        "The kernel's timestamps of this process's write(2) calls to the port (perf,",
+        "CLOCK_MONOTONIC) against the simulator's timestamps of the same frames, which",
+        "carry the simulator's own wake-up lateness.",
+        "",
+    ]
+    lines += kernel_table(results)
+    notes = kernel_notes(results)
+    if notes:
+        lines += ["", *notes]
     lines += ["", "## Streaming: scaling with bus count (15 actuators a bus, 10 ms)", ""]
     lines += scaling_table(results)
+    load = results.get("load", {})
+    lines += [
+        "",
+        f"## Stream under load: {load.get('hogs')} CPU hogs, {fmt(load.get('seconds'), 's')} "
+        "a mode",
+        "",
+        f"Real-time mode: {load.get('rt_method')}.",
+        "",
+    ]
+    lines += load_table(results)
+    lines += ["", "## CPU per bus-tick against a minimal asyncio loop (same writes)", ""]
+    lines += cpu_table(results)
     lines += ["", "## Timer sources: lateness of periodic absolute deadlines", ""]
     lines += timer_table(results)
     lines += ["", "p99 ratio: the timer's p99 over `asyncio.sleep`'s p99, same loop and period."]

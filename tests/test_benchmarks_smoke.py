@@ -38,6 +38,16 @@ def bus_report(rtt_us: float, backend: str = "fast", loop: str = "asyncio") -> d
         "gaps_under_1000us": 0,
         "timeout_late_p99_us": 200.0,
         "timeout_early_count": 0,
+        "rate_kernel_measured": True,
+        "rate_kernel_min_gap_us": 1012.0,
+        "rate_kernel_gaps_under_1000us": 0,
+        "mixed_kernel_measured": True,
+        "mixed_kernel_min_gap_us": 998.0,
+        "mixed_kernel_gaps_under_1000us": 3,
+        "mixed_kernel_ticks_sent_pct": 99.5,
+        "mixed_sim_min_gap_us": 87.0,
+        "mixed_prompt_pacing": "pending: no pacing option",
+        "mixed_prompt_poll_timeouts": None,
         "n": 300,
         "backend": backend,
         "loop": loop,
@@ -77,6 +87,34 @@ def fake_reports() -> dict[str, Any]:
             "backend": "fast",
             "timer": "timerfd",
             "loop": "asyncio default",
+            "kernel_measured": True,
+            "kernel_tick_jitter_p50_us": 20.0,
+            "kernel_tick_jitter_p99_us": 120.0,
+            "kernel_tick_jitter_max_us": 1500.0,
+            "naive_kernel_tick_jitter_p99_us": 4000.0,
+        },
+        "load": {
+            "plain": {"tick_jitter_p99_us": 4000.0, "missed_ticks": 30, "late_ticks": 100},
+            "rt": {
+                "tick_jitter_p99_us": 60.0,
+                "tick_jitter_max_us": 700.0,
+                "missed_ticks": 0,
+                "late_ticks": 0,
+                "min_gap_us": 1010.0,
+                "kernel_measured": False,
+                "kernel_why": "perf is not installed",
+            },
+            "rt_method": "os.sched_setscheduler(SCHED_FIFO, 50)",
+            "hogs": 2,
+            "seconds": 5.0,
+        },
+        "cpu": {
+            "buses": [1, 16, 32, 64],
+            "cpu_percent": [2.0, 20.0, 36.0, 70.0],
+            "minimal_cpu_percent": [1.0, 15.0, 30.0, 60.0],
+            "ratio": [2.0, 1.33, 1.2, 1.17],
+            "max_ratio": 2.0,
+            "seconds": 3.0,
         },
         "timer": {
             "seconds_per_run": 1.0,
@@ -122,9 +160,14 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
         "bus-fast-uvloop",
         "stream",
         "timer",
+        "load",
+        "cpu",
     ]
     assert all("--quick" in s.args for s in steps if s.script != "bench_timer.py")
-    assert steps[-1].args == ("--seconds", "1")
+    assert steps[5].args == ("--seconds", "1")
+    # The mixed workload runs once, with the headline bus configuration.
+    assert "--mixed-seconds" not in steps[1].args
+    assert steps[2].args[-2:] == ("--mixed-seconds", "0")
     cmd = steps[3].command(Path("/x/raw"))
     assert cmd[2:] == [
         "--quick",
@@ -132,6 +175,8 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
         "fast",
         "--loop",
         "uvloop",
+        "--mixed-seconds",
+        "0",
         "--out",
         "/x/raw/bus-fast-uvloop.json",
         "--samples",
@@ -160,6 +205,15 @@ def test_results_have_every_documented_key() -> None:
         "scaling.buses",
         "scaling.cpu_percent",
         "scaling.tick_jitter_p99_us",
+        "bus.rate_kernel_min_gap_us",
+        "bus.mixed_kernel_min_gap_us",
+        "stream.kernel_tick_jitter_p99_us",
+        "load.rt.tick_jitter_p99_us",
+        "load.plain.tick_jitter_p99_us",
+        "load.rt_method",
+        "cpu.buses",
+        "cpu.ratio",
+        "cpu.max_ratio",
         "machine.platform",
         "machine.python",
         "machine.cpus",
@@ -181,6 +235,8 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
     r = build({})
     assert r["bus"]["rtt_p50_us"] is None
     assert r["scaling"]["buses"] == []
+    assert r["cpu"]["buses"] == []
+    assert r["load"]["rt"]["tick_jitter_p99_us"] is None
     assert r["bus"]["backends"]["fast"]["status"] == "failed"
     assert all(g["met"] is None for g in r["goals"].values())
     assert "n/a" in run.render_report(r)
@@ -193,7 +249,19 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
         ("reassembler.decoded_ge_5x_pymodbus", 5.0, True),  # the bound itself is met
         ("reassembler.every_undamaged_frame_found", True, True),
         ("bus.rtt_le_1.3x_minimal_client", 1.25, True),
-        ("bus.commands_ge_970_per_s", 950.0, False),
+        ("bus.commands_ge_950_per_s", 950.0, True),
+        ("bus.min_gap_ge_1000us", 998.0, False),  # the kernel's figure, not the simulator's
+        ("bus.no_gap_under_1ms", 3, False),
+        ("bus.rate_min_gap_ge_1000us", 1012.0, True),
+        ("bus.mixed_ticks_sent_ge_99pct", 99.5, True),
+        ("bus.mixed_prompt_no_poll_timeout", None, None),  # pending: no prompt simulator
+        ("stream.kernel_p99_le_150us", 120.0, True),
+        ("stream.kernel_max_le_1ms", 1500.0, False),
+        ("load.rt_p99_le_100us", 60.0, True),
+        ("load.rt_max_le_500us", 700.0, False),
+        ("load.rt_no_missed_tick", 0, True),
+        ("cpu.ratio_le_1.5x_minimal", 2.0, False),
+        ("cpu.32_buses_lt_35pct", 36.0, False),  # the 32-bus entry of cpu.buses
         ("bus.timeout_late_p99_le_150us", 200.0, False),
         ("bus.timeout_never_early", 0, True),
         ("stream.p99_le_300us", 250, True),
@@ -244,6 +312,11 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     # serialx RTT 1200 vs its minimal client 800, and vs fast 1000
     assert "| serialx | ok | TimerfdTimer | 1,200 µs | 2,400 µs | 800 µs | 1.50 | 1.20 |" in text
     assert "| 16 | n/a | n/a | 400 µs | n/a | n/a |" in text
+    # kernel and simulator figures side by side; why a kernel figure is missing
+    assert "| mixed: smallest start gap (µs) | 998 | 87 |" in text
+    assert "- load (real-time): kernel clock not measured: perf is not installed" in text
+    assert "- polls against a prompt device: pending: no pacing option" in text
+    assert "| 32 | 36 % | 30 % | 1.20 |" in text
 
 
 @pytest.mark.parametrize(
@@ -292,8 +365,8 @@ def test_plots_are_written(tmp_path: Path) -> None:
     assert skipped == {}
     for name in plots.values():
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    # Without samples only the scaling plot (from results.json) is drawn; stale files go.
+    # Without samples only the plots from results.json are drawn; stale files go.
     plots, skipped = report_plots.make_plots(results, {}, tmp_path)
-    assert plots == {"scaling": "scaling.png"}
+    assert plots == {"scaling": "scaling.png", "cpu": "cpu.png"}
     assert set(skipped) == {"tick_jitter", "rtt_cdf", "timer_lateness"}
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["scaling.png"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cpu.png", "scaling.png"]

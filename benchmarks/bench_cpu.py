@@ -1,0 +1,286 @@
+"""CPU per bus-tick: motorbus against a hand-written minimal asyncio loop, same work.
+
+The work per bus and per 10 ms tick: one 0xF3 follow broadcast of 15 entries (targets
+from a trajectory, encoded every tick) and one LA status query (IDs round-robin) whose
+22-byte reply is read.  For 1, 16, 32 and 64 buses, in the same run and on the same
+ptys (one ``pty_recorder.py --answer`` process answers every bus at once):
+
+* ``ours``: ``BusManager`` buses, a ``Streamer.follow`` per bus and a task per bus that
+  awaits ``InspireLA.status()`` once a tick (3 ms after the tick, on the bus's timer);
+* ``minimal``: one event loop, ``loop.call_at`` per tick and bus that ``os.write``s the
+  broadcast, a second ``call_at`` 1.5 ms later that writes the query, and an
+  ``add_reader`` callback per pty that reads replies.  No framing, no matching, no
+  timeouts, no spacing rule: the least a program can do for the same writes.
+
+CPU is this process's user + system time over the run's wall time (100 % = one core).
+Goals: ours / minimal <= 1.5 at every bus count, and 32 buses under 35 % of a core.
+
+    python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--buses 1,16,32,64]
+        [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import math
+import os
+import platform
+import resource
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import tty
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from motorbus.bus.manager import BusManager
+from motorbus.errors import MotorbusError
+from motorbus.protocol import la
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "cpu.json"
+PERIOD_S = 0.010
+N_ACTUATORS = 15
+BAUD = 921600
+#: Where in the tick the minimal loop writes its query (after the 1 ms spacing).
+MINIMAL_POLL_OFFSET_S = 0.0015
+#: Where in the tick our poll task asks for a status (leaves room for the broadcast).
+OURS_POLL_OFFSET_S = 0.003
+REPLY_BYTES = la.STATUS_FRAME_SIZE
+GOAL_RATIO = 1.5
+GOAL_32_CPU_PERCENT = 35.0
+#: Start-up room before the first tick.
+LEAD_S = 0.05
+
+
+def cpu_seconds() -> float:
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    return usage.ru_utime + usage.ru_stime
+
+
+def trajectory(t: float) -> list[float]:
+    return [
+        1000 + 600 * math.sin(2 * math.pi * 0.5 * t + 2 * math.pi * i / N_ACTUATORS)
+        for i in range(N_ACTUATORS)
+    ]
+
+
+def broadcast_bytes(t: float) -> bytes:
+    targets = {i + 1: round(v) for i, v in enumerate(trajectory(t))}
+    return la.split_broadcast(la.BroadcastMode.FOLLOW, targets)[0].encode()
+
+
+async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
+    """The hand-written loop (see the module docstring); CPU %, ticks, polls, replies."""
+    loop = asyncio.get_running_loop()
+    fds = []
+    for path in paths:
+        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        tty.setraw(fd)
+        fds.append(fd)
+    queries = [la.Control(i, la.ControlAction.QUERY_STATUS).encode() for i in range(1, 16)]
+    received = [0] * len(fds)
+    counts = {"ticks": 0, "polls": 0}
+    n = len(fds)
+    origin = loop.time() + LEAD_S
+    end = origin + seconds
+    done = loop.create_future()
+    pending = [n]
+
+    def on_readable(i: int) -> None:
+        with contextlib.suppress(BlockingIOError):
+            received[i] += len(os.read(fds[i], 4096))
+
+    def poll(i: int, k: int) -> None:
+        os.write(fds[i], queries[k % len(queries)])
+        counts["polls"] += 1
+
+    def tick(i: int, k: int) -> None:
+        t = origin + i * PERIOD_S / n + k * PERIOD_S
+        os.write(fds[i], broadcast_bytes(k * PERIOD_S))
+        counts["ticks"] += 1
+        loop.call_at(t + MINIMAL_POLL_OFFSET_S, poll, i, k)
+        if t + PERIOD_S < end:
+            loop.call_at(t + PERIOD_S, tick, i, k + 1)
+        else:
+            pending[0] -= 1
+            if pending[0] == 0:
+                loop.call_at(t + 2 * MINIMAL_POLL_OFFSET_S, done.set_result, None)
+
+    for i, fd in enumerate(fds):
+        loop.add_reader(fd, on_readable, i)
+        loop.call_at(origin + i * PERIOD_S / n, tick, i, 0)
+    wall0, cpu0 = time.monotonic(), cpu_seconds()
+    await done
+    wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+    for fd in fds:
+        loop.remove_reader(fd)
+        os.close(fd)
+    return {
+        "cpu_percent": 100 * cpu / wall,
+        "ticks": counts["ticks"],
+        "polls": counts["polls"],
+        "replies": sum(received) // REPLY_BYTES,
+    }
+
+
+async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
+    """motorbus doing the same work; CPU %, ticks, polls, replies."""
+    mgr = BusManager(safe_stop=False)
+    for i, path in enumerate(paths):
+        mgr.add_bus(f"bus{i}", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
+    async with mgr:
+        names = list(mgr.buses)
+        polls = [0]
+        failed = [0]
+        streams = []
+        for name in names:
+            actuators = [mgr.la(name, i) for i in range(1, N_ACTUATORS + 1)]
+            streams.append(
+                mgr.streamer(name).follow(
+                    actuators,
+                    lambda t, s: None if t >= seconds else trajectory(t),
+                    period=PERIOD_S,
+                )
+            )
+
+        async def poller(name: str, origin: float) -> None:
+            bus = mgr.bus(name)
+            actuators = [mgr.la(name, i) for i in range(1, N_ACTUATORS + 1)]
+            k = 0
+            while origin + k * PERIOD_S < origin + seconds:
+                await bus.timer.sleep_until(origin + k * PERIOD_S + OURS_POLL_OFFSET_S)
+                try:
+                    await actuators[k % N_ACTUATORS].status()
+                    polls[0] += 1
+                except MotorbusError:
+                    failed[0] += 1
+                k += 1
+
+        wall0, cpu0 = time.monotonic(), cpu_seconds()
+        tasks = [
+            asyncio.create_task(poller(name, s.origin))
+            for name, s in zip(names, streams, strict=True)
+        ]
+        await asyncio.gather(*(s.wait() for s in streams), *tasks)
+        wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+        return {
+            "cpu_percent": 100 * cpu / wall,
+            "ticks": sum(s.stats.ticks for s in streams),
+            "polls": polls[0] + failed[0],
+            "replies": polls[0],
+            "late_ticks": sum(s.stats.late for s in streams),
+            "skipped_ticks": sum(s.stats.skipped for s in streams),
+        }
+
+
+class Responder:
+    """``pty_recorder.py N OUT --answer`` in a child process: N ptys that answer."""
+
+    def __init__(self, count: int, out: Path) -> None:
+        script = HERE / "pty_recorder.py"
+        self.proc = subprocess.Popen(
+            [sys.executable, str(script), str(count), str(out), "--answer"],
+            stdout=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+        )
+        assert self.proc.stdout is not None
+        self.paths = self.proc.stdout.readline().split()
+
+    def stop(self) -> None:
+        self.proc.send_signal(signal.SIGINT)
+        self.proc.wait(30)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seconds", type=float, default=10.0, help="run length per case")
+    parser.add_argument("--buses", default="1,16,32,64")
+    parser.add_argument("--quick", action="store_true", help="2 s per case")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    args = parser.parse_args()
+    if args.quick:
+        args.seconds = 2.0
+    try:
+        counts = [int(x) for x in args.buses.split(",") if x]
+    except ValueError:
+        parser.error(f"--buses must be comma-separated integers, got {args.buses!r}")
+    if args.seconds <= 0 or not counts or min(counts) < 1:
+        parser.error("--seconds must be > 0 and --buses list counts >= 1")
+    rows: dict[str, list[Any]] = {
+        k: []
+        for k in (
+            "buses",
+            "cpu_percent",
+            "minimal_cpu_percent",
+            "ratio",
+            "ticks",
+            "minimal_ticks",
+            "replies",
+            "minimal_replies",
+            "late_ticks",
+            "skipped_ticks",
+        )
+    }
+    print(f"CPU per bus-tick, {args.seconds:.0f} s per case, {PERIOD_S * 1e3:.0f} ms ticks")
+    with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
+        for n in counts:
+            responder = Responder(n, Path(tmp) / f"cpu{n}.json")
+            try:
+                base = asyncio.run(minimal(responder.paths, args.seconds))
+                mine = asyncio.run(ours(responder.paths, args.seconds))
+            finally:
+                responder.stop()
+            ratio = mine["cpu_percent"] / base["cpu_percent"] if base["cpu_percent"] else math.nan
+            rows["buses"].append(n)
+            rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
+            rows["minimal_cpu_percent"].append(round(base["cpu_percent"], 1))
+            rows["ratio"].append(round(ratio, 2) if math.isfinite(ratio) else None)
+            rows["ticks"].append(mine["ticks"])
+            rows["minimal_ticks"].append(base["ticks"])
+            rows["replies"].append(mine["replies"])
+            rows["minimal_replies"].append(base["replies"])
+            rows["late_ticks"].append(mine["late_ticks"])
+            rows["skipped_ticks"].append(mine["skipped_ticks"])
+            print(
+                f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} %, minimal "
+                f"{base['cpu_percent']:5.1f} %, ratio {ratio:.2f}; ticks {mine['ticks']} / "
+                f"{base['ticks']}, replies {mine['replies']} / {base['replies']}",
+                flush=True,
+            )
+    at32 = rows["buses"].index(32) if 32 in rows["buses"] else None
+    ratios = [r for r in rows["ratio"] if r is not None]
+    result: dict[str, Any] = {
+        **rows,
+        "max_ratio": max(ratios) if ratios else None,
+        "cpu_percent_at_32": None if at32 is None else rows["cpu_percent"][at32],
+        "seconds": args.seconds,
+        "machine": {
+            "platform": platform.platform(),
+            "python": sys.version.split()[0],
+            "cpus": os.cpu_count(),
+            "load_avg": [round(x, 2) for x in os.getloadavg()],
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    result["goals"] = {
+        "ratio_le_1.5x": None if not ratios else max(ratios) <= GOAL_RATIO,
+        "32_buses_lt_35pct": None if at32 is None else rows["cpu_percent"][at32] < 35.0,
+    }
+    for name, ok in result["goals"].items():
+        print(f"goal {name:24} {'not measured' if ok is None else 'met' if ok else 'NOT met'}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
