@@ -17,6 +17,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+from motorbus.sim.bus import Pacing, check_pacing
+
 __all__ = ["SimProcess"]
 
 #: Longest wait for the child to print its device path.
@@ -34,6 +36,11 @@ class SimProcess:
         log_file: record every frame both ways as JSON lines to this path.
         link: create this symlink to the pty.
         spin: busy-poll the port for precise timestamps (``motorbus sim --spin``).
+        pacing: ``"wire"`` (default) emulates wire time; ``"prompt"`` answers at once
+            (``motorbus sim --pacing prompt``; see ``motorbus.sim.bus``).
+
+    Raises:
+        LocalProtocolError: ``pacing`` is not ``"wire"`` or ``"prompt"``.
     """
 
     def __init__(
@@ -46,10 +53,14 @@ class SimProcess:
         log_file: str | os.PathLike[str] | None = None,
         link: str | os.PathLike[str] | None = None,
         spin: bool = False,
+        pacing: Pacing = "wire",
     ) -> None:
+        self.pacing: Pacing = check_pacing(pacing)
         self.args = [sys.executable, "-m", "motorbus", "sim"]
         if spin:
             self.args.append("--spin")
+        if self.pacing != "wire":
+            self.args += ["--pacing", self.pacing]
         if baud is not None:
             self.args += ["--baud", str(baud)]
         if faults:

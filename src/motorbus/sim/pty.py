@@ -30,7 +30,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import IO
 
-from motorbus.sim.bus import LinkEvent, LogRecord, SimBus
+from motorbus.sim.bus import LinkEvent, LogRecord, Pacing, SimBus
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.spec import default_baud
@@ -56,6 +56,10 @@ class PtySim:
         log_file: optional path; one JSON object per frame, flushed line by line.
         log: optional callback with the same records (called from the sim thread).
         spin: busy-poll the port for precise timestamps (uses a whole core).
+        pacing: ``"wire"`` (default) writes each reply when its last byte would have
+            arrived at ``baud``; ``"prompt"`` writes it as soon as the request is read
+            (turnaround 0, no wire time): a device behind a link that does not pace
+            bytes (USB-CDC, a TCP bridge).  See ``motorbus.sim.bus``.
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
@@ -75,6 +79,7 @@ class PtySim:
         log_file: str | os.PathLike[str] | None = None,
         log: Callable[[LogRecord], None] | None = None,
         spin: bool = False,
+        pacing: Pacing = "wire",
     ) -> None:
         self.link = Path(link) if link is not None else None
         #: Busy-poll the port instead of sleeping in select(): arrival timestamps and
@@ -92,6 +97,7 @@ class PtySim:
             faults=faults,
             seed=seed,
             log=self._write_log if wants_log else None,
+            pacing=pacing,
         )
         self.path = ""
         self.dropped_bytes = 0
