@@ -7,14 +7,16 @@ import pytest
 from motorbus.devices.la import InspireLA, scan
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
+from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
-async def test_status_move_and_registers(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_status_move_and_registers(delivery: str, pacing: Pacing) -> None:
     models = [LAModel(i) for i in (1, 2, 3)]
-    async with sim_bus(models, delivery=delivery) as (bus, _):
+    async with sim_bus(models, delivery=delivery, pacing=pacing) as (bus, _):
         a = InspireLA(bus, 2)
         status = await a.status()
         assert status.id == 2
@@ -29,9 +31,10 @@ async def test_status_move_and_registers(delivery: str) -> None:
         assert bus.stats.timeouts == 0 and bus.stats.garbage_bytes == 0
 
 
-async def test_estop_needs_enable_and_pause_resumes() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_estop_needs_enable_and_pause_resumes(pacing: Pacing) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _):
+    async with sim_bus([model], pacing=pacing) as (bus, _):
         a = InspireLA(bus, 1)
         await a.estop()
         await a.move_to(500)
@@ -44,8 +47,9 @@ async def test_estop_needs_enable_and_pause_resumes() -> None:
         assert model.target == 600  # after pause a move resumes directly
 
 
-async def test_change_id_and_scan() -> None:
-    async with sim_bus([LAModel(1), LAModel(4)]) as (bus, _):
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_change_id_and_scan(pacing: Pacing) -> None:
+    async with sim_bus([LAModel(1), LAModel(4)], pacing=pacing) as (bus, _):
         found: list[int] = []
         assert await scan(bus, range(1, 6), progress=lambda i, n, hit: found.append(i)) == [1, 4]
         assert found == [1, 2, 3, 4, 5]
@@ -55,8 +59,9 @@ async def test_change_id_and_scan() -> None:
             await InspireLA(bus, 4).status()
 
 
-async def test_bad_input_is_refused_before_sending() -> None:
-    async with sim_bus([LAModel(1)]) as (bus, _):
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_bad_input_is_refused_before_sending(pacing: Pacing) -> None:
+    async with sim_bus([LAModel(1)], pacing=pacing) as (bus, _):
         a = InspireLA(bus, 1)
         with pytest.raises(LocalProtocolError, match=r"position=2500 .*0\.\.2000"):
             await a.move_to(2500)

@@ -9,8 +9,9 @@ import pytest
 from motorbus.devices.project_stepper import ProjectStepper, ProjectStopped
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import project_stepper as ps
+from motorbus.sim.bus import Pacing
 from motorbus.sim.project_stepper import ProjectStepperModel
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 
 
 def small_project(number: int = 2, *, repeat: int = 0) -> ps.Project:
@@ -33,9 +34,10 @@ def small_project(number: int = 2, *, repeat: int = 0) -> ps.Project:
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
-async def test_upload_verify_and_run_to_ee_dd(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_upload_verify_and_run_to_ee_dd(delivery: str, pacing: Pacing) -> None:
     model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200, delivery=delivery) as (bus, _):
+    async with sim_bus([model], baud=115200, delivery=delivery, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         project = small_project()
         dump = await stepper.upload(project)
@@ -45,9 +47,10 @@ async def test_upload_verify_and_run_to_ee_dd(delivery: str) -> None:
         assert bus.stats.timeouts == 0
 
 
-async def test_stop_ends_a_forever_project_with_project_stopped() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_stop_ends_a_forever_project_with_project_stopped(pacing: Pacing) -> None:
     model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
         run = asyncio.create_task(stepper.run_project(1, timeout=10))
@@ -59,9 +62,10 @@ async def test_stop_ends_a_forever_project_with_project_stopped() -> None:
         assert not model.running
 
 
-async def test_run_timeout_and_bad_input() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_run_timeout_and_bad_input(pacing: Pacing) -> None:
     model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         await stepper.upload(small_project(3, repeat=255), verify=False, save=False)
         with pytest.raises(ReplyTimeoutError, match="ProjectFinished"):

@@ -6,14 +6,16 @@ import pytest
 
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError
+from motorbus.sim.bus import Pacing
 from motorbus.sim.quad_stepper import QuadStepperModel
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
-async def test_run_waits_for_done(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_run_waits_for_done(delivery: str, pacing: Pacing) -> None:
     model = QuadStepperModel()
-    async with sim_bus([model], baud=115200, delivery=delivery) as (bus, _):
+    async with sim_bus([model], baud=115200, delivery=delivery, pacing=pacing) as (bus, _):
         quad = QuadStepper(bus)
         await quad.configure(
             1,
@@ -33,9 +35,10 @@ async def test_run_waits_for_done(delivery: str) -> None:
         assert bus.stats.events == 2
 
 
-async def test_stop_all_and_bad_input_sends_nothing() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_stop_all_and_bad_input_sends_nothing(pacing: Pacing) -> None:
     model = QuadStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         quad = QuadStepper(bus)
         sent = bus.stats.requests
         with pytest.raises(LocalProtocolError, match="motor"):
