@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import pytest
 
 from motorbus.devices.quad_stepper import QuadStepper
@@ -9,12 +11,14 @@ from motorbus.errors import LocalProtocolError
 from motorbus.sim.bus import Pacing
 from motorbus.sim.quad_stepper import QuadStepperModel
 from tests.conftest import PACINGS, sim_bus
+from tests.devices.variants import QUAD_VARIANTS
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
+@pytest.mark.parametrize("variant", QUAD_VARIANTS)
 @pytest.mark.parametrize("pacing", PACINGS)
-async def test_run_waits_for_done(delivery: str, pacing: Pacing) -> None:
-    model = QuadStepperModel()
+async def test_run_waits_for_done(variant: dict[str, Any], delivery: str, pacing: Pacing) -> None:
+    model = QuadStepperModel(**variant)
     async with sim_bus([model], baud=115200, delivery=delivery, pacing=pacing) as (bus, _):
         quad = QuadStepper(bus)
         await quad.configure(
@@ -35,9 +39,12 @@ async def test_run_waits_for_done(delivery: str, pacing: Pacing) -> None:
         assert bus.stats.events == 2
 
 
+@pytest.mark.parametrize("variant", QUAD_VARIANTS)
 @pytest.mark.parametrize("pacing", PACINGS)
-async def test_stop_all_and_bad_input_sends_nothing(pacing: Pacing) -> None:
-    model = QuadStepperModel()
+async def test_stop_all_and_bad_input_sends_nothing(
+    variant: dict[str, Any], pacing: Pacing
+) -> None:
+    model = QuadStepperModel(**variant)
     async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         quad = QuadStepper(bus)
         sent = bus.stats.requests
