@@ -37,7 +37,9 @@ serialised in order.  What stays:
 
 * **Half duplex.** A transmission lasts an instant (it is delivered when produced): a
   device misses a request that arrives at the very instant it puts out bytes (the
-  check uses closed intervals in this mode, so zero-length ones can meet).
+  check uses closed intervals in this mode, so zero-length ones can meet).  That
+  includes a request written in the same chunk right behind one the device answered:
+  its reply goes out at that instant.  A host that waits for each reply never meets it.
 * **Faults.** All of them apply.  A *late* reply is due ``late_reply_delay_s`` after the
   moment a prompt reply would have been (the end of the request); duplicates follow at
   once; silent windows and disconnects follow the same schedule.
