@@ -6,7 +6,8 @@ device may do either, so the drivers must work with both:
 * LA: a write is answered with the 22-byte status or the short ack [A2-03]; status byte 4
   is 0x04 or echoes the request's command [A2-04]; an ID change is answered from the old
   or the new ID [A2-12]; latency is 120 us typical or up to 800 us every time [A2-15].
-* Quad stepper: run acks and done replies carry address 0x00 or the motor number [A1-02].
+* Quad stepper: run acks and done replies carry address 0x00 or the motor number [A1-02];
+  motors started by run-all each send a done reply, or none [A1-04].
 * Project stepper: the 0x5E/0x9E/0xAE reply has 00 in byte 3 or echoes the request's value
   [A0-04, A0-13]; ``EE DD`` is or is not also sent (here 0.1 s) after a running project
   is stopped [A0-06].
@@ -39,8 +40,8 @@ def _la_variants() -> list[Any]:
 LA_VARIANTS = _la_variants()
 #: ``QuadStepperModel(**options)`` variants.
 QUAD_VARIANTS = [
-    pytest.param({"run_ack_address": "zero"}, id="run-ack-zero"),
-    pytest.param({"run_ack_address": "motor"}, id="run-ack-motor"),
+    pytest.param({"run_ack_address": address, "run_all_done": done}, id=f"ack-{address}-all-{done}")
+    for address, done in itertools.product(("zero", "motor"), ("each", "none"))
 ]
 #: ``ProjectStepperModel(**options)`` variants.
 PROJECT_VARIANTS = [
