@@ -13,6 +13,9 @@ and an LA follow stream with status polling.  In every cell:
 * the counters account for what happened (garbage bytes, late replies, reconnects);
 * traffic goes on after the fault window: models keep receiving frames.
 
+Every cell runs against a wire-paced and a prompt simulator (``pacing``): replies at the
+emulated wire time, and replies the moment a request is complete.
+
 Known limitation, not hidden: a reply later than the bus's ``late_guard`` (20 ms) after
 its request's deadline can be taken for the answer to a later request of identical shape
 to the same device (the bus cannot tell two identical status frames apart).  The late

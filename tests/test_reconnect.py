@@ -80,7 +80,8 @@ async def test_memory_unplug_while_streaming_then_plug(pacing: Pacing) -> None:
         await streamer.close(safe=False)
 
 
-async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path, pacing: Pacing) -> None:
     """The pty is closed and re-created under the same symlink; the bus, given the
     symlink, reopens it and the stream resumes."""
     ids = (1, 2)
@@ -88,7 +89,7 @@ async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path) -> None
     link = tmp_path / "ttyLA"
     faults = FaultConfig(disconnect_after_s=0.3, reconnect_after_s=0.2, disconnect_count=1)
     before_tasks = set(asyncio.all_tasks())
-    with PtySim(models, baud=LA_BAUD, faults=faults, link=link) as sim:
+    with PtySim(models, baud=LA_BAUD, faults=faults, link=link, pacing=pacing) as sim:
         transport = SerialTransport(str(link), baudrate=LA_BAUD)
         async with Bus(
             transport, name="pty", families={Family.LA}, host_margin=PTY_HOST_MARGIN_S

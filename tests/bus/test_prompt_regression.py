@@ -13,7 +13,10 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from motorbus.devices.la import InspireLA
+from motorbus.errors import ReplyTimeoutError
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import wire_time
 from motorbus.sim.bus import LogRecord
@@ -70,3 +73,24 @@ async def test_prompt_la_status_replies_are_all_accepted_under_polling() -> None
         assert stats.unexpected_frames == 0 and stats.late_replies == 0
         assert stats.timeouts == 0
         assert stats.replies == stream.stats.polls
+
+
+# -- the opt-in wire floor ---------------------------------------------------------------------
+
+
+async def test_wire_floor_accepts_paced_replies_and_counts_prompt_ones_as_early() -> None:
+    """``wire_floor=True`` is for a real UART: a wire-paced device passes, a prompt one
+    is refused - counted as ``early_replies``, never silently made a plain timeout."""
+    cmd = ps.SelectProject(1, 2)
+    async with sim_bus(
+        [ProjectStepperModel()], baud=STEPPER_BAUD, pacing="wire", wire_floor=True
+    ) as (bus, _):
+        assert isinstance(await bus.request(cmd, retries=0), ps.Ack)
+        assert (bus.stats.early_replies, bus.stats.timeouts) == (0, 0)
+    async with sim_bus(
+        [ProjectStepperModel()], baud=STEPPER_BAUD, pacing="prompt", wire_floor=True
+    ) as (bus, _):
+        with pytest.raises(ReplyTimeoutError):
+            await bus.request(cmd, retries=0)
+        assert bus.stats.early_replies == 1 and bus.stats.timeouts == 1
+        assert bus.stats.replies == 0
