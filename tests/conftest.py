@@ -1,4 +1,10 @@
-"""Shared fixtures.  ``sim_bus`` fails a test whose bus leaves tasks running behind it."""
+"""Shared fixtures.  ``sim_bus`` fails a test whose bus leaves tasks running behind it.
+
+``PACINGS`` are the simulator pacings every bus-facing test runs against: ``"wire"``
+(replies when their last byte would arrive at the baud, as on a UART) and ``"prompt"``
+(replies the moment a request is complete, as from a USB-CDC device or a TCP bridge).
+A test that passes only against one of them shares an assumption with the bus.
+"""
 
 from __future__ import annotations
 
@@ -12,8 +18,12 @@ import pytest
 from motorbus.bus.bus import Bus
 from motorbus.bus.timer import default_timer
 from motorbus.protocol.base import Family
+from motorbus.sim.bus import PACING_MODES, Pacing
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.model import DeviceModel
+
+#: Simulator pacings, for ``pytest.mark.parametrize("pacing", PACINGS)``.
+PACINGS: list[Pacing] = list(PACING_MODES)
 
 
 @asynccontextmanager
@@ -24,9 +34,13 @@ async def sim_bus(
     delivery: str = "whole",
     faults: Any = None,
     seed: int = 0,
+    pacing: Pacing = "wire",
     **bus_options: Any,
 ) -> AsyncIterator[tuple[Bus, MemorySim]]:
-    """A bus talking to simulated devices over the in-memory link."""
+    """A bus talking to simulated devices over the in-memory link.
+
+    ``pacing`` is the simulator's (``MemorySim.start``): ``"wire"`` or ``"prompt"``.
+    """
     timer = default_timer()
     before = set(asyncio.all_tasks())
     async with MemorySim.start(
@@ -36,6 +50,7 @@ async def sim_bus(
         faults=faults,
         seed=seed,
         timer=timer,  # type: ignore[arg-type]
+        pacing=pacing,
     ) as sim:
         families = {m.family for m in models} or set(Family)
         # Tests assert behaviour, not speed: a generous host margin keeps a loaded CI

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 from motorbus.bus.bus import Bus
 from motorbus.bus.timer import Timer
-from motorbus.sim.bus import LogRecord
+from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.model import DeviceModel
@@ -162,6 +162,7 @@ async def rig(
     models: Sequence[DeviceModel] | None = None,
     write_time: Callable[[], float] = lambda: 20e-6,
     turnaround: float = 120e-6,
+    pacing: Pacing = "wire",
     **bus_options: object,
 ) -> AsyncIterator[Rig]:
     """A bus in fake time talking to LA models (IDs ``ids``) or ``models`` in memory."""
@@ -172,7 +173,7 @@ async def rig(
     if models is None:
         models = [LAModel(i, turnaround_typical=turnaround, turnaround_max=turnaround) for i in ids]
     try:
-        async with MemorySim.start(models, timer=timer, log=records.append) as sim:
+        async with MemorySim.start(models, timer=timer, log=records.append, pacing=pacing) as sim:
             wire = TimedTransport(sim.transport, timer, write_time)
             bus_options.setdefault("host_margin", 2e-3)
             families = {m.family for m in models}

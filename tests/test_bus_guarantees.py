@@ -24,8 +24,9 @@ import pytest
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.sim.bus import LogRecord
+from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.streams import Streamer
+from tests.conftest import PACINGS
 from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes, rig
 
 MIN_SPACING_S = 1e-3
@@ -51,10 +52,13 @@ async def run_for(timer: AutojumpTimer, seconds: float) -> None:
 # -- spacing -----------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("pacing", PACINGS)
 @pytest.mark.parametrize("seed", [1, 2, 3])
-async def test_spacing_counts_from_the_completed_write_on_every_path(seed: int) -> None:
+async def test_spacing_counts_from_the_completed_write_on_every_path(
+    seed: int, pacing: Pacing
+) -> None:
     """Ticks, polls, user requests, retries and safe stops; writes that take up to 400 us."""
-    async with rig(write_time=preempted_writes(seed)) as r:
+    async with rig(write_time=preempted_writes(seed), pacing=pacing) as r:
         actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
         stop = asyncio.Event()
         counts = [0]
@@ -96,8 +100,11 @@ async def test_spacing_holds_for_back_to_back_requests_with_slow_writes() -> Non
 # -- streams never starve ----------------------------------------------------------------
 
 
-async def test_polling_stream_keeps_its_ticks_while_three_request_loops_run() -> None:
-    async with rig() as r:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_polling_stream_keeps_its_ticks_while_three_request_loops_run(
+    pacing: Pacing,
+) -> None:
+    async with rig(pacing=pacing) as r:
         actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
         stop = asyncio.Event()
         counts = [0]
@@ -151,10 +158,13 @@ def follow_frames_after_first_pause(records: list[LogRecord], ids: set[int]) -> 
     return after
 
 
+@pytest.mark.parametrize("pacing", PACINGS)
 @pytest.mark.parametrize("offset_ms", [0.0, 0.3, 1.0, 2.5, 5.0, 7.5, 9.0, 9.7])
 @pytest.mark.parametrize("how", ["stop", "exception"])
-async def test_nothing_of_a_stream_is_sent_after_its_safe_stop(offset_ms: float, how: str) -> None:
-    async with rig() as r:
+async def test_nothing_of_a_stream_is_sent_after_its_safe_stop(
+    offset_ms: float, how: str, pacing: Pacing
+) -> None:
+    async with rig(pacing=pacing) as r:
         actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
         streamer = Streamer(r.bus)
         other = [asyncio.create_task(actuators[0].status())]

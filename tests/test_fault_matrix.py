@@ -13,6 +13,9 @@ and an LA follow stream with status polling.  In every cell:
 * the counters account for what happened (garbage bytes, late replies, reconnects);
 * traffic goes on after the fault window: models keep receiving frames.
 
+Every cell runs against a wire-paced and a prompt simulator (``pacing``): replies at the
+emulated wire time, and replies the moment a request is complete.
+
 Known limitation, not hidden: a reply later than the bus's ``late_guard`` (20 ms) after
 its request's deadline can be taken for the answer to a later request of identical shape
 to the same device (the bus cannot tell two identical status frames apart).  The late
@@ -42,6 +45,7 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Family
+from motorbus.sim.bus import Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
@@ -49,7 +53,7 @@ from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.streams import Streamer
 from tests.bus.test_bus_faults import eventually
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 
 #: How long each cell drives traffic, seconds of simulator time.
 RUN_S = 0.3
@@ -153,10 +157,13 @@ async def late_counted(kind: str, bus: Bus, sim: MemorySim) -> None:
 
 
 @pytest.mark.parametrize("kind", FAULTS)
-async def test_la_requests_under_fault(kind: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_la_requests_under_fault(kind: str, pacing: Pacing) -> None:
     models = [LAModel(i) for i in (1, 2, 3)]
     faults = fault_config(kind, LA_LATE_DELAY_S)
-    async with sim_bus(models, faults=faults, seed=7, host_margin=MATRIX_HOST_MARGIN_S) as (
+    async with sim_bus(
+        models, faults=faults, seed=7, host_margin=MATRIX_HOST_MARGIN_S, pacing=pacing
+    ) as (
         bus,
         sim,
     ):
@@ -213,11 +220,17 @@ def quad_command(k: int) -> q.QuadCommand:
 
 
 @pytest.mark.parametrize("kind", FAULTS)
-async def test_quad_requests_under_fault(kind: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_quad_requests_under_fault(kind: str, pacing: Pacing) -> None:
     model = QuadStepperModel()
     faults = fault_config(kind, QUAD_LATE_DELAY_S)
     async with sim_bus(
-        [model], baud=QUAD_BAUD, faults=faults, seed=3, host_margin=MATRIX_HOST_MARGIN_S
+        [model],
+        baud=QUAD_BAUD,
+        faults=faults,
+        seed=3,
+        host_margin=MATRIX_HOST_MARGIN_S,
+        pacing=pacing,
     ) as (bus, sim):
         tally = Tally()
         before_window = 0
@@ -244,14 +257,17 @@ async def test_quad_requests_under_fault(kind: str) -> None:
 
 
 @pytest.mark.parametrize("kind", FAULTS)
-async def test_follow_stream_under_fault(kind: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_follow_stream_under_fault(kind: str, pacing: Pacing) -> None:
     ids = (1, 2, 3, 4)
     models = [LAModel(i) for i in ids]
     faults = fault_config(kind, LA_LATE_DELAY_S)
     ticks = round(RUN_S / STREAM_PERIOD_S)
     # Target of actuator i at tick k: 100 + 4k + i, so every received value is traceable.
     sequence = [[100 + 4 * k + i for i in ids] for k in range(ticks)]
-    async with sim_bus(models, faults=faults, seed=5, host_margin=MATRIX_HOST_MARGIN_S) as (
+    async with sim_bus(
+        models, faults=faults, seed=5, host_margin=MATRIX_HOST_MARGIN_S, pacing=pacing
+    ) as (
         bus,
         sim,
     ):
@@ -285,7 +301,8 @@ def check_stream_counters(kind: str, bus: Bus, sim: MemorySim, skipped: int) -> 
 # -- the documented limit ----------------------------------------------------------------------
 
 
-async def test_late_reply_inside_the_guard_is_never_matched() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_late_reply_inside_the_guard_is_never_matched(pacing: Pacing) -> None:
     """Late replies inside the guard are counted as late, never given to a newer request.
 
     Past ``late_guard`` after the deadline the bus no longer holds the device, and a
@@ -294,7 +311,9 @@ async def test_late_reply_inside_the_guard_is_never_matched() -> None:
     """
     assert LA_LATE_DELAY_S < DEFAULT_LATE_GUARD_S
     faults = FaultConfig(late_reply_rate=0.5, late_reply_delay_s=LA_LATE_DELAY_S)
-    async with sim_bus([LAModel(1)], faults=faults, seed=1, host_margin=MATRIX_HOST_MARGIN_S) as (
+    async with sim_bus(
+        [LAModel(1)], faults=faults, seed=1, host_margin=MATRIX_HOST_MARGIN_S, pacing=pacing
+    ) as (
         bus,
         sim,
     ):
@@ -311,7 +330,8 @@ async def test_late_reply_inside_the_guard_is_never_matched() -> None:
         assert bus.stats.unexpected_frames == 0
 
 
-async def test_corrupted_project_read_back_is_a_verify_error_not_local() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_corrupted_project_read_back_is_a_verify_error_not_local(pacing: Pacing) -> None:
     """The 0x3E dump has no checksum: a flipped bit can make a field no project can hold.
 
     ``upload(verify=True)`` must report that as ``ProjectVerifyError`` (the device's or
@@ -333,6 +353,7 @@ async def test_corrupted_project_read_back_is_a_verify_error_not_local() -> None
         faults=faults,
         seed=2,
         host_margin=MATRIX_HOST_MARGIN_S,
+        pacing=pacing,
     ) as (bus, sim):
         device = ProjectStepper(bus)
         for _ in range(12):

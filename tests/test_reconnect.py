@@ -19,13 +19,14 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import BusClosedError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
+from motorbus.sim.bus import Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from motorbus.sim.pty import PtySim
 from motorbus.streams import Streamer
 from motorbus.transport.serial import SerialTransport
 from tests.bus.test_bus_faults import eventually
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 
 PERIOD_S = 0.01
 #: Upper bound on waiting for the bus to come back (a hang guard, not a timing claim).
@@ -43,10 +44,11 @@ def endless(ids: tuple[int, ...]) -> object:
     return lambda t, statuses: {i: 100 + (int(t * 100) + i) % 1500 for i in ids}
 
 
-async def test_memory_unplug_while_streaming_then_plug() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_memory_unplug_while_streaming_then_plug(pacing: Pacing) -> None:
     ids = (1, 2, 3)
     models = [LAModel(i) for i in ids]
-    async with sim_bus(models) as (bus, sim):
+    async with sim_bus(models, pacing=pacing) as (bus, sim):
         streamer = Streamer(bus)
         stream = streamer.follow([InspireLA(bus, i) for i in ids], endless(ids), period=PERIOD_S)
         await eventually(lambda: received(models) >= 9, "the stream to reach the models")
@@ -78,7 +80,8 @@ async def test_memory_unplug_while_streaming_then_plug() -> None:
         await streamer.close(safe=False)
 
 
-async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path, pacing: Pacing) -> None:
     """The pty is closed and re-created under the same symlink; the bus, given the
     symlink, reopens it and the stream resumes."""
     ids = (1, 2)
@@ -86,7 +89,7 @@ async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path) -> None
     link = tmp_path / "ttyLA"
     faults = FaultConfig(disconnect_after_s=0.3, reconnect_after_s=0.2, disconnect_count=1)
     before_tasks = set(asyncio.all_tasks())
-    with PtySim(models, baud=LA_BAUD, faults=faults, link=link) as sim:
+    with PtySim(models, baud=LA_BAUD, faults=faults, link=link, pacing=pacing) as sim:
         transport = SerialTransport(str(link), baudrate=LA_BAUD)
         async with Bus(
             transport, name="pty", families={Family.LA}, host_margin=PTY_HOST_MARGIN_S

@@ -11,9 +11,10 @@ import pytest
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
+from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
 from motorbus.streams import SafeAction, StreamEnded, Streamer
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
 from tests.fakeclock import rig
 
 
@@ -21,11 +22,12 @@ def trajectory(n: int, k: int, i: int) -> int:
     return round(1000 + 500 * math.sin(0.3 * k + i))
 
 
-async def test_fifteen_actuators_one_broadcast_per_tick() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_fifteen_actuators_one_broadcast_per_tick(pacing: Pacing) -> None:
     models = [LAModel(i) for i in range(1, 16)]
     ticks = 25
     rows = [[trajectory(15, k, i) for i in range(15)] for k in range(ticks)]
-    async with sim_bus(models) as (bus, _):
+    async with sim_bus(models, pacing=pacing) as (bus, _):
         actuators = [InspireLA(bus, i) for i in range(1, 16)]
         streamer = Streamer(bus)
         stream = streamer.follow(actuators, rows, period=0.01)
@@ -39,7 +41,8 @@ async def test_fifteen_actuators_one_broadcast_per_tick() -> None:
         await streamer.close()
 
 
-async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_feedback_stream_decodes_every_status_and_callback_sees_them(pacing: Pacing) -> None:
     # On the fake clock (tests/fakeclock.py): the frame times below are the bus's own
     # behaviour, not the machine's speed.
     models = [LAModel(i) for i in (1, 2)]
@@ -49,7 +52,7 @@ async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> 
         seen.append(len(statuses))
         return None if t >= 0.1 else [500 + round(t * 1000), 600]
 
-    async with rig(models=models) as r:
+    async with rig(models=models, pacing=pacing) as r:
         bus = r.bus
         streamer = Streamer(bus)
         stream = streamer.follow(
@@ -71,11 +74,12 @@ async def test_feedback_stream_decodes_every_status_and_callback_sees_them() -> 
         await streamer.close()
 
 
-async def test_polling_uses_free_slots_round_robin() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_polling_uses_free_slots_round_robin(pacing: Pacing) -> None:
     models = [LAModel(i) for i in range(1, 16)]
     # Polls only start when even their timeout ends before the next tick: a margin that
     # leaves room for them in a 10 ms tick.
-    async with sim_bus(models, host_margin=0.002) as (bus, _):
+    async with sim_bus(models, host_margin=0.002, pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
         actuators = [InspireLA(bus, i) for i in range(1, 16)]
         stream = streamer.follow(actuators, [[1000] * 15] * 30, period=0.01, poll_status=True)
@@ -85,9 +89,10 @@ async def test_polling_uses_free_slots_round_robin() -> None:
         await streamer.close()
 
 
-async def test_infeasible_streams_are_refused_with_what_fits() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_infeasible_streams_are_refused_with_what_fits(pacing: Pacing) -> None:
     models = [LAModel(i) for i in range(1, 21)]
-    async with sim_bus(models) as (bus, _):
+    async with sim_bus(models, pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
         actuators = [InspireLA(bus, i) for i in range(1, 21)]
         with pytest.raises(LocalProtocolError, match="with feedback") as err:
@@ -101,9 +106,10 @@ async def test_infeasible_streams_are_refused_with_what_fits() -> None:
         await streamer.close()
 
 
-async def test_bad_target_ends_the_stream_with_its_safe_action() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_bad_target_ends_the_stream_with_its_safe_action(pacing: Pacing) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _):
+    async with sim_bus([model], pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
         stream = streamer.follow(
             InspireLA(bus, 1), [1000, 1100, 2500, 1200], period=0.01, safe_action="pause"
@@ -116,9 +122,10 @@ async def test_bad_target_ends_the_stream_with_its_safe_action() -> None:
         await streamer.close()
 
 
-async def test_cancelled_block_applies_estop() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_cancelled_block_applies_estop(pacing: Pacing) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _):
+    async with sim_bus([model], pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
 
         async def run() -> None:
@@ -138,9 +145,10 @@ async def test_cancelled_block_applies_estop() -> None:
         await streamer.close()
 
 
-async def test_pause_resume_and_new_targets_on_the_fly() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_pause_resume_and_new_targets_on_the_fly(pacing: Pacing) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _):
+    async with sim_bus([model], pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
         stream = streamer.follow(InspireLA(bus, 1), lambda t, s: 700, period=0.01)
         while len(model.received) < 2:

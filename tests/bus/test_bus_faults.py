@@ -16,10 +16,11 @@ from motorbus.bus.bus import Bus, BusState
 from motorbus.bus.events import BusStateChanged
 from motorbus.errors import BusClosedError, ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.sim.bus import LogRecord
+from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from tests.bus.test_bus_memory import DELIVERIES, frames, la_models, logged_sim_bus
+from tests.conftest import PACINGS
 
 #: Tight deadlines for the timeout tests (the bus default): what times out here should.
 TIGHT_MARGIN_S = 1e-3
@@ -51,10 +52,11 @@ def status_query(ident: int) -> la.Control:
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_silent_device_times_out_after_retries(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_silent_device_times_out_after_retries(delivery: str, pacing: Pacing) -> None:
     faults = FaultConfig(silent=True)
     async with logged_sim_bus(
-        la_models(1), delivery=delivery, faults=faults, host_margin=TIGHT_MARGIN_S
+        la_models(1), delivery=delivery, faults=faults, host_margin=TIGHT_MARGIN_S, pacing=pacing
     ) as (bus, sim, trace):
         with pytest.raises(ReplyTimeoutError, match=r"la:1 .* after 2 attempts"):
             await bus.request(status_query(1))
@@ -64,8 +66,13 @@ async def test_silent_device_times_out_after_retries(delivery: str) -> None:
         assert sim.bus.stats.faults_injected["silent"] == 2
 
 
-async def test_missing_id_times_out_with_requested_retries() -> None:
-    async with logged_sim_bus(la_models(1), host_margin=TIGHT_MARGIN_S) as (bus, _, trace):
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_missing_id_times_out_with_requested_retries(pacing: Pacing) -> None:
+    async with logged_sim_bus(la_models(1), host_margin=TIGHT_MARGIN_S, pacing=pacing) as (
+        bus,
+        _,
+        trace,
+    ):
         with pytest.raises(ReplyTimeoutError, match=r"la:9 .* after 3 attempts"):
             await bus.request(status_query(9), retries=2)
         with pytest.raises(ReplyTimeoutError, match="la:9") as info:
@@ -82,9 +89,12 @@ async def test_missing_id_times_out_with_requested_retries() -> None:
     [la.MoveTo(1, 500), la.Follow(1, 500), la.WriteRegister(1, la.Register.TARGET, 500)],
     ids=["move_to", "follow", "write_target"],
 )
-async def test_motion_is_never_retried(cmd: la.LACommand) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_motion_is_never_retried(cmd: la.LACommand, pacing: Pacing) -> None:
     faults = FaultConfig(silent=True)
-    async with logged_sim_bus(la_models(1), faults=faults, host_margin=TIGHT_MARGIN_S) as (
+    async with logged_sim_bus(
+        la_models(1), faults=faults, host_margin=TIGHT_MARGIN_S, pacing=pacing
+    ) as (
         bus,
         _,
         trace,
@@ -99,7 +109,8 @@ async def test_motion_is_never_retried(cmd: la.LACommand) -> None:
 # -- cancellation ------------------------------------------------------------------------------
 
 
-async def test_cancelled_queued_request_is_not_sent() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_cancelled_queued_request_is_not_sent(pacing: Pacing) -> None:
     queued: list[asyncio.Future[Any]] = []
     sent_when_cancelled: list[int] = []
     buses: list[Bus] = []
@@ -110,7 +121,11 @@ async def test_cancelled_queued_request_is_not_sent() -> None:
             sent_when_cancelled.append(buses[0].stats.requests)
             queued[0].cancel()
 
-    async with logged_sim_bus(la_models(1), on_record=cancel_queued) as (bus, _, trace):
+    async with logged_sim_bus(la_models(1), on_record=cancel_queued, pacing=pacing) as (
+        bus,
+        _,
+        trace,
+    ):
         buses.append(bus)
         first = asyncio.ensure_future(bus.request(status_query(9), timeout=0.05, retries=0))
         queued.append(asyncio.ensure_future(bus.request(la.MoveTo(1, 1234))))
@@ -126,7 +141,10 @@ async def test_cancelled_queued_request_is_not_sent() -> None:
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_cancelling_a_sent_request_does_not_break_the_next(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_cancelling_a_sent_request_does_not_break_the_next(
+    delivery: str, pacing: Pacing
+) -> None:
     model = LAModel(1)
     pending: list[asyncio.Future[Any]] = []
 
@@ -134,7 +152,9 @@ async def test_cancelling_a_sent_request_does_not_break_the_next(delivery: str) 
         if record["dir"] == "rx" and pending and not pending[0].done():
             pending[0].cancel()
 
-    async with logged_sim_bus([model], delivery=delivery, on_record=cancel_on_arrival) as (
+    async with logged_sim_bus(
+        [model], delivery=delivery, on_record=cancel_on_arrival, pacing=pacing
+    ) as (
         bus,
         _,
         trace,
@@ -151,7 +171,8 @@ async def test_cancelling_a_sent_request_does_not_break_the_next(delivery: str) 
         assert bus.stats.timeouts == 0 and bus.stats.unexpected_frames == 0
 
 
-async def test_cancelled_sent_query_is_not_retried() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_cancelled_sent_query_is_not_retried(pacing: Pacing) -> None:
     pending: list[asyncio.Future[Any]] = []
 
     def cancel_on_arrival(record: LogRecord) -> None:
@@ -160,7 +181,11 @@ async def test_cancelled_sent_query_is_not_retried() -> None:
 
     faults = FaultConfig(silent_windows=((0.0, 0.2),))
     async with logged_sim_bus(
-        la_models(1), faults=faults, host_margin=TIGHT_MARGIN_S, on_record=cancel_on_arrival
+        la_models(1),
+        faults=faults,
+        host_margin=TIGHT_MARGIN_S,
+        on_record=cancel_on_arrival,
+        pacing=pacing,
     ) as (bus, _, trace):
         pending.append(asyncio.ensure_future(bus.request(status_query(1), retries=3)))
         with pytest.raises(asyncio.CancelledError):
@@ -179,10 +204,18 @@ async def test_cancelled_sent_query_is_not_retried() -> None:
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_late_reply_is_counted_and_never_given_to_a_later_request(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_late_reply_is_counted_and_never_given_to_a_later_request(
+    delivery: str, pacing: Pacing
+) -> None:
     faults = FaultConfig(late_reply_rate=0.3, late_reply_delay_s=LATE_DELAY_S)
     async with logged_sim_bus(
-        la_models(1, 2), delivery=delivery, faults=faults, seed=5, host_margin=TIGHT_MARGIN_S
+        la_models(1, 2),
+        delivery=delivery,
+        faults=faults,
+        seed=5,
+        host_margin=TIGHT_MARGIN_S,
+        pacing=pacing,
     ) as (bus, sim, _):
         outcomes: list[str] = []
         for k in range(40):
@@ -208,13 +241,14 @@ async def test_late_reply_is_counted_and_never_given_to_a_later_request(delivery
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_garbage_flips_and_drops_never_mismatch(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_garbage_flips_and_drops_never_mismatch(delivery: str, pacing: Pacing) -> None:
     faults = FaultConfig(
         garbage_rate=0.3, bit_flip_rate=0.004, drop_byte_rate=0.004, duplicate_reply_rate=0.05
     )
     models = la_models(1, 2, 3)
     async with logged_sim_bus(
-        models, delivery=delivery, faults=faults, seed=11, host_margin=5e-3
+        models, delivery=delivery, faults=faults, seed=11, host_margin=5e-3, pacing=pacing
     ) as (bus, sim, _):
         resolved = 0
         for k in range(45):
@@ -250,14 +284,19 @@ async def test_garbage_flips_and_drops_never_mismatch(delivery: str) -> None:
 # -- port loss ---------------------------------------------------------------------------------
 
 
-async def test_unplug_fails_pending_and_bus_reconnects_after_plug() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_unplug_fails_pending_and_bus_reconnects_after_plug(pacing: Pacing) -> None:
     sims: list[Any] = []
 
     def unplug_on_arrival(record: LogRecord) -> None:
         if record["dir"] == "rx" and str(record["hex"]).startswith("55 AA 03 09"):
             sims[0].peer.unplug()
 
-    async with logged_sim_bus(la_models(1), on_record=unplug_on_arrival) as (bus, sim, _):
+    async with logged_sim_bus(la_models(1), on_record=unplug_on_arrival, pacing=pacing) as (
+        bus,
+        sim,
+        _,
+    ):
         sims.append(sim)
         with bus.events.subscribe(BusStateChanged) as states:
             with pytest.raises(BusClosedError, match="lost its port"):
@@ -273,9 +312,10 @@ async def test_unplug_fails_pending_and_bus_reconnects_after_plug() -> None:
         assert (await bus.request(status_query(1))).id == 1
 
 
-async def test_simulated_disconnect_fault_and_recovery() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_simulated_disconnect_fault_and_recovery(pacing: Pacing) -> None:
     faults = FaultConfig(disconnect_after_s=0.1, reconnect_after_s=0.05, disconnect_count=1)
-    async with logged_sim_bus(la_models(1), faults=faults) as (bus, sim, _):
+    async with logged_sim_bus(la_models(1), faults=faults, pacing=pacing) as (bus, sim, _):
         with bus.events.subscribe(BusStateChanged, lambda e: e.state == "lost") as lost:
             await lost.next(timeout=EVENTUALLY_S)
         await bus.wait_state(BusState.OPEN, timeout=EVENTUALLY_S)
@@ -284,7 +324,8 @@ async def test_simulated_disconnect_fault_and_recovery() -> None:
         assert sim.bus.stats.faults_injected["disconnect"] == 1
 
 
-async def test_lost_done_replies_do_not_pile_up() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_lost_done_replies_do_not_pile_up(pacing: Pacing) -> None:
     """Done replies that never come are forgotten past a bound, and counted."""
     from motorbus.bus.bus import MAX_DONE_WATCHES
     from motorbus.protocol import quad_stepper as q
@@ -292,7 +333,7 @@ async def test_lost_done_replies_do_not_pile_up() -> None:
     from tests.conftest import sim_bus
 
     model = QuadStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         await bus.request(q.MotorSetup(1, 8, 180))
         await bus.request(q.RunPulses(1, 1_000_000))  # long enough not to finish
         for _ in range(MAX_DONE_WATCHES + 5):

@@ -29,13 +29,14 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Family, wire_time
-from motorbus.sim.bus import LogRecord
+from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.quad_stepper import QuadStepperModel
+from tests.conftest import PACINGS
 
 DELIVERIES = ["whole", "bytewise", "random"]
 #: Tolerance on start-to-start gaps measured by the simulator: the in-memory hop
@@ -88,9 +89,12 @@ async def logged_sim_bus(
     faults: FaultConfig | None = None,
     seed: int = 0,
     on_record: Callable[[LogRecord], None] | None = None,
+    pacing: Pacing = "wire",
     **bus_options: Any,
 ) -> AsyncIterator[tuple[Bus, MemorySim, Trace]]:
     """Like ``tests.conftest.sim_bus``, plus the simulator's log and the bus's tx times.
+
+    ``pacing`` is the simulator's: ``"wire"`` or ``"prompt"`` (``tests.conftest.PACINGS``).
 
     ``on_record`` is called synchronously for every log record, i.e. at the moment
     the simulator takes a request or puts out a reply.
@@ -113,6 +117,7 @@ async def logged_sim_bus(
         seed=seed,
         timer=timer,
         log=log,
+        pacing=pacing,
     ) as sim:
         clock = RecordingClock(timer)
         transport = sim.transport
@@ -147,9 +152,10 @@ def la_models(*ids: int, **options: Any) -> list[LAModel]:
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_la_request_reply(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_la_request_reply(delivery: str, pacing: Pacing) -> None:
     models = la_models(1, 2, 3)
-    async with logged_sim_bus(models, delivery=delivery) as (bus, _, trace):
+    async with logged_sim_bus(models, delivery=delivery, pacing=pacing) as (bus, _, trace):
         for i in (1, 2, 3):
             status = await bus.request(la.Control(i, la.ControlAction.QUERY_STATUS))
             assert isinstance(status, la.Status)
@@ -178,8 +184,13 @@ async def test_la_request_reply(delivery: str) -> None:
 
 @pytest.mark.parametrize("write_reply", ["status", "ack"])
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_write_reply_status_or_short_ack(write_reply: str, delivery: str) -> None:
-    async with logged_sim_bus(la_models(1, write_reply=write_reply), delivery=delivery) as (
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_write_reply_status_or_short_ack(
+    write_reply: str, delivery: str, pacing: Pacing
+) -> None:
+    async with logged_sim_bus(
+        la_models(1, write_reply=write_reply), delivery=delivery, pacing=pacing
+    ) as (
         bus,
         _,
         _,
@@ -195,9 +206,10 @@ async def test_write_reply_status_or_short_ack(write_reply: str, delivery: str) 
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_status_echo_of_request_cmd(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_status_echo_of_request_cmd(delivery: str, pacing: Pacing) -> None:
     model = LAModel(1, status_cmd_echo="request")
-    async with logged_sim_bus([model], delivery=delivery) as (bus, _, _):
+    async with logged_sim_bus([model], delivery=delivery, pacing=pacing) as (bus, _, _):
         moved = await bus.request(la.MoveTo(1, 400))
         assert (moved.cmd_echo, moved.target) == (la.CMD_MOVE, 400)
         followed = await bus.request(la.Follow(1, 450))
@@ -210,9 +222,10 @@ async def test_status_echo_of_request_cmd(delivery: str) -> None:
 
 
 @pytest.mark.parametrize("id_change_reply", ["old", "new"])
-async def test_change_id_reply_from_old_or_new_id(id_change_reply: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_change_id_reply_from_old_or_new_id(id_change_reply: str, pacing: Pacing) -> None:
     model = LAModel(3, id_change_reply=id_change_reply)
-    async with logged_sim_bus([model]) as (bus, _, _):
+    async with logged_sim_bus([model], pacing=pacing) as (bus, _, _):
         reply = await bus.request(la.WriteRegister(3, la.Register.ID, 2))
         assert isinstance(reply, la.Status)
         assert reply.id == (3 if id_change_reply == "old" else 2)
@@ -223,10 +236,11 @@ async def test_change_id_reply_from_old_or_new_id(id_change_reply: str) -> None:
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_broadcasts_reach_every_model(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_broadcasts_reach_every_model(delivery: str, pacing: Pacing) -> None:
     ids = list(range(1, 18))  # 17 actuators: two broadcast frames (15 + 2 entries, C.8)
     models = la_models(*ids)
-    async with logged_sim_bus(models, delivery=delivery) as (bus, _, trace):
+    async with logged_sim_bus(models, delivery=delivery, pacing=pacing) as (bus, _, trace):
         targets = {i: 100 * i for i in ids}
         position_frames = la.split_broadcast(la.BroadcastMode.POSITION, targets)
         assert len(position_frames) == 2
@@ -257,8 +271,11 @@ def _la_request(raw: bytes) -> la.LACommand:
     return cmd
 
 
-def check_order(records: list[LogRecord], baud: int) -> int:
+def check_order(records: list[LogRecord], baud: int, pacing: Pacing = "wire") -> int:
     """Assert that the simulator never got a request while a reply was owed.
+
+    A request's log time is its end; under ``"wire"`` pacing it started its wire time
+    earlier, under ``"prompt"`` it arrived whole at that instant.
 
     Returns the number of requests checked.
     """
@@ -275,7 +292,7 @@ def check_order(records: list[LogRecord], baud: int) -> int:
         elif record["dir"] == "rx":
             assert record["fault"] is None, record
             assert not owed, f"request {record['hex']} sent while a reply was owed"
-            start = t - wire_time(len(raw), baud)
+            start = t - wire_time(len(raw), baud) if pacing == "wire" else t
             assert start >= last_reply_end, "request started before the owed reply ended"
             owed = _la_request(raw).expects_reply
             n += 1
@@ -285,7 +302,10 @@ def check_order(records: list[LogRecord], baud: int) -> int:
 
 @pytest.mark.parametrize("min_spacing", [1e-3, 2.5e-3])
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_requests_never_overlap_an_owed_reply(delivery: str, min_spacing: float) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_requests_never_overlap_an_owed_reply(
+    delivery: str, min_spacing: float, pacing: Pacing
+) -> None:
     models = la_models(1, 2, 3, slow_turnaround_probability=0.5)
     commands: list[la.LACommand] = []
     for k in range(10):
@@ -307,7 +327,12 @@ async def test_requests_never_overlap_an_owed_reply(delivery: str, min_spacing: 
             burst.extend(asyncio.ensure_future(buses[0].request(c)) for c in commands)
 
     async with logged_sim_bus(
-        models, delivery=delivery, min_spacing=min_spacing, seed=3, on_record=queue_burst
+        models,
+        delivery=delivery,
+        min_spacing=min_spacing,
+        seed=3,
+        on_record=queue_burst,
+        pacing=pacing,
     ) as (bus, _, trace):
         buses.append(bus)
         await bus.request(la.Control(2, la.ControlAction.QUERY_STATUS))
@@ -324,7 +349,7 @@ async def test_requests_never_overlap_an_owed_reply(delivery: str, min_spacing: 
                     assert result.target == cmd.position
         # Wait for the last no-reply frame to reach the simulator before checking the log.
         await bus.request(la.Control(1, la.ControlAction.QUERY_STATUS))
-        assert check_order(trace.records, LA_BAUD) == len(commands) + 2
+        assert check_order(trace.records, LA_BAUD, pacing) == len(commands) + 2
         sent = trace.tx_times
         assert len(sent) == len(commands) + 2
         gaps = [b - a for a, b in itertools.pairwise(sent)]
@@ -333,9 +358,10 @@ async def test_requests_never_overlap_an_owed_reply(delivery: str, min_spacing: 
 
 
 @pytest.mark.parametrize("delivery", DELIVERIES)
-async def test_emergency_jumps_the_queue(delivery: str) -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_emergency_jumps_the_queue(delivery: str, pacing: Pacing) -> None:
     model = LAModel(1)
-    async with logged_sim_bus([model], delivery=delivery) as (bus, _, trace):
+    async with logged_sim_bus([model], delivery=delivery, pacing=pacing) as (bus, _, trace):
         started_before_estop: list[int] = []
 
         async def estop() -> la.Status:
@@ -361,8 +387,9 @@ async def test_emergency_jumps_the_queue(delivery: str) -> None:
         assert all(a is la.ControlAction.QUERY_STATUS for a in actions[position + 1 :])
 
 
-async def test_priority_order_of_queued_requests() -> None:
-    async with logged_sim_bus(la_models(1)) as (bus, _, trace):
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_priority_order_of_queued_requests(pacing: Pacing) -> None:
+    async with logged_sim_bus(la_models(1), pacing=pacing) as (bus, _, trace):
         first = asyncio.ensure_future(bus.request(la.MoveTo(1, 1)))
         order = [
             (Priority.BACKGROUND, 2),
@@ -383,7 +410,8 @@ async def test_priority_order_of_queued_requests() -> None:
 # -- events -----------------------------------------------------------------------------------
 
 
-async def test_project_finished_event() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_project_finished_event(pacing: Pacing) -> None:
     model = ProjectStepperModel()
     # 20 pulses at 2000 pulses/s (200 pulses/rev at 600 rpm): a 10 ms move.
     project = ps.Project(
@@ -393,7 +421,7 @@ async def test_project_finished_event() -> None:
         distance_per_rev=200,
         steps=(ps.StepSpec(run_distance=20, start_hz=2000, speed_rpm=600),),
     )
-    async with logged_sim_bus([model], baud=115200) as (bus, _, _):
+    async with logged_sim_bus([model], baud=115200, pacing=pacing) as (bus, _, _):
         for cmd in project.commands():
             assert isinstance(await bus.request(cmd), ps.Ack)
         with bus.events.subscribe(ProjectFinished) as sub:
@@ -406,9 +434,10 @@ async def test_project_finished_event() -> None:
         assert bus.stats.events == 1 and bus.stats.timeouts == 0
 
 
-async def test_quad_done_events() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_quad_done_events(pacing: Pacing) -> None:
     model = QuadStepperModel()
-    async with logged_sim_bus([model], baud=115200) as (bus, _, _):
+    async with logged_sim_bus([model], baud=115200, pacing=pacing) as (bus, _, _):
         for cmd in (
             q.MotorSetup(2, 8, 180),
             q.RunPulses(2, 100),
@@ -430,9 +459,10 @@ async def test_quad_done_events() -> None:
         assert bus.stats.events == 2 and bus.stats.unexpected_frames == 0
 
 
-async def test_la_fault_changed_event() -> None:
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_la_fault_changed_event(pacing: Pacing) -> None:
     model = LAModel(2)
-    async with logged_sim_bus([model]) as (bus, _, _):
+    async with logged_sim_bus([model], pacing=pacing) as (bus, _, _):
         actuator = InspireLA(bus, 2)
         with bus.events.subscribe(FaultChanged) as sub:
             await actuator.status()
@@ -448,8 +478,9 @@ async def test_la_fault_changed_event() -> None:
             assert (cleared.before, cleared.after) == (int(la.ErrorFlags.STALL), 0)
 
 
-async def test_unknown_family_is_refused_before_sending() -> None:
-    async with logged_sim_bus(la_models(1)) as (bus, _, trace):
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_unknown_family_is_refused_before_sending(pacing: Pacing) -> None:
+    async with logged_sim_bus(la_models(1), pacing=pacing) as (bus, _, trace):
         assert bus.families == frozenset({Family.LA})
         with pytest.raises(ValueError, match="quad_stepper"):
             await bus.request(q.StopAll())

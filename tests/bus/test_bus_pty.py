@@ -1,7 +1,8 @@
 """The bus over a real pseudo-terminal, through every serial backend.
 
-``PtySim`` serves the simulated devices from its own thread at emulated wire times; the
-bus opens the pty slave with ``SerialTransport`` exactly as it would open a USB adapter.
+``PtySim`` serves the simulated devices from its own thread, at emulated wire times
+(``pacing="wire"``) or at once (``"prompt"``, as a USB-CDC device answers); the bus opens
+the pty slave with ``SerialTransport`` exactly as it would open a USB adapter.
 """
 
 from __future__ import annotations
@@ -18,11 +19,13 @@ from motorbus.devices.la import InspireLA
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
+from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.transport.serial import BACKENDS, SerialTransport, available_backends
+from tests.conftest import PACINGS
 
 LA_BAUD = 921600  # LA "D" interface (docs/protocols.md C.1)
 QUAD_BAUD = 9600  # A1-01: the family default
@@ -42,10 +45,10 @@ def require(backend: str) -> None:
 
 
 @pytest.fixture
-def pty_sim(request: pytest.FixtureRequest) -> Iterator[PtySim]:
-    """A running ``PtySim`` serving ``request.param()`` = (fresh models, baud)."""
+def pty_sim(request: pytest.FixtureRequest, pacing: Pacing) -> Iterator[PtySim]:
+    """A running ``PtySim`` serving ``request.param()`` = (fresh models, baud) at ``pacing``."""
     models, baud = request.param()
-    with PtySim(models, baud=baud) as sim:
+    with PtySim(models, baud=baud, pacing=pacing) as sim:
         yield sim
         assert sim.error is None, f"the simulator thread failed: {sim.error!r}"
 
@@ -70,6 +73,7 @@ def la_bus_models() -> tuple[list[DeviceModel], int]:
 
 @pytest.mark.parametrize("pty_sim", [la_bus_models], indirect=True, ids=["la"])
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("pacing", PACINGS)
 async def test_la_request_reply_over_pty(pty_sim: PtySim, backend: str) -> None:
     require(backend)
     one, two = pty_sim.models
@@ -104,6 +108,7 @@ def quad_bus_models() -> tuple[list[DeviceModel], int]:
 
 @pytest.mark.parametrize("pty_sim", [quad_bus_models], indirect=True, ids=["quad"])
 @pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("pacing", PACINGS)
 async def test_quad_stepper_over_pty(pty_sim: PtySim, backend: str) -> None:
     require(backend)
     (model,) = pty_sim.models

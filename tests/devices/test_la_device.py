@@ -1,20 +1,28 @@
-"""InspireLA against simulated actuators over the in-memory link."""
+"""InspireLA against simulated actuators over the in-memory link, every variant and pacing."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import pytest
 
 from motorbus.devices.la import InspireLA, scan
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
+from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
+from tests.devices.variants import LA_VARIANTS
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
-async def test_status_move_and_registers(delivery: str) -> None:
-    models = [LAModel(i) for i in (1, 2, 3)]
-    async with sim_bus(models, delivery=delivery) as (bus, _):
+@pytest.mark.parametrize("variant", LA_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_status_move_and_registers(
+    variant: dict[str, Any], delivery: str, pacing: Pacing
+) -> None:
+    models = [LAModel(i, **variant) for i in (1, 2, 3)]
+    async with sim_bus(models, delivery=delivery, pacing=pacing) as (bus, _):
         a = InspireLA(bus, 2)
         status = await a.status()
         assert status.id == 2
@@ -29,9 +37,13 @@ async def test_status_move_and_registers(delivery: str) -> None:
         assert bus.stats.timeouts == 0 and bus.stats.garbage_bytes == 0
 
 
-async def test_estop_needs_enable_and_pause_resumes() -> None:
-    model = LAModel(1)
-    async with sim_bus([model]) as (bus, _):
+@pytest.mark.parametrize("variant", LA_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_estop_needs_enable_and_pause_resumes(
+    variant: dict[str, Any], pacing: Pacing
+) -> None:
+    model = LAModel(1, **variant)
+    async with sim_bus([model], pacing=pacing) as (bus, _):
         a = InspireLA(bus, 1)
         await a.estop()
         await a.move_to(500)
@@ -44,8 +56,10 @@ async def test_estop_needs_enable_and_pause_resumes() -> None:
         assert model.target == 600  # after pause a move resumes directly
 
 
-async def test_change_id_and_scan() -> None:
-    async with sim_bus([LAModel(1), LAModel(4)]) as (bus, _):
+@pytest.mark.parametrize("variant", LA_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_change_id_and_scan(variant: dict[str, Any], pacing: Pacing) -> None:
+    async with sim_bus([LAModel(1, **variant), LAModel(4, **variant)], pacing=pacing) as (bus, _):
         found: list[int] = []
         assert await scan(bus, range(1, 6), progress=lambda i, n, hit: found.append(i)) == [1, 4]
         assert sorted(found) == [1, 2, 3, 4, 5]  # once per ID, when final (two passes)
@@ -55,8 +69,10 @@ async def test_change_id_and_scan() -> None:
             await InspireLA(bus, 4).status()
 
 
-async def test_bad_input_is_refused_before_sending() -> None:
-    async with sim_bus([LAModel(1)]) as (bus, _):
+@pytest.mark.parametrize("variant", LA_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_bad_input_is_refused_before_sending(variant: dict[str, Any], pacing: Pacing) -> None:
+    async with sim_bus([LAModel(1, **variant)], pacing=pacing) as (bus, _):
         a = InspireLA(bus, 1)
         with pytest.raises(LocalProtocolError, match=r"position=2500 .*0\.\.2000"):
             await a.move_to(2500)

@@ -4,24 +4,49 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import subprocess
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
 
 from motorbus.devices.project_stepper import ProjectStepper, ProjectStopped
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import project_stepper as ps
+from motorbus.sim.bus import Pacing
 from motorbus.sim.project_stepper import ProjectStepperModel
-from tests.conftest import sim_bus
+from tests.conftest import PACINGS, sim_bus
+from tests.devices.variants import PROJECT_VARIANTS
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
-def small_project(number: int = 2, *, repeat: int = 0) -> ps.Project:
+@pytest.fixture(autouse=True)
+def collect_leaked_waiters() -> Iterator[None]:
+    """Finalize, right after each test, tasks the stop path leaves behind.
+
+    ``run_project`` cancels its ``sub.next`` task and closes the subscription in one loop
+    iteration; on 3.11 the task then ends with an unretrieved ``StopAsyncIteration``
+    (tests/bus/test_events_cancel.py).  Left to the garbage collector, its "never
+    retrieved" report can run inside a later ``compile()`` (pytest's assertion rewriting
+    or traceback formatting), whose formatting calls ``ast.parse`` re-entrantly, and
+    CPython 3.11.7 then fails that compile with "AST constructor recursion depth
+    mismatch", taking the test session down.  Collect here instead.
+    """
+    yield
+    gc.collect()
+
+
+def small_project(number: int = 2, *, repeat: int = 0, delay_ms: int = 20) -> ps.Project:
     step = ps.StepSpec(
         run_distance=1,
         direction=ps.RotationDirection.FORWARD,
         start_hz=50,
         accel_hz=30,
         speed_rpm=600,
-        delay_ms=20,
+        delay_ms=delay_ms,
     )
     return ps.Project(
         number=number,
@@ -34,9 +59,13 @@ def small_project(number: int = 2, *, repeat: int = 0) -> ps.Project:
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
-async def test_upload_verify_and_run_to_ee_dd(delivery: str) -> None:
-    model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200, delivery=delivery) as (bus, _):
+@pytest.mark.parametrize("variant", PROJECT_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_upload_verify_and_run_to_ee_dd(
+    variant: dict[str, Any], delivery: str, pacing: Pacing
+) -> None:
+    model = ProjectStepperModel(**variant)
+    async with sim_bus([model], baud=115200, delivery=delivery, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         project = small_project()
         dump = await stepper.upload(project)
@@ -46,9 +75,13 @@ async def test_upload_verify_and_run_to_ee_dd(delivery: str) -> None:
         assert bus.stats.timeouts == 0
 
 
-async def test_stop_ends_a_forever_project_with_project_stopped() -> None:
-    model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+@pytest.mark.parametrize("variant", PROJECT_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_stop_ends_a_forever_project_with_project_stopped(
+    variant: dict[str, Any], pacing: Pacing
+) -> None:
+    model = ProjectStepperModel(**variant)
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
         run = asyncio.create_task(stepper.run_project(1, timeout=10))
@@ -60,9 +93,11 @@ async def test_stop_ends_a_forever_project_with_project_stopped() -> None:
         assert not model.running
 
 
-async def test_run_timeout_and_bad_input() -> None:
-    model = ProjectStepperModel()
-    async with sim_bus([model], baud=115200) as (bus, _):
+@pytest.mark.parametrize("variant", PROJECT_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_run_timeout_and_bad_input(variant: dict[str, Any], pacing: Pacing) -> None:
+    model = ProjectStepperModel(**variant)
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
         await stepper.upload(small_project(3, repeat=255), verify=False, save=False)
         with pytest.raises(ReplyTimeoutError, match="no EE DD"):
@@ -147,3 +182,98 @@ async def test_stop_project_ends_a_waiting_run_at_once() -> None:
             await stepper.stop_project()
             with pytest.raises(ProjectStopped):
                 await asyncio.wait_for(run, 5)
+
+
+#: The controller that echoes 0x9E/0xAE values fails: the bus's awaited reply shape is
+#: exactly ``FF AA 9E 00 00 00`` / ``FF AA AE 00 00 00`` as printed (protocol layer).
+ECHO_XFAIL = pytest.mark.xfail(
+    strict=True,
+    reason="protocol/project_stepper.py: SetMode4/SetPowerOnHoming reply_shapes require "
+    "byte 3 = 00 (A0-13 as printed); a controller that echoes the value (as the project "
+    "commands echo theirs) is never matched: every call times out after its retry",
+)
+
+
+@pytest.mark.parametrize("variant", PROJECT_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_settings_are_acknowledged_and_stored(
+    variant: dict[str, Any], pacing: Pacing, request: pytest.FixtureRequest
+) -> None:
+    if variant.get("global_reply_echo") == "value":
+        request.applymarker(ECHO_XFAIL)
+    model = ProjectStepperModel(**variant)
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
+        stepper = ProjectStepper(bus)
+        await stepper.upload(small_project(1), verify=False, save=False)
+        await stepper.set_stop_mode(1)
+        try:
+            await stepper.set_mode4(2)
+            await stepper.set_power_on_homing(True)
+        except ReplyTimeoutError as err:  # no source-based traceback: see below
+            pytest.fail(f"{type(err).__name__}: {err}", pytrace=False)
+        dump = await stepper.read_project(1)
+        assert (dump.stop_mode, dump.mode4, dump.power_on_homing) == (1, 2, 1)
+        assert bus.stats.timeouts == 0 and bus.stats.unexpected_frames == 0
+
+
+#: A controller that also sends EE DD on a stop (A0-06 allows it) ends the next run early.
+EE_DD_ON_STOP_XFAIL = pytest.mark.xfail(
+    strict=True,
+    reason="devices/project_stepper.py: the EE DD a controller may send after 0x5E (A0-06) "
+    "reaches the next run_project's ProjectFinished subscription, which returns at once "
+    "while the new project is still running",
+)
+
+
+async def stop_then_run_again(variant: dict[str, Any], pacing: Pacing) -> str:
+    """Run a forever project, stop it, run a finite one; return what went wrong, or ""."""
+    model = ProjectStepperModel(**variant)
+    async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
+        stepper = ProjectStepper(bus)
+        await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
+        # Long enough (two 150 ms step delays) that a stale EE DD lands inside the run.
+        await stepper.upload(small_project(2, delay_ms=150), verify=False, save=False)
+        run = asyncio.create_task(stepper.run_project(1, timeout=10))
+        while not model.running:
+            await asyncio.sleep(0.005)
+        await stepper.stop_project()
+        try:
+            await run
+        except ProjectStopped:
+            pass
+        else:
+            return "run_project(1) did not raise ProjectStopped"
+        await stepper.run_project(2, timeout=10)
+        if model.running:
+            return "run_project(2) returned while project 2 was still running"
+        steps = [t.step for t in model.trace if t.project == 2]
+        return "" if steps == [1, 2] else f"project 2 ran steps {steps}"
+
+
+@pytest.mark.parametrize("variant", PROJECT_VARIANTS)
+@pytest.mark.parametrize("pacing", PACINGS)
+def test_a_run_after_a_stop_waits_for_its_own_finish(
+    variant: dict[str, Any], pacing: Pacing, request: pytest.FixtureRequest
+) -> None:
+    """``run_project`` returns when *its* project ends, not on an EE DD the stop caused.
+
+    Run in a child interpreter: the failing variant leaves a task behind that ends with an
+    unretrieved StopAsyncIteration (``Subscription.next`` after its ``wait_for`` swallowed
+    a cancel), after which CPython 3.11.7's ``compile`` raises "AST constructor recursion
+    depth mismatch" - that would take the rest of the session down with it.
+    """
+    if variant.get("ee_dd_after_stop_s") is not None:
+        request.applymarker(EE_DD_ON_STOP_XFAIL)
+    code = (
+        "import asyncio, sys\n"
+        "from tests.devices.test_project_stepper_device import stop_then_run_again\n"
+        f"print('RESULT', repr(asyncio.run(stop_then_run_again({variant!r}, {pacing!r}))))\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    results = [line for line in out.stdout.splitlines() if line.startswith("RESULT ")]
+    assert results, out.stdout[-2000:] + out.stderr[-2000:]
+    problem = results[-1].removeprefix("RESULT ")
+    assert problem == "''", problem

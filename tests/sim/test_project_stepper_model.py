@@ -444,3 +444,49 @@ def test_move_profile_trapezoid_and_triangle() -> None:
     assert triangle.pulses_at(0.1) == pytest.approx(50)
     assert MoveProfile.plan(0, 50, 100, 1).duration == 0
     assert MoveProfile.plan(5, 50, 0, 1).duration == float("inf")
+
+
+# -- variants a real controller may differ in ---------------------------------------------------
+
+
+def test_global_reply_echo_variant_echoes_the_value_byte() -> None:
+    printed = ProjectStepperModel()
+    echoing = ProjectStepperModel(global_reply_echo="value")
+    for cmd, as_printed, echoed in (
+        (SetMode4(2), "FF AA 9E 00 00 00", "FF AA 9E 02 00 00"),
+        (SetPowerOnHoming(True), "FF AA AE 00 00 00", "FF AA AE 01 00 00"),
+        (StopProject(), "FF AA 5E 00 00 00", "FF AA 5E 00 00 00"),
+    ):
+        assert printed.handle(cmd.encode(), 0.0) == [parse_hex(as_printed)]
+        assert echoing.handle(cmd.encode(), 0.0) == [parse_hex(echoed)]
+
+
+def test_ee_dd_after_stop_variant_sends_it_that_long_after_the_stop() -> None:
+    model = ProjectStepperModel(ee_dd_after_stop_s=0.25)
+    program(model, make_project(3))
+    send(model, StartProject(1), 0.0)
+    model.poll(1.5)
+    send(model, StopProject(), 1.5)
+    assert not model.running
+    assert model.next_event_time() == pytest.approx(1.75)
+    assert model.poll(1.7) == []
+    assert model.poll(1.75) == [PROJECT_FINISHED]
+    assert model.next_event_time() is None
+    # A stop with nothing running sends nothing.
+    send(model, StopProject(), 2.0)
+    assert model.next_event_time() is None
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"global_reply_echo": "echo"}, "global_reply_echo"),
+        ({"ee_dd_after_stop_s": -0.1}, "ee_dd_after_stop_s"),
+        ({"ee_dd_after_stop_s": True}, "ee_dd_after_stop_s"),
+        ({"ee_dd_after_stop_s": float("inf")}, "ee_dd_after_stop_s"),
+    ],
+)
+def test_bad_variant_options_are_refused(options: dict[str, Any], field: str) -> None:
+    with pytest.raises(LocalProtocolError, match=field) as info:
+        ProjectStepperModel(**options)
+    assert info.value.field == field

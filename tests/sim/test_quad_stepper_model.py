@@ -212,6 +212,25 @@ def test_run_all_default_address_is_zero() -> None:
     assert model.poll(FOREVER) == [RUN_DONE] * 4
 
 
+def test_run_all_done_none_variant_sends_no_done_for_run_all_only() -> None:
+    model = QuadStepperModel(run_all_done="none")
+    for motor in (1, 2, 3, 4):
+        configure(model, motor, 160 * motor)
+    assert send(model, RunAll()) == [parse_hex("FF AA 09 09 00 00")]
+    assert model.poll(FOREVER) == []
+    assert [m.position for m in model.motors.values()] == [160, 320, 480, 640]
+    assert not any(m.running for m in model.motors.values())
+    # A single run afterwards reports as usual.
+    send(model, Run(2), FOREVER)
+    assert model.poll(2 * FOREVER) == [RUN_DONE]
+
+
+def test_run_all_done_must_be_each_or_none() -> None:
+    with pytest.raises(LocalProtocolError, match=r"run_all_done='some'.*'each' or 'none'") as info:
+        QuadStepperModel(run_all_done="some")  # type: ignore[arg-type]
+    assert info.value.field == "run_all_done"
+
+
 def test_stop_all() -> None:
     model = QuadStepperModel()
     for motor in (1, 2, 3, 4):

@@ -25,7 +25,7 @@ import sys
 from typing import Any
 
 from motorbus.errors import LocalProtocolError
-from motorbus.sim.bus import SimStats
+from motorbus.sim.bus import PACING_MODES, SimStats
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.pty import PtySim
 from motorbus.sim.spec import parse_device_specs
@@ -60,6 +60,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default="",
         help="faults, e.g. drop=0.01,flip=0.001,garbage=0.02,late=0.01:0.05,dup=0.01,"
         "silent,silent=2:3,disconnect=5:1",
+    )
+    parser.add_argument(
+        "--pacing",
+        choices=PACING_MODES,
+        default="wire",
+        help="wire: deliver replies when their last byte would arrive at the baud (default); "
+        "prompt: answer the moment a request is complete, no wire time, turnaround 0 "
+        "(a USB-CDC device or a TCP bridge)",
+    )
+    parser.add_argument(
+        "--prompt",
+        dest="pacing",
+        action="store_const",
+        const="prompt",
+        help="shorthand for --pacing prompt",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of turnarounds and faults")
     parser.add_argument(
@@ -126,6 +141,7 @@ def run(args: argparse.Namespace) -> int:
                 log_file=args.log,
                 spin=getattr(args, "spin", False),
                 tap=getattr(args, "tap", None),
+                pacing=getattr(args, "pacing", "wire"),
             ).start()
         except (OSError, LocalProtocolError) as err:
             print(f"motorbus sim: error: {err}", file=sys.stderr)

@@ -3,7 +3,10 @@
 * Device models (pure, time passed in): ``motorbus.sim.la.LAModel``,
   ``motorbus.sim.project_stepper.ProjectStepperModel``,
   ``motorbus.sim.quad_stepper.QuadStepperModel``, all ``DeviceModel``.
-* ``SimBus``: the pure core that emulates the wire (timing, half duplex, faults).
+* ``SimBus``: the pure core that emulates the wire (timing, half duplex, faults);
+  ``pacing="wire"`` (default) emulates wire time and turnarounds at the baud,
+  ``pacing="prompt"`` answers the moment a request is complete (a USB-CDC device, a TCP
+  bridge).  Every host takes ``pacing=``; ``motorbus sim`` takes ``--pacing``/``--prompt``.
 * ``MemorySim``: serves a ``SimBus`` over an in-memory link on the asyncio loop.
 * ``PtySim``: serves a ``SimBus`` on a pseudo-terminal from a thread.
 
@@ -11,7 +14,8 @@ Log records of ``SimBus(log=...)`` are dicts, one per frame (the ``--log`` file 
 ``motorbus sim`` and ``PtySim(log_file=...)`` is a frame log, docs/frame-log.md, into
 which ``motorbus.protocol.framelog.from_sim`` translates them):
 
-* ``"t"``: seconds since serving started (when the frame's last byte was on the wire);
+* ``"t"``: seconds since serving started (when the frame's last byte was on the wire;
+  with prompt pacing, when it was complete or produced);
 * ``"dir"``: ``"rx"`` (host -> device), ``"tx"`` (device -> host) or ``"link"``;
 * ``"hex"``: the bytes, e.g. ``"55 AA 03 01 04 00 22 2A"``;
 * ``"family"``: ``"la"``, ``"project_stepper"``, ``"quad_stepper"`` or ``None``;

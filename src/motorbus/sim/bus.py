@@ -6,7 +6,8 @@ sleeps until ``next_wakeup()``.
 
 Timing model
 ------------
-A pty or in-memory link delivers bytes instantly, so the core emulates the wire:
+``pacing="wire"`` (the default) models a device on a real UART behind the host's own
+UART: a pty or in-memory link delivers bytes instantly, so the core emulates the wire:
 
 * **Requests.** The host's bytes are taken as sent back to back: a chunk arriving at
   ``now`` starts on the wire at ``max(now, line_free)`` and takes ``wire_time`` of its
@@ -27,6 +28,25 @@ A pty or in-memory link delivers bytes instantly, so the core emulates the wire:
   ``stats.ignored_while_transmitting`` and the rx log line says ``"half_duplex"``.
   Collisions between the host and a device are not modelled beyond that.
 
+``pacing="prompt"`` models a link that does not pace bytes and a device that answers
+at once: a USB-CDC device, a TCP bridge that forwards whole frames, a pty to a fast
+peer.  Nothing takes wire time: a request is complete the moment its last byte arrives,
+the device answers it with turnaround 0, and its reply is due the moment it is produced.
+Unsolicited output is due at its event time.  Replies of several devices are still
+serialised in order.  What stays:
+
+* **Half duplex.** A transmission lasts an instant (it is delivered when produced): a
+  device misses a request that arrives at the very instant it puts out bytes (the
+  check uses closed intervals in this mode, so zero-length ones can meet).  That
+  includes a request written in the same chunk right behind one the device answered:
+  its reply goes out at that instant.  A host that waits for each reply never meets it.
+* **Faults.** All of them apply.  A *late* reply is due ``late_reply_delay_s`` after the
+  moment a prompt reply would have been (the end of the request); duplicates follow at
+  once; silent windows and disconnects follow the same schedule.
+
+This is the mode that tests a host's matching against replies that come sooner than
+the wire time: a host that assumes the wire paces replies fails here.
+
 Faults (``FaultConfig``) apply to the device -> host direction; see ``faults``.
 Times are seconds on the driver's clock; ``epoch`` is the origin of the fault schedule.
 """
@@ -40,14 +60,49 @@ import random
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol.base import Direction, Family, format_hex
 from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
 from motorbus.sim.faults import FAULT_KINDS, FaultConfig, FaultInjector
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.timing import byte_time, wire_time
 
-__all__ = ["STUCK_MODEL_RETRY_S", "LinkEvent", "LogRecord", "SimBus", "SimStats"]
+__all__ = [
+    "PACING_MODES",
+    "STUCK_MODEL_RETRY_S",
+    "LinkEvent",
+    "LogRecord",
+    "Pacing",
+    "SimBus",
+    "SimStats",
+    "check_pacing",
+]
+
+#: How a simulator times its bytes: emulate the wire ("wire") or not at all ("prompt").
+Pacing = Literal["wire", "prompt"]
+#: Every pacing mode, in the order tests parametrise them.
+PACING_MODES: tuple[Pacing, ...] = ("wire", "prompt")
+
+
+def check_pacing(pacing: object) -> Pacing:
+    """Return ``pacing`` if it is one of ``PACING_MODES``.
+
+    Raises:
+        LocalProtocolError: any other value, naming the allowed ones.
+    """
+    if pacing == "wire":
+        return "wire"
+    if pacing == "prompt":
+        return "prompt"
+    raise LocalProtocolError(
+        f"pacing={pacing!r} is not allowed: choose 'wire' (emulate the wire time at the "
+        "baud) or 'prompt' (no wire time, turnaround 0)",
+        field="pacing",
+        value=pacing,
+    )
+
 
 #: A log line: {"t": seconds since ``epoch``, "dir", "hex", "family", "fault"}.
 LogRecord = dict[str, object]
@@ -112,9 +167,12 @@ class SimBus:
             ``motorbus.sim``); also for discarded host bytes and link changes.
         epoch: time origin (s) of silent windows and the disconnect schedule; drivers
             set it to their clock when they start serving.
+        pacing: ``"wire"`` emulates the wire time of every byte at ``baud`` and the
+            models' turnarounds; ``"prompt"`` emulates neither (see the module docstring).
 
     Raises:
-        LocalProtocolError: ``baud`` is not a positive integer.
+        LocalProtocolError: ``baud`` is not a positive integer, or ``pacing`` is not
+            ``"wire"`` or ``"prompt"``.
     """
 
     def __init__(
@@ -126,10 +184,14 @@ class SimBus:
         seed: int = 0,
         log: Callable[[LogRecord], None] | None = None,
         epoch: float = 0.0,
+        pacing: Pacing = "wire",
     ) -> None:
         self.models: tuple[DeviceModel, ...] = tuple(models)
         self.baud = baud
-        self._byte_time = byte_time(baud)
+        self.pacing: Pacing = check_pacing(pacing)
+        self._paced = self.pacing == "wire"
+        wire_byte_time = byte_time(baud)  # validates the baud in either mode
+        self._byte_time = wire_byte_time if self._paced else 0.0
         self.faults = faults if faults is not None else FaultConfig()
         self.seed = seed
         self.epoch = epoch
@@ -274,13 +336,19 @@ class SimBus:
             replies = model.handle(frame.raw, t_end)
             if replies:
                 self.stats.replies += len(replies)
-                self._send(i, replies, t_end + model.turnaround(self._rng))
+                turnaround = model.turnaround(self._rng) if self._paced else 0.0
+                self._send(i, replies, t_end + turnaround)
 
     def _is_transmitting(self, i: int, start: float, end: float) -> bool:
         intervals = self._transmitting[i]
-        while intervals and intervals[0][1] <= start:
+        if self._paced:
+            while intervals and intervals[0][1] <= start:
+                intervals.popleft()
+            return any(s < end and e > start for s, e in intervals)
+        # Prompt: transmissions and requests last an instant; closed intervals meet.
+        while intervals and intervals[0][1] < start:
             intervals.popleft()
-        return any(s < end and e > start for s, e in intervals)
+        return any(s <= end and e >= start for s, e in intervals)
 
     # -- output ---------------------------------------------------------------------
 
@@ -301,7 +369,7 @@ class SimBus:
             fault = ",".join(fate.kinds) if fate is not None and fate.kinds else None
             delay = fate.extra_delay_s if fate is not None else 0.0
             copies = fate.copies if fate is not None else 1
-            duration = wire_time(len(data), self.baud)
+            duration = wire_time(len(data), self.baud) if self._paced else 0.0
             late_start = t + delay
             for _ in range(copies):
                 if delay:

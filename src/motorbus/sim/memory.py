@@ -10,6 +10,12 @@ up to ~1 ms later than the emulated wire says (never earlier).  Pass ``timer=`` 
 object with ``now()`` and ``call_at(deadline, callback) -> handle`` (``handle.cancel()``)
 - ``motorbus.bus.timer.default_timer()`` has exactly that API and holds ~0.1 ms - for
 wire-accurate timing.
+
+Pacing: ``pacing="wire"`` (default) delivers each reply when its last byte would have
+arrived at the baud; ``pacing="prompt"`` delivers it the moment the request is complete
+(turnaround 0, no wire time), like a USB-CDC device or a TCP bridge: in that mode a
+reply is written from inside the host's write delivery, with no timer in between, and
+only late faults and unsolicited output wait for a timer.  See ``motorbus.sim.bus``.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import time
 from collections.abc import AsyncIterator, Callable, Sequence
 from typing import Protocol
 
-from motorbus.sim.bus import LinkEvent, LogRecord, SimBus
+from motorbus.sim.bus import LinkEvent, LogRecord, Pacing, SimBus
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.spec import default_baud
@@ -131,6 +137,7 @@ class MemorySim:
         seed: int = 0,
         timer: SimTimer | None = None,
         log: Callable[[LogRecord], None] | None = None,
+        pacing: Pacing = "wire",
     ) -> AsyncIterator[MemorySim]:
         """Serve ``models`` on a new in-memory link for the duration of the block.
 
@@ -142,13 +149,18 @@ class MemorySim:
             seed: seeds the simulator and the "random" delivery cuts.
             timer: high-resolution timer (see the module docstring).
             log: per-frame log callback (see ``SimBus``).
+            pacing: ``"wire"`` emulates wire time and turnarounds at ``baud``; ``"prompt"``
+                answers the moment a request is complete (see the module docstring).
+
+        Raises:
+            LocalProtocolError: ``pacing`` or ``baud`` is not allowed (before serving).
 
         Yields:
             The serving ``MemorySim``: ``sim.transport``, ``sim.bus``, ``sim.models``.
         """
         rate = baud if baud is not None else default_baud(models)
+        bus = SimBus(models, baud=rate, faults=faults, seed=seed, log=log, pacing=pacing)
         host, peer = memory_pair(delivery=delivery, seed=seed, baudrate=rate)
-        bus = SimBus(models, baud=rate, faults=faults, seed=seed, log=log)
         sim = cls(bus, peer, transport=host, timer=timer)
         sim.serve()
         try:

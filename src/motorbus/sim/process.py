@@ -17,6 +17,7 @@ from types import TracebackType
 from typing import Any
 
 from motorbus.protocol import framelog
+from motorbus.sim.bus import Pacing, check_pacing
 
 __all__ = ["SimProcess"]
 
@@ -36,6 +37,11 @@ class SimProcess:
         link: create this symlink to the pty.
         spin: busy-poll the port for precise timestamps (``motorbus sim --spin``).
         tap: serve a listen-only copy of the traffic on a pty linked here (``--tap``).
+        pacing: ``"wire"`` (default) emulates wire time; ``"prompt"`` answers at once
+            (``motorbus sim --pacing prompt``; see ``motorbus.sim.bus``).
+
+    Raises:
+        LocalProtocolError: ``pacing`` is not ``"wire"`` or ``"prompt"``.
     """
 
     def __init__(
@@ -49,10 +55,14 @@ class SimProcess:
         link: str | os.PathLike[str] | None = None,
         spin: bool = False,
         tap: str | os.PathLike[str] | None = None,
+        pacing: Pacing = "wire",
     ) -> None:
+        self.pacing: Pacing = check_pacing(pacing)
         self.args = [sys.executable, "-m", "motorbus", "sim"]
         if spin:
             self.args.append("--spin")
+        if self.pacing != "wire":
+            self.args += ["--pacing", self.pacing]
         if baud is not None:
             self.args += ["--baud", str(baud)]
         if faults:

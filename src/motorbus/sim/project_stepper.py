@@ -34,8 +34,13 @@ Behaviour the manual leaves open (simulator choices):
 * 0x3E returns the RAM image; per-step commands for steps beyond the total are stored;
 * repeat count N runs max(1, N) passes, 255 forever; the step loop count is the total
   number of passes of the loop body (A0-15); an impossible loop is ignored;
-* ``EE DD`` follows every project end, whether 0x4E or IN3 started it, but never a
-  stop by 0x5E or IN4 (A0-06); it is never sent before the 4E ack could be on the wire;
+* ``EE DD`` follows every project end, whether 0x4E or IN3 started it, but by default
+  never a stop by 0x5E or IN4 (A0-06; ``ee_dd_after_stop_s`` models a controller that
+  sends it then too, that long after the stop); it is never sent before the 4E ack
+  could be on the wire;
+* 0x5E, 0x9E and 0xAE are answered ``OP 00 00 00`` as the manual prints (A0-04, A0-13);
+  ``global_reply_echo="value"`` models a controller that echoes the request's value
+  byte there instead, as the project commands echo theirs;
 * a motion command while the motor is busy is acknowledged and ignored; 0x0D stops
   manual motion only; homing sets the position to 0 when IN5 becomes active.
 """
@@ -48,7 +53,7 @@ import math
 import random
 from collections import deque
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Literal
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 from motorbus.protocol.base import FF_AA, Family, check_int, wire_time
@@ -301,6 +306,10 @@ def _pulses_per_rev(subdivision: int, step_angle_x100: int) -> float:
     return subdivision * _CENTIDEGREES_PER_REV / step_angle_x100
 
 
+#: Byte 3 of the 0x5E/0x9E/0xAE replies: 00 as printed, or the request's value echoed.
+GlobalReplyEcho = Literal["zero", "value"]
+
+
 def _step_order(n: int, start: int, end: int, count: int) -> tuple[int, ...]:
     """One pass: steps 1..n with ``start..end`` repeated ``count`` times in total (A0-15).
 
@@ -329,9 +338,14 @@ class ProjectStepperModel(DeviceModel):
         motor: the motor byte it answers to (default 0x03, A0-02).
         turnaround_s: reply turnaround, s (default 1 ms; the manual gives none).
         turnaround_jitter_s: extra uniform random turnaround 0..this, s.
+        global_reply_echo: the 0x5E/0x9E/0xAE reply's byte 3: ``"zero"`` (the manual,
+            A0-04/A0-13) or ``"value"`` (the request's byte 3 echoed, a variant).
+        ee_dd_after_stop_s: ``None`` (default): no ``EE DD`` when a running project is
+            stopped (0x5E or IN4); a number of seconds >= 0: send it that long after the
+            stop (A0-06 leaves it open; a controller that decelerates first sends it later).
 
     Raises:
-        LocalProtocolError: ``motor`` or a time is out of range.
+        LocalProtocolError: ``motor``, a time or a variant is out of range.
     """
 
     family: ClassVar[Family] = Family.PROJECT_STEPPER
@@ -342,8 +356,29 @@ class ProjectStepperModel(DeviceModel):
         *,
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         turnaround_jitter_s: float = 0.0,
+        global_reply_echo: GlobalReplyEcho = "zero",
+        ee_dd_after_stop_s: float | None = None,
     ) -> None:
         self.motor = check_motor(motor)
+        if global_reply_echo not in ("zero", "value"):
+            raise LocalProtocolError(
+                f"global_reply_echo={global_reply_echo!r} is not allowed: choose 'zero' or 'value'",
+                field="global_reply_echo",
+                value=global_reply_echo,
+            )
+        if ee_dd_after_stop_s is not None and (
+            isinstance(ee_dd_after_stop_s, bool)
+            or not isinstance(ee_dd_after_stop_s, int | float)
+            or not 0 <= ee_dd_after_stop_s < math.inf
+        ):
+            raise LocalProtocolError(
+                f"ee_dd_after_stop_s={ee_dd_after_stop_s!r} is out of range: allowed None "
+                "or a finite number of seconds >= 0",
+                field="ee_dd_after_stop_s",
+                value=ee_dd_after_stop_s,
+            )
+        self.global_reply_echo: GlobalReplyEcho = global_reply_echo
+        self.ee_dd_after_stop_s = ee_dd_after_stop_s
         for name, value in (
             ("turnaround_s", turnaround_s),
             ("turnaround_jitter_s", turnaround_jitter_s),
@@ -566,7 +601,7 @@ class ProjectStepperModel(DeviceModel):
         # A.7: project commands echo P, 5E/9E/AE echo nothing, motor commands M CMD 00 S.
         op = payload[0]
         if op in GLOBAL_REPLY_OPCODES:
-            return _reply(op, 0, 0, 0)
+            return _reply(op, payload[1] if self.global_reply_echo == "value" else 0, 0, 0)
         if op in PROJECT_OPCODES:
             return _reply(op, payload[1], 0, 0)
         return _reply(op, payload[1], 0, payload[7] if payload[1] in STEP_COMMANDS else 0)
@@ -713,9 +748,14 @@ class ProjectStepperModel(DeviceModel):
         return run.started + self._turnaround_s + wire_time(REPLY_SIZE, _BAUD)
 
     def _stop_project(self, now: float) -> None:
-        """0x5E / IN4: stop at once, no EE DD (A.4)."""
-        if self._run is not None:
+        """0x5E / IN4: stop at once, no EE DD (A.4) unless ``ee_dd_after_stop_s``."""
+        run = self._run
+        if run is not None:
             self._end_motion(now)
+            delay = self.ee_dd_after_stop_s
+            if delay is not None and run.notify:
+                due = max(now + delay, self._earliest_finish(run))
+                self._pending.append((due, PROJECT_FINISHED))
             self._run = None
 
     # -- time -------------------------------------------------------------------------

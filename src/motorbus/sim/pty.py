@@ -44,7 +44,7 @@ from types import TracebackType
 from typing import IO
 
 from motorbus.protocol import framelog
-from motorbus.sim.bus import LinkEvent, LogRecord, SimBus
+from motorbus.sim.bus import LinkEvent, LogRecord, Pacing, SimBus
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.spec import default_baud
@@ -75,6 +75,10 @@ class PtySim:
         spin: busy-poll the port for precise timestamps (uses a whole core).
         tap: optional path of a symlink to a listen-only pty carrying a copy of every
             byte both ways (same rules as ``link``).
+        pacing: ``"wire"`` (default) writes each reply when its last byte would have
+            arrived at ``baud``; ``"prompt"`` writes it as soon as the request is read
+            (turnaround 0, no wire time): a device behind a link that does not pace
+            bytes (USB-CDC, a TCP bridge).  See ``motorbus.sim.bus``.
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
@@ -98,6 +102,7 @@ class PtySim:
         log: Callable[[LogRecord], None] | None = None,
         spin: bool = False,
         tap: str | os.PathLike[str] | None = None,
+        pacing: Pacing = "wire",
     ) -> None:
         self.link = Path(link) if link is not None else None
         self.tap = Path(tap) if tap is not None else None
@@ -116,6 +121,7 @@ class PtySim:
             faults=faults,
             seed=seed,
             log=self._write_log if wants_log else None,
+            pacing=pacing,
         )
         self.path = ""
         self.dropped_bytes = 0

@@ -17,7 +17,9 @@ What the model does (the manual gives behaviour, not timing; the numbers are our
   reply comes out of :meth:`~QuadStepperModel.poll` when the motion ends.  A ``Run`` for a
   motor that is already moving is acknowledged and otherwise ignored.
 * ``RunAll`` starts every motor that is not moving; each motor's completion emits a run done
-  reply.  The manual documents no completion for run-all (A1-04): this is our model's choice.
+  reply.  The manual documents no completion for run-all (A1-04): this is our model's
+  choice (``run_all_done="each"``); ``run_all_done="none"`` models a controller that sends
+  none for the motors run-all started.
 * ``Stop`` / ``StopAll`` stop at once, keep the position reached and emit no done reply.
 * ``Home`` runs continuously (speed profile below with no end) in the configured direction
   until its stop input (YL1..YL13, set with :meth:`~QuadStepperModel.set_input`) is active,
@@ -100,6 +102,8 @@ MIN_RATE_HZ = 1.0
 _DEG_X100_PER_REV = 360 * 100
 
 RunAckAddress = Literal["zero", "motor"]
+#: Whether motors started by run-all send a run done reply (A1-04 documents none).
+RunAllDone = Literal["each", "none"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,9 +273,12 @@ class QuadStepperModel(DeviceModel):
             replies to address 0x00; ``"motor"`` sends them with the motor number (A1-02).
         turnaround_s: seconds from the end of a request to the first reply byte.
         led_delay_s: seconds from an LED ack to its done reply.
+        run_all_done: ``"each"`` (default): every motor run-all started sends its run done
+            reply; ``"none"``: they send none (A1-04 documents no completion).
 
     Raises:
-        LocalProtocolError: for an unknown ``run_ack_address`` or a negative delay.
+        LocalProtocolError: for an unknown ``run_ack_address`` or ``run_all_done``, or a
+            negative delay.
     """
 
     family: ClassVar[Family] = Family.QUAD_STEPPER
@@ -282,6 +289,7 @@ class QuadStepperModel(DeviceModel):
         run_ack_address: RunAckAddress = "zero",
         turnaround_s: float = DEFAULT_TURNAROUND_S,
         led_delay_s: float = DEFAULT_LED_DELAY_S,
+        run_all_done: RunAllDone = "each",
     ) -> None:
         if run_ack_address not in ("zero", "motor"):
             raise LocalProtocolError(
@@ -289,6 +297,13 @@ class QuadStepperModel(DeviceModel):
                 field="run_ack_address",
                 value=run_ack_address,
             )
+        if run_all_done not in ("each", "none"):
+            raise LocalProtocolError(
+                f"run_all_done={run_all_done!r} is not allowed: choose 'each' or 'none'",
+                field="run_all_done",
+                value=run_all_done,
+            )
+        self.run_all_done: RunAllDone = run_all_done
         for name, value in (("turnaround_s", turnaround_s), ("led_delay_s", led_delay_s)):
             if not value >= 0:
                 raise LocalProtocolError(
@@ -313,6 +328,8 @@ class QuadStepperModel(DeviceModel):
         # Unsolicited frames that are due: (time, sequence, frame).
         self._outbox: list[tuple[float, int, bytes]] = []
         self._seq = 0
+        # Motors whose current run was started by run-all and reports no done reply.
+        self._silent_runs: set[int] = set()
 
     # --- read-only views for tests ---------------------------------------------------------
 
@@ -405,7 +422,10 @@ class QuadStepperModel(DeviceModel):
             end = motor.end_time
             if end is not None and end <= now:
                 motor.halt(end)
-                self._push(end, self._run_reply(number, FLAG_DONE))
+                if number in self._silent_runs:
+                    self._silent_runs.discard(number)
+                else:
+                    self._push(end, self._run_reply(number, FLAG_DONE))
             else:
                 motor.advance(now)
         due = sorted(op for op in self._led_ops if op[0] <= now)
@@ -438,7 +458,8 @@ class QuadStepperModel(DeviceModel):
                 self._start_run(m, now)
             case RunAll():
                 for m in MOTORS:
-                    self._start_run(m, now)
+                    if self._start_run(m, now) and self.run_all_done == "none":
+                        self._silent_runs.add(m)
             case Stop(motor=m):
                 self._stop(m, now)
             case StopAll():
@@ -452,10 +473,14 @@ class QuadStepperModel(DeviceModel):
             case Save():
                 self._flash = {m: state.params for m, state in self._motors.items()}
 
-    def _start_run(self, motor: int, now: float) -> None:
+    def _start_run(self, motor: int, now: float) -> bool:
+        """Start ``motor``'s configured run unless it is moving; True if it started."""
         state = self._motors[motor]
-        if not state.moving_at(now):
-            state.start(state.params.pulses, now)
+        if state.moving_at(now):
+            return False
+        self._silent_runs.discard(motor)
+        state.start(state.params.pulses, now)
+        return True
 
     def _start_home(self, motor: int, stop_input: int, now: float) -> None:
         state = self._motors[motor]
@@ -469,6 +494,7 @@ class QuadStepperModel(DeviceModel):
         state = self._motors[motor]
         if state.moving_at(now):
             state.halt(now)
+        self._silent_runs.discard(motor)
 
 
 def _frame(r2: int, r3: int, r4: int, r5: int) -> bytes:
