@@ -3,29 +3,22 @@
 Found while running the project stepper against a controller that sends ``EE DD`` after a
 stop (tests/devices/test_project_stepper_device.py): ``ProjectStepper.run_project`` cancels
 its ``sub.next`` task and leaves the ``with subscribe`` block in the same loop iteration.
-On Python 3.11 ``asyncio.wait_for`` returns the inner result instead of raising when the
-inner future is already done at the moment the cancel lands, so ``next`` loops, finds the
-subscription closed and ends with ``StopAsyncIteration``: the cancel is lost and the task
-ends with an exception nobody retrieves ("Task exception was never retrieved").
+On Python 3.11 ``asyncio.wait_for`` returned the inner result instead of raising when the
+inner future was already done at the moment the cancel landed, so ``next`` looped, found the
+subscription closed and ended with ``StopAsyncIteration``: the cancel was lost and the task
+ended with an exception nobody retrieved ("Task exception was never retrieved").
+``next`` now waits with ``asyncio.timeout``, which keeps the cancel.
 """
 
 from __future__ import annotations
 
 import asyncio
-import sys
 
 import pytest
 
 from motorbus.bus.events import EventHub, ProjectFinished
 
 
-@pytest.mark.xfail(
-    sys.version_info < (3, 12),
-    strict=True,
-    reason="bus/events.py: Subscription.next(timeout=...) uses asyncio.wait_for, which on "
-    "3.11 swallows a cancel that lands after close() set the waiter: the task then ends "
-    "with StopAsyncIteration instead of CancelledError",
-)
 async def test_cancel_and_close_in_one_iteration_ends_the_waiter_cancelled() -> None:
     hub = EventHub()
     sub = hub.subscribe(ProjectFinished)

@@ -6,7 +6,6 @@ import asyncio
 import gc
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,22 +20,6 @@ from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import PROJECT_VARIANTS
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(autouse=True)
-def collect_leaked_waiters() -> Iterator[None]:
-    """Finalize, right after each test, tasks the stop path leaves behind.
-
-    ``run_project`` cancels its ``sub.next`` task and closes the subscription in one loop
-    iteration; on 3.11 the task then ends with an unretrieved ``StopAsyncIteration``
-    (tests/bus/test_events_cancel.py).  Left to the garbage collector, its "never
-    retrieved" report can run inside a later ``compile()`` (pytest's assertion rewriting
-    or traceback formatting), whose formatting calls ``ast.parse`` re-entrantly, and
-    CPython 3.11.7 then fails that compile with "AST constructor recursion depth
-    mismatch", taking the test session down.  Collect here instead.
-    """
-    yield
-    gc.collect()
 
 
 def small_project(number: int = 2, *, repeat: int = 0, delay_ms: int = 20) -> ps.Project:
@@ -184,23 +167,11 @@ async def test_stop_project_ends_a_waiting_run_at_once() -> None:
                 await asyncio.wait_for(run, 5)
 
 
-#: The controller that echoes 0x9E/0xAE values fails: the bus's awaited reply shape is
-#: exactly ``FF AA 9E 00 00 00`` / ``FF AA AE 00 00 00`` as printed (protocol layer).
-ECHO_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="protocol/project_stepper.py: SetMode4/SetPowerOnHoming reply_shapes require "
-    "byte 3 = 00 (A0-13 as printed); a controller that echoes the value (as the project "
-    "commands echo theirs) is never matched: every call times out after its retry",
-)
-
-
 @pytest.mark.parametrize("variant", PROJECT_VARIANTS)
 @pytest.mark.parametrize("pacing", PACINGS)
 async def test_settings_are_acknowledged_and_stored(
     variant: dict[str, Any], pacing: Pacing, request: pytest.FixtureRequest
 ) -> None:
-    if variant.get("global_reply_echo") == "value":
-        request.applymarker(ECHO_XFAIL)
     model = ProjectStepperModel(**variant)
     async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
         stepper = ProjectStepper(bus)
@@ -214,15 +185,6 @@ async def test_settings_are_acknowledged_and_stored(
         dump = await stepper.read_project(1)
         assert (dump.stop_mode, dump.mode4, dump.power_on_homing) == (1, 2, 1)
         assert bus.stats.timeouts == 0 and bus.stats.unexpected_frames == 0
-
-
-#: A controller that also sends EE DD on a stop (A0-06 allows it) ends the next run early.
-EE_DD_ON_STOP_XFAIL = pytest.mark.xfail(
-    strict=True,
-    reason="devices/project_stepper.py: the EE DD a controller may send after 0x5E (A0-06) "
-    "reaches the next run_project's ProjectFinished subscription, which returns at once "
-    "while the new project is still running",
-)
 
 
 async def stop_then_run_again(variant: dict[str, Any], pacing: Pacing) -> str:
@@ -262,8 +224,6 @@ def test_a_run_after_a_stop_waits_for_its_own_finish(
     a cancel), after which CPython 3.11.7's ``compile`` raises "AST constructor recursion
     depth mismatch" - that would take the rest of the session down with it.
     """
-    if variant.get("ee_dd_after_stop_s") is not None:
-        request.applymarker(EE_DD_ON_STOP_XFAIL)
     code = (
         "import asyncio, sys\n"
         "from tests.devices.test_project_stepper_device import stop_then_run_again\n"

@@ -128,10 +128,11 @@ class Subscription(Generic[E]):
                 raise StopAsyncIteration
             self._waiter = asyncio.get_running_loop().create_future()
             try:
-                if timeout is None:
+                # asyncio.timeout, not wait_for: on Python 3.11, wait_for loses a
+                # cancellation that lands in the same loop turn as close() (the task then
+                # ended with an unretrieved StopAsyncIteration instead of being cancelled).
+                async with asyncio.timeout(timeout):
                     await self._waiter
-                else:
-                    await asyncio.wait_for(self._waiter, timeout)
             except TimeoutError:
                 raise ReplyTimeoutError(
                     f"no {self.kind.__name__} event within {timeout:.3f} s"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
@@ -23,6 +24,9 @@ log = logging.getLogger("motorbus.project_stepper")
 #: Host-side ceiling on a project run when the caller gives none (the manual gives no
 #: figure; A0-06 asks for a per-run timeout).
 DEFAULT_RUN_TIMEOUT_S = 600.0
+#: After a stop, how long a new run waits before it starts: a controller may answer the
+#: stop with a late EE DD (A0-06 leaves it open), which must not end the next run's wait.
+STOP_SETTLE_S = 0.5
 #: What to tell a user who let a timed-out project keep running.
 STOP_HINT = "`motorbus project stop` ends it"
 
@@ -50,6 +54,7 @@ class ProjectStepper:
         # The subscription a run_project() is waiting on; stop_project() closes it,
         # which ends that wait at once (no helper task, so nothing can be orphaned).
         self._run_sub: Subscription[ProjectFinished] | None = None
+        self._last_stop = -STOP_SETTLE_S
         self._stop_requested = False
 
     def safe_stop_commands(self) -> list[ps.ProjectStepperCommand]:
@@ -161,10 +166,20 @@ class ProjectStepper:
         check_flag("keep_running", keep_running)
         start = ps.StartProject(number)  # validates the number before anything is sent
         self._stop_requested = False
+        # A controller may send EE DD after a stop too (A0-06): let that one come and go
+        # before a new run starts, so it cannot end the new run's wait.
+        settle = self._last_stop + STOP_SETTLE_S - time.monotonic()
+        if settle > 0:
+            await asyncio.sleep(settle)
         with self.bus.events.subscribe(ProjectFinished) as sub:
             self._run_sub = sub
             try:
                 await self.bus.request(start)
+                stale = sub.pending()  # came before the start was acknowledged: not ours
+                if stale:
+                    log.debug(
+                        "project %d: ignored %d EE DD from before its start", number, len(stale)
+                    )
                 try:
                     await sub.next(limit)
                 except StopAsyncIteration:
@@ -188,6 +203,7 @@ class ProjectStepper:
 
     async def _stop_after(self, number: int) -> str:
         """Send stop project after a run ended without ``EE DD``; say what happened."""
+        self._last_stop = time.monotonic()
         try:
             await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)
         except (MotorbusError, OSError) as err:
@@ -201,6 +217,7 @@ class ProjectStepper:
         A ``run_project`` waiting on this controller ends with ``ProjectStopped``.
         """
         self._stop_requested = True
+        self._last_stop = time.monotonic()
         if self._run_sub is not None:
             self._run_sub.close()  # ends the run's wait with StopAsyncIteration
         await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)

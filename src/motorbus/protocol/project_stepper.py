@@ -732,8 +732,10 @@ class SetMode4(ProjectStepperCommand):
         return bytes((OP_MODE4, self.value)) + bytes(6)
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
-        """Return ``FF AA 9E 00 00 00``: the value is not echoed (A.7)."""
-        return (_shape(OP_MODE4, 0, 0, 0),)
+        """``FF AA 9E 00 00 00`` as printed (A.7: the value is not echoed); a controller
+        that echoes the value in byte 3, as the project commands echo theirs, is accepted
+        too (accept every reading a real device might send)."""
+        return (_shape(OP_MODE4, frozenset((0, self.value)), 0, 0),)
 
     def decode_reply(self, raw: bytes) -> Ack:
         """Decode the ack.
@@ -763,8 +765,8 @@ class SetPowerOnHoming(ProjectStepperCommand):
         return bytes((OP_POWER_ON_HOMING, int(self.enabled))) + bytes(6)
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
-        """Return ``FF AA AE 00 00 00`` (A.7)."""
-        return (_shape(OP_POWER_ON_HOMING, 0, 0, 0),)
+        """``FF AA AE 00 00 00`` as printed (A.7), or with the value echoed in byte 3."""
+        return (_shape(OP_POWER_ON_HOMING, frozenset((0, int(self.enabled))), 0, 0),)
 
     def decode_reply(self, raw: bytes) -> Ack:
         """Decode the ack.
