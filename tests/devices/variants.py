@@ -1,6 +1,6 @@
 """Device variants the manuals allow, as model options: every device test runs against each.
 
-Where a manual leaves a reply open (PROTOCOLS.md / AMBIGUITIES ids in brackets), a real
+Where a manual leaves a reply open (docs/protocols.md ambiguity ids in brackets), a real
 device may do either, so the drivers must work with both:
 
 * LA: a write is answered with the 22-byte status or the short ack [A2-03]; status byte 4
