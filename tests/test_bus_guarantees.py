@@ -21,11 +21,14 @@ import itertools
 
 import pytest
 
+from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
+from motorbus.protocol.base import Family
 from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.streams import Streamer
+from motorbus.transport.memory import memory_pair
 from tests.conftest import PACINGS
 from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes, rig
 
@@ -220,3 +223,44 @@ async def test_two_streamers_on_one_bus_share_its_actuators_and_its_budget() -> 
         await fits.stop()
         await first.close()
         await second.close()
+
+
+# -- deadlines decided by time, not by callback order -------------------------------------
+
+
+@pytest.mark.parametrize("data_first", [True, False], ids=["data-callback-first", "deadline-first"])
+async def test_a_reply_seen_after_its_deadline_is_late_whichever_callback_runs_first(
+    data_first: bool,
+) -> None:
+    """After a host stall both callbacks are due at once: the outcome must not depend on
+    which the loop runs first (it did: a late reply was accepted as on time)."""
+    loop = asyncio.get_running_loop()
+    timer = AutojumpTimer(loop)
+    timer.start()
+    host, peer = memory_pair(baudrate=921600)
+    peer.set_receiver(lambda data: None)
+    reply = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
+    try:
+        async with Bus(host, families={Family.LA}, timer=timer, retries=0) as bus:
+            request = asyncio.ensure_future(
+                bus.request(la.Control(1, la.ControlAction.QUERY_STATUS))
+            )
+            await asyncio.sleep(0)
+            assert bus.stats.requests == 1
+            deadline = bus._pending.deadline  # type: ignore[union-attr]
+            # The host stalls for 5 ms past the deadline; then both become due.
+            timer.t = deadline + 5e-3
+            if data_first:
+                peer.send(reply)  # delivered by call_soon, before the timer is woken
+            else:
+                timer._wake()  # the deadline callback runs first
+                peer.send(reply)
+            with pytest.raises(ReplyTimeoutError):
+                await request
+            for _ in range(5):
+                await asyncio.sleep(0)
+            assert bus.stats.timeouts == 1 and bus.stats.late_replies == 1
+            assert bus.stats.replies == 0
+            assert bus.stats.timeouts_in_host_stall == 1
+    finally:
+        await timer.stop()
