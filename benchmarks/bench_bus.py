@@ -424,14 +424,14 @@ def mixed_workload(
     sim_starts = [
         float(r["t"]) - wire_time(len(bytes.fromhex(r["hex"])), BAUD)
         for r in records
-        if r["dir"] == "rx"
+        if r.get("direction") == "request" and r.get("kind") == "frame"
     ][1:]  # the warm-up query
     sim_gaps = write_gaps(sim_starts)
     sim_ticks = grid_jitter(
         [
             float(r["t"])
             for r in records
-            if r["dir"] == "rx" and len(bytes.fromhex(r["hex"])) == BROADCAST_BYTES
+            if r.get("direction") == "request" and len(bytes.fromhex(r["hex"])) == BROADCAST_BYTES
         ],
         MIXED_PERIOD_S,
     )

@@ -85,7 +85,7 @@ def trajectory(t: float) -> list[float]:
 def go_realtime() -> str:
     """Put this process under SCHED_FIFO; return how (or raise OSError)."""
     try:
-        from motorbus import realtime  # type: ignore[attr-defined]
+        from motorbus import realtime
     except ImportError:
         realtime = None
     if realtime is not None and hasattr(realtime, "enable"):
@@ -93,7 +93,8 @@ def go_realtime() -> str:
             realtime.enable(RT_PRIORITY)
         except TypeError:  # an enable() without a priority argument
             realtime.enable()
-        policy = os.sched_getscheduler(0)
+        # enable() sets SCHED_FIFO with reset-on-fork (children stay ordinary).
+        policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
         if policy == os.SCHED_FIFO:
             return "motorbus.realtime.enable()"
         # enable() chose another policy or priority: fall through and set it ourselves.
