@@ -210,7 +210,8 @@ class _Job:
 class _Timeout:
     cmd: Command
     key: str
-    until: float
+    until: float  # remembered until then, to recognise its late reply
+    deadline: float  # the deadline it missed
 
 
 @dataclass(slots=True)
@@ -795,7 +796,7 @@ class Bus:
             # The deadline was decided this late: the host, not the device, was slow.
             stats.timeouts_in_host_stall += 1
             stats.host_stall_max = max(stats.host_stall_max, stalled)
-        self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S))
+        self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S, job.deadline))
         self._guard_until[job.key] = now + self.config.late_guard
         log.debug(
             "%s timeout: %s to %s after %.0f us%s",
@@ -937,6 +938,7 @@ class Bus:
         for t in reversed(timeouts):
             if t.cmd.matches_reply(raw):
                 self.stats.late_replies += 1
+                self.stats.late_reply_max = max(self.stats.late_reply_max, now - t.deadline)
                 self.stats.device(t.key).late_replies += 1
                 log.debug("%s late reply from %s: %s", self.name, t.key, format_hex(raw))
                 return True

@@ -145,6 +145,7 @@ class BusStats:
     #: (a garbage collection, another process), so the device may not be at fault.
     timeouts_in_host_stall: int = 0
     host_stall_max: float = 0.0  # the longest such delay, seconds
+    late_reply_max: float = 0.0  # how long after its deadline the latest late reply came, s
     disconnects: int = 0
     reconnects: int = 0
     bytes_out: int = 0
@@ -182,6 +183,7 @@ class BusStats:
                 "early_replies",
                 "timeouts_in_host_stall",
                 "host_stall_max",
+                "late_reply_max",
                 "disconnects",
                 "reconnects",
                 "bytes_out",
