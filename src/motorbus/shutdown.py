@@ -61,10 +61,11 @@ class _Closable(Protocol):
     async def close(self) -> None: ...
 
 
-# Open resources, in the order they must be closed: managers (they stop their devices
-# and close their buses), then any bus still open (its streams stop first).
-_managers: weakref.WeakSet[Any] = weakref.WeakSet()
-_buses: weakref.WeakSet[Any] = weakref.WeakSet()
+# Open resources and the loop each runs on, in the order they must be closed: managers
+# (they stop their devices and close their buses), then any bus still open (its streams
+# stop first).
+_managers: weakref.WeakKeyDictionary[Any, asyncio.AbstractEventLoop] = weakref.WeakKeyDictionary()
+_buses: weakref.WeakKeyDictionary[Any, asyncio.AbstractEventLoop] = weakref.WeakKeyDictionary()
 
 
 def _enabled() -> bool:
@@ -76,15 +77,16 @@ def _in_main_thread() -> bool:
 
 
 async def stop_everything() -> None:
-    """Close every open ``BusManager`` and ``Bus`` of this process, safely, in order.
+    """Close every open ``BusManager`` and ``Bus`` of the running loop, safely, in order.
 
     Errors are logged and do not stop the others; bounded by
     ``STOP_EVERYTHING_TIMEOUT_S``.
     """
+    loop = asyncio.get_running_loop()
     try:
         async with asyncio.timeout(STOP_EVERYTHING_TIMEOUT_S):
             for group in (_managers, _buses):
-                for item in list(group):
+                for item in [obj for obj, on in list(group.items()) if on is loop]:
                     try:
                         await item.close()
                     except Exception as err:
@@ -106,10 +108,13 @@ class _AutoGuard:
         self.stopping = False
 
     def bus_opened(self) -> None:
+        loop = asyncio.get_running_loop()
+        if loop is not self.loop:
+            # A new loop (a later asyncio.run): the old one took its handlers with it.
+            self.loop, self.installed, self.open_count, self.stopping = loop, [], 0, False
         self.open_count += 1
         if self.installed or not _enabled() or not _in_main_thread():
             return
-        loop = asyncio.get_running_loop()
         for sig in _AUTO_SIGNALS:
             if signal.getsignal(sig) is not signal.SIG_DFL:
                 continue  # the program (or install_signal_handlers) handles it
@@ -118,7 +123,6 @@ class _AutoGuard:
             except (NotImplementedError, RuntimeError, ValueError):
                 continue
             self.installed.append(sig)
-        self.loop = loop
 
     def bus_closed(self) -> None:
         self.open_count = max(0, self.open_count - 1)
@@ -158,25 +162,24 @@ _guard = _AutoGuard()
 
 def register_bus(bus: Any) -> None:
     """A bus opened: protect it (called by ``Bus.open``)."""
-    _buses.add(bus)
+    _buses[bus] = asyncio.get_running_loop()
     _guard.bus_opened()
 
 
 def unregister_bus(bus: Any) -> None:
     """A bus closed (called by ``Bus.close``)."""
-    if bus in _buses:
-        _buses.discard(bus)
+    if _buses.pop(bus, None) is not None:
         _guard.bus_closed()
 
 
 def register_manager(manager: Any) -> None:
     """A ``BusManager`` opened (called by it)."""
-    _managers.add(manager)
+    _managers[manager] = asyncio.get_running_loop()
 
 
 def unregister_manager(manager: Any) -> None:
     """A ``BusManager`` closed (called by it)."""
-    _managers.discard(manager)
+    _managers.pop(manager, None)
 
 
 # -- deferring Ctrl-C during a stop ------------------------------------------------------------

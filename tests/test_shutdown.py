@@ -1,0 +1,67 @@
+"""The shutdown helpers themselves (the exit paths end to end: tests/integration/)."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import signal
+
+import pytest
+
+from motorbus import shutdown
+from motorbus.shutdown import deferred_interrupts, install_signal_handlers
+
+
+def test_ctrl_c_inside_a_safe_stop_is_delivered_after_it() -> None:
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    steps: list[str] = []
+    try:
+        with pytest.raises(KeyboardInterrupt), deferred_interrupts():
+            signal.raise_signal(signal.SIGINT)  # a second Ctrl-C, mid-stop
+            steps.append("the stop went on")
+            with deferred_interrupts():  # nested stop paths defer as one
+                signal.raise_signal(signal.SIGINT)
+                steps.append("inner stop done")
+            steps.append("outer stop done")
+        assert steps == ["the stop went on", "inner stop done", "outer stop done"]
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def test_nothing_is_deferred_when_no_signal_comes() -> None:
+    with deferred_interrupts():
+        pass
+    assert shutdown._deferred == []
+
+
+async def test_the_first_signal_cancels_the_task_and_later_ones_are_only_counted() -> None:
+    started = asyncio.Event()
+
+    async def main() -> None:
+        handlers = install_signal_handlers((signal.SIGUSR1,))
+        started.set()
+        try:
+            await asyncio.sleep(30)
+        finally:
+            # The safe stop runs here; more signals must not cut it short.
+            os.kill(os.getpid(), signal.SIGUSR1)
+            await asyncio.sleep(0.05)
+            handlers.uninstall()
+            assert handlers.received == [signal.SIGUSR1, signal.SIGUSR1]
+
+    task = asyncio.create_task(main())
+    await started.wait()
+    os.kill(os.getpid(), signal.SIGUSR1)
+    with pytest.raises(asyncio.CancelledError):
+        await asyncio.wait_for(task, 5)
+
+
+def test_motorbus_run_ends_a_signalled_program_with_128_plus_the_signal() -> None:
+    async def main() -> None:
+        asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGHUP)
+        await asyncio.sleep(30)
+
+    with pytest.raises(SystemExit) as ended:
+        shutdown.run(main())
+    assert ended.value.code == 128 + signal.SIGHUP
