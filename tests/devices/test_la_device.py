@@ -85,3 +85,18 @@ async def test_bad_input_is_refused_before_sending(variant: dict[str, Any], paci
         with pytest.raises(LocalProtocolError, match=r"read-only|writable"):
             await a.write(la.Register.POSITION, 5)
         assert bus.stats.requests == 0
+
+
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_change_id_whose_answer_is_lost_is_confirmed_at_the_new_id(pacing: Pacing) -> None:
+    # The write takes effect at once (manual 3.6); with its answer lost, a retry to the old
+    # ID can never be answered: the change is confirmed by asking the new ID.
+    async with sim_bus([LAModel(4, silent_replies=1)], pacing=pacing, host_margin=2e-3) as (
+        bus,
+        _,
+    ):
+        moved = await InspireLA(bus, 4).change_id(7)
+        assert moved.id == 7 and (await moved.status()).id == 7
+        assert bus.stats.timeouts >= 1
+        with pytest.raises(ReplyTimeoutError, match="la:4"):
+            await InspireLA(bus, 4).status()

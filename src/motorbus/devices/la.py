@@ -210,8 +210,19 @@ class InspireLA:
         ``save`` the change is written to flash so it survives a power cycle.
         """
         check_int("new_id", new_id, la.ID_MIN, la.ID_MAX)
-        await self.write(la.Register.ID, new_id)
         moved = InspireLA(self.bus, new_id)
+        try:
+            await self.write(la.Register.ID, new_id)
+        except ReplyTimeoutError:
+            # The write takes effect at once: if its answer was lost (or came too late),
+            # a retry to the old ID can never be answered.  Ask the new ID instead.
+            try:
+                await moved.status()
+            except ReplyTimeoutError:
+                raise ReplyTimeoutError(
+                    f"la:{self.id} did not confirm the change to ID {new_id}, and la:{new_id} "
+                    "does not answer either"
+                ) from None
         if save:
             await moved.save()
         return moved
