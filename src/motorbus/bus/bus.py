@@ -435,7 +435,7 @@ class Bus:
     # -- requests ----------------------------------------------------------------
 
     def reply_budget(self, cmd: Command, request_size: int | None = None) -> float:
-        """Seconds from the start of ``cmd``'s transmission to its reply deadline.
+        """Seconds from the completed write of ``cmd`` to its reply deadline.
 
         Wire time of the request and of its longest possible reply at this bus's baud,
         plus the family's turnaround and the host margin; 0 if no reply is expected.
@@ -465,7 +465,7 @@ class Bus:
 
         Args:
             cmd: a command value from ``motorbus.protocol``.
-            timeout: reply budget in seconds from the start of transmission
+            timeout: reply budget in seconds from the completed write
                 (default: ``reply_budget(cmd)``).
             retries: retries after a timeout (default: the bus's; always 0 for
                 commands that start motion, which are never retried blindly).
