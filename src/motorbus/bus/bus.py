@@ -1021,6 +1021,10 @@ REQUEST_TIMEOUT_MAX_S = 3600.0
 REQUEST_RETRIES_MAX = 10
 
 
+#: Every priority, built once: the check runs on every submit (the stream's hot path).
+_PRIORITIES = frozenset(Priority)
+
+
 def _check_request_options(timeout: object, retries: object, priority: object) -> None:
     """Refuse a bad ``timeout``/``retries``/``priority`` before anything is queued."""
     if timeout is not None:
@@ -1035,7 +1039,7 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
             field="retries",
             value=retries,
         )
-    if isinstance(priority, bool) or priority not in set(Priority):
+    if isinstance(priority, bool) or priority not in _PRIORITIES:
         raise LocalProtocolError(
             f"priority={priority!r} is not allowed: choose one of "
             f"{', '.join(p.name for p in Priority)}",
