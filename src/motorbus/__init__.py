@@ -23,7 +23,6 @@ if TYPE_CHECKING:
     from motorbus.devices.quad_stepper import QuadStepper
     from motorbus.errors import (
         BusClosedError,
-        DeviceFaultError,
         LocalProtocolError,
         MotorbusError,
         NotSentError,
@@ -60,7 +59,6 @@ _LAZY = {
     "QuadStepper": "motorbus.devices.quad_stepper",
     "RealtimeReport": "motorbus.realtime",
     "BusClosedError": "motorbus.errors",
-    "DeviceFaultError": "motorbus.errors",
     "LocalProtocolError": "motorbus.errors",
     "MotorbusError": "motorbus.errors",
     "RemoteProtocolError": "motorbus.errors",
@@ -90,7 +88,6 @@ __all__ = [
     "BusManager",
     "BusState",
     "BusStateChanged",
-    "DeviceFaultError",
     "DeviceStop",
     "Family",
     "FaultChanged",

@@ -80,8 +80,7 @@ from motorbus.protocol.base import (
     format_hex,
     wire_time,
 )
-from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
-from motorbus.protocol.reassembler import ProjectFinished as ProjectFinishedItem
+from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from motorbus.transport.base import Transport
 from motorbus.validation import (
     HOST_MARGIN_MAX_S,
@@ -841,7 +840,7 @@ class Bus:
                 by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
                 stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
-            elif type(item) is ProjectFinishedItem:
+            elif type(item) is ProjectFinishedMarker:
                 self._publish(ProjectFinished(self.name, now))
 
     def _on_frame(self, frame: Frame, start: int, now: float) -> None:

@@ -10,6 +10,8 @@ from motorbus.bus.events import ProjectFinished, Subscription
 from motorbus.errors import (
     LocalProtocolError,
     MotorbusError,
+    ProjectStopped,
+    ProjectVerifyError,
     RemoteProtocolError,
     ReplyTimeoutError,
 )
@@ -25,14 +27,6 @@ log = logging.getLogger("motorbus.project_stepper")
 DEFAULT_RUN_TIMEOUT_S = 600.0
 #: What to tell a user who let a timed-out project keep running.
 STOP_HINT = "`motorbus project stop` ends it"
-
-
-class ProjectStopped(MotorbusError):
-    """``run_project`` ended because the project was stopped (``stop_project``)."""
-
-
-class ProjectVerifyError(MotorbusError):
-    """The project read back through 0x3E differs from the one uploaded."""
 
 
 class ProjectStepper:

@@ -37,7 +37,7 @@ from motorbus.protocol.base import (
     format_hex,
     sum8,
 )
-from motorbus.protocol.reassembler import ProjectFinished
+from motorbus.protocol.reassembler import ProjectFinished, ProjectFinishedMarker
 
 __all__ = [
     "DEFAULT_MOTOR",
@@ -61,6 +61,7 @@ __all__ = [
     "Project",
     "ProjectDump",
     "ProjectFinished",
+    "ProjectFinishedMarker",
     "ProjectStepperCommand",
     "ReadInput",
     "ReadProject",
@@ -1572,11 +1573,11 @@ def decode_request(raw: bytes) -> ProjectStepperCommand:
         raise RemoteProtocolError(f"{format_hex(raw)}: {err}", raw=raw) from err
 
 
-def decode_reply_context_free(raw: bytes) -> Ack | ProjectDump | ProjectFinished:
+def decode_reply_context_free(raw: bytes) -> Ack | ProjectDump | ProjectFinishedMarker:
     """Classify a reply without knowing its request, by value ranges (A0-05). Best effort.
 
     Accepts a 6-byte reply (-> :class:`Ack`), the 226-byte dump (-> :class:`ProjectDump`)
-    or the bare ``EE DD`` (-> :class:`ProjectFinished`).  Use only for display: a live
+    or the bare ``EE DD`` (-> :class:`ProjectFinishedMarker`).  Use only for display: a live
     link must match replies against the request sent (A.7).
 
     Raises:
@@ -1584,7 +1585,7 @@ def decode_reply_context_free(raw: bytes) -> Ack | ProjectDump | ProjectFinished
     """
     raw = bytes(raw)
     if raw == PROJECT_FINISHED:
-        return ProjectFinished()
+        return ProjectFinishedMarker()
     if len(raw) == DUMP_SIZE:
         return ProjectDump.decode(raw)
     if len(raw) != REPLY_SIZE or raw[:2] != FF_AA:

@@ -55,7 +55,7 @@ complete, checksum-valid frame is already in the buffer, which proves the header
 garbage; the reassembler then skips to that frame instead of stalling behind it.
 
 Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
-in order (``ProjectFinished.raw`` is ``EE DD``), so the stream offset of an item is
+in order (``ProjectFinishedMarker.raw`` is ``EE DD``), so the stream offset of an item is
 the sum of ``len(raw)`` of the items before it; every byte fed is in a frame, an
 event, a discarded run, or the buffer.
 """
@@ -83,6 +83,7 @@ __all__ = [
     "Frame",
     "Item",
     "ProjectFinished",
+    "ProjectFinishedMarker",
     "Reassembler",
     "ReassemblerStats",
 ]
@@ -123,9 +124,20 @@ class Frame(NamedTuple):
 
 
 class ProjectFinished(NamedTuple):
-    """The project stepper's bare ``EE DD``: the running project has finished (A0-06)."""
+    """The project stepper's bare ``EE DD``: the running project has finished (A0-06).
+
+    A stream item, not the bus event of the same name: the bus turns it into
+    ``motorbus.bus.events.ProjectFinished`` for its subscribers.  Code should say
+    :data:`ProjectFinishedMarker`, which cannot be confused with the event; the
+    class keeps its runtime name because item kinds are reported by class name
+    (``type(item).__name__``, ``motorbus decode``).
+    """
 
     raw: bytes = PROJECT_FINISHED_BYTES
+
+
+#: The unambiguous name of the ``EE DD`` stream item (the bus event is another class).
+ProjectFinishedMarker = ProjectFinished
 
 
 class Discarded(NamedTuple):
@@ -135,7 +147,7 @@ class Discarded(NamedTuple):
     reason: str
 
 
-Item = Frame | ProjectFinished | Discarded
+Item = Frame | ProjectFinishedMarker | Discarded
 
 
 @dataclass(slots=True)
@@ -367,7 +379,7 @@ class Reassembler:
         if b0 == 0x55:  # 55 AA: LA request
             return self._parse_la(buf, p, Direction.REQUEST)
         if b0 == 0xEE:  # EE DD between frames
-            return _COMPLETE, 2, ProjectFinished()
+            return _COMPLETE, 2, ProjectFinishedMarker()
         return self._parse_stepper(buf, p, final)
 
     def _parse_la(self, buf: bytes, p: int, direction: Direction) -> tuple[int, int, Item | None]:
