@@ -69,7 +69,7 @@ from motorbus.errors import (
     RemoteProtocolError,
     ReplyTimeoutError,
 )
-from motorbus.protocol import la
+from motorbus.protocol import families, la
 from motorbus.protocol.base import (
     Command,
     Family,
@@ -100,15 +100,9 @@ log = logging.getLogger("motorbus.bus")
 #: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
 #: (LA manual 3.4.2, docs/protocols.md C.6).
 MIN_SPACING_S = 1e-3
-#: Worst-case device turnaround, request end to reply start.  LA: "120 us typical, up
-#: to 800 us" (manual 3.4.2).  The stepper manuals give none; A0-14 recommends a
-#: timeout of at least 50 ms for a 6-byte reply at 9600 baud, which 11.5 ms (request)
-#: + 6.25 ms (reply) + 30 ms turnaround + the margin meets.
-DEFAULT_TURNAROUND: Mapping[Family, float] = {
-    Family.LA: 800e-6,
-    Family.PROJECT_STEPPER: 30e-3,
-    Family.QUAD_STEPPER: 30e-3,
-}
+#: Worst-case device turnaround, request end to reply start, per family: the registry's
+#: ``FamilyInfo.turnaround_s`` (protocol/families.py says where each figure comes from).
+DEFAULT_TURNAROUND: Mapping[Family, float] = families.DEFAULT_TURNAROUND
 #: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
 #: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
 #: demo's LA round trips over a pty to a simulator process on this 2-core machine had a

@@ -70,6 +70,7 @@ from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command, Family, check_flag, check_int
+from motorbus.protocol.families import FAMILIES
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Streamer
 from motorbus.transport.base import Transport
@@ -129,7 +130,7 @@ _BUS_KEYS = {
 }
 
 
-_DEVICE_KINDS = ("la", "project_stepper", "quad_stepper")
+_DEVICE_KINDS = tuple(info.key for info in FAMILIES.values())
 _SAFE_ACTIONS = tuple(a.value for a in SafeAction)
 #: Range of ``min_spacing_ms`` and ``host_margin_ms`` in a bus file, milliseconds.
 MIN_SPACING_MS_MAX = 100.0
@@ -358,12 +359,7 @@ class BusSpec:
 
     def families(self) -> set[Family]:
         """The protocol families its devices speak (all three if none are listed)."""
-        kinds = {
-            "la": Family.LA,
-            "project_stepper": Family.PROJECT_STEPPER,
-            "quad_stepper": Family.QUAD_STEPPER,
-        }
-        return {kinds[d.kind] for d in self.devices} or set(Family)
+        return {Family(d.kind) for d in self.devices} or set(Family)
 
 
 @dataclass(slots=True)

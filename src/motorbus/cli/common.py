@@ -29,6 +29,7 @@ from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, open_transport
 
@@ -69,10 +70,10 @@ BUS_FILE_ENV = "MOTORBUS_BUS_FILE"
 BUS_ENV = "MOTORBUS_BUS"
 #: Every environment variable the bus options read.
 ENV_VARS = (PORT_ENV, BAUD_ENV, BACKEND_ENV, BUS_FILE_ENV, BUS_ENV)
-#: Factory baud rate of the LA actuators, D-type interface (LA manual 3.1, control table 12).
-LA_BAUD = 921600
-#: Baud rate of both FF AA stepper controllers (doc 000 A.1; doc 001 A1-01).
-STEPPER_BAUD = 9600
+#: Factory baud rate of the LA actuators (the family registry, protocol/families.py).
+LA_BAUD = LA_DEFAULT_BAUD
+#: Baud rate of both FF AA stepper controllers (the family registry).
+STEPPER_BAUD = STEPPER_DEFAULT_BAUD
 #: Host-latency allowance on every reply deadline of the one-shot commands (seconds).
 #: The library's 2 ms default suits a tuned streaming loop; a command line tool starts
 #: cold (first read of a fresh port, a busy machine, a USB adapter's 1..16 ms latency

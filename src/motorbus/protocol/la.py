@@ -36,6 +36,7 @@ from motorbus.protocol.base import (
     format_hex,
     sum8,
 )
+from motorbus.protocol.families import LA_BROADCAST_ID, LA_ID_MAX, LA_ID_MIN
 
 __all__ = [
     "BROADCAST_ID",
@@ -102,10 +103,10 @@ MAX_FRAME_SIZE = 0xFF + FRAME_OVERHEAD
 # --- addressing and values ----------------------------------------------------------------
 
 #: ID 0xFF addresses every actuator; none replies (doc 002 section 3.3, C.2).
-BROADCAST_ID = 255
+BROADCAST_ID = LA_BROADCAST_ID
 #: Valid actuator IDs (doc 002 section 3.3, control table index 2).
-ID_MIN = 1
-ID_MAX = 254
+ID_MIN = LA_ID_MIN
+ID_MAX = LA_ID_MAX
 #: Commanded target range, unitless, 0..100 % of stroke (doc 002 section 3.5.3, A2-08).
 POSITION_MIN = 0
 POSITION_MAX = 2000

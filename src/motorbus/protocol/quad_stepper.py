@@ -35,6 +35,7 @@ from motorbus.protocol.base import (
     format_hex,
     sum8,
 )
+from motorbus.protocol.families import DEFAULT_BAUD as DEFAULT_BAUDS
 
 __all__ = [
     "ADDRESS_ALL",
@@ -74,7 +75,7 @@ REQUEST_SIZE = 9  # doc 001 "协议采用9个字节每帧" (docs/protocols.md B.
 REPLY_SIZE = 6  # doc 001, every "回" line is 6 bytes (docs/protocols.md B.2)
 _BODY_SIZE = REQUEST_SIZE - len(FF_AA) - 1  # b2..b7: header and checksum excluded
 #: Not stated by doc 001; its vendor's sibling controller (doc 000) runs 9600 8N1 (A1-01).
-DEFAULT_BAUD = 9600
+DEFAULT_BAUD = DEFAULT_BAUDS[Family.QUAD_STEPPER]
 
 # --- addresses (b2) ------------------------------------------------------------------------
 

@@ -52,6 +52,7 @@ from typing import ClassVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 from motorbus.protocol.base import FF_AA, Family, check_int, wire_time
+from motorbus.protocol.families import DEFAULT_BAUD
 from motorbus.protocol.project_stepper import (
     BASE_DISTANCE_PER_REV,
     BASE_LOOP_START,
@@ -143,8 +144,8 @@ ACCEL_STEP_S = 1e-3
 #: (the controller must load the next step); it also keeps a loop of empty steps from
 #: spinning at one instant.
 STEP_GAP_S = 1e-3
-#: The baud rate of doc 000 (A.1).
-_BAUD = 9600
+#: The baud rate of doc 000 (A.1), from the family registry.
+_BAUD = DEFAULT_BAUD[Family.PROJECT_STEPPER]
 #: Oldest step-trace entries are dropped beyond this (a forever loop would grow it).
 MAX_TRACE = 10_000
 #: Output names, in the order OUT1..OUT3 (open collector) then LED1, LED2 (A.3).

@@ -16,6 +16,14 @@ from collections.abc import Callable, Iterable, Sequence
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.families import (
+    LA_DEFAULT_BAUD,
+    LA_ID_MAX,
+    LA_ID_MIN,
+    SPEC_NAMES,
+    STEPPER_DEFAULT_BAUD,
+    default_bus_baud,
+)
 from motorbus.sim.model import DeviceModel
 
 __all__ = [
@@ -29,16 +37,8 @@ __all__ = [
     "parse_device_specs",
 ]
 
-#: Factory rate of the LVTTL ("D" interface) LA actuator (doc 002 C.1; A2-13).
-LA_DEFAULT_BAUD = 921600
-#: Doc 000 A.1 states 9600 8N1; doc 001 states none and we follow its sibling (A1-01).
-STEPPER_DEFAULT_BAUD = 9600
-#: Valid actuator IDs; 255 is broadcast and never answers (doc 002 C.2).
-LA_ID_MIN = 1
-LA_ID_MAX = 254
-
 #: Spec names, in the order the help text lists them.
-DEVICE_KINDS = ("la", "project-stepper", "quad-stepper")
+DEVICE_KINDS = SPEC_NAMES
 
 _FORMS = (
     "la, la:ID, la:FIRST-LAST, la:ID,ID,... (IDs 1..254, optional key=value items), "
@@ -199,5 +199,4 @@ def parse_device_specs(specs: Iterable[str]) -> list[DeviceModel]:
 
 def default_baud(models: Iterable[DeviceModel]) -> int:
     """Return the bus rate for ``models``: 921600 if all are LA actuators, else 9600 bit/s."""
-    families = {m.family for m in models}
-    return LA_DEFAULT_BAUD if families == {Family.LA} else STEPPER_DEFAULT_BAUD
+    return default_bus_baud(m.family for m in models)
