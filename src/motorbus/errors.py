@@ -6,6 +6,7 @@ on purpose.  The tree (python-standard bases in brackets)::
     Exception (Python standard library)
      +-- MotorbusError
          +-- LocalProtocolError [ValueError]   you asked for what the protocol cannot say
+         |   +-- IdListError                    an ID list ("1-3,7") the grammar refuses
          +-- RemoteProtocolError                the peer sent a frame that does not fit
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- NotSentError                       dropped before sending (``start_by`` passed)
@@ -42,6 +43,7 @@ import warnings
 __all__ = [
     "BusClosedError",
     "CommandFailed",
+    "IdListError",
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
@@ -68,6 +70,37 @@ class LocalProtocolError(MotorbusError, ValueError):
         super().__init__(message)
         self.field = field
         self.value = value
+
+
+class IdListError(LocalProtocolError):
+    """An ID list that the grammar refuses.
+
+    Attributes:
+        problem: ``"syntax"`` (an item is no ID or range), ``"range"`` (an ID outside
+            the allowed IDs), ``"reversed"`` (``LAST < FIRST``) or ``"duplicate"``.
+        reason: what is wrong, without the caller's context, e.g.
+            ``"reversed range 5-3: write 3-5"``.
+        item: the offending item as written (``"5-3"``); the ID for ``"duplicate"``.
+        first, last: the range's bounds (``"reversed"``), else ``None``.
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        *,
+        problem: str,
+        item: str,
+        first: int | None = None,
+        last: int | None = None,
+        field: str | None = None,
+        value: object = None,
+    ) -> None:
+        super().__init__(reason, field=field, value=value)
+        self.reason = reason
+        self.problem = problem
+        self.item = item
+        self.first = first
+        self.last = last
 
 
 class RemoteProtocolError(MotorbusError):

@@ -71,6 +71,7 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command, Family, check_flag, check_int
 from motorbus.protocol.families import FAMILIES
+from motorbus.protocol.ids import IdListError, parse_id_items
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Streamer
 from motorbus.transport.base import Transport
@@ -189,21 +190,11 @@ def parse_devices(items: Sequence[str]) -> list[DeviceSpec]:
         kind, _, rest = item.partition(":")
         kind = kind.strip().replace("_", "-")
         if kind == "la":
-            ids: list[int] = []
-            for part in filter(None, (p.strip() for p in rest.split(","))):
-                m = re.fullmatch(r"(\d+)\s*(?:-\s*(\d+))?", part)
-                if not m:
-                    raise _device_error(item, f"{part!r} is not an ID or a range like 1-15")
-                lo = int(m.group(1))
-                hi = int(m.group(2) or lo)
-                for i in (lo, hi):
-                    if not la.ID_MIN <= i <= la.ID_MAX:
-                        raise _device_error(
-                            item, f"id={i} is out of range: allowed {la.ID_MIN}..{la.ID_MAX}"
-                        )
-                if hi < lo:
-                    raise _device_error(item, f"{part!r} is a reversed range: write {hi}-{lo}")
-                ids.extend(range(lo, hi + 1))
+            try:  # the shared grammar; empty items ("la:1,") are skipped
+                ids = parse_id_items(p for p in rest.split(",") if p.strip())
+            except IdListError as err:
+                why = f"{err.item!r} is a {err.reason}" if err.problem == "reversed" else err.reason
+                raise _device_error(item, why) from None
             if not ids:
                 raise _device_error(item, "it lists no IDs")
             out.append(DeviceSpec("la", tuple(ids)))

@@ -30,6 +30,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
+from motorbus.protocol.ids import IdListError, parse_id_list
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, open_transport
 
@@ -247,9 +248,6 @@ def check_seconds(field: str, value: float | None, lo: float = 0.0) -> float | N
     return value
 
 
-_RANGE = re.compile(r"\s*(\d+)\s*(?:-\s*(\d+))?\s*")
-
-
 def parse_ids(
     text: str, field: str = "--ids", lo: int = la.ID_MIN, hi: int = la.ID_MAX
 ) -> list[int]:
@@ -264,31 +262,16 @@ def parse_ids(
         LocalProtocolError: a bad token, a reversed range, an ID outside ``lo..hi``,
             an ID listed twice.
     """
-    ids: list[int] = []
     id_field = field if field == "id" else f"{field} id"
-    for part in text.split(","):
-        m = _RANGE.fullmatch(part)
-        if m is None:
-            raise LocalProtocolError(
-                f"{field}={text!r}: {part.strip()!r} is not an ID or a range like 1-15",
-                field=field,
-                value=text,
-            )
-        first = check_int(id_field, int(m.group(1)), lo, hi)
-        last = check_int(id_field, int(m.group(2) or first), lo, hi)
-        if last < first:
-            raise LocalProtocolError(
-                f"{field}={text!r}: reversed range {first}-{last}: write {last}-{first}",
-                field=field,
-                value=text,
-            )
-        ids.extend(range(first, last + 1))
-    twice = sorted({i for i in ids if ids.count(i) > 1})
-    if twice:
+    try:
+        return parse_id_list(text, lo=lo, hi=hi, id_field=id_field)
+    except IdListError as err:
+        if err.problem == "range":
+            raise  # "--ids id=255 is out of range: allowed 1..254"
+        sep = " " if err.problem == "duplicate" else ": "
         raise LocalProtocolError(
-            f"{field}={text!r} lists ID {twice[0]} twice", field=field, value=text
-        )
-    return ids
+            f"{field}={text!r}{sep}{err.reason}", field=field, value=text
+        ) from None
 
 
 def parse_id_args(values: Iterable[str], field: str = "id") -> list[int]:

@@ -15,7 +15,7 @@ import inspect
 from collections.abc import Callable, Iterable, Sequence
 
 from motorbus.errors import LocalProtocolError
-from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.base import Family
 from motorbus.protocol.families import (
     LA_DEFAULT_BAUD,
     LA_ID_MAX,
@@ -24,6 +24,7 @@ from motorbus.protocol.families import (
     STEPPER_DEFAULT_BAUD,
     default_bus_baud,
 )
+from motorbus.protocol.ids import IdListError, parse_id_items
 from motorbus.sim.model import DeviceModel
 
 __all__ = [
@@ -117,24 +118,15 @@ def _options(
 
 
 def _la_ids(spec: str, items: Sequence[str]) -> list[int]:
-    ids: list[int] = []
-    for item in items:
-        first, dash, last = item.partition("-")
-        try:
-            lo = int(first, 0)
-            hi = int(last, 0) if dash else lo
-        except ValueError:
-            raise _bad(spec, f"{item!r} is not an ID or an ID range") from None
-        try:
-            check_int("LA id", lo, LA_ID_MIN, LA_ID_MAX)
-            check_int("LA id", hi, LA_ID_MIN, LA_ID_MAX)
-        except LocalProtocolError as err:
-            raise _bad(spec, str(err)) from err
-        if hi < lo:
-            raise _bad(spec, f"range {item!r} runs backwards")
-        ids.extend(range(lo, hi + 1))
-    if len(set(ids)) != len(ids):
-        raise _bad(spec, "an ID is listed twice (A2-12: IDs on one bus must be distinct)")
+    try:  # the shared grammar (protocol/ids.py)
+        ids = parse_id_items(items)
+    except IdListError as err:
+        why = err.reason
+        if err.problem == "reversed":
+            why = f"range {err.item!r} runs backwards: {err.reason}"
+        elif err.problem == "duplicate":
+            why = f"{err.reason} (A2-12: IDs on one bus must be distinct)"
+        raise _bad(spec, why) from None
     return ids or [LA_ID_MIN]
 
 
