@@ -50,7 +50,7 @@ import os
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
 from motorbus.bus.events import (
@@ -96,6 +96,9 @@ from motorbus.validation import (
 __all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
 
 log = logging.getLogger("motorbus.bus")
+
+#: The decoded reply type of the command given to ``request`` / ``submit``.
+R = TypeVar("R")
 
 #: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
 #: (LA manual 3.4.2, docs/protocols.md C.6).
@@ -156,7 +159,7 @@ class BusState(enum.Enum):
     LOST = "lost"  # the port went away; reconnecting if enabled
 
 
-def device_key(cmd: Command) -> str:
+def device_key(cmd: Command[object]) -> str:
     """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``..."""
     if cmd.family is Family.LA:
         address: int = getattr(cmd, "id", la.BROADCAST_ID)
@@ -166,7 +169,7 @@ def device_key(cmd: Command) -> str:
 
 #: Called at the moment a queued frame is written: returns the command to send now
 #: (rebuilt from what is still wanted) or None to drop it unsent.
-Refresh = Callable[[], "Command | None"]
+Refresh = Callable[[], "Command[object] | None"]
 #: A source of reserved bus windows: given the time now, the earliest (start, end) window
 #: that ends after now, or None.
 ReservationSource = Callable[[float], "tuple[float, float] | None"]
@@ -176,7 +179,7 @@ ReservationSource = Callable[[float], "tuple[float, float] | None"]
 class _Job:
     """One request travelling through the bus."""
 
-    cmd: Command
+    cmd: Command[object]
     raw: bytes
     future: asyncio.Future[Any]
     priority: int
@@ -201,7 +204,7 @@ class _Job:
 
 @dataclass(slots=True)
 class _Timeout:
-    cmd: Command
+    cmd: Command[object]
     key: str
     until: float
 
@@ -426,7 +429,7 @@ class Bus:
 
     # -- requests ----------------------------------------------------------------
 
-    def reply_budget(self, cmd: Command, request_size: int | None = None) -> float:
+    def reply_budget(self, cmd: Command[object], request_size: int | None = None) -> float:
         """Seconds from the start of ``cmd``'s transmission to its reply deadline.
 
         Wire time of the request and of its longest possible reply at this bus's baud,
@@ -447,12 +450,12 @@ class Bus:
 
     async def request(
         self,
-        cmd: Command,
+        cmd: Command[R],
         *,
         timeout: float | None = None,
         retries: int | None = None,
         priority: Priority = Priority.NORMAL,
-    ) -> Any:
+    ) -> R:
         """Send ``cmd`` and return its decoded reply (``None`` if it expects none).
 
         Args:
@@ -479,7 +482,7 @@ class Bus:
 
     def submit(
         self,
-        cmd: Command,
+        cmd: Command[R],
         *,
         timeout: float | None = None,
         retries: int | None = None,
@@ -487,7 +490,7 @@ class Bus:
         start_by: float | None = None,
         reserved: bool = False,
         refresh: Refresh | None = None,
-    ) -> asyncio.Future[Any]:
+    ) -> asyncio.Future[R]:
         """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
 
         Returns the future of its decoded reply (``request`` awaits it).  Cancelling the
@@ -551,7 +554,7 @@ class Bus:
         self._pump()  # an idle bus sends right here
         return job.future
 
-    async def send(self, cmd: Command, *, priority: Priority = Priority.NORMAL) -> None:
+    async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
         await self.request(cmd, priority=priority)
 
@@ -1029,6 +1032,6 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
         )
 
 
-def _done_watch(cmd: Command) -> _DoneWatch:
+def _done_watch(cmd: Command[object]) -> _DoneWatch:
     led = getattr(cmd, "led", None)
     return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)

@@ -634,12 +634,12 @@ class BusManager:
             log.warning("safe stop: %s", failure)
         return report
 
-    def _stop_plan(self, name: str, report: StopReport) -> list[tuple[DeviceStop, Command]]:
+    def _stop_plan(self, name: str, report: StopReport) -> list[tuple[DeviceStop, Command[object]]]:
         """The stop commands of every device on bus ``name``, each with its report entry."""
         spec = self.specs[name]
         bus = self.buses[name]
         action = SafeAction(spec.la_safe_action)
-        plan: list[tuple[DeviceStop, Command]] = []
+        plan: list[tuple[DeviceStop, Command[object]]] = []
         for dev in spec.devices:
             devices: list[Any]
             try:
@@ -664,7 +664,9 @@ class BusManager:
                 report.entries.append(DeviceStop(name, dev.kind, "stop", "failed", str(err)))
         return plan
 
-    async def _run_stop_plan(self, name: str, plan: list[tuple[DeviceStop, Command]]) -> None:
+    async def _run_stop_plan(
+        self, name: str, plan: list[tuple[DeviceStop, Command[object]]]
+    ) -> None:
         bus = self.buses[name]
         for entry, cmd in plan:
             try:
@@ -707,7 +709,7 @@ class BusManager:
         return self._streamers[bus]
 
 
-def _describe(cmd: Command) -> str:
+def _describe(cmd: Command[object]) -> str:
     """A stop command as the report names it: ``Control(PAUSE)``, ``StopProject``..."""
     action = getattr(cmd, "action", None)
     name = type(cmd).__name__

@@ -80,7 +80,7 @@ FAMILY_BAUD = {
 }
 #: Exit status of a refused replay (bad file, motion without consent).
 EXIT_USAGE = 2
-_DECODERS: dict[Family, Callable[[bytes], Command]] = {
+_DECODERS: dict[Family, Callable[[bytes], Command[object]]] = {
     Family.LA: la.decode_request,
     Family.PROJECT_STEPPER: project_stepper.decode_request,
     Family.QUAD_STEPPER: quad_stepper.decode_request,
@@ -284,7 +284,7 @@ class _Planned:
     """One recorded request, decoded back into the command a ``Bus`` sends."""
 
     t: float
-    cmd: Command
+    cmd: Command[object]
     priority: Priority
 
 
@@ -389,7 +389,7 @@ def _family_of(record: dict[str, Any], raw: bytes) -> Family:
     return frames[0].family if frames else Family.LA
 
 
-def _priority(cmd: Command) -> Priority:
+def _priority(cmd: Command[object]) -> Priority:
     """The priority the device layer gives such a command (``devices.la``)."""
     if isinstance(cmd, la.Control):
         if cmd.action is la.ControlAction.ESTOP:
@@ -399,7 +399,7 @@ def _priority(cmd: Command) -> Priority:
     return Priority.NORMAL
 
 
-def describe_command(cmd: Command) -> Description:
+def describe_command(cmd: Command[object]) -> Description:
     """The description of a command's request bytes."""
     cutter = Reassembler(direction=Direction.REQUEST, families=(cmd.family,))
     items = cutter.feed(cmd.encode()) + cutter.end_of_stream()

@@ -237,7 +237,7 @@ async def _positions(bus: Bus, ids: list[int], baud: int) -> tuple[int, ...]:
     silent: list[int] = []
     for ident in ids:
         try:
-            status: la.Status = await bus.request(
+            status = await bus.request(
                 la.Control(ident, la.ControlAction.QUERY_STATUS), timeout=CHECK_TIMEOUT_S
             )
         except ReplyTimeoutError:

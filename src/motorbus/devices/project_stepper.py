@@ -46,12 +46,12 @@ class ProjectStepper:
         self._run_sub: Subscription[ProjectFinished] | None = None
         self._stop_requested = False
 
-    def safe_stop_commands(self) -> list[ps.ProjectStepperCommand]:
+    def safe_stop_commands(self) -> list[ps.ProjectStepperCommand[object]]:
         """The commands that stop everything this controller may be doing, as values:
         stop the running project (0x5E), then stop manual motion of its motor (0x0D)."""
         return [ps.StopProject(), ps.ManualStop(motor=self.motor)]
 
-    async def _send_all(self, commands: list[ps.ProjectStepperCommand]) -> None:
+    async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
         for cmd in commands:
             await self.bus.request(cmd)
 
@@ -114,7 +114,7 @@ class ProjectStepper:
 
     async def read_project(self, number: int) -> ps.ProjectDump:
         """Read project ``number`` (1..4) back: the 226-byte 0x3E dump, decoded."""
-        dump: ps.ProjectDump = await self.bus.request(ps.ReadProject(number))
+        dump = await self.bus.request(ps.ReadProject(number))
         return dump
 
     async def save_project(self, number: int) -> None:

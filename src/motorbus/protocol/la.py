@@ -31,6 +31,7 @@ from motorbus.protocol.base import (
     LA_REQUEST_HEADER,
     Command,
     Family,
+    ReplyT_co,
     check_choice,
     check_int,
     format_hex,
@@ -738,7 +739,7 @@ def decode_reply(raw: bytes) -> Status | ReadReply | WriteAck | UnknownReply:
 # --- commands ------------------------------------------------------------------------------
 
 
-class LACommand(Command):
+class LACommand(Command[ReplyT_co]):
     """Common behaviour of LA requests (addressing, status matching)."""
 
     __slots__ = ()
@@ -765,7 +766,7 @@ class LACommand(Command):
 
 
 @dataclass(frozen=True, slots=True)
-class ReadTable(LACommand):
+class ReadTable(LACommand[ReadReply]):
     """CMD_RD 0x01: read ``count`` control-table bytes from ``index`` (doc 002 section 3.5.1).
 
     Args:
@@ -818,7 +819,7 @@ class ReadTable(LACommand):
 
 
 @dataclass(frozen=True, slots=True)
-class ReadRegister(LACommand):
+class ReadRegister(LACommand[int]):
     """Typed read of one documented register; the reply decodes to its integer value.
 
     Args:
@@ -864,7 +865,7 @@ class ReadRegister(LACommand):
 
 
 @dataclass(frozen=True, slots=True)
-class WriteTable(LACommand):
+class WriteTable(LACommand[Status | WriteAck]):
     """CMD_WR 0x02: write raw bytes into the control table (doc 002 section 3.5.2).
 
     The reply is the 22-byte status frame or the short ack (A2-03).  If the write covers
@@ -945,7 +946,7 @@ class WriteTable(LACommand):
 
 
 @dataclass(frozen=True, slots=True)
-class WriteRegister(LACommand):
+class WriteRegister(LACommand[Status | WriteAck]):
     """Typed write of one documented, writable register (refuses read-only ones).
 
     Writing ``Register.TARGET`` also moves the actuator (A2-21); prefer ``MoveTo``.
@@ -1000,7 +1001,7 @@ class WriteRegister(LACommand):
         return self.as_table.decode_reply(raw)
 
 
-class _TargetCommand(LACommand):
+class _TargetCommand(LACommand[Status]):
     """Shared code of MoveTo and Follow: ``55 AA 04 ID CMD 37 PosL PosH CS``."""
 
     __slots__ = ()
@@ -1099,7 +1100,7 @@ class Follow(_TargetCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class Control(LACommand):
+class Control(LACommand[Status]):
     """CMD_MC 0x04 single control: ``55 AA 03 ID 04 00 SUB CS`` (doc 002 section 3.5.4).
 
     Args:
@@ -1141,7 +1142,7 @@ class Control(LACommand):
 
 
 @dataclass(frozen=True, slots=True)
-class Broadcast(LACommand):
+class Broadcast(LACommand[None]):
     """Broadcast positioning (0xF2) or follow (0xF3) for up to 15 actuators (3.5.3, C.8).
 
     ``55 AA (1+3N) FF F2|F3 {ID PosL PosH} x N CS``; nothing replies.
@@ -1224,7 +1225,7 @@ class Broadcast(LACommand):
         """Always False: nothing answers a broadcast."""
         return False
 
-    def decode_reply(self, raw: bytes) -> object:
+    def decode_reply(self, raw: bytes) -> None:
         """Never valid: a broadcast has no reply.
 
         Raises:
@@ -1265,7 +1266,7 @@ def split_broadcast(
 # --- request decoding (simulator, ``motorbus decode``) -----------------------------------------
 
 
-def _decode_request_body(raw: bytes) -> LACommand:
+def _decode_request_body(raw: bytes) -> LACommand[object]:
     length, ident, cmd = raw[2], raw[3], raw[4]
     if cmd in (CMD_BROADCAST_MOVE, CMD_BROADCAST_FOLLOW):
         if ident != BROADCAST_ID:
@@ -1309,7 +1310,7 @@ def _decode_request_body(raw: bytes) -> LACommand:
     raise LocalProtocolError(f"cmd=0x{cmd:02X} is not an LA request command", field="cmd")
 
 
-def decode_request(raw: bytes) -> Command:
+def decode_request(raw: bytes) -> Command[object]:
     """Decode a request frame (``55 AA ...``) back into its ``Command`` value.
 
     A write whose index and size match a writable register, with a value in its range,

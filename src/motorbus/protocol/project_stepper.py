@@ -32,6 +32,7 @@ from motorbus.protocol.base import (
     Command,
     Family,
     FrameShape,
+    ReplyT_co,
     check_choice,
     check_int,
     format_hex,
@@ -47,6 +48,7 @@ __all__ = [
     "REQUEST_SIZE",
     "AccelAndSpeed",
     "Ack",
+    "AckCommand",
     "ClearProject",
     "DirectionAndStartFrequency",
     "DistancePerRev",
@@ -414,11 +416,13 @@ def _ack_from(raw: bytes) -> Ack:
 # -- command base classes -----------------------------------------------------------------
 
 
-class ProjectStepperCommand(Command):
+class ProjectStepperCommand(Command[ReplyT_co]):
     """Base of every doc-000 command: an 8-byte payload framed by :func:`build_request`.
 
     Subclasses provide :meth:`payload` and :meth:`reply_shapes`; matching checks the
-    exact length and every byte pattern of the shape (A.7).
+    exact length and every byte pattern of the shape (A.7).  Most commands are
+    acknowledged (:class:`AckCommand`); ``ReadProject`` and ``ReadInput`` decode
+    their own replies.
     """
 
     __slots__ = ()
@@ -444,14 +448,6 @@ class ProjectStepperCommand(Command):
         """Return True if ``raw`` has the exact length and byte pattern of this reply (A.7)."""
         return any(len(raw) == s.length and s.matches(raw) for s in self.reply_shapes())
 
-    def decode_reply(self, raw: bytes) -> object:
-        """Decode a matching reply into an :class:`Ack`.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
     def _ack(self, raw: bytes) -> Ack:
         if not self.matches_reply(raw):
             raise RemoteProtocolError(
@@ -460,7 +456,21 @@ class ProjectStepperCommand(Command):
         return _ack_from(bytes(raw))
 
 
-class _ProjectCommand(ProjectStepperCommand):
+class AckCommand(ProjectStepperCommand[Ack]):
+    """A command whose reply is an acknowledgement (:class:`Ack`): all but two."""
+
+    __slots__ = ()
+
+    def decode_reply(self, raw: bytes) -> Ack:
+        """Decode the acknowledgement (the shape ``reply_shapes`` gives).
+
+        Raises:
+            RemoteProtocolError: ``raw`` is not a reply to this request.
+        """
+        return self._ack(raw)
+
+
+class _ProjectCommand(ProjectStepperCommand[ReplyT_co]):
     """``OP P 00..`` with reply ``OP P 00 00`` (A.4 project commands)."""
 
     __slots__ = ()
@@ -479,16 +489,8 @@ class _ProjectCommand(ProjectStepperCommand):
         """Return the shape ``FF AA OP P 00 00`` (A.7)."""
         return (_shape(self.OPCODE, self.project, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ``OP P 00 00`` acknowledgement.
 
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
-
-class _MotorCommand(ProjectStepperCommand):
+class _MotorCommand(AckCommand):
     """``M CMD params 00`` with reply ``M CMD 00 00`` (A.4 motor and manual commands)."""
 
     __slots__ = ()
@@ -511,16 +513,8 @@ class _MotorCommand(ProjectStepperCommand):
         """Return the shape ``FF AA M CMD 00 00`` (A.7)."""
         return (_shape(self.motor, self.CMD, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ``M CMD 00 00`` acknowledgement.
 
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
-
-class _StepCommand(ProjectStepperCommand):
+class _StepCommand(AckCommand):
     """``M CMD params S`` with reply ``M CMD 00 S`` (A.4 per-step commands)."""
 
     __slots__ = ()
@@ -545,20 +539,12 @@ class _StepCommand(ProjectStepperCommand):
         """Return the shape ``FF AA M CMD 00 S`` (A.7)."""
         return (_shape(self.motor, self.CMD, 0, self.step),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ``M CMD 00 S`` acknowledgement.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 # -- project / global commands ------------------------------------------------------------
 
 
 @dataclass(frozen=True, slots=True)
-class SelectProject(_ProjectCommand):
+class SelectProject(_ProjectCommand[Ack], AckCommand):
     """0x6E: select project P (1..4) and set its total number of steps (1..10) (A.4).
 
     Per-step and loop commands act on the project selected last (A0-03).
@@ -577,7 +563,7 @@ class SelectProject(_ProjectCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class StepLoop(ProjectStepperCommand):
+class StepLoop(AckCommand):
     """0x7E: repeat steps ``start..end`` ``count`` times in total (A.4, A0-15).
 
     ``(0, 0, 0)`` disables the loop; otherwise ``1 <= start <= end <= 10`` and
@@ -604,17 +590,9 @@ class StepLoop(ProjectStepperCommand):
         """Return ``FF AA 7E P 00 00`` with P any project 1..4 (A.7)."""
         return (_shape(OP_STEP_LOOP, _ANY_PROJECT, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack; ``Ack.project`` is the device's current project.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 @dataclass(frozen=True, slots=True)
-class RepeatCount(ProjectStepperCommand):
+class RepeatCount(AckCommand):
     """0x8E: project repeat count 0..254, 255 = forever (A.4).
 
     The reply carries the current project (see :class:`StepLoop`).
@@ -638,17 +616,9 @@ class RepeatCount(ProjectStepperCommand):
         """Return ``FF AA 8E P 00 00`` with P any project 1..4 (A.7)."""
         return (_shape(OP_REPEAT, _ANY_PROJECT, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack; ``Ack.project`` is the device's current project.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 @dataclass(frozen=True, slots=True)
-class StartProject(_ProjectCommand):
+class StartProject(_ProjectCommand[Ack], AckCommand):
     """0x4E: start project P (1..4); ``EE DD`` follows when it ends (A.4, A0-06)."""
 
     OPCODE: ClassVar[int] = OP_START
@@ -657,7 +627,7 @@ class StartProject(_ProjectCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class StopProject(ProjectStepperCommand):
+class StopProject(AckCommand):
     """0x5E: stop the running project; no ``EE DD`` follows (A.4, A0-18)."""
 
     def payload(self) -> bytes:
@@ -668,17 +638,9 @@ class StopProject(ProjectStepperCommand):
         """Return ``FF AA 5E 00 00 00`` (A.7)."""
         return (_shape(OP_STOP, 0, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 @dataclass(frozen=True, slots=True)
-class ReadProject(_ProjectCommand):
+class ReadProject(_ProjectCommand["ProjectDump"]):
     """0x3E: read project P; the reply is the 226-byte dump (A.4, A.5)."""
 
     OPCODE: ClassVar[int] = OP_READ
@@ -688,7 +650,7 @@ class ReadProject(_ProjectCommand):
         """Return the dump shape: 226 bytes starting ``FF AA 3E P 00 00`` (A.5)."""
         return (_shape(OP_READ, self.project, 0, 0, length=DUMP_SIZE),)
 
-    def decode_reply(self, raw: bytes) -> ProjectDump:  # type: ignore[override]
+    def decode_reply(self, raw: bytes) -> ProjectDump:
         """Decode the 226-byte dump.
 
         Raises:
@@ -704,7 +666,7 @@ class ReadProject(_ProjectCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class SaveProject(_ProjectCommand):
+class SaveProject(_ProjectCommand[Ack], AckCommand):
     """0x2E: save project P to flash (A.4)."""
 
     OPCODE: ClassVar[int] = OP_SAVE
@@ -712,7 +674,7 @@ class SaveProject(_ProjectCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class ClearProject(_ProjectCommand):
+class ClearProject(_ProjectCommand[Ack], AckCommand):
     """0x1E: clear (zero) the parameters of project P (A.4; checksum C8, V2)."""
 
     OPCODE: ClassVar[int] = OP_CLEAR
@@ -720,7 +682,7 @@ class ClearProject(_ProjectCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class SetMode4(ProjectStepperCommand):
+class SetMode4(AckCommand):
     """0x9E: the undefined "mode 4" setting, raw value 0..2 (A.4, A0-13)."""
 
     value: int
@@ -736,17 +698,9 @@ class SetMode4(ProjectStepperCommand):
         """Return ``FF AA 9E 00 00 00``: the value is not echoed (A.7)."""
         return (_shape(OP_MODE4, 0, 0, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 @dataclass(frozen=True, slots=True)
-class SetPowerOnHoming(ProjectStepperCommand):
+class SetPowerOnHoming(AckCommand):
     """0xAE: enable or disable homing at power-up (A.4, A0-13)."""
 
     enabled: bool
@@ -766,14 +720,6 @@ class SetPowerOnHoming(ProjectStepperCommand):
     def reply_shapes(self) -> tuple[FrameShape, ...]:
         """Return ``FF AA AE 00 00 00`` (A.7)."""
         return (_shape(OP_POWER_ON_HOMING, 0, 0, 0),)
-
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
 
 
 # -- motor configuration -------------------------------------------------------------------
@@ -1001,7 +947,7 @@ class Home(_MotorCommand):
 
 
 @dataclass(frozen=True, slots=True)
-class SetOutput(ProjectStepperCommand):
+class SetOutput(AckCommand):
     """00 0C: drive an output port (1..5) to a level (0 inactive, 1 active) (A.4, A0-10)."""
 
     port: OutputPort
@@ -1021,17 +967,9 @@ class SetOutput(ProjectStepperCommand):
         """Return ``FF AA 00 0C Port 00`` (A.7)."""
         return (_shape(IO_ADDRESS, IO_SET_OUTPUT, self.port, 0),)
 
-    def decode_reply(self, raw: bytes) -> Ack:
-        """Decode the ack.
-
-        Raises:
-            RemoteProtocolError: ``raw`` is not a reply to this request.
-        """
-        return self._ack(raw)
-
 
 @dataclass(frozen=True, slots=True)
-class ReadInput(ProjectStepperCommand):
+class ReadInput(ProjectStepperCommand[bool]):
     """00 0B: read one input (1..5); the reply ``00 0B In V`` carries V 0/1 (A.4)."""
 
     input_number: int
@@ -1135,7 +1073,9 @@ class StepSpec:
         t = check_choice("stop_input", self.stop_input, tuple(GatingInput), "A0-11")
         object.__setattr__(self, "stop_input", GatingInput(t))
 
-    def commands(self, step: int, motor: int = DEFAULT_MOTOR) -> list[ProjectStepperCommand]:
+    def commands(
+        self, step: int, motor: int = DEFAULT_MOTOR
+    ) -> list[ProjectStepperCommand[object]]:
         """Return the seven commands 03..09 that program this step as ``step`` (A.6).
 
         Raises:
@@ -1235,7 +1175,7 @@ class Project:
             check_int("loop_count", self.loop_count, 1, MAX_LOOP_COUNT)
         check_int("repeat_count", self.repeat_count, 0, REPEAT_FOREVER)
 
-    def commands(self, motor: int = DEFAULT_MOTOR) -> list[ProjectStepperCommand]:
+    def commands(self, motor: int = DEFAULT_MOTOR) -> list[ProjectStepperCommand[object]]:
         """Return the programming sequence of A.6, without the final SaveProject.
 
         SelectProject, MotorSetup, DistancePerRev, then 03..09 for each step, then
@@ -1244,7 +1184,7 @@ class Project:
         Raises:
             LocalProtocolError: ``motor`` is not allowed (A0-02).
         """
-        out: list[ProjectStepperCommand] = [
+        out: list[ProjectStepperCommand[object]] = [
             SelectProject(self.number, len(self.steps)),
             MotorSetup(self.subdivision, self.step_angle_x100, motor=motor),
             DistancePerRev(self.distance_per_rev, motor=motor),
@@ -1481,10 +1421,10 @@ class ProjectDump:
 
 # -- request and context-free reply decoding ------------------------------------------------
 
-_Parser = Callable[[bytes], ProjectStepperCommand]
+_Parser = Callable[[bytes], ProjectStepperCommand[object]]
 
 
-def _parse_project(p: bytes) -> ProjectStepperCommand:
+def _parse_project(p: bytes) -> ProjectStepperCommand[object]:
     op = p[0]
     if op == OP_SELECT:
         return SelectProject(p[1], p[2])
@@ -1499,7 +1439,7 @@ def _parse_project(p: bytes) -> ProjectStepperCommand:
     if op == OP_POWER_ON_HOMING:
         check_choice("enabled", p[1], (0, 1), "0 off, 1 on")
         return SetPowerOnHoming(bool(p[1]))
-    by_project: dict[int, Callable[[int], ProjectStepperCommand]] = {
+    by_project: dict[int, Callable[[int], ProjectStepperCommand[object]]] = {
         OP_START: StartProject,
         OP_READ: ReadProject,
         OP_SAVE: SaveProject,
@@ -1508,7 +1448,7 @@ def _parse_project(p: bytes) -> ProjectStepperCommand:
     return by_project[op](p[1])
 
 
-def _parse_motor(p: bytes) -> ProjectStepperCommand:
+def _parse_motor(p: bytes) -> ProjectStepperCommand[object]:
     m, cmd, s = p[0], p[1], p[7]
     parsers: dict[int, _Parser] = {
         CMD_MOTOR_SETUP: lambda q: MotorSetup(_le(q[2:4]), q[4], motor=m),
@@ -1538,7 +1478,7 @@ def _parse_motor(p: bytes) -> ProjectStepperCommand:
     return parser(p)
 
 
-def _parse_io(p: bytes) -> ProjectStepperCommand:
+def _parse_io(p: bytes) -> ProjectStepperCommand[object]:
     if p[1] == IO_SET_OUTPUT:
         return SetOutput(p[2], p[3])  # type: ignore[arg-type]  # validated on init
     if p[1] == IO_READ_INPUT:
@@ -1548,7 +1488,7 @@ def _parse_io(p: bytes) -> ProjectStepperCommand:
     )
 
 
-def decode_request(raw: bytes) -> ProjectStepperCommand:
+def decode_request(raw: bytes) -> ProjectStepperCommand[object]:
     """Decode an 11-byte request into its command (for the simulator and ``motorbus decode``).
 
     Spare bytes (A0-18) are not checked: a device ignores them, and so does this.

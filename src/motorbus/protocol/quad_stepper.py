@@ -231,7 +231,7 @@ class Done(QuadReply):
 # --- commands ------------------------------------------------------------------------------
 
 
-class QuadCommand(Command):
+class QuadCommand(Command[Ack | Done]):
     """Common behaviour of every quad stepper request.
 
     Subclasses give the six bytes ``b2..b7`` and the shapes of their ack (and done) reply;

@@ -499,7 +499,7 @@ class ProjectStepperModel(DeviceModel):
 
     # -- commands ---------------------------------------------------------------------
 
-    def _dispatch(self, cmd: ProjectStepperCommand, now: float) -> bytes:
+    def _dispatch(self, cmd: ProjectStepperCommand[object], now: float) -> bytes:
         cur = self._current_project
         payload = cmd.payload()
         match cmd:
