@@ -13,7 +13,6 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from motorbus.bus.bus import Bus, BusState, Priority
     from motorbus.bus.events import BusStateChanged, FaultChanged, ProjectFinished, QuadDone
-    from motorbus.bus.manager import BusManager, DeviceStop, StopReport
     from motorbus.devices.la import InspireLA, scan
     from motorbus.devices.project_stepper import (
         ProjectStepper,
@@ -29,6 +28,7 @@ if TYPE_CHECKING:
         RemoteProtocolError,
         ReplyTimeoutError,
     )
+    from motorbus.manager import BusManager, DeviceStop, StopReport
     from motorbus.protocol.base import Family
     from motorbus.shutdown import install_signal_handlers, run
     from motorbus.streams import SafeAction, Stream, StreamEnded, Streamer
@@ -44,9 +44,9 @@ _LAZY = {
     "FaultChanged": "motorbus.bus.events",
     "ProjectFinished": "motorbus.bus.events",
     "QuadDone": "motorbus.bus.events",
-    "BusManager": "motorbus.bus.manager",
-    "DeviceStop": "motorbus.bus.manager",
-    "StopReport": "motorbus.bus.manager",
+    "BusManager": "motorbus.manager",
+    "DeviceStop": "motorbus.manager",
+    "StopReport": "motorbus.manager",
     "NotSentError": "motorbus.errors",
     "install_signal_handlers": "motorbus.shutdown",
     "run": "motorbus.shutdown",

@@ -69,10 +69,11 @@ from motorbus.errors import (
     RemoteProtocolError,
     ReplyTimeoutError,
 )
-from motorbus.protocol import families, la
+from motorbus.protocol import families
 from motorbus.protocol.base import (
     Command,
     Family,
+    FaultState,
     FrameShape,
     check_flag,
     check_int,
@@ -160,11 +161,9 @@ class BusState(enum.Enum):
 
 
 def device_key(cmd: Command[object]) -> str:
-    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``..."""
-    if cmd.family is Family.LA:
-        address: int = getattr(cmd, "id", la.BROADCAST_ID)
-        return f"la:{address}"
-    return str(cmd.family.value)
+    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``...
+    (``Command.device_key``; kept as a function for older callers)."""
+    return cmd.device_key
 
 
 #: Called at the moment a queued frame is written: returns the command to send now
@@ -541,7 +540,7 @@ class Bus:
             seq=next(self._seq),
             timeout=budget,
             retries_left=n_retries,
-            key=device_key(cmd),
+            key=cmd.device_key,
             reserved=reserved,
             refresh=refresh,
         )
@@ -885,7 +884,7 @@ class Bus:
             return
         if job.cmd.done_shapes():
             self._watch_done(_done_watch(job.cmd))
-        self._observe(value, now)
+        self._observe(job.cmd.fault_state(value), value, now)
         self._finish(job, value)
 
     def _watch_done(self, watch: _DoneWatch) -> None:
@@ -932,14 +931,16 @@ class Bus:
                 return True
         return False
 
-    def _observe(self, value: Any, now: float) -> None:
-        """Turn LA status replies into fault-change events."""
-        if isinstance(value, la.Status):
-            errors = int(value.errors)
-            before = self._last_errors.get(value.id, 0)
-            self._last_errors[value.id] = errors
-            if errors != before:
-                self._publish(FaultChanged(self.name, now, value.id, before, errors, value))
+    def _observe(self, fault: FaultState | None, value: Any, now: float) -> None:
+        """Turn the fault flags a reply reports (``Command.fault_state``: the LA's
+        status replies) into fault-change events."""
+        if fault is not None:
+            before = self._last_errors.get(fault.device_id, 0)
+            self._last_errors[fault.device_id] = fault.errors
+            if fault.errors != before:
+                self._publish(
+                    FaultChanged(self.name, now, fault.device_id, before, fault.errors, value)
+                )
 
     def _publish(self, event: Any) -> None:
         self.stats.events += 1

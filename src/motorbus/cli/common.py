@@ -147,7 +147,7 @@ def _bus_table(args: argparse.Namespace, *, port_given: bool) -> Mapping[str, An
     Raises:
         UsageError: the file is missing, not TOML, or has no such bus (exit code 2).
     """
-    from motorbus.bus.manager import default_bus_file  # imported when needed: anyio & co.
+    from motorbus.manager import default_bus_file  # imported when needed: anyio & co.
 
     explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)

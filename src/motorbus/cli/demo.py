@@ -33,9 +33,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
-from motorbus.bus.manager import BusManager
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD

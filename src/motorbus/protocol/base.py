@@ -13,7 +13,7 @@ import numbers
 import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar, Generic, TypeVar
+from typing import ClassVar, Generic, NamedTuple, TypeVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 
@@ -26,7 +26,10 @@ __all__ = [
     "Command",
     "Direction",
     "Family",
+    "FaultState",
     "FrameShape",
+    "ProjectFinished",
+    "ProjectFinishedMarker",
     "ReplyT_co",
     "as_real",
     "check_choice",
@@ -244,6 +247,30 @@ class FrameShape:
         return cls(length, tuple(pattern))
 
 
+class ProjectFinished(NamedTuple):
+    """The project stepper's bare ``EE DD``: the running project has finished (A0-06).
+
+    A stream item (the reassembler's), not the bus event of the same name: the bus turns it into
+    ``motorbus.bus.events.ProjectFinished`` for its subscribers.  Code should say
+    :data:`ProjectFinishedMarker`, which cannot be confused with the event; the
+    class keeps its runtime name because item kinds are reported by class name
+    (``type(item).__name__``, ``motorbus decode``).
+    """
+
+    raw: bytes = PROJECT_FINISHED_BYTES
+
+
+#: The unambiguous name of the ``EE DD`` stream item (the bus event is another class).
+ProjectFinishedMarker = ProjectFinished
+
+
+class FaultState(NamedTuple):
+    """A device's fault flags as one reply reported them (see ``Command.fault_state``)."""
+
+    device_id: int
+    errors: int
+
+
 #: The type of a command's decoded reply (``Command[Status]``, ``Command[Ack]``).
 ReplyT_co = TypeVar("ReplyT_co", covariant=True)
 
@@ -312,6 +339,20 @@ class Command(abc.ABC, Generic[ReplyT_co]):
     def expects_reply(self) -> bool:
         """True if the device answers this request."""
         return bool(self.reply_lengths())
+
+    @property
+    def device_key(self) -> str:
+        """Stats key of the device this command addresses (``"quad_stepper"``; an LA
+        command answers ``"la:3"``): each family says how its devices are told apart."""
+        return self.family.value
+
+    def fault_state(self, reply: object) -> FaultState | None:
+        """The fault flags a decoded ``reply`` reports, if the family reports any.
+
+        The bus compares them with the device's previous ones and publishes a
+        ``FaultChanged`` event when they differ; it needs no family knowledge for it.
+        """
+        return None
 
 
 #: Field values ``_plain_fields`` leaves alone without a closer look.

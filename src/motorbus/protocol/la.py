@@ -31,6 +31,7 @@ from motorbus.protocol.base import (
     LA_REQUEST_HEADER,
     Command,
     Family,
+    FaultState,
     ReplyT_co,
     check_choice,
     check_int,
@@ -756,6 +757,17 @@ class LACommand(Command[ReplyT_co]):
             and raw[3] in self._status_ids()
             and raw[4] in (CMD_CONTROL, request_cmd)
         )
+
+    @property
+    def device_key(self) -> str:
+        """``"la:ID"`` (``"la:255"`` for a broadcast)."""
+        return f"la:{getattr(self, 'id', BROADCAST_ID)}"
+
+    def fault_state(self, reply: object) -> FaultState | None:
+        """The error flags (B15) of a status reply; ``None`` for other replies."""
+        if isinstance(reply, Status):
+            return FaultState(reply.id, int(reply.errors))
+        return None
 
     def _decode_checked_status(self, raw: bytes) -> Status:
         if not self.matches_reply(raw):

@@ -32,13 +32,14 @@ from motorbus.protocol.base import (
     Command,
     Family,
     FrameShape,
+    ProjectFinished,
+    ProjectFinishedMarker,
     ReplyT_co,
     check_choice,
     check_int,
     format_hex,
     sum8,
 )
-from motorbus.protocol.reassembler import ProjectFinished, ProjectFinishedMarker
 
 __all__ = [
     "DEFAULT_MOTOR",

@@ -74,6 +74,8 @@ from motorbus.protocol.base import (
     Direction,
     Family,
     FrameShape,
+    ProjectFinished,
+    ProjectFinishedMarker,
 )
 
 __all__ = [
@@ -121,23 +123,6 @@ class Frame(NamedTuple):
     family: Family
     direction: Direction
     raw: bytes
-
-
-class ProjectFinished(NamedTuple):
-    """The project stepper's bare ``EE DD``: the running project has finished (A0-06).
-
-    A stream item, not the bus event of the same name: the bus turns it into
-    ``motorbus.bus.events.ProjectFinished`` for its subscribers.  Code should say
-    :data:`ProjectFinishedMarker`, which cannot be confused with the event; the
-    class keeps its runtime name because item kinds are reported by class name
-    (``type(item).__name__``, ``motorbus decode``).
-    """
-
-    raw: bytes = PROJECT_FINISHED_BYTES
-
-
-#: The unambiguous name of the ``EE DD`` stream item (the bus event is another class).
-ProjectFinishedMarker = ProjectFinished
 
 
 class Discarded(NamedTuple):
