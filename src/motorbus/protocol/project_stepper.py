@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
+from motorbus.protocol import ff_aa
 from motorbus.protocol.base import (
     FF_AA,
     PROJECT_FINISHED_BYTES,
@@ -38,8 +39,8 @@ from motorbus.protocol.base import (
     check_choice,
     check_int,
     format_hex,
-    sum8,
 )
+from motorbus.protocol.ff_aa import RotationDirection
 
 __all__ = [
     "DEFAULT_MOTOR",
@@ -102,7 +103,7 @@ __all__ = [
 #: Every request is 11 bytes: FF AA, eight bytes, checksum (A.2).
 REQUEST_SIZE = 11
 #: Every ordinary reply is 6 bytes ``FF AA r2 r3 r4 r5``, no checksum (A.2).
-REPLY_SIZE = 6
+REPLY_SIZE = ff_aa.REPLY_SIZE
 #: The 0x3E reply: 6-byte header + 20-byte base block + 10 x 20-byte step blocks (A.5).
 DUMP_SIZE = 226
 #: Bytes b2..b9 between the header and the checksum of a request (A.2).
@@ -195,17 +196,8 @@ IO_ADDRESS = 0x00
 IO_READ_INPUT = 0x0B
 IO_SET_OUTPUT = 0x0C
 
-_HDR0, _HDR1 = FF_AA[0], FF_AA[1]
-
 
 # -- enums ------------------------------------------------------------------------------
-
-
-class RotationDirection(enum.IntEnum):
-    """Direction byte of cmd 04: 0 forward (正转), 1 reverse (反转) (A.4)."""
-
-    FORWARD = 0
-    REVERSE = 1
 
 
 class StepOutputCode(enum.IntEnum):
@@ -281,23 +273,12 @@ def build_request(b2_to_b9: bytes) -> bytes:
     Raises:
         LocalProtocolError: ``b2_to_b9`` is not 8 bytes long.
     """
-    if len(b2_to_b9) != PAYLOAD_SIZE:
-        raise LocalProtocolError(
-            f"b2_to_b9 must be {PAYLOAD_SIZE} bytes, got {len(b2_to_b9)}",
-            field="b2_to_b9",
-            value=bytes(b2_to_b9),
-        )
-    body = FF_AA + bytes(b2_to_b9)
-    return body + bytes((sum8(body),))
+    return ff_aa.frame_request(b2_to_b9, PAYLOAD_SIZE, "b2_to_b9")
 
 
 def request_is_valid(raw: bytes) -> bool:
     """Return True if ``raw`` is 11 bytes, starts with FF AA and its checksum verifies (A.2)."""
-    return (
-        len(raw) == REQUEST_SIZE
-        and raw[:2] == FF_AA
-        and sum8(raw[: REQUEST_SIZE - 1]) == raw[REQUEST_SIZE - 1]
-    )
+    return ff_aa.request_is_valid(raw, REQUEST_SIZE)
 
 
 def dump_offset(block: int, k: int) -> int:
@@ -352,8 +333,7 @@ def _check_step(step: object) -> int:
     return check_int("step", step, 1, MAX_STEPS)
 
 
-def _shape(*pattern: int | frozenset[int] | None, length: int = REPLY_SIZE) -> FrameShape:
-    return FrameShape.exact(length, _HDR0, _HDR1, *pattern)
+_shape = ff_aa.reply_shape
 
 
 _ANY_PROJECT = frozenset(range(1, MAX_PROJECT + 1))
@@ -433,13 +413,17 @@ class ProjectStepperCommand(Command[ReplyT_co]):
     def _validate(self) -> None:
         """Check the fields the addressing base class does not know; raise LocalProtocolError."""
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return bytes b2..b9 of the request (8 bytes, spare bytes 00, A0-18)."""
         raise NotImplementedError
 
     def encode(self) -> bytes:
         """Return the exact 11-byte request, checksum included (A.2)."""
-        return build_request(self.payload())
+        return build_request(self.body())
+
+    def payload(self) -> bytes:
+        """The old name of :meth:`body` (bytes b2..b9), kept for older callers."""
+        return self.body()
 
     def reply_lengths(self) -> tuple[int, ...]:
         """Return the reply length: 6, or 226 for ReadProject (A.2)."""
@@ -482,7 +466,7 @@ class _ProjectCommand(ProjectStepperCommand[ReplyT_co]):
         _check_project(self.project)
         self._validate()
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``OP P 00 00 00 00 00 00``."""
         return bytes((self.OPCODE, self.project)) + bytes(6)
 
@@ -502,13 +486,13 @@ class _MotorCommand(AckCommand):
         self._validate()
         check_motor(self.motor)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         """Return b4..b9 (6 bytes)."""
         return bytes(6)
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``M CMD`` + parameters."""
-        return bytes((self.motor, self.CMD)) + self._params()
+        return bytes((self.motor, self.CMD)) + self.params()
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
         """Return the shape ``FF AA M CMD 00 00`` (A.7)."""
@@ -528,13 +512,13 @@ class _StepCommand(AckCommand):
         self._validate()
         check_motor(self.motor)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         """Return b4..b8 (5 bytes)."""
         raise NotImplementedError
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``M CMD`` + parameters + ``S``."""
-        return bytes((self.motor, self.CMD)) + self._params() + bytes((self.step,))
+        return bytes((self.motor, self.CMD)) + self.params() + bytes((self.step,))
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
         """Return the shape ``FF AA M CMD 00 S`` (A.7)."""
@@ -558,7 +542,7 @@ class SelectProject(_ProjectCommand[Ack], AckCommand):
     def _validate(self) -> None:
         check_int("total_steps", self.total_steps, 1, MAX_STEPS)
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``6E P N 00 00 00 00 00``."""
         return bytes((OP_SELECT, self.project, self.total_steps)) + bytes(5)
 
@@ -583,7 +567,7 @@ class StepLoop(AckCommand):
         check_int("end", self.end, self.start, MAX_STEPS)
         check_int("count", self.count, 1, MAX_LOOP_COUNT)
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``7E start end count 00 00 00 00``."""
         return bytes((OP_STEP_LOOP, self.start, self.end, self.count)) + bytes(4)
 
@@ -609,7 +593,7 @@ class RepeatCount(AckCommand):
         """True if the project repeats without end (count 255)."""
         return self.count == REPEAT_FOREVER
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``8E C 00 00 00 00 00 00``."""
         return bytes((OP_REPEAT, self.count)) + bytes(6)
 
@@ -631,7 +615,7 @@ class StartProject(_ProjectCommand[Ack], AckCommand):
 class StopProject(AckCommand):
     """0x5E: stop the running project; no ``EE DD`` follows (A.4, A0-18)."""
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``5E 00 00 00 00 00 00 00``."""
         return bytes((OP_STOP,)) + bytes(7)
 
@@ -691,7 +675,7 @@ class SetMode4(AckCommand):
     def __post_init__(self) -> None:
         check_choice("value", self.value, MODE4_VALUES, "mode 4 run mode, A0-13")
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``9E V 00 00 00 00 00 00``."""
         return bytes((OP_MODE4, self.value)) + bytes(6)
 
@@ -714,7 +698,7 @@ class SetPowerOnHoming(AckCommand):
                 value=self.enabled,
             )
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``AE V 00 00 00 00 00 00``."""
         return bytes((OP_POWER_ON_HOMING, int(self.enabled))) + bytes(6)
 
@@ -739,7 +723,7 @@ class MotorSetup(_MotorCommand):
         check_int("subdivision", self.subdivision, 1, MAX_U16)
         check_int("step_angle_x100", self.step_angle_x100, 1, MAX_STEP_ANGLE_X100)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return _u16(self.subdivision) + bytes((self.step_angle_x100,)) + bytes(3)
 
 
@@ -754,7 +738,7 @@ class DistancePerRev(_MotorCommand):
     def _validate(self) -> None:
         check_int("value", self.value, 1, MAX_U24)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return _u24(self.value) + bytes(3)
 
 
@@ -773,7 +757,7 @@ class RunDistance(_StepCommand):
     def _validate(self) -> None:
         check_int("distance", self.distance, 0, MAX_U24)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return _u24(self.distance) + bytes(2)
 
 
@@ -792,7 +776,7 @@ class DirectionAndStartFrequency(_StepCommand):
         object.__setattr__(self, "direction", RotationDirection(d))
         check_int("start_hz", self.start_hz, 0, MAX_U16)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return bytes((self.direction,)) + _u16(self.start_hz) + bytes(2)
 
 
@@ -810,7 +794,7 @@ class AccelAndSpeed(_StepCommand):
         check_int("accel_hz", self.accel_hz, 0, MAX_U16)
         check_int("speed_rpm", self.speed_rpm, 0, MAX_U16)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return _u16(self.accel_hz) + _u16(self.speed_rpm) + bytes(1)
 
 
@@ -827,7 +811,7 @@ class StepOutput(_StepCommand):
         c = check_choice("code", self.code, tuple(StepOutputCode), "StepOutputCode, A0-10")
         object.__setattr__(self, "code", StepOutputCode(c))
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return bytes((self.code,)) + bytes(4)
 
 
@@ -843,7 +827,7 @@ class StepDelay(_StepCommand):
     def _validate(self) -> None:
         check_int("delay_ms", self.delay_ms, 0, MAX_U24)
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return _u24(self.delay_ms) + bytes(2)
 
 
@@ -857,7 +841,7 @@ class _GatingCommand(_StepCommand):
         n = check_choice("input_number", self.input_number, tuple(GatingInput), "A0-11")
         object.__setattr__(self, "input_number", GatingInput(n))
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return bytes((self.input_number,)) + bytes(4)
 
 
@@ -931,7 +915,7 @@ class StopMode(_MotorCommand):
         m = check_choice("mode", self.mode, tuple(StopBehavior), "0 slow, 1 immediate")
         object.__setattr__(self, "mode", StopBehavior(m))
 
-    def _params(self) -> bytes:
+    def params(self) -> bytes:
         return bytes((self.mode,)) + bytes(5)
 
 
@@ -960,7 +944,7 @@ class SetOutput(AckCommand):
         lv = check_choice("level", self.level, tuple(OutputLevel), "0 inactive, 1 active")
         object.__setattr__(self, "level", OutputLevel(lv))
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``00 0C Port Level 00 00 00 00``."""
         return bytes((IO_ADDRESS, IO_SET_OUTPUT, self.port, self.level)) + bytes(4)
 
@@ -978,7 +962,7 @@ class ReadInput(ProjectStepperCommand[bool]):
     def __post_init__(self) -> None:
         check_int("input_number", self.input_number, 1, MAX_INPUT)
 
-    def payload(self) -> bytes:
+    def body(self) -> bytes:
         """Return ``00 0B In 00 00 00 00 00``."""
         return bytes((IO_ADDRESS, IO_READ_INPUT, self.input_number)) + bytes(5)
 

@@ -501,7 +501,7 @@ class ProjectStepperModel(DeviceModel):
 
     def _dispatch(self, cmd: ProjectStepperCommand[object], now: float) -> bytes:
         cur = self._current_project
-        payload = cmd.payload()
+        payload = cmd.body()
         match cmd:
             case SelectProject(project=p, total_steps=n):
                 self._current_project = p
