@@ -43,7 +43,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus import (
+    BACKENDS,
+    DEFAULT_BACKEND,
+    Bus,
+    DataCallback,
+    LostCallback,
+    Priority,
+    Transport,
+    TransportStats,
+)
 from motorbus.cli.common import (
     CLI_HOST_MARGIN_S,
     LA_BAUD,
@@ -62,8 +71,6 @@ from motorbus.protocol import framelog, la, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Direction, Family, format_hex, parse_hex
 from motorbus.protocol.describe import KIND_FRAME, Description, describe
 from motorbus.protocol.reassembler import Frame, Item, Reassembler
-from motorbus.transport.base import DataCallback, LostCallback, Transport, TransportStats
-from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND
 
 __all__ = ["Recorder", "load_records", "register", "run_capture", "run_replay"]
 

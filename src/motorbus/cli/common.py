@@ -23,7 +23,7 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, TextIO
 
-from motorbus.bus.bus import Bus
+from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, Transport, open_transport
 from motorbus.cli.main import UsageError
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError
@@ -31,8 +31,6 @@ from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
 from motorbus.protocol.ids import IdListError, parse_id_list
-from motorbus.transport.base import Transport
-from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, open_transport
 
 __all__ = [
     "BACKEND_ENV",
@@ -147,7 +145,7 @@ def _bus_table(args: argparse.Namespace, *, port_given: bool) -> Mapping[str, An
     Raises:
         UsageError: the file is missing, not TOML, or has no such bus (exit code 2).
     """
-    from motorbus.manager import default_bus_file  # imported when needed: anyio & co.
+    from motorbus import default_bus_file  # imported when needed: anyio & co.
 
     explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)

@@ -33,15 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
+from motorbus import BusManager, Stream
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
-from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
-from motorbus.sim.analysis import tick_timing
-from motorbus.sim.process import SimProcess
-from motorbus.streams import Stream
+from motorbus.sim import SimProcess, tick_timing
 
 __all__ = ["register", "run"]
 

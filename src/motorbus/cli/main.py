@@ -108,12 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(f"motorbus.cli.{name}")
-        except ModuleNotFoundError as err:
-            if err.name and err.name.startswith("motorbus.cli"):
-                continue  # command not built yet in this checkout
-            raise
+        # A command whose module does not import is a broken install: say so, never
+        # leave the command out of the help as if it did not exist.
+        module = importlib.import_module(f"motorbus.cli.{name}")
         module.register(sub)
     _plain_help(parser)
     return parser
