@@ -1,4 +1,9 @@
-"""The dependency direction of STYLE.md: errors <- protocol <- bus <- devices <- cli."""
+"""The dependency direction: errors <- protocol <- transport <- bus <- devices <- streams
+<- manager <- cli, with the simulator beside the library (protocol and transport only).
+
+Every import between motorbus subpackages points down this list; ``motorbus.bus.manager``
+(a re-export of ``motorbus.manager`` kept for old imports) is the one exception.
+"""
 
 from __future__ import annotations
 
@@ -37,14 +42,14 @@ def imports_of(path: Path) -> set[str]:
 def test_pure_layers_import_no_io_and_no_clock() -> None:
     forbidden = {"asyncio", "anyio", "serial", "time", "socket", "threading", "os"}
     for layer in ("protocol",):
-        for path in (SRC / layer).glob("*.py"):
+        for path in (SRC / layer).rglob("*.py"):
             bad = {n.split(".")[0] for n in imports_of(path)} & forbidden
             assert not bad, f"{path.name} imports {bad}"
 
 
 def test_library_modules_do_not_import_sim_or_cli() -> None:
     for layer in ("protocol", "bus", "transport", "devices"):
-        for path in (SRC / layer).glob("*.py"):
+        for path in (SRC / layer).rglob("*.py"):
             bad = {n for n in imports_of(path) if n.startswith(("motorbus.sim", "motorbus.cli"))}
             assert not bad, f"{layer}/{path.name} imports {bad}"
 
@@ -56,3 +61,95 @@ def test_simulator_models_are_pure() -> None:
         if path.exists():
             bad = {n.split(".")[0] for n in imports_of(path)} & forbidden
             assert not bad, f"sim/{name} imports {bad}"
+
+
+_LIBRARY_BASE = {"errors", "protocol", "validation", "realtime", "shutdown"}
+#: What each part of motorbus may import from the others (its own part always).
+ALLOWED: dict[str, set[str]] = {
+    "errors": set(),
+    "protocol": {"errors"},
+    "validation": {"errors", "protocol"},
+    "realtime": {"errors"},
+    "shutdown": {"errors"},
+    "transport": {"errors", "protocol", "validation"},
+    "bus": _LIBRARY_BASE | {"transport"},
+    "devices": _LIBRARY_BASE | {"transport", "bus"},
+    "streams": _LIBRARY_BASE | {"transport", "bus", "devices"},
+    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "sim": {"errors", "protocol", "transport"},
+}
+#: Re-exports kept so that old import paths work; nothing else may point upwards.
+SHIMS = {"bus/manager.py"}
+
+
+def _part(path: Path) -> str:
+    rel = path.relative_to(SRC)
+    return rel.parts[0].removesuffix(".py")
+
+
+def _motorbus_parts(path: Path) -> set[str]:
+    parts = set()
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    for node in ast.walk(tree):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module]
+            if node.module == "motorbus":
+                names = [f"motorbus.{a.name}" for a in node.names]
+        for name in names:
+            bits = name.split(".")
+            if bits[0] == "motorbus" and len(bits) > 1:
+                parts.add(bits[1])
+    return parts
+
+
+def test_every_import_points_down_the_layers() -> None:
+    bad = []
+    for path in SRC.rglob("*.py"):
+        part = _part(path)
+        if part not in ALLOWED or str(path.relative_to(SRC)) in SHIMS:
+            continue
+        for target in _motorbus_parts(path) - {part} - ALLOWED[part]:
+            bad.append(f"{path.relative_to(SRC)} -> {target}")
+    assert bad == []
+
+
+def test_the_bus_imports_no_devices_streams_or_manager() -> None:
+    for path in (SRC / "bus").rglob("*.py"):
+        if str(path.relative_to(SRC)) in SHIMS:
+            continue
+        assert not _motorbus_parts(path) & {"devices", "streams", "manager", "sim", "cli"}
+
+
+def test_the_bus_knows_no_family_module() -> None:
+    # Each family answers for itself (Command.device_key, Command.fault_state).
+    families = ("la", "project_stepper", "quad_stepper")
+    for path in (SRC / "bus").rglob("*.py"):
+        names = imports_of(path)
+        bad = {n for n in names if n.startswith(tuple(f"motorbus.protocol.{f}" for f in families))}
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module == "motorbus.protocol":
+                bad |= {a.name for a in node.names if a.name in families}
+        assert not bad, f"bus/{path.name} imports {bad}"
+
+
+def test_family_codecs_do_not_reach_into_the_reassembler() -> None:
+    # The reassembler cuts frames using the families' facts, never the other way round.
+    for name in ("la", "project_stepper", "quad_stepper"):
+        paths = list((SRC / "protocol").glob(f"{name}.py")) + list(
+            (SRC / "protocol" / name).rglob("*.py")
+        )
+        assert paths
+        for path in paths:
+            assert "motorbus.protocol.reassembler" not in imports_of(path), path
+
+
+def test_the_old_manager_path_is_the_same_class() -> None:
+    from motorbus import BusManager
+    from motorbus.bus.manager import BusManager as Old
+    from motorbus.manager import BusManager as New
+
+    assert Old is New is BusManager

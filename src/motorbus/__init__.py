@@ -2,7 +2,8 @@
 
 The supported public API.  The sans-I/O protocol values live in
 ``motorbus.protocol.la``, ``motorbus.protocol.project_stepper`` and
-``motorbus.protocol.quad_stepper``; the simulators in ``motorbus.sim``.
+``motorbus.protocol.quad_stepper`` (and the other ``motorbus.protocol`` modules); the
+simulators in ``motorbus.sim``.  The command line (``motorbus.cli``) uses nothing else.
 """
 
 from __future__ import annotations
@@ -10,67 +11,87 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-if TYPE_CHECKING:
-    from motorbus.bus.bus import Bus, BusState, Priority
-    from motorbus.bus.events import BusStateChanged, FaultChanged, ProjectFinished, QuadDone
-    from motorbus.bus.manager import BusManager, DeviceStop, StopReport
-    from motorbus.devices.la import InspireLA, scan
-    from motorbus.devices.project_stepper import (
-        ProjectStepper,
-        ProjectStopped,
-        ProjectVerifyError,
-    )
-    from motorbus.devices.quad_stepper import QuadStepper
-    from motorbus.errors import (
-        BusClosedError,
-        DeviceFaultError,
-        LocalProtocolError,
-        MotorbusError,
-        NotSentError,
-        RemoteProtocolError,
-        ReplyTimeoutError,
-    )
-    from motorbus.protocol.base import Family
-    from motorbus.shutdown import install_signal_handlers, run
-    from motorbus.streams import SafeAction, Stream, StreamEnded, Streamer
-    from motorbus.transport.serial import open_transport
+__version__ = "0.1.0"
 
-# Loaded on first use, so that ``import motorbus.protocol`` (sans-I/O) does not pull in
-# asyncio and the serial backends through this package's __init__.
-_LAZY = {
-    "Bus": "motorbus.bus.bus",
-    "BusState": "motorbus.bus.bus",
-    "Priority": "motorbus.bus.bus",
-    "BusStateChanged": "motorbus.bus.events",
-    "FaultChanged": "motorbus.bus.events",
-    "ProjectFinished": "motorbus.bus.events",
-    "QuadDone": "motorbus.bus.events",
-    "BusManager": "motorbus.bus.manager",
-    "DeviceStop": "motorbus.bus.manager",
-    "StopReport": "motorbus.bus.manager",
-    "NotSentError": "motorbus.errors",
-    "install_signal_handlers": "motorbus.shutdown",
-    "run": "motorbus.shutdown",
-    "StreamEnded": "motorbus.streams",
-    "InspireLA": "motorbus.devices.la",
-    "scan": "motorbus.devices.la",
-    "ProjectStepper": "motorbus.devices.project_stepper",
-    "ProjectStopped": "motorbus.devices.project_stepper",
-    "ProjectVerifyError": "motorbus.devices.project_stepper",
-    "QuadStepper": "motorbus.devices.quad_stepper",
-    "RealtimeReport": "motorbus.realtime",
-    "BusClosedError": "motorbus.errors",
-    "DeviceFaultError": "motorbus.errors",
-    "LocalProtocolError": "motorbus.errors",
-    "MotorbusError": "motorbus.errors",
-    "RemoteProtocolError": "motorbus.errors",
-    "ReplyTimeoutError": "motorbus.errors",
-    "Family": "motorbus.protocol.base",
-    "SafeAction": "motorbus.streams",
-    "Stream": "motorbus.streams",
-    "Streamer": "motorbus.streams",
-    "open_transport": "motorbus.transport.serial",
+#: The public names and the module each is loaded from on first use, so that
+#: ``import motorbus.protocol`` (sans-I/O) does not pull in asyncio and the serial
+#: backends through this package's __init__.  The one list: ``__all__`` is made from it,
+#: and tests/test_public_api.py checks that the ``TYPE_CHECKING`` imports below (which
+#: type checkers read) name exactly these.
+_EXPORTS: dict[str, tuple[str, ...]] = {
+    "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "Priority"),
+    "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
+    "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
+    "motorbus.devices.project_stepper": ("ProjectStepper",),
+    "motorbus.devices.quad_stepper": ("QuadStepper",),
+    "motorbus.errors": (
+        "BusClosedError",
+        "LocalProtocolError",
+        "MotorbusError",
+        "NotSentError",
+        "ProjectStopped",
+        "ProjectVerifyError",
+        "RemoteProtocolError",
+        "ReplyTimeoutError",
+        "StreamEnded",
+    ),
+    "motorbus.manager": ("BusManager", "DeviceStop", "StopReport", "default_bus_file"),
+    "motorbus.protocol.base": ("Family",),
+    "motorbus.realtime": ("RealtimeReport",),
+    "motorbus.shutdown": ("install_signal_handlers", "run"),
+    "motorbus.streams": ("PERIOD_MAX_S", "PERIOD_MIN_S", "SafeAction", "Stream", "Streamer"),
+    "motorbus.transport.base": ("DataCallback", "LostCallback", "Transport", "TransportStats"),
+    "motorbus.transport.serial": ("BACKENDS", "DEFAULT_BACKEND", "open_transport"),
 }
+
+if TYPE_CHECKING:
+    from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
+    from motorbus.bus.bus import Bus as Bus
+    from motorbus.bus.bus import BusState as BusState
+    from motorbus.bus.bus import Priority as Priority
+    from motorbus.bus.events import BusStateChanged as BusStateChanged
+    from motorbus.bus.events import FaultChanged as FaultChanged
+    from motorbus.bus.events import ProjectFinished as ProjectFinished
+    from motorbus.bus.events import QuadDone as QuadDone
+    from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
+    from motorbus.devices.la import InspireLA as InspireLA
+    from motorbus.devices.la import ScanReport as ScanReport
+    from motorbus.devices.la import scan as scan
+    from motorbus.devices.project_stepper import ProjectStepper as ProjectStepper
+    from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
+    from motorbus.errors import BusClosedError as BusClosedError
+    from motorbus.errors import LocalProtocolError as LocalProtocolError
+    from motorbus.errors import MotorbusError as MotorbusError
+    from motorbus.errors import NotSentError as NotSentError
+    from motorbus.errors import ProjectStopped as ProjectStopped
+    from motorbus.errors import ProjectVerifyError as ProjectVerifyError
+    from motorbus.errors import RemoteProtocolError as RemoteProtocolError
+    from motorbus.errors import ReplyTimeoutError as ReplyTimeoutError
+    from motorbus.errors import StreamEnded as StreamEnded
+    from motorbus.manager import BusManager as BusManager
+    from motorbus.manager import DeviceStop as DeviceStop
+    from motorbus.manager import StopReport as StopReport
+    from motorbus.manager import default_bus_file as default_bus_file
+    from motorbus.protocol.base import Family as Family
+    from motorbus.realtime import RealtimeReport as RealtimeReport
+    from motorbus.shutdown import install_signal_handlers as install_signal_handlers
+    from motorbus.shutdown import run as run
+    from motorbus.streams import PERIOD_MAX_S as PERIOD_MAX_S
+    from motorbus.streams import PERIOD_MIN_S as PERIOD_MIN_S
+    from motorbus.streams import SafeAction as SafeAction
+    from motorbus.streams import Stream as Stream
+    from motorbus.streams import Streamer as Streamer
+    from motorbus.transport.base import DataCallback as DataCallback
+    from motorbus.transport.base import LostCallback as LostCallback
+    from motorbus.transport.base import Transport as Transport
+    from motorbus.transport.base import TransportStats as TransportStats
+    from motorbus.transport.serial import BACKENDS as BACKENDS
+    from motorbus.transport.serial import DEFAULT_BACKEND as DEFAULT_BACKEND
+    from motorbus.transport.serial import open_transport as open_transport
+
+_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
+
+__all__ = sorted([*_LAZY, "__version__"])
 
 
 def __getattr__(name: str) -> Any:
@@ -82,40 +103,5 @@ def __getattr__(name: str) -> Any:
     return value
 
 
-__version__ = "0.1.0"
-
-__all__ = [
-    "Bus",
-    "BusClosedError",
-    "BusManager",
-    "BusState",
-    "BusStateChanged",
-    "DeviceFaultError",
-    "DeviceStop",
-    "Family",
-    "FaultChanged",
-    "InspireLA",
-    "LocalProtocolError",
-    "MotorbusError",
-    "NotSentError",
-    "Priority",
-    "ProjectFinished",
-    "ProjectStepper",
-    "ProjectStopped",
-    "ProjectVerifyError",
-    "QuadDone",
-    "QuadStepper",
-    "RealtimeReport",
-    "RemoteProtocolError",
-    "ReplyTimeoutError",
-    "SafeAction",
-    "StopReport",
-    "Stream",
-    "StreamEnded",
-    "Streamer",
-    "__version__",
-    "install_signal_handlers",
-    "open_transport",
-    "run",
-    "scan",
-]
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

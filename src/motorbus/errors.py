@@ -1,6 +1,23 @@
-"""The motorbus exception tree.
+"""The motorbus exception tree: every exception class motorbus defines lives here.
 
-``MotorbusError`` is the root.  Two families follow h11's split:
+``MotorbusError`` is the root, so ``except MotorbusError`` catches everything raised
+on purpose.  The tree (python-standard bases in brackets)::
+
+    Exception (Python standard library)
+     +-- MotorbusError
+         +-- LocalProtocolError [ValueError]   you asked for what the protocol cannot say
+         |   +-- IdListError                    an ID list ("1-3,7") the grammar refuses
+         +-- RemoteProtocolError                the peer sent a frame that does not fit
+         +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
+         +-- NotSentError                       dropped before sending (``start_by`` passed)
+         +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
+         +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
+         +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
+         +-- ProjectVerifyError                 a read-back project differs from the upload
+         +-- UsageError                         CLI: bad command-line input (exit code 2)
+         +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
+
+Two families follow h11's split:
 
 * ``LocalProtocolError``: *you* asked for something the protocol cannot express
   (a value out of range, a wrong type).  It is also a ``ValueError`` so that
@@ -9,19 +26,33 @@
 * ``RemoteProtocolError``: the *peer* sent bytes that do not make sense for the
   request that was made.  It carries the raw frame.
 
-The bus adds timeouts, closed ports and device faults on top.
+The bus adds timeouts and closed ports on top; the devices, streams and CLI add the
+rest.  The classes are also importable from the modules that raise them
+(``motorbus.streams.StreamEnded``, ``motorbus.devices.project_stepper.ProjectStopped``,
+``motorbus.cli.main.UsageError``, ...).
+
+A device fault is not an exception: the LA reports latched faults in its status
+replies (``Status.faults``) and the bus publishes ``FaultChanged`` events; a request
+to a faulted actuator still returns its decoded reply.
 """
 
 from __future__ import annotations
 
+import warnings
+
 __all__ = [
     "BusClosedError",
-    "DeviceFaultError",
+    "CommandFailed",
+    "IdListError",
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
+    "ProjectStopped",
+    "ProjectVerifyError",
     "RemoteProtocolError",
     "ReplyTimeoutError",
+    "StreamEnded",
+    "UsageError",
 ]
 
 
@@ -39,6 +70,37 @@ class LocalProtocolError(MotorbusError, ValueError):
         super().__init__(message)
         self.field = field
         self.value = value
+
+
+class IdListError(LocalProtocolError):
+    """An ID list that the grammar refuses.
+
+    Attributes:
+        problem: ``"syntax"`` (an item is no ID or range), ``"range"`` (an ID outside
+            the allowed IDs), ``"reversed"`` (``LAST < FIRST``) or ``"duplicate"``.
+        reason: what is wrong, without the caller's context, e.g.
+            ``"reversed range 5-3: write 3-5"``.
+        item: the offending item as written (``"5-3"``); the ID for ``"duplicate"``.
+        first, last: the range's bounds (``"reversed"``), else ``None``.
+    """
+
+    def __init__(
+        self,
+        reason: str,
+        *,
+        problem: str,
+        item: str,
+        first: int | None = None,
+        last: int | None = None,
+        field: str | None = None,
+        value: object = None,
+    ) -> None:
+        super().__init__(reason, field=field, value=value)
+        self.reason = reason
+        self.problem = problem
+        self.item = item
+        self.first = first
+        self.last = last
 
 
 class RemoteProtocolError(MotorbusError):
@@ -61,9 +123,42 @@ class BusClosedError(MotorbusError, ConnectionError):
     """The bus (or its port) is closed or was lost while a request was pending."""
 
 
-class DeviceFaultError(MotorbusError):
-    """A device reported a fault that prevents the requested action."""
+class StreamEnded(MotorbusError):
+    """Raised by ``Stream.wait`` when a stream ended on an error (the cause is chained)."""
 
-    def __init__(self, message: str, *, raw: bytes = b"") -> None:
-        super().__init__(message)
-        self.raw = raw
+
+class ProjectStopped(MotorbusError):
+    """``run_project`` ended because the project was stopped (``stop_project``)."""
+
+
+class ProjectVerifyError(MotorbusError):
+    """The project read back through 0x3E differs from the one uploaded."""
+
+
+class UsageError(MotorbusError):
+    """Bad command-line input; reported as one line with exit code 2."""
+
+
+class CommandFailed(MotorbusError):
+    """The command ran and failed for the reason in the message; exit code 1."""
+
+
+class _NeverRaisedDeviceFault(MotorbusError):
+    """What ``DeviceFaultError`` was: never raised by motorbus (see ``__getattr__``)."""
+
+
+def __getattr__(name: str) -> type[MotorbusError]:
+    # DeviceFaultError was exported but nothing ever raised it: an LA with a latched
+    # fault still answers, and callers get its Status (and FaultChanged events).
+    # Raising it now would turn those answers into errors, a behaviour change, so it
+    # left the public API.  The old name still imports, with a warning, and since
+    # nothing raises it an ``except DeviceFaultError`` keeps catching nothing.
+    if name == "DeviceFaultError":
+        warnings.warn(
+            "motorbus.errors.DeviceFaultError is never raised and is no longer part of "
+            "the API; device faults are reported in Status.faults and FaultChanged events",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return _NeverRaisedDeviceFault
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

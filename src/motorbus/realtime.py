@@ -18,7 +18,7 @@ with how to grant it, and the program carries on normally.  The returned
 
 ``MOTORBUS_REALTIME=1`` (or a priority 2..99) in the environment, or ``--realtime[=PRIO]``
 on a command line, turns it on when the first :class:`~motorbus.bus.bus.Bus` or
-:class:`~motorbus.bus.manager.BusManager` of the process opens (:func:`on_bus_open`).
+:class:`~motorbus.manager.BusManager` of the process opens (:func:`on_bus_open`).
 docs/realtime.md says how to grant the rights, what it costs and what can go wrong.
 """
 

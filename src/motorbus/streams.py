@@ -51,7 +51,7 @@ from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError
+from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_flag, wire_time
 from motorbus.shutdown import deferred_interrupts
@@ -62,6 +62,7 @@ __all__ = [
     "PERIOD_MIN_S",
     "SafeAction",
     "Stream",
+    "StreamEnded",
     "StreamStats",
     "Streamer",
 ]
@@ -134,10 +135,6 @@ class StreamStats:
             "jitter_p99_us": j["p99_us"],
             "jitter_max_us": j["max_us"],
         }
-
-
-class StreamEnded(MotorbusError):
-    """Raised by ``Stream.wait`` when a stream ended on an error (the cause is chained)."""
 
 
 class Stream:

@@ -50,7 +50,7 @@ import os
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
 from motorbus.bus.events import (
@@ -69,10 +69,11 @@ from motorbus.errors import (
     RemoteProtocolError,
     ReplyTimeoutError,
 )
-from motorbus.protocol import la
+from motorbus.protocol import families
 from motorbus.protocol.base import (
     Command,
     Family,
+    FaultState,
     FrameShape,
     check_flag,
     check_int,
@@ -80,8 +81,7 @@ from motorbus.protocol.base import (
     format_hex,
     wire_time,
 )
-from motorbus.protocol.reassembler import Discarded, Frame, Reassembler
-from motorbus.protocol.reassembler import ProjectFinished as ProjectFinishedItem
+from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from motorbus.transport.base import Transport
 from motorbus.validation import (
     HOST_MARGIN_MAX_S,
@@ -98,18 +98,15 @@ __all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
 
 log = logging.getLogger("motorbus.bus")
 
+#: The decoded reply type of the command given to ``request`` / ``submit``.
+R = TypeVar("R")
+
 #: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
 #: (LA manual 3.4.2, docs/protocols.md C.6).
 MIN_SPACING_S = 1e-3
-#: Worst-case device turnaround, request end to reply start.  LA: "120 us typical, up
-#: to 800 us" (manual 3.4.2).  The stepper manuals give none; A0-14 recommends a
-#: timeout of at least 50 ms for a 6-byte reply at 9600 baud, which 11.5 ms (request)
-#: + 6.25 ms (reply) + 30 ms turnaround + the margin meets.
-DEFAULT_TURNAROUND: Mapping[Family, float] = {
-    Family.LA: 800e-6,
-    Family.PROJECT_STEPPER: 30e-3,
-    Family.QUAD_STEPPER: 30e-3,
-}
+#: Worst-case device turnaround, request end to reply start, per family: the registry's
+#: ``FamilyInfo.turnaround_s`` (protocol/families.py says where each figure comes from).
+DEFAULT_TURNAROUND: Mapping[Family, float] = families.DEFAULT_TURNAROUND
 #: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
 #: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
 #: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
@@ -163,17 +160,15 @@ class BusState(enum.Enum):
     LOST = "lost"  # the port went away; reconnecting if enabled
 
 
-def device_key(cmd: Command) -> str:
-    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``..."""
-    if cmd.family is Family.LA:
-        address: int = getattr(cmd, "id", la.BROADCAST_ID)
-        return f"la:{address}"
-    return str(cmd.family.value)
+def device_key(cmd: Command[object]) -> str:
+    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``...
+    (``Command.device_key``; kept as a function for older callers)."""
+    return cmd.device_key
 
 
 #: Called at the moment a queued frame is written: returns the command to send now
 #: (rebuilt from what is still wanted) or None to drop it unsent.
-Refresh = Callable[[], "Command | None"]
+Refresh = Callable[[], "Command[object] | None"]
 #: A source of reserved bus windows: given the time now, the earliest (start, end) window
 #: that ends after now, or None.
 ReservationSource = Callable[[float], "tuple[float, float] | None"]
@@ -183,7 +178,7 @@ ReservationSource = Callable[[float], "tuple[float, float] | None"]
 class _Job:
     """One request travelling through the bus."""
 
-    cmd: Command
+    cmd: Command[object]
     raw: bytes
     future: asyncio.Future[Any]
     priority: int
@@ -208,7 +203,7 @@ class _Job:
 
 @dataclass(slots=True)
 class _Timeout:
-    cmd: Command
+    cmd: Command[object]
     key: str
     until: float  # remembered until then, to recognise its late reply
     deadline: float  # the deadline it missed
@@ -434,7 +429,7 @@ class Bus:
 
     # -- requests ----------------------------------------------------------------
 
-    def reply_budget(self, cmd: Command, request_size: int | None = None) -> float:
+    def reply_budget(self, cmd: Command[object], request_size: int | None = None) -> float:
         """Seconds from the completed write of ``cmd`` to its reply deadline.
 
         Wire time of the request and of its longest possible reply at this bus's baud,
@@ -455,12 +450,12 @@ class Bus:
 
     async def request(
         self,
-        cmd: Command,
+        cmd: Command[R],
         *,
         timeout: float | None = None,
         retries: int | None = None,
         priority: Priority = Priority.NORMAL,
-    ) -> Any:
+    ) -> R:
         """Send ``cmd`` and return its decoded reply (``None`` if it expects none).
 
         Args:
@@ -487,7 +482,7 @@ class Bus:
 
     def submit(
         self,
-        cmd: Command,
+        cmd: Command[R],
         *,
         timeout: float | None = None,
         retries: int | None = None,
@@ -495,7 +490,7 @@ class Bus:
         start_by: float | None = None,
         reserved: bool = False,
         refresh: Refresh | None = None,
-    ) -> asyncio.Future[Any]:
+    ) -> asyncio.Future[R]:
         """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
 
         Returns the future of its decoded reply (``request`` awaits it).  Cancelling the
@@ -546,7 +541,7 @@ class Bus:
             seq=next(self._seq),
             timeout=budget,
             retries_left=n_retries,
-            key=device_key(cmd),
+            key=cmd.device_key,
             reserved=reserved,
             refresh=refresh,
         )
@@ -559,7 +554,7 @@ class Bus:
         self._pump()  # an idle bus sends right here
         return job.future
 
-    async def send(self, cmd: Command, *, priority: Priority = Priority.NORMAL) -> None:
+    async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
         await self.request(cmd, priority=priority)
 
@@ -848,7 +843,7 @@ class Bus:
                 by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
                 stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
-            elif type(item) is ProjectFinishedItem:
+            elif type(item) is ProjectFinishedMarker:
                 self._publish(ProjectFinished(self.name, now))
 
     def _on_frame(self, frame: Frame, start: int, now: float) -> None:
@@ -896,7 +891,7 @@ class Bus:
             return
         if job.cmd.done_shapes():
             self._watch_done(_done_watch(job.cmd))
-        self._observe(value, now)
+        self._observe(job.cmd.fault_state(value), value, now)
         self._finish(job, value)
 
     def _watch_done(self, watch: _DoneWatch) -> None:
@@ -944,14 +939,16 @@ class Bus:
                 return True
         return False
 
-    def _observe(self, value: Any, now: float) -> None:
-        """Turn LA status replies into fault-change events."""
-        if isinstance(value, la.Status):
-            errors = int(value.errors)
-            before = self._last_errors.get(value.id, 0)
-            self._last_errors[value.id] = errors
-            if errors != before:
-                self._publish(FaultChanged(self.name, now, value.id, before, errors, value))
+    def _observe(self, fault: FaultState | None, value: Any, now: float) -> None:
+        """Turn the fault flags a reply reports (``Command.fault_state``: the LA's
+        status replies) into fault-change events."""
+        if fault is not None:
+            before = self._last_errors.get(fault.device_id, 0)
+            self._last_errors[fault.device_id] = fault.errors
+            if fault.errors != before:
+                self._publish(
+                    FaultChanged(self.name, now, fault.device_id, before, fault.errors, value)
+                )
 
     def _publish(self, event: Any) -> None:
         self.stats.events += 1
@@ -1048,6 +1045,6 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
         )
 
 
-def _done_watch(cmd: Command) -> _DoneWatch:
+def _done_watch(cmd: Command[object]) -> _DoneWatch:
     led = getattr(cmd, "led", None)
     return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)

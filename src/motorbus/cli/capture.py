@@ -43,7 +43,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus import (
+    BACKENDS,
+    DEFAULT_BACKEND,
+    Bus,
+    DataCallback,
+    LostCallback,
+    Priority,
+    Transport,
+    TransportStats,
+)
 from motorbus.cli.common import (
     CLI_HOST_MARGIN_S,
     LA_BAUD,
@@ -62,8 +71,6 @@ from motorbus.protocol import framelog, la, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Direction, Family, format_hex, parse_hex
 from motorbus.protocol.describe import KIND_FRAME, Description, describe
 from motorbus.protocol.reassembler import Frame, Item, Reassembler
-from motorbus.transport.base import DataCallback, LostCallback, Transport, TransportStats
-from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND
 
 __all__ = ["Recorder", "load_records", "register", "run_capture", "run_replay"]
 
@@ -80,7 +87,7 @@ FAMILY_BAUD = {
 }
 #: Exit status of a refused replay (bad file, motion without consent).
 EXIT_USAGE = 2
-_DECODERS: dict[Family, Callable[[bytes], Command]] = {
+_DECODERS: dict[Family, Callable[[bytes], Command[object]]] = {
     Family.LA: la.decode_request,
     Family.PROJECT_STEPPER: project_stepper.decode_request,
     Family.QUAD_STEPPER: quad_stepper.decode_request,
@@ -284,7 +291,7 @@ class _Planned:
     """One recorded request, decoded back into the command a ``Bus`` sends."""
 
     t: float
-    cmd: Command
+    cmd: Command[object]
     priority: Priority
 
 
@@ -389,7 +396,7 @@ def _family_of(record: dict[str, Any], raw: bytes) -> Family:
     return frames[0].family if frames else Family.LA
 
 
-def _priority(cmd: Command) -> Priority:
+def _priority(cmd: Command[object]) -> Priority:
     """The priority the device layer gives such a command (``devices.la``)."""
     if isinstance(cmd, la.Control):
         if cmd.action is la.ControlAction.ESTOP:
@@ -399,7 +406,7 @@ def _priority(cmd: Command) -> Priority:
     return Priority.NORMAL
 
 
-def describe_command(cmd: Command) -> Description:
+def describe_command(cmd: Command[object]) -> Description:
     """The description of a command's request bytes."""
     cutter = Reassembler(direction=Direction.REQUEST, families=(cmd.family,))
     items = cutter.feed(cmd.encode()) + cutter.end_of_stream()

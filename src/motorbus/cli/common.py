@@ -23,14 +23,14 @@ from contextlib import asynccontextmanager
 from pathlib import Path
 from typing import Any, TextIO
 
-from motorbus.bus.bus import Bus
+from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, Transport, open_transport
 from motorbus.cli.main import UsageError
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
-from motorbus.transport.base import Transport
-from motorbus.transport.serial import BACKENDS, DEFAULT_BACKEND, open_transport
+from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
+from motorbus.protocol.ids import IdListError, parse_id_list
 
 __all__ = [
     "BACKEND_ENV",
@@ -69,10 +69,10 @@ BUS_FILE_ENV = "MOTORBUS_BUS_FILE"
 BUS_ENV = "MOTORBUS_BUS"
 #: Every environment variable the bus options read.
 ENV_VARS = (PORT_ENV, BAUD_ENV, BACKEND_ENV, BUS_FILE_ENV, BUS_ENV)
-#: Factory baud rate of the LA actuators, D-type interface (LA manual 3.1, control table 12).
-LA_BAUD = 921600
-#: Baud rate of both FF AA stepper controllers (doc 000 A.1; doc 001 A1-01).
-STEPPER_BAUD = 9600
+#: Factory baud rate of the LA actuators (the family registry, protocol/families.py).
+LA_BAUD = LA_DEFAULT_BAUD
+#: Baud rate of both FF AA stepper controllers (the family registry).
+STEPPER_BAUD = STEPPER_DEFAULT_BAUD
 #: Host-latency allowance on every reply deadline of the one-shot commands (seconds).
 #: The library's 2 ms default suits a tuned streaming loop; a command line tool starts
 #: cold (first read of a fresh port, a busy machine, a USB adapter's 1..16 ms latency
@@ -145,7 +145,7 @@ def _bus_table(args: argparse.Namespace, *, port_given: bool) -> Mapping[str, An
     Raises:
         UsageError: the file is missing, not TOML, or has no such bus (exit code 2).
     """
-    from motorbus.bus.manager import default_bus_file  # imported when needed: anyio & co.
+    from motorbus import default_bus_file  # imported when needed: anyio & co.
 
     explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)
@@ -246,9 +246,6 @@ def check_seconds(field: str, value: float | None, lo: float = 0.0) -> float | N
     return value
 
 
-_RANGE = re.compile(r"\s*(\d+)\s*(?:-\s*(\d+))?\s*")
-
-
 def parse_ids(
     text: str, field: str = "--ids", lo: int = la.ID_MIN, hi: int = la.ID_MAX
 ) -> list[int]:
@@ -263,31 +260,16 @@ def parse_ids(
         LocalProtocolError: a bad token, a reversed range, an ID outside ``lo..hi``,
             an ID listed twice.
     """
-    ids: list[int] = []
     id_field = field if field == "id" else f"{field} id"
-    for part in text.split(","):
-        m = _RANGE.fullmatch(part)
-        if m is None:
-            raise LocalProtocolError(
-                f"{field}={text!r}: {part.strip()!r} is not an ID or a range like 1-15",
-                field=field,
-                value=text,
-            )
-        first = check_int(id_field, int(m.group(1)), lo, hi)
-        last = check_int(id_field, int(m.group(2) or first), lo, hi)
-        if last < first:
-            raise LocalProtocolError(
-                f"{field}={text!r}: reversed range {first}-{last}: write {last}-{first}",
-                field=field,
-                value=text,
-            )
-        ids.extend(range(first, last + 1))
-    twice = sorted({i for i in ids if ids.count(i) > 1})
-    if twice:
+    try:
+        return parse_id_list(text, lo=lo, hi=hi, id_field=id_field)
+    except IdListError as err:
+        if err.problem == "range":
+            raise  # "--ids id=255 is out of range: allowed 1..254"
+        sep = " " if err.problem == "duplicate" else ": "
         raise LocalProtocolError(
-            f"{field}={text!r} lists ID {twice[0]} twice", field=field, value=text
-        )
-    return ids
+            f"{field}={text!r}{sep}{err.reason}", field=field, value=text
+        ) from None
 
 
 def parse_id_args(values: Iterable[str], field: str = "id") -> list[int]:

@@ -33,14 +33,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO, TypeVar
 
-from motorbus.bus.manager import BusManager
+from motorbus import BusManager, Stream
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
-from motorbus.sim.analysis import tick_timing
-from motorbus.sim.process import SimProcess
-from motorbus.streams import Stream
+from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
+from motorbus.sim import SimProcess, tick_timing
 
 __all__ = ["register", "run"]
 
@@ -52,8 +51,8 @@ N_ACTUATORS = 15
 #: came up to ~2 ms after a 2 ms-margin deadline in 10 runs on a busy machine.
 DEMO_HOST_MARGIN_MS = 5.0
 PERIOD_S = 0.010  # 100 Hz, the fastest follow rate the manual allows (3.5.3)
-LA_BAUD = 921600  # D-type interface (manual 3.1)
-STEPPER_BAUD = 9600  # doc 000 A.1; doc 001 by the same vendor (A1-01)
+LA_BAUD = LA_DEFAULT_BAUD  # the family registry, protocol/families.py
+STEPPER_BAUD = STEPPER_DEFAULT_BAUD
 PLOTTED_IDS = (1, 2, 3)
 #: Longest ramp from the actuators' positions into the trajectory (s).  Smoothstep over
 #: 2 s from position 0 to the trajectory's top (1600) needs at most 1200 units/s on top

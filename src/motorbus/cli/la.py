@@ -25,7 +25,7 @@ import sys
 from collections.abc import Awaitable, Callable
 from typing import Any
 
-from motorbus.bus.bus import Bus
+from motorbus import Bus, InspireLA
 from motorbus.cli.common import (
     LA_BAUD,
     add_bus_options,
@@ -38,7 +38,6 @@ from motorbus.cli.common import (
     say,
 )
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, UsageError
-from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int

@@ -36,9 +36,23 @@ import os
 import sys
 from collections.abc import Sequence
 
-from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
+from motorbus.errors import (
+    CommandFailed,
+    LocalProtocolError,
+    MotorbusError,
+    ReplyTimeoutError,
+    UsageError,
+)
 
-__all__ = ["EXIT_FAILURE", "EXIT_INTERRUPTED", "EXIT_OK", "EXIT_USAGE", "main"]
+__all__ = [
+    "EXIT_FAILURE",
+    "EXIT_INTERRUPTED",
+    "EXIT_OK",
+    "EXIT_USAGE",
+    "CommandFailed",
+    "UsageError",
+    "main",
+]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -58,14 +72,6 @@ COMMAND_MODULES = (
     "quad",
     "capture",
 )
-
-
-class UsageError(MotorbusError):
-    """Bad command-line input; reported as one line with exit code 2."""
-
-
-class CommandFailed(MotorbusError):
-    """The command ran and failed for the reason in the message; exit code 1."""
 
 
 #: Options every command accepts wherever they stand on the line.
@@ -102,12 +108,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(f"motorbus.cli.{name}")
-        except ModuleNotFoundError as err:
-            if err.name and err.name.startswith("motorbus.cli"):
-                continue  # command not built yet in this checkout
-            raise
+        # A command whose module does not import is a broken install: say so, never
+        # leave the command out of the help as if it did not exist.
+        module = importlib.import_module(f"motorbus.cli.{name}")
         module.register(sub)
     _plain_help(parser)
     return parser

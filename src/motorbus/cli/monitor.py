@@ -27,7 +27,7 @@ import sys
 import time
 from typing import Any
 
-from motorbus.bus.bus import Bus
+from motorbus import Bus, InspireLA, scan
 from motorbus.cli import plot
 from motorbus.cli.common import (
     LA_BAUD,
@@ -41,7 +41,6 @@ from motorbus.cli.common import (
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
 from motorbus.cli.main import UsageError
 from motorbus.cli.scan import SCAN_TIMEOUT_S
-from motorbus.devices.la import InspireLA, scan
 from motorbus.errors import ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int

@@ -49,6 +49,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
+from motorbus import ProjectStepper
 from motorbus.cli.common import (
     STEP_ANGLE_SCALE,
     STEPPER_BAUD,
@@ -59,7 +60,6 @@ from motorbus.cli.common import (
     say,
     step_angle_x100,
 )
-from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Family, check_int

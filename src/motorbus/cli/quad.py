@@ -22,6 +22,7 @@ import argparse
 import asyncio
 from typing import Any
 
+from motorbus import QuadStepper
 from motorbus.cli.common import (
     STEPPER_BAUD,
     add_bus_options,
@@ -30,7 +31,6 @@ from motorbus.cli.common import (
     say,
     step_angle_x100,
 )
-from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Family, check_int

@@ -38,10 +38,9 @@ from collections.abc import Callable, Sequence
 from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
-from motorbus.bus.bus import Bus
+from motorbus import SCAN_PASSES_MAX, Bus, ScanReport, scan
 from motorbus.cli.common import LA_BAUD, add_bus_options, check_seconds, open_bus, parse_ids
 from motorbus.cli.common import print_json as _print_json
-from motorbus.devices.la import SCAN_PASSES_MAX, ScanReport, scan
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 

@@ -39,7 +39,15 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus
+from motorbus import (
+    DEFAULT_HOST_MARGIN_S,
+    PERIOD_MAX_S,
+    PERIOD_MIN_S,
+    Bus,
+    InspireLA,
+    SafeAction,
+    Streamer,
+)
 from motorbus.cli.common import (
     LA_BAUD,
     add_bus_options,
@@ -51,11 +59,9 @@ from motorbus.cli.common import (
     print_json,
 )
 from motorbus.cli.main import CommandFailed
-from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
-from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S, SafeAction, Streamer
 
 __all__ = ["Trajectory", "ramp_rows", "read_trajectory", "register", "run"]
 
@@ -237,7 +243,7 @@ async def _positions(bus: Bus, ids: list[int], baud: int) -> tuple[int, ...]:
     silent: list[int] = []
     for ident in ids:
         try:
-            status: la.Status = await bus.request(
+            status = await bus.request(
                 la.Control(ident, la.ControlAction.QUERY_STATUS), timeout=CHECK_TIMEOUT_S
             )
         except ReplyTimeoutError:

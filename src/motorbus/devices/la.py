@@ -51,7 +51,7 @@ class InspireLA:
         return [la.Control(self.id, sub)]
 
     async def _control(self, action: la.ControlAction, priority: Priority) -> la.Status:
-        status: la.Status = await self.bus.request(la.Control(self.id, action), priority=priority)
+        status = await self.bus.request(la.Control(self.id, action), priority=priority)
         return status
 
     # -- motion -----------------------------------------------------------------
@@ -134,7 +134,7 @@ class InspireLA:
 
     async def read_table(self, index: int, count: int) -> bytes:
         """Raw read of ``count`` bytes of the control table from ``index``."""
-        reply: la.ReadReply = await self.bus.request(la.ReadTable(self.id, index, count))
+        reply = await self.bus.request(la.ReadTable(self.id, index, count))
         return reply.data
 
     async def write_table(self, index: int, data: bytes) -> la.Status | la.WriteAck:

@@ -11,6 +11,8 @@ from motorbus.bus.events import ProjectFinished, Subscription
 from motorbus.errors import (
     LocalProtocolError,
     MotorbusError,
+    ProjectStopped,
+    ProjectVerifyError,
     RemoteProtocolError,
     ReplyTimeoutError,
 )
@@ -31,14 +33,6 @@ STOP_SETTLE_S = 0.5
 STOP_HINT = "`motorbus project stop` ends it"
 
 
-class ProjectStopped(MotorbusError):
-    """``run_project`` ended because the project was stopped (``stop_project``)."""
-
-
-class ProjectVerifyError(MotorbusError):
-    """The project read back through 0x3E differs from the one uploaded."""
-
-
 class ProjectStepper:
     """A stepper project controller on a bus: up to 4 projects of 10 steps.
 
@@ -57,12 +51,12 @@ class ProjectStepper:
         self._last_stop = -STOP_SETTLE_S
         self._stop_requested = False
 
-    def safe_stop_commands(self) -> list[ps.ProjectStepperCommand]:
+    def safe_stop_commands(self) -> list[ps.ProjectStepperCommand[object]]:
         """The commands that stop everything this controller may be doing, as values:
         stop the running project (0x5E), then stop manual motion of its motor (0x0D)."""
         return [ps.StopProject(), ps.ManualStop(motor=self.motor)]
 
-    async def _send_all(self, commands: list[ps.ProjectStepperCommand]) -> None:
+    async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
         for cmd in commands:
             await self.bus.request(cmd)
 
@@ -125,7 +119,7 @@ class ProjectStepper:
 
     async def read_project(self, number: int) -> ps.ProjectDump:
         """Read project ``number`` (1..4) back: the 226-byte 0x3E dump, decoded."""
-        dump: ps.ProjectDump = await self.bus.request(ps.ReadProject(number))
+        dump = await self.bus.request(ps.ReadProject(number))
         return dump
 
     async def save_project(self, number: int) -> None:

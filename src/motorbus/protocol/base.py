@@ -13,7 +13,7 @@ import numbers
 import operator
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Generic, NamedTuple, TypeVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 
@@ -26,7 +26,11 @@ __all__ = [
     "Command",
     "Direction",
     "Family",
+    "FaultState",
     "FrameShape",
+    "ProjectFinished",
+    "ProjectFinishedMarker",
+    "ReplyT_co",
     "as_real",
     "check_choice",
     "check_flag",
@@ -243,8 +247,41 @@ class FrameShape:
         return cls(length, tuple(pattern))
 
 
-class Command(abc.ABC):
+class ProjectFinished(NamedTuple):
+    """The project stepper's bare ``EE DD``: the running project has finished (A0-06).
+
+    A stream item (the reassembler's), not the bus event of the same name: the bus turns it into
+    ``motorbus.bus.events.ProjectFinished`` for its subscribers.  Code should say
+    :data:`ProjectFinishedMarker`, which cannot be confused with the event; the
+    class keeps its runtime name because item kinds are reported by class name
+    (``type(item).__name__``, ``motorbus decode``).
+    """
+
+    raw: bytes = PROJECT_FINISHED_BYTES
+
+
+#: The unambiguous name of the ``EE DD`` stream item (the bus event is another class).
+ProjectFinishedMarker = ProjectFinished
+
+
+class FaultState(NamedTuple):
+    """A device's fault flags as one reply reported them (see ``Command.fault_state``)."""
+
+    device_id: int
+    errors: int
+
+
+#: The type of a command's decoded reply (``Command[Status]``, ``Command[Ack]``).
+ReplyT_co = TypeVar("ReplyT_co", covariant=True)
+
+
+class Command(abc.ABC, Generic[ReplyT_co]):
     """A request to a device, as a value: build it, encode it, know its reply.
+
+    ``Command[R]`` decodes its reply into an ``R``, so ``await bus.request(cmd)`` is
+    typed: ``bus.request(la.Control(...))`` is a ``Status``.  A command that expects
+    no reply (a broadcast, the no-reply ``MoveTo``, an ID-255 request) resolves to
+    ``None`` at run time; its static type names the reply of the addressed form.
 
     Subclasses are frozen dataclasses that validate their fields on construction
     (raising ``LocalProtocolError``), so a ``Command`` that exists can always be sent.
@@ -261,7 +298,7 @@ class Command(abc.ABC):
         if post is None or getattr(post, "_plain_fields", False):
             return
 
-        def __post_init__(self: Command) -> None:
+        def __post_init__(self: Command[object]) -> None:
             _plain_fields(self)
             post(self)
 
@@ -287,7 +324,7 @@ class Command(abc.ABC):
         """Return True if the complete frame ``raw`` is a reply to this request."""
 
     @abc.abstractmethod
-    def decode_reply(self, raw: bytes) -> object:
+    def decode_reply(self, raw: bytes) -> ReplyT_co:
         """Decode a frame for which ``matches_reply`` is True into a typed value."""
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
@@ -303,12 +340,26 @@ class Command(abc.ABC):
         """True if the device answers this request."""
         return bool(self.reply_lengths())
 
+    @property
+    def device_key(self) -> str:
+        """Stats key of the device this command addresses (``"quad_stepper"``; an LA
+        command answers ``"la:3"``): each family says how its devices are told apart."""
+        return self.family.value
+
+    def fault_state(self, reply: object) -> FaultState | None:
+        """The fault flags a decoded ``reply`` reports, if the family reports any.
+
+        The bus compares them with the device's previous ones and publishes a
+        ``FaultChanged`` event when they differ; it needs no family knowledge for it.
+        """
+        return None
+
 
 #: Field values ``_plain_fields`` leaves alone without a closer look.
 _PLAIN_TYPES = frozenset((int, bool, float, str, bytes, type(None), tuple))
 
 
-def _plain_fields(cmd: Command) -> None:
+def _plain_fields(cmd: Command[object]) -> None:
     """Replace integer-like field values (numpy scalars) of a dataclass command by ints."""
     for name in cmd.__dataclass_fields__:  # type: ignore[attr-defined]
         value = getattr(cmd, name)
@@ -319,7 +370,7 @@ def _plain_fields(cmd: Command) -> None:
             object.__setattr__(cmd, name, number)
 
 
-def require_reply(cmd: Command, raw: bytes) -> None:
+def require_reply(cmd: Command[object], raw: bytes) -> None:
     """Raise ``RemoteProtocolError`` unless ``raw`` is a reply to ``cmd``."""
     if not cmd.matches_reply(raw):
         raise RemoteProtocolError(

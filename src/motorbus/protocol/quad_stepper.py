@@ -20,21 +20,21 @@ documents, A1-02) cannot say which motor it is for, so its ``motor`` is ``None``
 from __future__ import annotations
 
 import abc
-import enum
 from dataclasses import dataclass
 from typing import ClassVar, Self
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
+from motorbus.protocol import ff_aa
 from motorbus.protocol.base import (
     FF_AA,
     Command,
     Family,
     FrameShape,
-    check_choice,
     check_int,
     format_hex,
-    sum8,
 )
+from motorbus.protocol.families import DEFAULT_BAUD as DEFAULT_BAUDS
+from motorbus.protocol.ff_aa import RotationDirection, check_direction
 
 __all__ = [
     "ADDRESS_ALL",
@@ -71,10 +71,10 @@ __all__ = [
 # --- frame layout --------------------------------------------------------------------------
 
 REQUEST_SIZE = 9  # doc 001 "协议采用9个字节每帧" (docs/protocols.md B.2)
-REPLY_SIZE = 6  # doc 001, every "回" line is 6 bytes (docs/protocols.md B.2)
+REPLY_SIZE = ff_aa.REPLY_SIZE  # doc 001, every "回" line is 6 bytes (docs/protocols.md B.2)
 _BODY_SIZE = REQUEST_SIZE - len(FF_AA) - 1  # b2..b7: header and checksum excluded
 #: Not stated by doc 001; its vendor's sibling controller (doc 000) runs 9600 8N1 (A1-01).
-DEFAULT_BAUD = 9600
+DEFAULT_BAUD = DEFAULT_BAUDS[Family.QUAD_STEPPER]
 
 # --- addresses (b2) ------------------------------------------------------------------------
 
@@ -119,17 +119,7 @@ LED_ALL = 5  # doc 001 section 十一: 0x05 = all LEDs
 LED_COUNT = 4  # doc 001 section 十一: LED1..LED4
 
 
-class RotationDirection(enum.IntEnum):
-    """Motor direction byte of command 0x04 (doc 001 section 四: 0 forward, 1 reverse)."""
-
-    FORWARD = 0
-    REVERSE = 1
-
-
-def _direction(value: object) -> RotationDirection:
-    """Validate a direction given as the enum or as its byte value 0/1."""
-    checked = check_choice("direction", value, tuple(RotationDirection), "0 forward, 1 reverse")
-    return RotationDirection(checked)
+_direction = check_direction
 
 
 # --- framing helpers -----------------------------------------------------------------------
@@ -144,12 +134,7 @@ def request_is_valid(raw: bytes | bytearray | memoryview) -> bool:
     Returns:
         True for a well-formed frame; the command itself is not checked.
     """
-    data = bytes(raw)
-    return (
-        len(data) == REQUEST_SIZE
-        and data[:2] == FF_AA
-        and sum8(data[: REQUEST_SIZE - 1]) == data[REQUEST_SIZE - 1]
-    )
+    return ff_aa.request_is_valid(raw, REQUEST_SIZE)
 
 
 def build_request(b2_to_b7: bytes) -> bytes:
@@ -164,24 +149,17 @@ def build_request(b2_to_b7: bytes) -> bytes:
     Raises:
         LocalProtocolError: if ``b2_to_b7`` is not exactly 6 bytes.
     """
-    body = bytes(b2_to_b7)
-    if len(body) != _BODY_SIZE:
-        raise LocalProtocolError(
-            f"b2_to_b7 must be exactly {_BODY_SIZE} bytes, got {len(body)}: allowed {_BODY_SIZE}",
-            field="b2_to_b7",
-            value=body,
-        )
-    frame = FF_AA + body
-    return frame + bytes((sum8(frame),))
+    size = len(bytes(b2_to_b7))
+    return ff_aa.frame_request(
+        b2_to_b7,
+        _BODY_SIZE,
+        "b2_to_b7",
+        f"b2_to_b7 must be exactly {_BODY_SIZE} bytes, got {size}: allowed {_BODY_SIZE}",
+    )
 
 
-def _reply_shape(*r2_to_r5: int | frozenset[int] | None) -> FrameShape:
-    return FrameShape.exact(REPLY_SIZE, *FF_AA, *r2_to_r5)
-
-
-def _fits(shape: FrameShape, raw: bytes) -> bool:
-    """A complete frame fits ``shape``: right length and every byte allowed."""
-    return len(raw) == shape.length and shape.matches(raw)
+_reply_shape = ff_aa.reply_shape
+_fits = ff_aa.fits
 
 
 # --- decoded replies -----------------------------------------------------------------------
@@ -230,7 +208,7 @@ class Done(QuadReply):
 # --- commands ------------------------------------------------------------------------------
 
 
-class QuadCommand(Command):
+class QuadCommand(Command[Ack | Done]):
     """Common behaviour of every quad stepper request.
 
     Subclasses give the six bytes ``b2..b7`` and the shapes of their ack (and done) reply;
@@ -290,9 +268,14 @@ class _MotorCommand(QuadCommand):
     """A per-motor command whose ack is ``FF AA M CMD 00 00``."""
 
     __slots__ = ()
-    opcode: ClassVar[int]
+    CMD: ClassVar[int]
 
     motor: int  # provided by the dataclass subclasses
+
+    @property
+    def opcode(self) -> int:
+        """The old name of ``CMD`` (the command byte b3), kept for older callers."""
+        return self.CMD
 
     def params(self) -> bytes:
         """The four bytes ``b4..b7``."""
@@ -300,11 +283,11 @@ class _MotorCommand(QuadCommand):
 
     def body(self) -> bytes:
         """Return ``M CMD`` followed by the four parameter bytes."""
-        return bytes((self.motor, self.opcode)) + self.params()
+        return bytes((self.motor, self.CMD)) + self.params()
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
         """The ack ``FF AA M CMD 00 00`` (doc 001 sections 一..八)."""
-        return (_reply_shape(self.motor, self.opcode, FLAG_ACK, 0x00),)
+        return (_reply_shape(self.motor, self.CMD, FLAG_ACK, 0x00),)
 
 
 @dataclass(frozen=True, slots=True)
@@ -317,7 +300,7 @@ class MotorSetup(_MotorCommand):
         step_angle_x100: full-step angle in degrees x 100, 1..255 (1.8 deg -> 180).
     """
 
-    opcode: ClassVar[int] = CMD_MOTOR_SETUP
+    CMD: ClassVar[int] = CMD_MOTOR_SETUP
     motor: int
     subdivision: int
     step_angle_x100: int
@@ -341,7 +324,7 @@ class RunPulses(_MotorCommand):
         pulses: motor pulses, 0..16777215 (24 bits, unsigned; direction is set by 0x04).
     """
 
-    opcode: ClassVar[int] = CMD_RUN_PULSES
+    CMD: ClassVar[int] = CMD_RUN_PULSES
     motor: int
     pulses: int
 
@@ -364,7 +347,7 @@ class DirectionAndStartFrequency(_MotorCommand):
         start_hz: start (and homing) pulse frequency in Hz, 0..65535.
     """
 
-    opcode: ClassVar[int] = CMD_DIRECTION
+    CMD: ClassVar[int] = CMD_DIRECTION
     motor: int
     direction: RotationDirection
     start_hz: int
@@ -390,7 +373,7 @@ class AccelAndSpeed(_MotorCommand):
         speed_rpm: run speed in revolutions per minute, 0..65535.
     """
 
-    opcode: ClassVar[int] = CMD_ACCEL_SPEED
+    CMD: ClassVar[int] = CMD_ACCEL_SPEED
     motor: int
     accel_hz: int
     speed_rpm: int
@@ -416,7 +399,7 @@ class Home(_MotorCommand):
     """
 
     starts_motion: ClassVar[bool] = True
-    opcode: ClassVar[int] = CMD_HOME
+    CMD: ClassVar[int] = CMD_HOME
     motor: int
     stop_input: int = STOP_INPUT_NONE
 
@@ -441,7 +424,7 @@ class Run(_MotorCommand):
     """
 
     starts_motion: ClassVar[bool] = True
-    opcode: ClassVar[int] = CMD_RUN
+    CMD: ClassVar[int] = CMD_RUN
     motor: int
 
     def __post_init__(self) -> None:
@@ -464,7 +447,7 @@ class Stop(_MotorCommand):
         motor: 1..4.
     """
 
-    opcode: ClassVar[int] = CMD_STOP
+    CMD: ClassVar[int] = CMD_STOP
     motor: int
 
     def __post_init__(self) -> None:

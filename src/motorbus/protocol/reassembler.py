@@ -55,7 +55,7 @@ complete, checksum-valid frame is already in the buffer, which proves the header
 garbage; the reassembler then skips to that frame instead of stalling behind it.
 
 Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
-in order (``ProjectFinished.raw`` is ``EE DD``), so the stream offset of an item is
+in order (``ProjectFinishedMarker.raw`` is ``EE DD``), so the stream offset of an item is
 the sum of ``len(raw)`` of the items before it; every byte fed is in a frame, an
 event, a discarded run, or the buffer.
 """
@@ -74,6 +74,8 @@ from motorbus.protocol.base import (
     Direction,
     Family,
     FrameShape,
+    ProjectFinished,
+    ProjectFinishedMarker,
 )
 
 __all__ = [
@@ -83,6 +85,7 @@ __all__ = [
     "Frame",
     "Item",
     "ProjectFinished",
+    "ProjectFinishedMarker",
     "Reassembler",
     "ReassemblerStats",
 ]
@@ -122,12 +125,6 @@ class Frame(NamedTuple):
     raw: bytes
 
 
-class ProjectFinished(NamedTuple):
-    """The project stepper's bare ``EE DD``: the running project has finished (A0-06)."""
-
-    raw: bytes = PROJECT_FINISHED_BYTES
-
-
 class Discarded(NamedTuple):
     """A run of bytes that belonged to no frame, and why they were dropped."""
 
@@ -135,7 +132,7 @@ class Discarded(NamedTuple):
     reason: str
 
 
-Item = Frame | ProjectFinished | Discarded
+Item = Frame | ProjectFinishedMarker | Discarded
 
 
 @dataclass(slots=True)
@@ -367,7 +364,7 @@ class Reassembler:
         if b0 == 0x55:  # 55 AA: LA request
             return self._parse_la(buf, p, Direction.REQUEST)
         if b0 == 0xEE:  # EE DD between frames
-            return _COMPLETE, 2, ProjectFinished()
+            return _COMPLETE, 2, ProjectFinishedMarker()
         return self._parse_stepper(buf, p, final)
 
     def _parse_la(self, buf: bytes, p: int, direction: Direction) -> tuple[int, int, Item | None]:

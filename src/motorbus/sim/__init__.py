@@ -31,10 +31,12 @@ import importlib
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from motorbus.sim.analysis import tick_timing
     from motorbus.sim.bus import LinkEvent, SimBus, SimStats
     from motorbus.sim.faults import FaultConfig
     from motorbus.sim.memory import MemorySim
     from motorbus.sim.model import DeviceModel
+    from motorbus.sim.process import SimProcess
     from motorbus.sim.pty import PtySim
     from motorbus.sim.spec import default_baud, parse_device_spec, parse_device_specs
     from motorbus.sim.timing import wire_time
@@ -46,10 +48,12 @@ __all__ = [
     "MemorySim",
     "PtySim",
     "SimBus",
+    "SimProcess",
     "SimStats",
     "default_baud",
     "parse_device_spec",
     "parse_device_specs",
+    "tick_timing",
     "wire_time",
 ]
 
@@ -60,10 +64,12 @@ _WHERE = {
     "MemorySim": "motorbus.sim.memory",
     "PtySim": "motorbus.sim.pty",
     "SimBus": "motorbus.sim.bus",
+    "SimProcess": "motorbus.sim.process",
     "SimStats": "motorbus.sim.bus",
     "default_baud": "motorbus.sim.spec",
     "parse_device_spec": "motorbus.sim.spec",
     "parse_device_specs": "motorbus.sim.spec",
+    "tick_timing": "motorbus.sim.analysis",
     "wire_time": "motorbus.sim.timing",
 }
 

@@ -124,7 +124,7 @@ _LAYOUT = {reg: (reg.index, reg.size, reg.signed) for reg in Register}
 
 
 @functools.lru_cache(maxsize=256)
-def _decode_shared(request: bytes) -> Command:
+def _decode_shared(request: bytes) -> Command[object]:
     """``decode_request``, memoised: every model on a bus sees the same frame, and a
     decoded command is an immutable value, so the bus's 15 actuators decode it once."""
     return decode_request(request)

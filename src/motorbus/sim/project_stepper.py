@@ -57,6 +57,7 @@ from typing import ClassVar, Literal
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 from motorbus.protocol.base import FF_AA, Family, check_int, wire_time
+from motorbus.protocol.families import DEFAULT_BAUD
 from motorbus.protocol.project_stepper import (
     BASE_DISTANCE_PER_REV,
     BASE_LOOP_START,
@@ -148,8 +149,8 @@ ACCEL_STEP_S = 1e-3
 #: (the controller must load the next step); it also keeps a loop of empty steps from
 #: spinning at one instant.
 STEP_GAP_S = 1e-3
-#: The baud rate of doc 000 (A.1).
-_BAUD = 9600
+#: The baud rate of doc 000 (A.1), from the family registry.
+_BAUD = DEFAULT_BAUD[Family.PROJECT_STEPPER]
 #: Oldest step-trace entries are dropped beyond this (a forever loop would grow it).
 MAX_TRACE = 10_000
 #: Output names, in the order OUT1..OUT3 (open collector) then LED1, LED2 (A.3).
@@ -533,9 +534,9 @@ class ProjectStepperModel(DeviceModel):
 
     # -- commands ---------------------------------------------------------------------
 
-    def _dispatch(self, cmd: ProjectStepperCommand, now: float) -> bytes:
+    def _dispatch(self, cmd: ProjectStepperCommand[object], now: float) -> bytes:
         cur = self._current_project
-        payload = cmd.payload()
+        payload = cmd.body()
         match cmd:
             case SelectProject(project=p, total_steps=n):
                 self._current_project = p

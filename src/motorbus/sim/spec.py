@@ -15,7 +15,16 @@ import inspect
 from collections.abc import Callable, Iterable, Sequence
 
 from motorbus.errors import LocalProtocolError
-from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.base import Family
+from motorbus.protocol.families import (
+    LA_DEFAULT_BAUD,
+    LA_ID_MAX,
+    LA_ID_MIN,
+    SPEC_NAMES,
+    STEPPER_DEFAULT_BAUD,
+    default_bus_baud,
+)
+from motorbus.protocol.ids import IdListError, parse_id_items
 from motorbus.sim.model import DeviceModel
 
 __all__ = [
@@ -29,16 +38,8 @@ __all__ = [
     "parse_device_specs",
 ]
 
-#: Factory rate of the LVTTL ("D" interface) LA actuator (doc 002 C.1; A2-13).
-LA_DEFAULT_BAUD = 921600
-#: Doc 000 A.1 states 9600 8N1; doc 001 states none and we follow its sibling (A1-01).
-STEPPER_DEFAULT_BAUD = 9600
-#: Valid actuator IDs; 255 is broadcast and never answers (doc 002 C.2).
-LA_ID_MIN = 1
-LA_ID_MAX = 254
-
 #: Spec names, in the order the help text lists them.
-DEVICE_KINDS = ("la", "project-stepper", "quad-stepper")
+DEVICE_KINDS = SPEC_NAMES
 
 _FORMS = (
     "la, la:ID, la:FIRST-LAST, la:ID,ID,... (IDs 1..254, optional key=value items), "
@@ -117,24 +118,15 @@ def _options(
 
 
 def _la_ids(spec: str, items: Sequence[str]) -> list[int]:
-    ids: list[int] = []
-    for item in items:
-        first, dash, last = item.partition("-")
-        try:
-            lo = int(first, 0)
-            hi = int(last, 0) if dash else lo
-        except ValueError:
-            raise _bad(spec, f"{item!r} is not an ID or an ID range") from None
-        try:
-            check_int("LA id", lo, LA_ID_MIN, LA_ID_MAX)
-            check_int("LA id", hi, LA_ID_MIN, LA_ID_MAX)
-        except LocalProtocolError as err:
-            raise _bad(spec, str(err)) from err
-        if hi < lo:
-            raise _bad(spec, f"range {item!r} runs backwards")
-        ids.extend(range(lo, hi + 1))
-    if len(set(ids)) != len(ids):
-        raise _bad(spec, "an ID is listed twice (A2-12: IDs on one bus must be distinct)")
+    try:  # the shared grammar (protocol/ids.py)
+        ids = parse_id_items(items)
+    except IdListError as err:
+        why = err.reason
+        if err.problem == "reversed":
+            why = f"range {err.item!r} runs backwards: {err.reason}"
+        elif err.problem == "duplicate":
+            why = f"{err.reason} (A2-12: IDs on one bus must be distinct)"
+        raise _bad(spec, why) from None
     return ids or [LA_ID_MIN]
 
 
@@ -199,5 +191,4 @@ def parse_device_specs(specs: Iterable[str]) -> list[DeviceModel]:
 
 def default_baud(models: Iterable[DeviceModel]) -> int:
     """Return the bus rate for ``models``: 921600 if all are LA actuators, else 9600 bit/s."""
-    families = {m.family for m in models}
-    return LA_DEFAULT_BAUD if families == {Family.LA} else STEPPER_DEFAULT_BAUD
+    return default_bus_baud(m.family for m in models)
