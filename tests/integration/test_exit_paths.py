@@ -12,12 +12,16 @@ Two kinds of program:
   SIGTERM and SIGHUP all end with the safe stop, "stopped safely" and status 0.
 * a plain ``Bus`` + ``Streamer`` program under a bare ``asyncio.run``, which installs
   nothing: SIGINT (once, and twice 3 ms apart) and SIGTERM still stop the stream safely
-  (the bus's close hook, and motorbus's own SIGTERM guard while a bus is open).
+  (the bus's close hook, and motorbus's own SIGTERM guard while a bus is open);
+* the ``motorbus stream`` command: SIGTERM, SIGINT twice 3 ms apart, SIGHUP.
 """
 
 from __future__ import annotations
 
+import os
 import signal
+import subprocess
+import sys
 import textwrap
 import time
 from pathlib import Path
@@ -31,6 +35,7 @@ from tests.integration.conftest import (
     SIM_DEVICES,
     assert_safe_action_after_last_broadcast,
     finish,
+    is_broadcast_follow,
     received_frames,
     start_example,
 )
@@ -122,6 +127,57 @@ def test_plain_bus_and_streamer_program_stops_safely(
     assert status != 0
     if sig == signal.SIGTERM:
         assert status == -signal.SIGTERM, err
+    assert_safe_action_after_last_broadcast(
+        received_frames(sim.log_records()), la.ControlAction.PAUSE
+    )
+
+
+@pytest.mark.parametrize(
+    ("sig", "times", "gap_s", "status"),
+    [
+        (signal.SIGTERM, 1, 0.0, 128 + signal.SIGTERM),
+        (signal.SIGINT, 2, 0.003, 130),
+        (signal.SIGHUP, 1, 0.0, 128 + signal.SIGHUP),
+    ],
+    ids=["sigterm", "sigint-twice-3ms", "sighup"],
+)
+def test_the_stream_command_stops_safely(
+    tmp_path: Path, sig: signal.Signals, times: int, gap_s: float, status: int
+) -> None:
+    trajectory = tmp_path / "traj.csv"
+    rows = ["t,1,2,3"] + [f"{k * 0.01:.2f},{900 + k % 400},{1000},{1100}" for k in range(3000)]
+    trajectory.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    with SimProcess(SIM_DEVICES, baud=SIM_BAUD, log_file=tmp_path / "sim.jsonl") as sim:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "MOTORBUS_HOST_MARGIN_MS": "50"}
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "motorbus",
+                "stream",
+                str(trajectory),
+                "--ids",
+                "1-3",
+                "--port",
+                sim.path,
+                "--ramp",
+                "0.2",
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=True,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
+        # Wait until the stream's broadcasts reach the simulator, then end the command.
+        give_up = time.monotonic() + 20
+        while not any(is_broadcast_follow(f) for f in received_frames(sim.log_records())):
+            assert proc.poll() is None and time.monotonic() < give_up, proc.stderr
+            time.sleep(0.05)
+        send((proc, sig), times, gap_s)
+        code, _, err = finish(proc)
+    assert code in (status, -sig), err
     assert_safe_action_after_last_broadcast(
         received_frames(sim.log_records()), la.ControlAction.PAUSE
     )
