@@ -827,7 +827,9 @@ class Streamer:
         for s in pollers:
             polled = 0
             for _ in range(len(s.ids)):
-                if timer.now() > start_by or not s.sending:
+                # No room left in this tick (the spacing alone would pass start_by): the
+                # round robin goes on next tick; that is not a skipped poll.
+                if max(timer.now(), self.bus.next_write_at) > start_by or not s.sending:
                     break
                 ident = s.ids[s._poll_cursor % len(s.ids)]
                 try:

@@ -322,6 +322,11 @@ class Bus:
         return self._timer
 
     @property
+    def next_write_at(self) -> float:
+        """The earliest time (``bus.timer`` clock) the spacing rule allows the next write."""
+        return self._next_tx
+
+    @property
     def baudrate(self) -> int:
         """The bus's baud rate (bits per second)."""
         return self.transport.baudrate
