@@ -48,7 +48,6 @@ devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, rang
 
 from __future__ import annotations
 
-import contextlib
 import enum
 import logging
 import re
@@ -598,9 +597,8 @@ class BusManager:
                 shutdown.unregister_manager(self)
 
     async def _close_buses(self) -> None:
-        for streamer in self._streamers.values():
-            with contextlib.suppress(Exception):
-                await streamer.close(safe=False)
+        # Streams were ended by close() (or never started, when open failed); a bus's own
+        # close hook stops any stream still running on it.
         async with anyio.create_task_group() as tg:
             for bus in self.buses.values():
                 tg.start_soon(self._close_one, bus)

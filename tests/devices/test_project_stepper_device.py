@@ -170,7 +170,7 @@ async def test_stop_project_ends_a_waiting_run_at_once() -> None:
 @pytest.mark.parametrize("variant", PROJECT_VARIANTS)
 @pytest.mark.parametrize("pacing", PACINGS)
 async def test_settings_are_acknowledged_and_stored(
-    variant: dict[str, Any], pacing: Pacing, request: pytest.FixtureRequest
+    variant: dict[str, Any], pacing: Pacing
 ) -> None:
     model = ProjectStepperModel(**variant)
     async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):
@@ -215,14 +215,14 @@ async def stop_then_run_again(variant: dict[str, Any], pacing: Pacing) -> str:
 @pytest.mark.parametrize("variant", PROJECT_VARIANTS)
 @pytest.mark.parametrize("pacing", PACINGS)
 def test_a_run_after_a_stop_waits_for_its_own_finish(
-    variant: dict[str, Any], pacing: Pacing, request: pytest.FixtureRequest
+    variant: dict[str, Any], pacing: Pacing
 ) -> None:
     """``run_project`` returns when *its* project ends, not on an EE DD the stop caused.
 
-    Run in a child interpreter: the failing variant leaves a task behind that ends with an
-    unretrieved StopAsyncIteration (``Subscription.next`` after its ``wait_for`` swallowed
-    a cancel), after which CPython 3.11.7's ``compile`` raises "AST constructor recursion
-    depth mismatch" - that would take the rest of the session down with it.
+    Run in a child interpreter, as a guard: when this failed, it left a task ending with an
+    unretrieved StopAsyncIteration (fixed in ``Subscription.next``), after which CPython
+    3.11.7's ``compile`` raised "AST constructor recursion depth mismatch" and took the rest
+    of the session down with it.
     """
     code = (
         "import asyncio, sys\n"
