@@ -49,11 +49,12 @@ from typing import Any, TypeAlias
 
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
+from motorbus.bus.occupancy import occupancy
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, check_flag, wire_time
+from motorbus.protocol.base import Family, check_flag
 from motorbus.shutdown import deferred_interrupts
 from motorbus.validation import PHASE_MAX_S, check_number, is_scalar, target_id, target_position
 
@@ -444,15 +445,11 @@ class Streamer:
     # -- planning -------------------------------------------------------------------
 
     def slot_cost(self, *, reply_bytes: int, request_bytes: int) -> float:
-        """Bus time one frame occupies when the device answers in time: the spacing, or
-        its round trip (wire times and worst-case turnaround) if longer.  The host margin
-        is left out: it only matters when a reply is missing."""
-        baud = self.bus.baudrate
-        cfg = self.bus.config
-        busy = wire_time(request_bytes, baud)
-        if reply_bytes:
-            busy += wire_time(reply_bytes, baud) + cfg.turnaround[Family.LA]
-        return max(cfg.min_spacing, busy)
+        """Bus time one frame occupies when the device answers in time
+        (``Occupancy.answered``): the spacing, or its round trip if longer."""
+        return occupancy(
+            self.bus.timing, Family.LA, request_bytes=request_bytes, reply_bytes=reply_bytes
+        ).answered
 
     def tick_cost(self, streams: Iterable[Stream]) -> dict[float, float]:
         """Planned bus time per tick, per period, for a set of streams."""
@@ -816,13 +813,11 @@ class Streamer:
         if not pollers or not self.streams:
             return
         timer = self.bus.timer
-        cost = self.slot_cost(
-            request_bytes=len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()),
-            reply_bytes=la.STATUS_FRAME_SIZE,
-        )
+        poll = self.bus.occupancy(la.Control(1, la.ControlAction.QUERY_STATUS))
         next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
-        # A poll starts only if even its timeout would end before the next tick.
-        worst = cost + self.bus.config.host_margin + self.bus.config.min_spacing
+        # A poll starts only if even its timeout, and the spacing after it, would end
+        # before the next tick.
+        worst = poll.worst + poll.spacing
         start_by = next_deadline - PREPARE_S - worst
         for s in pollers:
             polled = 0

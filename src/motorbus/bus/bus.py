@@ -60,6 +60,7 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
+from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.errors import (
@@ -186,6 +187,7 @@ class _Job:
     timeout: float
     retries_left: int
     key: str
+    after_write: float = 0.0  # completed write to the earliest next write (Occupancy)
     tx_time: float = 0.0  # when the write returned
     rx_mark: int = 0  # stream offset of the first received byte that may be its reply
     earliest: float = 0.0  # wire floor (wire_floor=True only)
@@ -360,6 +362,7 @@ class Bus:
         warn = getattr(self.transport, "warn_if_latency_exceeds", None)
         if warn is None:
             return
+        # A reply's slack beyond the wire: turnaround + margin (Occupancy.budget's terms).
         slack = min(self.config.turnaround[f] for f in self.families) + self.config.host_margin
         warn(slack)
 
@@ -434,24 +437,27 @@ class Bus:
 
     # -- requests ----------------------------------------------------------------
 
+    @property
+    def timing(self) -> BusTiming:
+        """The facts this bus's frame costs depend on: baud, spacing, margin, turnarounds."""
+        cfg = self.config
+        return BusTiming(self.baudrate, cfg.min_spacing, cfg.host_margin, cfg.turnaround)
+
+    def occupancy(self, cmd: Command[object], request_size: int | None = None) -> Occupancy:
+        """How long ``cmd`` and its reply hold this bus (``motorbus.bus.occupancy``).
+
+        ``request_size`` saves re-encoding when the caller has the bytes already.
+        """
+        return command_occupancy(self.timing, cmd, request_size)
+
     def reply_budget(self, cmd: Command[object], request_size: int | None = None) -> float:
         """Seconds from the completed write of ``cmd`` to its reply deadline.
 
         Wire time of the request and of its longest possible reply at this bus's baud,
-        plus the family's turnaround and the host margin; 0 if no reply is expected.
-        ``request_size`` saves re-encoding when the caller has the bytes already.
+        plus the family's turnaround and the host margin; 0 if no reply is expected
+        (``Occupancy.budget``).
         """
-        lengths = cmd.reply_lengths()
-        if not lengths:
-            return 0.0
-        baud = self.baudrate
-        raw_len = len(cmd.encode()) if request_size is None else request_size
-        return (
-            wire_time(raw_len, baud)
-            + wire_time(max(lengths), baud)
-            + self.config.turnaround[cmd.family]
-            + self.config.host_margin
-        )
+        return self.occupancy(cmd, request_size).budget
 
     async def request(
         self,
@@ -534,7 +540,8 @@ class Bus:
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
         raw = cmd.encode()
-        budget = self.reply_budget(cmd, len(raw)) if timeout is None else float(timeout)
+        occ = self.occupancy(cmd, len(raw))
+        budget = occ.budget if timeout is None else float(timeout)
         n_retries = self.config.retries if retries is None else retries
         if cmd.starts_motion or not cmd.expects_reply:
             n_retries = 0
@@ -549,6 +556,7 @@ class Bus:
             key=cmd.device_key,
             reserved=reserved,
             refresh=refresh,
+            after_write=occ.after_write,
         )
         if start_by is not None:
             job.start_by = float(start_by)
@@ -584,10 +592,9 @@ class Bus:
         """End of the reserved window ``job`` would overlap if started at ``start``."""
         if job.reserved or job.priority == Priority.EMERGENCY or not self._reservation_sources:
             return None
+        # The job's own timeout may differ from its budget (``request(timeout=...)``).
         occupancy = self._write_cost + max(
-            self.config.min_spacing,
-            wire_time(len(job.raw), self.baudrate),
-            job.timeout if job.cmd.expects_reply else 0.0,
+            job.after_write, job.timeout if job.cmd.expects_reply else 0.0
         )
         for source in self._reservation_sources:
             window = source(start)
@@ -687,9 +694,8 @@ class Bus:
             if fresh is not job.cmd:
                 job.cmd = fresh
                 job.raw = fresh.encode()
+                job.after_write = self.occupancy(fresh, len(job.raw)).after_write
         cmd = job.cmd
-        baud = self.baudrate
-        tx_wire = wire_time(len(job.raw), baud)
         job.attempts += 1
         stats = self.stats
         stats.requests += 1
@@ -716,7 +722,7 @@ class Bus:
             return
         after = timer.now()
         # Spacing counts from the completed write (module docstring).
-        self._next_tx = after + max(self.config.min_spacing, tx_wire)
+        self._next_tx = after + job.after_write
         took = after - before
         self._write_cost = min(
             WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
@@ -724,8 +730,9 @@ class Bus:
         job.tx_time = after
         if expects:
             if self.config.wire_floor:
+                baud = self.baudrate
                 job.earliest = before + WIRE_FLOOR_FACTOR * (
-                    tx_wire + wire_time(min(cmd.reply_lengths()), baud)
+                    wire_time(len(job.raw), baud) + wire_time(min(cmd.reply_lengths()), baud)
                 )
             job.deadline = after + job.timeout
             job.handle = timer.call_at(job.deadline, self._on_deadline)

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from motorbus.bus.bus import REQUEST_TIMEOUT_MAX_S, Bus, Priority
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, check_choice, check_int, check_timeout, wire_time
+from motorbus.protocol.base import check_choice, check_int, check_timeout
 
 __all__ = ["InspireLA", "ScanPass", "ScanReport", "scan"]
 
@@ -335,12 +335,11 @@ class _ScanBudget:
     """The adaptive per-ID budgets of a scan on one bus."""
 
     def __init__(self, bus: Bus, fixed: float | None) -> None:
-        query = la.Control(la.ID_MIN, la.ControlAction.QUERY_STATUS)
-        baud = bus.baudrate
-        wire = wire_time(len(query.encode()), baud) + wire_time(max(query.reply_lengths()), baud)
+        query = bus.occupancy(la.Control(la.ID_MIN, la.ControlAction.QUERY_STATUS))
         self.bus = bus
         self.fixed = fixed
-        self.floor = wire + bus.config.turnaround[Family.LA] + SCAN_HOST_ALLOWANCE_S
+        # A scan's own host allowance in place of the bus's margin (SCAN_HOST_ALLOWANCE_S).
+        self.floor = query.budget - query.margin + SCAN_HOST_ALLOWANCE_S
         self.ceiling = max(SCAN_BUDGET_MAX_S, 2 * self.floor)
         self.first = fixed if fixed is not None else self._follow_measured(self.floor)
 
