@@ -22,11 +22,11 @@ from typing import Any
 import pytest
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.bus.manager import BusManager
 from motorbus.devices.la import InspireLA, scan
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q

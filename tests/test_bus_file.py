@@ -18,9 +18,9 @@ from typing import Any
 import pytest
 
 from motorbus.bus.bus import BusState
-from motorbus.bus.manager import BusManager, BusSpec, DeviceSpec, parse_devices
 from motorbus.bus.timer import default_timer
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager, BusSpec, DeviceSpec, parse_devices
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from motorbus.transport.memory import memory_pair

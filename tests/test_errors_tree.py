@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import ast
-import warnings
 from pathlib import Path
 
 import pytest
@@ -52,13 +51,9 @@ def test_old_import_paths_name_the_same_classes() -> None:
     assert CommandFailed is errors.CommandFailed
 
 
-def test_device_fault_error_left_the_public_api_but_still_imports_with_a_warning() -> None:
+def test_device_fault_error_is_gone() -> None:
+    # It was exported but never raised (an LA with a latched fault still answers; its
+    # Status and FaultChanged events carry the fault), so it left the package.
     assert "DeviceFaultError" not in motorbus.__all__
-    assert "DeviceFaultError" not in errors.__all__
-    with pytest.warns(DeprecationWarning, match="never raised"):
-        cls = errors.DeviceFaultError
-    assert issubclass(cls, errors.MotorbusError)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with pytest.raises(AttributeError):
-            errors.NoSuchError  # noqa: B018
+    with pytest.raises(AttributeError):
+        errors.DeviceFaultError  # noqa: B018

@@ -1,8 +1,7 @@
 """The dependency direction: errors <- protocol <- transport <- bus <- devices <- streams
 <- manager <- cli, with the simulator beside the library (protocol and transport only).
 
-Every import between motorbus subpackages points down this list; ``motorbus.bus.manager``
-(a re-export of ``motorbus.manager`` kept for old imports) is the one exception.
+Every import between motorbus subpackages points down this list, without exception.
 """
 
 from __future__ import annotations
@@ -78,8 +77,6 @@ ALLOWED: dict[str, set[str]] = {
     "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
     "sim": {"errors", "protocol", "transport"},
 }
-#: Re-exports kept so that old import paths work; nothing else may point upwards.
-SHIMS = {"bus/manager.py"}
 
 
 def _part(path: Path) -> str:
@@ -109,7 +106,7 @@ def test_every_import_points_down_the_layers() -> None:
     bad = []
     for path in SRC.rglob("*.py"):
         part = _part(path)
-        if part not in ALLOWED or str(path.relative_to(SRC)) in SHIMS:
+        if part not in ALLOWED:
             continue
         for target in _motorbus_parts(path) - {part} - ALLOWED[part]:
             bad.append(f"{path.relative_to(SRC)} -> {target}")
@@ -118,8 +115,6 @@ def test_every_import_points_down_the_layers() -> None:
 
 def test_the_bus_imports_no_devices_streams_or_manager() -> None:
     for path in (SRC / "bus").rglob("*.py"):
-        if str(path.relative_to(SRC)) in SHIMS:
-            continue
         assert not _motorbus_parts(path) & {"devices", "streams", "manager", "sim", "cli"}
 
 
@@ -145,11 +140,3 @@ def test_family_codecs_do_not_reach_into_the_reassembler() -> None:
         assert paths
         for path in paths:
             assert "motorbus.protocol.reassembler" not in imports_of(path), path
-
-
-def test_the_old_manager_path_is_the_same_class() -> None:
-    from motorbus import BusManager
-    from motorbus.bus.manager import BusManager as Old
-    from motorbus.manager import BusManager as New
-
-    assert Old is New is BusManager

@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 from motorbus.bus.bus import Bus
-from motorbus.bus.manager import BusManager
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol.base import check_choice, check_flag, check_int, check_timeout
 from motorbus.sim.la import LAModel

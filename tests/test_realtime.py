@@ -23,10 +23,10 @@ import pytest
 
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState
-from motorbus.bus.manager import BusManager
 from motorbus.bus.timer import default_timer
 from motorbus.cli.main import build_parser
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 

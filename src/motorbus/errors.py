@@ -38,8 +38,6 @@ to a faulted actuator still returns its decoded reply.
 
 from __future__ import annotations
 
-import warnings
-
 __all__ = [
     "BusClosedError",
     "CommandFailed",
@@ -141,24 +139,3 @@ class UsageError(MotorbusError):
 
 class CommandFailed(MotorbusError):
     """The command ran and failed for the reason in the message; exit code 1."""
-
-
-class _NeverRaisedDeviceFault(MotorbusError):
-    """What ``DeviceFaultError`` was: never raised by motorbus (see ``__getattr__``)."""
-
-
-def __getattr__(name: str) -> type[MotorbusError]:
-    # DeviceFaultError was exported but nothing ever raised it: an LA with a latched
-    # fault still answers, and callers get its Status (and FaultChanged events).
-    # Raising it now would turn those answers into errors, a behaviour change, so it
-    # left the public API.  The old name still imports, with a warning, and since
-    # nothing raises it an ``except DeviceFaultError`` keeps catching nothing.
-    if name == "DeviceFaultError":
-        warnings.warn(
-            "motorbus.errors.DeviceFaultError is never raised and is no longer part of "
-            "the API; device faults are reported in Status.faults and FaultChanged events",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return _NeverRaisedDeviceFault
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

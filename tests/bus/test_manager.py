@@ -8,9 +8,9 @@ from pathlib import Path
 import pytest
 
 from motorbus.bus.bus import BusState
-from motorbus.bus.manager import BusManager, parse_devices
 from motorbus.bus.timer import default_timer
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager, parse_devices
 from motorbus.sim.la import LAModel, PowerState
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.quad_stepper import QuadStepperModel

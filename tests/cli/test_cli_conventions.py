@@ -14,7 +14,6 @@ from types import SimpleNamespace
 
 import pytest
 
-from motorbus.bus.manager import BusManager, default_bus_file
 from motorbus.cli import common
 from motorbus.cli.common import (
     BACKEND_ENV,
@@ -27,6 +26,7 @@ from motorbus.cli.common import (
 )
 from motorbus.cli.main import EXIT_OK, EXIT_USAGE, UsageError, build_parser, main
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager, default_bus_file
 from motorbus.sim.process import SimProcess
 from tests.cli.test_cli_la import cli, json_lines
 

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
-from motorbus.bus.manager import parse_devices
 from motorbus.cli.common import parse_ids
 from motorbus.errors import LocalProtocolError
+from motorbus.manager import parse_devices
 from motorbus.protocol.ids import IdListError, parse_id_list
 from motorbus.sim.spec import parse_device_spec
 

@@ -161,12 +161,6 @@ class BusState(enum.Enum):
     LOST = "lost"  # the port went away; reconnecting if enabled
 
 
-def device_key(cmd: Command[object]) -> str:
-    """Stats key of the device a command addresses: ``"la:3"``, ``"quad_stepper"``...
-    (``Command.device_key``; kept as a function for older callers)."""
-    return cmd.device_key
-
-
 #: Called at the moment a queued frame is written: returns the command to send now
 #: (rebuilt from what is still wanted) or None to drop it unsent.
 Refresh = Callable[[], "Command[object] | None"]

@@ -272,11 +272,6 @@ class _MotorCommand(QuadCommand):
 
     motor: int  # provided by the dataclass subclasses
 
-    @property
-    def opcode(self) -> int:
-        """The old name of ``CMD`` (the command byte b3), kept for older callers."""
-        return self.CMD
-
     def params(self) -> bytes:
         """The four bytes ``b4..b7``."""
         return bytes(4)

@@ -104,10 +104,6 @@ class ProjectStepperCommand(Command[ReplyT_co]):
         """Return the exact 11-byte request, checksum included (A.2)."""
         return build_request(self.body())
 
-    def payload(self) -> bytes:
-        """The old name of :meth:`body` (bytes b2..b9), kept for older callers."""
-        return self.body()
-
     def reply_lengths(self) -> tuple[int, ...]:
         """Return the reply length: 6, or 226 for ReadProject (A.2)."""
         return tuple(shape.length for shape in self.reply_shapes())
