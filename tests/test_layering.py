@@ -140,3 +140,10 @@ def test_family_codecs_do_not_reach_into_the_reassembler() -> None:
         assert paths
         for path in paths:
             assert "motorbus.protocol.reassembler" not in imports_of(path), path
+
+
+def test_project_values_do_not_import_the_commands() -> None:
+    # Projects are values; turning one into commands lives beside the commands
+    # (project_commands), so the two modules do not import each other.
+    path = SRC / "protocol" / "project_stepper" / "project.py"
+    assert "motorbus.protocol.project_stepper.commands" not in imports_of(path)

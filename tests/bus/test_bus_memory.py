@@ -422,7 +422,7 @@ async def test_project_finished_event(pacing: Pacing) -> None:
         steps=(ps.StepSpec(run_distance=20, start_hz=2000, speed_rpm=600),),
     )
     async with logged_sim_bus([model], baud=115200, pacing=pacing) as (bus, _, _):
-        for cmd in project.commands():
+        for cmd in ps.project_commands(project):
             assert isinstance(await bus.request(cmd), ps.Ack)
         with bus.events.subscribe(ProjectFinished) as sub:
             ack = await bus.request(ps.StartProject(1))

@@ -65,6 +65,7 @@ from motorbus.protocol.project_stepper import (
     decode_reply_context_free,
     decode_request,
     dump_offset,
+    project_commands,
     request_is_valid,
 )
 from tests.vectors import load_vectors
@@ -268,7 +269,7 @@ def test_synthesized_dump_decodes_to_the_vector_values() -> None:
     # The same project built from the document examples gives the same bytes.
     project = dump.to_project()
     assert ProjectDump.from_project(project).encode() == raw
-    assert project.commands() == [c for c, _ in DOCUMENT_EXAMPLES[:12]]
+    assert project_commands(project) == [c for c, _ in DOCUMENT_EXAMPLES[:12]]
 
 
 def test_dump_offsets_follow_the_formula() -> None:
@@ -627,7 +628,7 @@ def test_project_dump_round_trip(
 
 @given(project_values())
 def test_project_commands_follow_the_typical_session(project: Project) -> None:
-    cmds = project.commands(motor=0x07)
+    cmds = project_commands(project, motor=0x07)
     n = len(project.steps)
     assert len(cmds) == 3 + 7 * n + 2
     assert cmds[0] == SelectProject(project.number, n)

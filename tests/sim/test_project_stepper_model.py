@@ -45,6 +45,7 @@ from motorbus.protocol.project_stepper import (
     StopMode,
     StopProject,
     build_request,
+    project_commands,
 )
 from motorbus.sim.project_stepper import (
     DEFAULT_TURNAROUND_S,
@@ -71,7 +72,7 @@ def send(model: ProjectStepperModel, cmd: ProjectStepperCommand, now: float) -> 
 
 
 def program(model: ProjectStepperModel, project: Project, now: float = 0.0) -> None:
-    for cmd in project.commands(model.motor):
+    for cmd in project_commands(project, model.motor):
         send(model, cmd, now)
 
 

@@ -86,7 +86,7 @@ class ProjectStepper:
             )
         check_flag("save", save)
         check_flag("verify", verify)
-        commands = project.commands(self.motor)
+        commands = ps.project_commands(project, self.motor)
         for cmd in commands:
             reply = await self.bus.request(cmd)
             echoed = getattr(reply, "project", None)

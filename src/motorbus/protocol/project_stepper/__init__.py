@@ -126,6 +126,12 @@ from motorbus.protocol.project_stepper.commands import (
 from motorbus.protocol.project_stepper.commands import (
     _StepCommand as _StepCommand,
 )
+from motorbus.protocol.project_stepper.commands import (
+    project_commands as project_commands,
+)
+from motorbus.protocol.project_stepper.commands import (
+    step_commands as step_commands,
+)
 from motorbus.protocol.project_stepper.decode import (
     _parse_io as _parse_io,
 )
@@ -501,5 +507,7 @@ __all__ = [
     "decode_reply_context_free",
     "decode_request",
     "dump_offset",
+    "project_commands",
     "request_is_valid",
+    "step_commands",
 ]

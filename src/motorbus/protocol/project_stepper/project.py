@@ -8,24 +8,8 @@ from dataclasses import dataclass, field
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 from motorbus.protocol.base import FF_AA, check_choice, check_int, format_hex
 from motorbus.protocol.ff_aa import RotationDirection
-from motorbus.protocol.project_stepper.commands import (
-    AccelAndSpeed,
-    DirectionAndStartFrequency,
-    DistancePerRev,
-    MotorSetup,
-    ProjectStepperCommand,
-    RepeatCount,
-    RunDistance,
-    SelectProject,
-    StartInput,
-    StepDelay,
-    StepLoop,
-    StepOutput,
-    StopInput,
-)
 from motorbus.protocol.project_stepper.wire import (
     _ANY_PROJECT,
-    DEFAULT_MOTOR,
     DUMP_BLOCK_SIZE,
     DUMP_SIZE,
     MAX_LOOP_COUNT,
@@ -126,24 +110,6 @@ class StepSpec:
         t = check_choice("stop_input", self.stop_input, tuple(GatingInput), "A0-11")
         object.__setattr__(self, "stop_input", GatingInput(t))
 
-    def commands(
-        self, step: int, motor: int = DEFAULT_MOTOR
-    ) -> list[ProjectStepperCommand[object]]:
-        """Return the seven commands 03..09 that program this step as ``step`` (A.6).
-
-        Raises:
-            LocalProtocolError: ``step`` is not 1..10 or ``motor`` is not allowed.
-        """
-        return [
-            RunDistance(step, self.run_distance, motor=motor),
-            DirectionAndStartFrequency(step, self.direction, self.start_hz, motor=motor),
-            AccelAndSpeed(step, self.accel_hz, self.speed_rpm, motor=motor),
-            StepOutput(step, self.output, motor=motor),
-            StepDelay(step, self.delay_ms, motor=motor),
-            StartInput(step, self.start_input, motor=motor),
-            StopInput(step, self.stop_input, motor=motor),
-        ]
-
     def encode_data(self) -> bytes:
         """Return the 16 data bytes of this step's dump block ([x][0..15], A.5)."""
         return (
@@ -227,26 +193,6 @@ class Project:
             check_int("loop_end", self.loop_end, self.loop_start, len(self.steps))
             check_int("loop_count", self.loop_count, 1, MAX_LOOP_COUNT)
         check_int("repeat_count", self.repeat_count, 0, REPEAT_FOREVER)
-
-    def commands(self, motor: int = DEFAULT_MOTOR) -> list[ProjectStepperCommand[object]]:
-        """Return the programming sequence of A.6, without the final SaveProject.
-
-        SelectProject, MotorSetup, DistancePerRev, then 03..09 for each step, then
-        StepLoop and RepeatCount (always sent, so stale loop settings are overwritten).
-
-        Raises:
-            LocalProtocolError: ``motor`` is not allowed (A0-02).
-        """
-        out: list[ProjectStepperCommand[object]] = [
-            SelectProject(self.number, len(self.steps)),
-            MotorSetup(self.subdivision, self.step_angle_x100, motor=motor),
-            DistancePerRev(self.distance_per_rev, motor=motor),
-        ]
-        for i, spec in enumerate(self.steps, start=1):
-            out += spec.commands(i, motor)
-        out.append(StepLoop(self.loop_start, self.loop_end, self.loop_count))
-        out.append(RepeatCount(self.repeat_count))
-        return out
 
 
 def _zero_unused(used: int) -> bytes:
