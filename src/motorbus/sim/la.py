@@ -147,6 +147,19 @@ def _choice(field: str, value: object, allowed: tuple[object, ...]) -> object:
     return value
 
 
+def _not_negative(field: str, value: object) -> float:
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or value < 0
+    ):
+        raise LocalProtocolError(
+            f"{field} must be a number >= 0, got {value!r}", field=field, value=value
+        )
+    return float(value)
+
+
 def _positive(field: str, value: object) -> float:
     if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
         raise LocalProtocolError(
@@ -189,6 +202,11 @@ class LAModel(DeviceModel):
         cooling_rate: float = DEFAULT_COOLING_RATE,
         position: float = 0.0,
         silent_replies: int = 0,
+        dead_time: float = 0.0,
+        lag_tau: float = 0.0,
+        dead_band: float = 0.0,
+        position_noise: float = 0.0,
+        seed: int | None = None,
     ) -> None:
         """Create an actuator in its power-on state with the factory control table.
 
@@ -213,6 +231,17 @@ class LAModel(DeviceModel):
             silent_replies: the first this many replies are not sent (model choice: an
                 actuator that misses its first queries, e.g. still starting up); the
                 requests still take effect.  Counted in ``silenced``.
+            dead_time: seconds between a position command's arrival and the motor
+                acting on it (model choice for test rigs; the target register changes
+                at once).
+            lag_tau: time constant, seconds, of a first-order lag between follow-mode
+                targets and the position the motor chases (0: none).
+            dead_band: units; a move stops this far short of its target, measured
+                along the approach (half on each side: approaches from below and
+                above end ``dead_band`` apart, a simulated backlash).
+            position_noise: standard deviation, units, of gaussian noise added to the
+                reported position (not to the motion).
+            seed: seed of the noise (None: a fixed default, so runs repeat).
 
         Raises:
             LocalProtocolError: a value out of range or not one of the choices.
@@ -265,8 +294,17 @@ class LAModel(DeviceModel):
         self._flash = bytearray(self._ram)
         self._active_baud = BaudCode(baud_code)
 
+        self._dead_time = _not_negative("dead_time", dead_time)
+        self._lag_tau = _not_negative("lag_tau", lag_tau)
+        self._dead_band = _not_negative("dead_band", dead_band)
+        self._noise = _not_negative("position_noise", position_noise)
+        self._rng = random.Random(0 if seed is None else seed)
+        # Position commands not yet acted on (dead time): (time due, target, follow).
+        self._pending: list[tuple[float, int, bool]] = []
         self._velocity = 0.0
         self._goal: int | None = None
+        self._aim = 0.0  # where the motor is driving: the goal less the dead band
+        self._chase = float(position)  # follow mode: the lagged goal
         self._follow = False
         self._time: float | None = None
         self._power = PowerState.WORKING
@@ -307,9 +345,7 @@ class LAModel(DeviceModel):
     @property
     def moving(self) -> bool:
         """True while the motor is driving toward a target."""
-        return self._goal is not None and (
-            self._velocity != 0.0 or self._position != float(self._goal)
-        )
+        return self._goal is not None and (self._velocity != 0.0 or self._position != self._aim)
 
     @property
     def errors(self) -> ErrorFlags:
@@ -487,6 +523,27 @@ class LAModel(DeviceModel):
     def _stop(self) -> None:
         self._goal = None
         self._velocity = 0.0
+        self._pending.clear()
+
+    def _reported_position(self) -> int:
+        """The position with the measurement noise, clamped as the status reports it."""
+        pos = self._position
+        if self._noise:
+            pos += self._rng.gauss(0.0, self._noise)
+        return min(REPORTED_POSITION_MAX, max(REPORTED_POSITION_MIN, round(pos)))
+
+    def _adopt(self, target: int, follow: bool) -> None:
+        """Start driving toward ``target`` (after the dead time, if any)."""
+        if self._goal is None or not self._follow or not follow:
+            self._chase = self._position
+        self._goal = target
+        self._follow = follow
+        distance = target - self._position
+        half = self._dead_band / 2
+        if abs(distance) <= half:
+            self._aim = self._position
+        else:
+            self._aim = target - math.copysign(half, distance)
 
     def _raw_force(self) -> int:
         if not self.force_sensor:
@@ -494,7 +551,7 @@ class LAModel(DeviceModel):
         return min(RAW_FORCE_MAX, max(0, RAW_FORCE_ZERO_COUNTS + self.load_g // GRAMS_PER_COUNT))
 
     def _refresh_live(self) -> None:
-        self._put(Register.POSITION, self.position)
+        self._put(Register.POSITION, self._reported_position())
         self._put(Register.FORCE, self.force)
         self._put(Register.RAW_FORCE, self._raw_force())
 
@@ -511,7 +568,7 @@ class LAModel(DeviceModel):
             cmd_echo=echo,
             param2=param2,
             target=self.target,
-            position=self.position,
+            position=self._reported_position(),
             temperature=max(-128, min(127, round(self.temperature))),
             current=self.current,
             force=self.force,
@@ -564,8 +621,10 @@ class LAModel(DeviceModel):
             return  # model choice: an out-of-range target is not adopted
         self._power = PowerState.WORKING
         self._put(Register.TARGET, target)
-        self._goal = target
-        self._follow = follow
+        if self._dead_time:
+            self._pending.append((now + self._dead_time, target, follow))
+        else:
+            self._adopt(target, follow)
 
     def _control(self, action: ControlAction) -> None:
         if action is ControlAction.WORK:
@@ -591,8 +650,14 @@ class LAModel(DeviceModel):
             return
         start = self._time
         self._time = now
+        while self._pending and self._pending[0][0] <= now:
+            due, target, follow = self._pending.pop(0)
+            if self._goal is not None and self.moving and due > start:
+                self._integrate(due - start)
+            start = max(start, due)
+            self._adopt(target, follow)
         if self._goal is not None and self.moving:
-            self._integrate(float(self._goal), now - start)
+            self._integrate(now - start)
             if self._motor_abnormal and MOVING_CURRENT_MA > MOTOR_ABNORMAL_CLEAR_MA:
                 self._motor_abnormal = False
         for flag, (since, latched) in list(self._trips.items()):
@@ -616,11 +681,17 @@ class LAModel(DeviceModel):
         elif self._over_temperature and self.temperature < recovery:
             self._over_temperature = False
 
-    def _integrate(self, goal: float, duration: float) -> None:
-        """Move toward ``goal`` for ``duration`` seconds in steps of at most SIM_STEP_S."""
+    def _integrate(self, duration: float) -> None:
+        """Move toward the aim for ``duration`` seconds in steps of at most SIM_STEP_S."""
         steps = max(1, math.ceil(duration / SIM_STEP_S))
         dt = duration / steps
         for _ in range(steps):
+            goal = self._aim
+            if self._follow and self._lag_tau:
+                self._chase += (goal - self._chase) * min(1.0, dt / self._lag_tau)
+                if abs(self._aim - self._chase) < 1e-3:
+                    self._chase = self._aim
+                goal = self._chase
             distance = goal - self._position
             if self._follow:
                 step = max(-self._vmax * dt, min(self._vmax * dt, distance))
@@ -638,4 +709,5 @@ class LAModel(DeviceModel):
                     self._position = goal
             if self._position == goal:
                 self._velocity = 0.0
-                return
+                if goal == self._aim:
+                    return
