@@ -50,7 +50,7 @@ import os
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from motorbus import realtime, shutdown
 from motorbus.bus.events import (
@@ -95,7 +95,7 @@ from motorbus.validation import (
     check_turnaround,
 )
 
-__all__ = ["DEFAULT_TURNAROUND", "Bus", "BusState", "Priority"]
+__all__ = ["DEFAULT_TURNAROUND", "Bus", "BusObserver", "BusState", "Priority"]
 
 log = logging.getLogger("motorbus.bus")
 
@@ -151,6 +151,16 @@ class Priority(enum.IntEnum):
     HIGH = 1
     NORMAL = 2
     BACKGROUND = 3  # status polling that yields to everything else
+
+
+class BusObserver(Protocol):
+    """What ``Bus.add_observer`` calls (see there)."""
+
+    def on_write(self, cmd: Command[object], at: float) -> None: ...
+
+    def on_reply(
+        self, cmd: Command[object], value: Any, written_at: float, replied_at: float
+    ) -> None: ...
 
 
 class BusState(enum.Enum):
@@ -307,6 +317,7 @@ class Bus:
         self._done_watches: list[_DoneWatch] = []
         self._last_errors: dict[int, int] = {}
         self._closing = False
+        self._observers: list[BusObserver] = []
 
     # -- life cycle --------------------------------------------------------------
 
@@ -567,6 +578,28 @@ class Bus:
 
     # -- reservations --------------------------------------------------------------
 
+    def add_observer(self, observer: BusObserver) -> None:
+        """Tell ``observer`` of every frame written and every reply accepted, with the
+        bus's own times (``bus.timer`` clock): ``on_write(cmd, at)`` at the completed
+        write, ``on_reply(cmd, value, written_at, replied_at)`` when its reply's bytes
+        were read.  Called synchronously from the bus: keep them short.  An observer
+        that raises is logged and removed; the bus goes on.  Observing sends nothing."""
+        if observer not in self._observers:
+            self._observers.append(observer)
+
+    def remove_observer(self, observer: BusObserver) -> None:
+        """Stop telling ``observer`` (no error if it was not added)."""
+        with contextlib.suppress(ValueError):
+            self._observers.remove(observer)
+
+    def _tell(self, call: Callable[[BusObserver], None]) -> None:
+        for observer in list(self._observers):
+            try:
+                call(observer)
+            except Exception:
+                log.exception("%s: observer %r failed; removed", self.name, observer)
+                self.remove_observer(observer)
+
     def add_reservation_source(self, source: ReservationSource) -> None:
         """Register ``source(now) -> (start, end) | None``: the next reserved window.
 
@@ -722,6 +755,8 @@ class Bus:
             WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
         )
         job.tx_time = after
+        if self._observers:
+            self._tell(lambda o: o.on_write(cmd, after))
         if expects:
             if self.config.wire_floor:
                 baud = self.baudrate
@@ -898,6 +933,9 @@ class Bus:
         if job.cmd.done_shapes():
             self._watch_done(_done_watch(job.cmd))
         self._observe(job.cmd.fault_state(value), value, now)
+        if self._observers:
+            cmd, written = job.cmd, job.tx_time
+            self._tell(lambda o: o.on_reply(cmd, value, written, now))
         self._finish(job, value)
 
     def _watch_done(self, watch: _DoneWatch) -> None:
