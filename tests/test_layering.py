@@ -75,6 +75,8 @@ ALLOWED: dict[str, set[str]] = {
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices"},
     "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    # Tools built on the library (never imported by it): they use it, and nothing else.
+    "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
     "sim": {"errors", "protocol", "transport"},
 }
 
@@ -147,3 +149,11 @@ def test_project_values_do_not_import_the_commands() -> None:
     # (project_commands), so the two modules do not import each other.
     path = SRC / "protocol" / "project_stepper" / "project.py"
     assert "motorbus.protocol.project_stepper.commands" not in imports_of(path)
+
+
+def test_the_rig_core_is_pure() -> None:
+    for name in ("analysis.py", "compare.py", "plan.py"):
+        bad = {n.split(".")[0] for n in imports_of(SRC / "rig" / name)} & {
+            "asyncio", "time", "serial", "socket", "threading",
+        }  # fmt: skip
+        assert not bad, f"rig/{name} imports {bad}"

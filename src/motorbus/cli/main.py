@@ -71,6 +71,7 @@ COMMAND_MODULES = (
     "project",
     "quad",
     "capture",
+    "rig",
 )
 
 

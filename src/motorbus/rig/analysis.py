@@ -126,6 +126,17 @@ def _crossing(samples: Sequence[Sample], level: float, rising: bool) -> float:
     return math.nan
 
 
+def _slope(window: Sequence[Sample]) -> float:
+    """Least-squares slope of position against time (units/s)."""
+    n = len(window)
+    mt = sum(s.t for s in window) / n
+    mp = sum(s.position for s in window) / n
+    stt = sum((s.t - mt) ** 2 for s in window)
+    if stt == 0:
+        return 0.0
+    return sum((s.t - mt) * (s.position - mp) for s in window) / stt
+
+
 def step_figures(
     samples: Sequence[Sample],
     command_t: float,
@@ -135,6 +146,7 @@ def step_figures(
     noise_band: float = 2.0,
     settle_band_pct: float = 1.0,
     tail_s: float = 0.1,
+    speed_window_s: float = 0.05,
 ) -> StepFigures:
     """Figures of one step from ``start`` to ``end`` commanded at ``command_t``.
 
@@ -146,6 +158,8 @@ def step_figures(
         settle_band_pct: the settling band, in percent of the step size.
         tail_s: the steady-state error is the mean error of the samples in the last
             ``tail_s`` seconds.
+        speed_window_s: the peak speed is the largest least-squares slope of the
+            positions over any window of at least this length.
 
     Raises:
         ValueError: ``start == end`` or no sample after ``command_t``.
@@ -167,10 +181,19 @@ def step_figures(
     t10 = _crossing(after, frac_level(0.1), rising)
     t90 = _crossing(after, frac_level(0.9), rising)
     rise_ms = (t90 - t10) * 1e3
+    # Speed over a window, not between neighbours: positions are whole units, and two
+    # samples 0.5 ms apart one unit apart would read as 2,000 units/s; and a slope
+    # fitted to every sample in the window, so one reply read late cannot make a peak.
     peak_speed = 0.0
-    for a, b in itertools.pairwise(after):
-        if b.t > a.t:
-            peak_speed = max(peak_speed, sign * (b.position - a.position) / (b.t - a.t))
+    j = 0
+    for i, a in enumerate(after):
+        j = max(j, i + 1)
+        while j < len(after) and after[j].t - a.t < speed_window_s:
+            j += 1
+        if j == len(after):
+            break
+        slope = _slope(after[i : j + 1])
+        peak_speed = max(peak_speed, sign * slope)
     mean_speed = 0.8 * size / (t90 - t10) if t90 > t10 else math.nan
     beyond = max(sign * (s.position - end) for s in after)
     overshoot = max(0.0, beyond) / size * 100.0

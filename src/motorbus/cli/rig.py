@@ -1,0 +1,258 @@
+"""``motorbus rig``: characterise LA actuators (step, tracking, latency, repeatability).
+
+Examples::
+
+    motorbus rig 1 --out rig-run --port /dev/ttyUSB0
+    motorbus rig 1-3 --tests step,latency --min 200 --max 1800 --out run2
+    motorbus rig compare golden/ run2/ --tolerance step.rise_time_ms=5%
+
+Every target stays inside --min..--max (default: the stroke less 5 % at each end);
+each test first moves the actuator to its start in positioning mode (the actuator's own
+profile, from wherever it is); a status reply over --max-current or --max-force pauses
+every actuator under test and ends the run (exit code 1).  However the run ends
+(Ctrl-C, SIGTERM, an error), every actuator is paused after its last target.
+
+The run writes results.json, samples.csv and report.html (one self-contained file)
+into --out; docs/rig.md defines every figure.  ``rig compare OLD NEW`` prints each
+figure of two runs side by side and exits 1 if any regressed beyond its tolerance.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from motorbus.cli.common import LA_BAUD, add_bus_options, open_bus, parse_id_args, print_json
+from motorbus.errors import CommandFailed, LocalProtocolError, UsageError
+from motorbus.protocol.base import Family
+from motorbus.rig import (
+    DEFAULT_FREQUENCIES,
+    TESTS,
+    RigAborted,
+    RigPlan,
+    RigResult,
+    Row,
+    compare_results,
+    default_window,
+    parse_tolerances,
+    run_rig,
+    write_report,
+)
+
+__all__ = ["register", "run"]
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``rig`` command."""
+    p = subparsers.add_parser(
+        "rig",
+        help="characterise LA actuators: step, tracking, latency, repeatability; compare runs",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument(
+        "ids",
+        metavar="ID",
+        nargs="+",
+        help="actuator IDs 1..254 (3, 1,2,3 or 1-3,7); or: compare OLD NEW",
+    )
+    lo, hi = default_window()
+    p.add_argument("--tests", default="all", help=f"comma list of {', '.join(TESTS)} or all")
+    p.add_argument("--out", metavar="DIR", help="folder for results.json, samples.csv, report.html")
+    p.add_argument("--min", type=int, default=lo, help=f"lowest target (default {lo})")
+    p.add_argument("--max", type=int, default=hi, help=f"highest target (default {hi})")
+    p.add_argument("--start", type=int, help="step start (default 25 %% of the window)")
+    p.add_argument("--end", type=int, help="step end (default 75 %% of the window)")
+    p.add_argument(
+        "--frequencies",
+        default=",".join(f"{f:g}" for f in DEFAULT_FREQUENCIES),
+        help="tracking sine frequencies, Hz, comma list",
+    )
+    p.add_argument("--amplitude", type=int, help="sine amplitude (default a quarter window)")
+    p.add_argument("--cycles", type=float, default=2.0, help="sine cycles per frequency")
+    p.add_argument("--period", type=float, default=0.01, help="stream tick, 0.01..0.05 s")
+    p.add_argument("--latency-count", type=int, default=50, help="small steps (default 50)")
+    p.add_argument("--repeat-count", type=int, default=5, help="approaches per side (default 5)")
+    p.add_argument("--max-current", type=int, default=1500, help="abort above, mA")
+    p.add_argument("--max-force", type=int, default=30000, help="abort above, grams")
+    p.add_argument(
+        "--tolerance",
+        default="",
+        help="compare: FIGURE=N%% (relative) or FIGURE=N (units), comma list",
+    )
+    add_bus_options(p, default_baud=LA_BAUD)
+    p.set_defaults(func=run)
+
+
+def _plan(args: argparse.Namespace) -> RigPlan:
+    ids = parse_id_args(args.ids)
+    tests = (
+        TESTS
+        if args.tests.strip() == "all"
+        else tuple(t.strip() for t in args.tests.split(",") if t.strip())
+    )
+    try:
+        freqs = tuple(float(f) for f in args.frequencies.split(",") if f.strip())
+    except ValueError:
+        raise LocalProtocolError(
+            f"--frequencies={args.frequencies!r} is not a comma list of numbers (Hz)",
+            field="--frequencies",
+        ) from None
+    return RigPlan(
+        ids=tuple(ids),
+        tests=tests,
+        window=(args.min, args.max),
+        step_start=args.start,
+        step_end=args.end,
+        period=args.period,
+        frequencies=freqs,
+        cycles=args.cycles,
+        amplitude=args.amplitude,
+        latency_count=args.latency_count,
+        repeat_count=args.repeat_count,
+        max_current_ma=args.max_current,
+        max_force_g=args.max_force,
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``motorbus rig`` (or ``rig compare``)."""
+    if args.ids and args.ids[0] == "compare":
+        return _compare(args)
+    plan = _plan(args)  # every bad value is refused here, before the port opens
+    if not args.out:
+        raise UsageError("rig: give --out DIR for results.json, samples.csv and report.html")
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: exists and is not a folder")
+    return asyncio.run(_run(args, plan, out))
+
+
+class _Bar:
+    """One progress line on standard error: what runs, and about how long is left."""
+
+    def __init__(self, total_s: float) -> None:
+        self.total = total_s
+        self.t0 = time.monotonic()
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+
+    def __call__(self, what: str, done: float) -> None:
+        now = time.monotonic()
+        if not self.tty and now - self.last < 2.0 and done < 1.0:
+            return
+        self.last = now
+        width = 24
+        filled = round(width * done)
+        left = max(0.0, self.total - (now - self.t0))
+        bar = "#" * filled + "." * (width - filled)
+        line = f"[{bar}] {done * 100:3.0f}% {what} (~{left:.0f} s left)"
+        if self.tty:
+            print(f"\r{line:<79}", end="", file=sys.stderr, flush=True)
+        else:
+            print(line, file=sys.stderr, flush=True)
+
+    def close(self) -> None:
+        if self.tty:
+            print(file=sys.stderr)
+
+
+async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
+    bar = _Bar(plan.estimate_seconds())
+    aborted: str | None = None
+    result: RigResult | None = None
+    async with open_bus(args, [Family.LA]) as bus:
+        try:
+            result = await run_rig(bus, plan, bar)
+        except RigAborted as err:
+            aborted = str(err)
+        finally:
+            bar.close()
+        stats = bus.stats.as_dict()
+    if result is None:
+        raise CommandFailed(aborted or "rig: no result")
+    paths = write_report(out, result, stats)
+    doc = json.loads(paths["results"].read_text(encoding="utf-8"))
+    if args.json:
+        print_json(doc)
+    else:
+        for device, figures in doc["devices"].items():
+            print(device)
+            for name, value in figures.items():
+                print(f"  {name:32} {'n/a' if value is None else f'{value:.4g}'}")
+        s = doc["sampling"]
+        print(
+            f"sampled at {s['rate_hz']:.0f} Hz (interval p99 {s['interval_p99_ms']:.2f} ms); "
+            f"report: {paths['report']}"
+        )
+    return 0
+
+
+def _load(path_text: str) -> dict[str, dict[str, float]]:
+    path = Path(path_text)
+    if path.is_dir():
+        path = path / "results.json"
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise UsageError(f"rig compare: {path} does not exist") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise UsageError(f"rig compare: {path} is not a rig results.json ({err})") from None
+    if not isinstance(doc, dict) or doc.get("format") != "motorbus-rig-results":
+        raise UsageError(f"rig compare: {path} is not a rig results.json (no format key)")
+    devices = doc.get("devices")
+    if not isinstance(devices, dict):
+        raise UsageError(f"rig compare: {path} has no devices")
+    return {
+        name: {k: (math.nan if v is None else float(v)) for k, v in figs.items()}
+        for name, figs in devices.items()
+    }
+
+
+def _compare(args: argparse.Namespace) -> int:
+    rest = args.ids[1:]
+    if len(rest) != 2:
+        raise UsageError("rig compare: give two runs, OLD and NEW (folders or results.json)")
+    try:
+        tolerances = parse_tolerances(args.tolerance)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    old, new = _load(rest[0]), _load(rest[1])
+    rows = compare_results(old, new, tolerances)
+    if not rows:
+        raise UsageError("rig compare: the two runs share no actuator and figure")
+    if args.json:
+        print_json([_row_dict(r) for r in rows])
+    else:
+        print(f"{'device':8} {'figure':30} {'old':>10} {'new':>10} {'change':>9}  verdict")
+        for r in rows:
+            pct = "n/a" if math.isnan(r.change_pct) else f"{r.change_pct:+.1f}%"
+            verdict = "REGRESSED" if r.regressed else "ok"
+            print(f"{r.device:8} {r.figure:30} {r.old:10.4g} {r.new:10.4g} {pct:>9}  {verdict}")
+    bad = [r for r in rows if r.regressed]
+    if bad:
+        print(
+            f"{len(bad)} figure(s) regressed beyond tolerance: "
+            + ", ".join(f"{r.device} {r.figure}" for r in bad),
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def _row_dict(r: Row) -> dict[str, Any]:
+    return {
+        "device": r.device,
+        "figure": r.figure,
+        "old": r.old,
+        "new": r.new,
+        "change_pct": r.change_pct,
+        "allowed": r.allowed,
+        "regressed": r.regressed,
+    }

@@ -1,0 +1,363 @@
+"""Run a :class:`RigPlan` on an open bus: the asyncio shell around ``rig.analysis``.
+
+Actuators are tested one after the other (the poller then samples the one under test as
+fast as the bus allows).  Each test first brings the actuator to its start in
+positioning mode (the actuator's own profile ramps it there from wherever it is), so
+the rig never jumps; every target is inside the plan's window (checked at plan time
+and again here before any write).  However the run ends, every actuator under test
+is paused after its last target (``finally``), and the ceilings of the plan pause
+everything at once from the reply that crossed them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import math
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.protocol import la
+from motorbus.rig.analysis import (
+    RepeatFigures,
+    Sample,
+    StepFigures,
+    TrackFigures,
+    distribution,
+    repeat_figures,
+    sample_rate,
+    step_figures,
+    track_figures,
+)
+from motorbus.rig.plan import RigPlan
+from motorbus.rig.sampler import RigAborted, Sampler
+from motorbus.shutdown import deferred_interrupts
+from motorbus.streams import Streamer
+
+__all__ = ["DeviceResult", "Progress", "RigResult", "run_rig"]
+
+#: A sample window counts as still when its positions span at most this many noise bands.
+STILL_WINDOW_S = 0.08
+#: Settled: still, and within this share of the move (or 2 noise bands) of the target.
+SETTLE_SHARE = 0.05
+#: The steady state after a settle is sampled this long before the next move.
+TAIL_S = 0.15
+
+#: ``progress(what, done_fraction)``: called as the plan goes.
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class DeviceResult:
+    """Everything measured on one actuator."""
+
+    id: int
+    steps: list[StepFigures] = field(default_factory=list)
+    tracks: list[TrackFigures] = field(default_factory=list)
+    dead_times_ms: list[float] = field(default_factory=list)
+    repeat: RepeatFigures | None = None
+    #: Where each repeatability approach ended, per side ("below", "above").
+    ends: dict[str, list[float]] = field(default_factory=dict)
+    noise: float = math.nan
+
+    def figures(self) -> dict[str, float]:
+        """The flat figures ``results.json`` lists (docs/rig.md defines each)."""
+        out: dict[str, float] = {}
+        if self.steps:
+
+            def mean(attr: str) -> float:
+                return statistics.fmean(getattr(s, attr) for s in self.steps)
+
+            out["step.dead_time_ms"] = mean("dead_time_ms")
+            out["step.rise_time_ms"] = mean("rise_time_ms")
+            out["step.speed_units_per_s"] = mean("peak_speed_units_per_s")
+            out["step.mean_speed_units_per_s"] = mean("mean_speed_units_per_s")
+            out["step.overshoot_pct"] = max(s.overshoot_pct for s in self.steps)
+            out["step.settling_time_ms"] = mean("settling_time_ms")
+            out["step.steady_state_error"] = max(
+                (abs(s.steady_state_error) for s in self.steps), default=math.nan
+            )
+            out["step.peak_current_ma"] = max(s.peak_current for s in self.steps)
+            out["step.peak_force_g"] = max(s.peak_force for s in self.steps)
+        if self.tracks:
+            out["track.rms_error"] = max(t.rms_error for t in self.tracks)
+            out["track.max_error"] = max(t.max_error for t in self.tracks)
+            out["track.lag_ms"] = statistics.fmean(t.lag_ms for t in self.tracks)
+        if self.dead_times_ms:
+            d = distribution(self.dead_times_ms)
+            out["latency.p50_ms"] = d.p50
+            out["latency.p99_ms"] = d.p99
+            out["latency.max_ms"] = d.max
+        if self.repeat is not None:
+            out["repeat.spread"] = self.repeat.spread
+            out["repeat.backlash"] = self.repeat.backlash
+            out["repeat.std_below"] = self.repeat.from_below.std
+            out["repeat.std_above"] = self.repeat.from_above.std
+        return out
+
+    def details(self) -> dict[str, Any]:
+        return {
+            "noise_std": self.noise,
+            "steps": [asdict(s) for s in self.steps],
+            "tracks": [asdict(t) for t in self.tracks],
+            "dead_times_ms": self.dead_times_ms,
+            "repeat": asdict(self.repeat) if self.repeat is not None else None,
+            "repeat_ends": self.ends,
+        }
+
+
+@dataclass
+class RigResult:
+    """A whole run: per actuator results, the raw samples and the achieved sampling."""
+
+    plan: RigPlan
+    devices: dict[int, DeviceResult]
+    samples: dict[int, list[Sample]]
+    targets: dict[int, list[tuple[float, int]]]
+    started: float
+    seconds: float
+    polls: int
+    poll_timeouts: int
+    aborted: str | None = None
+
+    def sampling(self) -> dict[str, float]:
+        """Achieved sample rate (Hz) and interval jitter (ms) over every actuator."""
+        rates, p99s, maxes = [], [], []
+        for samples in self.samples.values():
+            if len(samples) > 2:
+                rate, gaps = sample_rate(samples)
+                rates.append(rate)
+                p99s.append(gaps.p99)
+                maxes.append(gaps.max)
+        return {
+            "rate_hz": statistics.fmean(rates) if rates else math.nan,
+            "interval_p99_ms": max(p99s, default=math.nan),
+            "interval_max_ms": max(maxes, default=math.nan),
+        }
+
+
+class _Rig:
+    def __init__(self, bus: Bus, plan: RigPlan, sampler: Sampler, progress: Progress) -> None:
+        self.bus = bus
+        self.plan = plan
+        self.sampler = sampler
+        self.progress = progress
+        self.total = plan.estimate_seconds()
+        #: Position noise (standard deviation) of each actuator at its last rest.
+        self.rest_noise: dict[int, float] = {}
+        self.t0 = time.monotonic()
+
+    def tell(self, what: str) -> None:
+        self.progress(what, min(1.0, (time.monotonic() - self.t0) / self.total))
+
+    async def move(self, ident: int, target: int) -> float:
+        """Write a positioning target (inside the window); return its write time."""
+        if not self.plan.in_window(target):  # plan-time checks make this unreachable
+            raise LocalProtocolError(f"target {target} is outside the window {self.plan.window}")
+        self.sampler.check()
+        await self.bus.request(la.MoveTo(ident, target), priority=Priority.HIGH)
+        return self.sampler.last_write(ident)
+
+    def noise_band(self, ident: int) -> float:
+        """The band a position must leave to count as moved: four standard deviations
+        of the noise measured at the last rest (at least 2 units: positions are whole)."""
+        return max(2.0, 4.0 * self.rest_noise.get(ident, 0.0))
+
+    def measure_noise(self, ident: int) -> float:
+        """Standard deviation of the positions over the last still window (call at rest)."""
+        now = self.bus.timer.now()
+        recent = [s.position for s in self.sampler.since(ident, now - STILL_WINDOW_S)]
+        noise = statistics.pstdev(recent) if len(recent) > 2 else 0.0
+        self.rest_noise[ident] = noise
+        return noise
+
+    async def settle(self, ident: int, target: int, since: float, size: float) -> bool:
+        """Wait until the actuator is still near ``target``; False on timeout.
+
+        Still: the positions of the last 80 ms span at most the noise band measured at
+        the last rest (never the noise of the motion itself)."""
+        deadline = since + self.plan.settle_timeout
+        band = self.noise_band(ident)
+        near = max(2 * band, SETTLE_SHARE * size)
+        while self.bus.timer.now() < deadline:
+            await self.sampler.sleep(0.01)
+            now = self.bus.timer.now()
+            recent = self.sampler.since(ident, max(since, now - STILL_WINDOW_S))
+            if len(recent) < 4 or recent[0].t > now - 0.75 * STILL_WINDOW_S:
+                continue
+            spread = max(s.position for s in recent) - min(s.position for s in recent)
+            if spread <= band and abs(recent[-1].position - target) <= near:
+                return True
+        return False
+
+    async def goto(self, ident: int, target: int) -> None:
+        status = await self.bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS))
+        size = abs(target - status.position)
+        t = await self.move(ident, target)
+        await self.settle(ident, target, t, max(size, 1))
+        await self.sampler.sleep(TAIL_S)
+        self.measure_noise(ident)
+
+    async def step(self, ident: int, start: int, end: int) -> StepFigures:
+        await self.goto(ident, start)
+        band = self.noise_band(ident)
+        t = await self.move(ident, end)
+        await self.settle(ident, end, t, abs(end - start))
+        await self.sampler.sleep(TAIL_S)
+        return step_figures(self.sampler.since(ident, t), t, start, end, noise_band=band)
+
+    async def track(self, ident: int, frequency: float) -> TrackFigures:
+        plan = self.plan
+        assert plan.amplitude is not None
+        await self.goto(ident, plan.center)
+        seconds = plan.track_seconds(frequency)
+        w = 2 * math.pi * frequency
+        amp, center = plan.amplitude, plan.center
+
+        def targets(t: float, _statuses: object) -> int | None:
+            if t > seconds:
+                return None
+            return round(center + amp * math.sin(w * t))
+
+        streamer = Streamer(self.bus)
+        try:
+            first_write = len(self.sampler.targets[ident])
+            stream = streamer.follow(
+                InspireLA(self.bus, ident), targets, period=plan.period, safe_action="pause"
+            )
+            while not stream.done:
+                self.tell(f"la:{ident} track {frequency:g} Hz")
+                await self.sampler.sleep(0.05)
+            await stream.wait()
+        finally:
+            await streamer.close(safe=True)
+        self.sampler.check()
+        written = self.sampler.targets[ident][first_write:]
+        # Skip the first cycle (or half the run): the response has to settle into the sine.
+        skip = min(1.0 / frequency, seconds / 2)
+        start = written[0][0] + skip
+        kept = [(t, x) for t, x in written if t >= start]
+        samples = [s for s in self.sampler.since(ident, start) if s.t <= kept[-1][0]]
+        return track_figures(
+            [t for t, _ in kept],
+            [float(x) for _, x in kept],
+            samples,
+            frequency_hz=frequency,
+            max_lag_s=min(0.5, 0.5 / frequency),
+        )
+
+    async def latency(self, ident: int, result: DeviceResult) -> None:
+        plan = self.plan
+        base = plan.center
+        await self.goto(ident, base)
+        for k in range(plan.latency_count):
+            start, end = (
+                (base, base + plan.latency_step)
+                if k % 2 == 0
+                else (
+                    base + plan.latency_step,
+                    base,
+                )
+            )
+            band = min(self.noise_band(ident), plan.latency_step / 2)
+            t = await self.move(ident, end)
+            await self.settle(ident, end, t, plan.latency_step)
+            await self.sampler.sleep(TAIL_S)
+            self.measure_noise(ident)
+            fig = step_figures(self.sampler.since(ident, t), t, start, end, noise_band=band)
+            result.dead_times_ms.append(fig.dead_time_ms)
+            self.tell(f"la:{ident} latency {k + 1}/{plan.latency_count}")
+
+    async def repeat(self, ident: int, result: DeviceResult) -> RepeatFigures:
+        plan = self.plan
+        assert plan.repeat_point is not None
+        point = plan.repeat_point
+        ends: dict[str, list[float]] = {"below": [], "above": []}
+        result.ends = ends
+        for side, away in (("below", -plan.repeat_approach), ("above", plan.repeat_approach)):
+            for k in range(plan.repeat_count):
+                await self.goto(ident, point + away)
+                t = await self.move(ident, point)
+                await self.settle(ident, point, t, abs(away))
+                await self.sampler.sleep(TAIL_S)
+                now = self.bus.timer.now()
+                tail = self.sampler.since(ident, now - TAIL_S)
+                ends[side].append(statistics.fmean(s.position for s in tail))
+                self.tell(f"la:{ident} repeat from {side} {k + 1}/{plan.repeat_count}")
+        return repeat_figures(point, ends["below"], ends["above"])
+
+    async def device(self, ident: int) -> DeviceResult:
+        plan = self.plan
+        result = DeviceResult(ident)
+        self.sampler.poll([ident])
+        status = await self.bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS))
+        await self.bus.request(la.Control(ident, la.ControlAction.WORK))
+        self.tell(f"la:{ident} at {status.position}")
+        if "step" in plan.tests:
+            assert plan.step_start is not None and plan.step_end is not None
+            for a, b in ((plan.step_start, plan.step_end), (plan.step_end, plan.step_start)):
+                self.tell(f"la:{ident} step {a} -> {b}")
+                result.steps.append(await self.step(ident, a, b))
+        result.noise = self.rest_noise.get(ident, math.nan)
+        if "track" in plan.tests:
+            for f in plan.frequencies:
+                result.tracks.append(await self.track(ident, f))
+        if "latency" in plan.tests:
+            await self.latency(ident, result)
+        if "repeat" in plan.tests:
+            result.repeat = await self.repeat(ident, result)
+        return result
+
+
+async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
+    for ident in ids:
+        # A timeout means the pause was written and only its status reply is missing.
+        with contextlib.suppress(ReplyTimeoutError):
+            await bus.request(
+                la.Control(ident, la.ControlAction.PAUSE), priority=Priority.EMERGENCY
+            )
+
+
+async def run_rig(bus: Bus, plan: RigPlan, progress: Progress | None = None) -> RigResult:
+    """Run ``plan`` on the LA actuators of ``bus``; every actuator is paused at the end.
+
+    Raises:
+        RigAborted: a ceiling tripped or an actuator faulted (all paused; the message
+            says which and why).  Whatever else ends the run (an error, cancellation)
+            also pauses every actuator under test before it propagates.
+    """
+    tell = progress or (lambda _what, _done: None)
+    started = time.time()
+    t0 = time.monotonic()
+    results: dict[int, DeviceResult] = {}
+    with Sampler(
+        bus, plan.ids, max_current_ma=plan.max_current_ma, max_force_g=plan.max_force_g
+    ) as sampler:
+        rig = _Rig(bus, plan, sampler, tell)
+        try:
+            for ident in plan.ids:
+                results[ident] = await rig.device(ident)
+            tell("done", 1.0)
+        finally:
+            sampler.poll(())
+            with deferred_interrupts():
+                await asyncio.shield(_pause_all(bus, plan.ids))
+    return RigResult(
+        plan=plan,
+        devices=results,
+        samples=sampler.samples,
+        targets=sampler.targets,
+        started=started,
+        seconds=time.monotonic() - t0,
+        polls=sampler.polls,
+        poll_timeouts=sampler.poll_timeouts,
+    )
+
+
+__all__ += ["RigAborted"]

@@ -1,0 +1,113 @@
+"""``motorbus rig`` and ``rig compare`` as a user runs them, against ``motorbus sim`` on a
+pty whose actuators have a configured truth (speed, dead time); the report is opened in
+a real headless browser when one is installed (CI installs Debian's chromium)."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shutil
+import subprocess
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from motorbus.sim.process import SimProcess
+from tests.cli.test_cli_la import cli
+
+SPEED, DEAD = 1000.0, 0.012
+TRUTH = f"stroke_speed={SPEED:g},accel=10000,dead_time={DEAD},position=300"
+SLOW = f"stroke_speed={SPEED * 0.8:g},accel=10000,dead_time={DEAD},position=300"
+QUICK = ["--tests", "step,latency,repeat", "--latency-count", "6", "--repeat-count", "2"]
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Path]]:
+    """One rig run on a nominal actuator, one on an actuator 20 % slower."""
+    base = tmp_path_factory.mktemp("rig")
+    out: dict[str, Path] = {}
+    for name, spec in (("golden", TRUTH), ("slow", SLOW)):
+        with SimProcess([f"la:1,{spec}"], baud=921600) as sim:
+            folder = base / name
+            r = cli("rig", "1", *QUICK, "--out", str(folder), "--port", sim.path)
+            assert r.returncode == 0, r.stderr
+            out[name] = folder
+    yield out
+
+
+def figures(folder: Path) -> dict[str, float]:
+    doc = json.loads((folder / "results.json").read_text())
+    return doc["devices"]["la:1"]
+
+
+def test_the_rig_recovers_the_configured_truth_over_a_pty(runs: dict[str, Path]) -> None:
+    f = figures(runs["golden"])
+    assert f["step.speed_units_per_s"] == pytest.approx(SPEED, rel=0.05)
+    # 10 -> 90 % of the 900-unit default step (550 -> 1450), at cruise: 720 units.
+    assert f["step.rise_time_ms"] == pytest.approx(720.0, rel=0.05)
+    # Dead time as docs/rig.md defines it: the model's, plus the time its profile takes
+    # to leave the 2-unit noise band from rest (sqrt(2 * 2 / accel) = 20 ms).
+    moved_ms = DEAD * 1e3 + math.sqrt(2 * 2 / 10000) * 1e3
+    assert f["step.dead_time_ms"] == pytest.approx(moved_ms, rel=0.15)
+    assert f["latency.p50_ms"] == pytest.approx(moved_ms, rel=0.15)
+    for key in (
+        "step.overshoot_pct", "step.settling_time_ms", "step.steady_state_error",
+        "latency.p99_ms", "repeat.spread", "repeat.backlash",
+    ):  # fmt: skip
+        assert key in f
+    samples = (runs["golden"] / "samples.csv").read_text().splitlines()
+    assert samples[0] == "t_s,id,target,position,current_ma,force_g"
+    assert len(samples) > 1000
+
+
+def test_compare_passes_a_run_against_itself_and_flags_a_slower_actuator(
+    runs: dict[str, Path],
+) -> None:
+    same = cli("rig", "compare", str(runs["golden"]), str(runs["golden"]))
+    assert same.returncode == 0, same.stdout + same.stderr
+    slow = cli("rig", "compare", str(runs["golden"]), str(runs["slow"] / "results.json"))
+    assert slow.returncode == 1, slow.stdout
+    assert re.search(r"step\.speed_units_per_s .* REGRESSED", slow.stdout)
+    assert "regressed beyond tolerance" in slow.stderr
+
+
+def test_the_report_is_self_contained_and_has_every_part(runs: dict[str, Path]) -> None:
+    page = (runs["golden"] / "report.html").read_text()
+    # Nothing to fetch: no scripts, stylesheets, images or links to anywhere.
+    assert not re.search(r"<script|<link|<img|src=|href=|url\(", page)
+    for title in ("Step response", "Latency (dead time) histogram", "Repeatability", "Plan"):
+        assert title in page
+    assert page.count("<svg") >= 3
+
+
+@pytest.mark.skipif(shutil.which("chromium") is None, reason="chromium is not installed")
+def test_the_report_opens_in_a_browser(runs: dict[str, Path]) -> None:
+    # A dead proxy: anything the page tried to fetch would fail (and it fetches nothing).
+    browser = ["chromium", "--headless", "--no-sandbox", "--disable-gpu"]
+    browser += ["--proxy-server=127.0.0.1:9", "--disable-background-networking"]
+    dom = subprocess.run(
+        [*browser, "--dump-dom", (runs["golden"] / "report.html").as_uri()],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    ).stdout
+    assert "<h1>motorbus rig report</h1>" in dom
+    assert dom.count("<svg") >= 3 and "<polyline" in dom
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["1", "--tests", "step,spin"], "'spin' is not a test"),
+        (["1", "--min", "-5"], "min=-5 is out of range"),
+        (["1", "--frequencies", "20"], "frequency=20.0 is out of range: allowed 0.01..10 Hz"),
+        (["1", "--start", "50"], "step_start=50 is out of range: allowed 100..1900"),
+        (["compare", "only-one"], "give two runs"),
+    ],
+)
+def test_bad_plans_are_refused_before_the_port_opens(args: list[str], message: str) -> None:
+    r = cli("rig", *args, "--out", "/nonexistent/x", "--port", "/dev/nonexistent-port")
+    assert r.returncode == 2, r.stderr
+    assert message in r.stderr
