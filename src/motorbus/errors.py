@@ -11,6 +11,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- NotSentError                       dropped before sending (``start_by`` passed)
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
+         +-- PortInUseError [OSError]           another open holds the port's exclusive lock
          +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
@@ -38,6 +39,7 @@ to a faulted actuator still returns its decoded reply.
 
 from __future__ import annotations
 
+import errno
 import warnings
 
 __all__ = [
@@ -47,6 +49,7 @@ __all__ = [
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
+    "PortInUseError",
     "ProjectStopped",
     "ProjectVerifyError",
     "RemoteProtocolError",
@@ -121,6 +124,22 @@ class NotSentError(MotorbusError):
 
 class BusClosedError(MotorbusError, ConnectionError):
     """The bus (or its port) is closed or was lost while a request was pending."""
+
+
+class PortInUseError(MotorbusError, OSError):
+    """A serial port could not be opened because another open holds its exclusive lock.
+
+    Attributes:
+        url: the port as given.
+        holders: ``(pid, command line)`` of each process the system names as holding
+            the lock (empty where it does not tell).
+    """
+
+    def __init__(self, message: str, *, url: str = "", holders: tuple[tuple[int, str], ...] = ()):
+        super().__init__(message)
+        self.errno = errno.EBUSY
+        self.url = url
+        self.holders = holders
 
 
 class StreamEnded(MotorbusError):
