@@ -1,5 +1,5 @@
 """The dependency direction: errors <- protocol <- transport <- bus <- devices <- streams
-<- manager <- cli, with the simulator beside the library (protocol and transport only).
+<- busfile <- manager <- cli, with the simulator beside the library (protocol and transport only).
 
 Every import between motorbus subpackages points down this list; ``motorbus.bus.manager``
 (a re-export of ``motorbus.manager`` kept for old imports) is the one exception.
@@ -75,7 +75,8 @@ ALLOWED: dict[str, set[str]] = {
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices"},
-    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "busfile": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams", "busfile"},
     "sim": {"errors", "protocol", "transport"},
 }
 #: Re-exports kept so that old import paths work; nothing else may point upwards.
