@@ -323,8 +323,9 @@ def port_error(url: str, err: BaseException, baud: int | None) -> str:
     pyserial nests its errors (``could not open port X: [Errno 2] could not open port
     X: [Errno 2] No such file or directory: 'X'``); the innermost reason is enough.
     """
-    reasons = _ERRNO_TEXT.findall(str(err))
-    reason = reasons[-1].strip() if reasons else _one_line(err)
+    text = str(err)
+    reasons = _ERRNO_TEXT.findall(text) if "could not open port" in text else []
+    reason = reasons[-1].strip() if reasons else _one_line(err).removeprefix(f"{url}: ")
     if isinstance(err, OSError) and err.strerror and not reasons:
         reason = err.strerror
     return f"cannot open port {url}: {reason}; {available_ports()}"

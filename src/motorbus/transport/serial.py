@@ -217,8 +217,9 @@ def port_in_use_error(url: str, holders: tuple[tuple[int, str], ...]) -> PortInU
     ]
     who = " and ".join(named) if named else "another program (the system does not say which)"
     return PortInUseError(
-        f"{url} is in use by {who}: one process, one port - close the other user, or "
-        "open both with share=True if sharing is meant (each then gets part of the replies)",
+        f"{url} is in use by {who}: one process, one port - close it there, or open with "
+        "share=True (share = true in a bus file) if sharing is meant: each reader then "
+        "gets part of the replies",
         url=url,
         holders=holders,
     )
