@@ -33,7 +33,14 @@ VALID: dict[str, Any] = {"name": "arm", "url": "/dev/ttyUSB0", "baud": 921600}
 #: the value's repr).
 BAD: dict[str, list[tuple[Any, str | None]]] = {
     "name": [("", None), (5, None), (True, None), (["arm"], None)],
-    "url": [("", None), (5, None), (False, None), ([], None)],
+    "url": [
+        ("", None),
+        (5, None),
+        (False, None),
+        ([], None),
+        ("/dev/tty\x00USB0", None),
+        ("/dev/ttyUSB0\n", None),
+    ],
     "baud": [
         (0, None),
         (1, None),
@@ -52,6 +59,8 @@ BAD: dict[str, list[tuple[Any, str | None]]] = {
     "rs485": [("false", None), ("true", None), (0, None), (1, None), ("no", None)],
     "remove_echo": [("no", None), ("yes", None), (1, None), (0.0, None)],
     "low_latency": [("off", None), ("false", None), (0, None), (1, None)],
+    "share": [("yes", None), ("true", None), (1, None), (0, None)],
+    "guard": [("on", None), ("false", None), (1, None), (1.0, None)],
     "min_spacing_ms": [
         (True, None),
         ("1", None),
@@ -155,7 +164,8 @@ def _toml(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        text = value.replace("\\", "\\\\").replace('"', '\\"')
+        return '"' + re.sub(r"[\x00-\x1f]", lambda m: f"\\u{ord(m.group()):04x}", text) + '"'
     if isinstance(value, float) and not math.isfinite(value):
         return "nan" if math.isnan(value) else ("inf" if value > 0 else "-inf")
     if isinstance(value, list):
@@ -212,6 +222,8 @@ def test_the_brief_examples_are_refused_with_their_key_and_bus() -> None:
         ("rs485", True, True),
         ("remove_echo", True, True),
         ("low_latency", False, False),
+        ("share", True, True),
+        ("guard", True, True),
         ("backend", "pyserial-asyncio", "pyserial-asyncio"),
         ("la_safe_action", "hold", "hold"),
     ],
@@ -237,13 +249,15 @@ low_latency = false
 min_spacing_ms = 2
 host_margin_ms = 3.5
 retries = 2
+share = true
+guard = true
 la_safe_action = "estop"
-devices = ["la: 1 - 3 , 7", "project-stepper:motor=0x05"]
+devices = ["la: 1 - 3 , 7"]
 
 [[bus]]
 url = "socket://127.0.0.1:7012"
 baud = 9600
-devices = ["quad-stepper", "la:9"]
+devices = ["quad-stepper", "project-stepper:motor=0x05"]
 """,
         encoding="utf-8",
     )
@@ -251,9 +265,11 @@ devices = ["quad-stepper", "la:9"]
     arm, other = mgr.specs["arm"], mgr.specs["bus1"]
     assert (arm.rs485, arm.remove_echo, arm.low_latency) == (True, True, False)
     assert (arm.min_spacing_ms, arm.host_margin_ms, arm.retries) == (2.0, 3.5, 2)
-    assert arm.devices == [DeviceSpec("la", (1, 2, 3, 7)), DeviceSpec("project_stepper", motor=5)]
+    assert (arm.share, arm.guard) == (True, True)
+    assert arm.devices == [DeviceSpec("la", (1, 2, 3, 7))]
     assert other.host_margin_ms == 20.0  # a network bus gets the remote default
-    assert other.devices == [DeviceSpec("quad_stepper"), DeviceSpec("la", (9,))]
+    assert (other.share, other.guard) == (False, False)
+    assert other.devices == [DeviceSpec("quad_stepper"), DeviceSpec("project_stepper", motor=5)]
 
 
 @pytest.mark.parametrize(

@@ -29,13 +29,15 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
+        "PortInUseError",
         "ProjectStopped",
         "ProjectVerifyError",
         "RemoteProtocolError",
         "ReplyTimeoutError",
         "StreamEnded",
     ),
-    "motorbus.manager": ("BusManager", "DeviceStop", "StopReport", "default_bus_file"),
+    "motorbus.busfile": ("BusFile", "BusSpec", "default_bus_file", "load_bus_file"),
+    "motorbus.manager": ("BusManager", "DeviceStop", "StopReport"),
     "motorbus.protocol.base": ("Family",),
     "motorbus.realtime": ("RealtimeReport",),
     "motorbus.shutdown": ("install_signal_handlers", "run"),
@@ -53,6 +55,10 @@ if TYPE_CHECKING:
     from motorbus.bus.events import FaultChanged as FaultChanged
     from motorbus.bus.events import ProjectFinished as ProjectFinished
     from motorbus.bus.events import QuadDone as QuadDone
+    from motorbus.busfile import BusFile as BusFile
+    from motorbus.busfile import BusSpec as BusSpec
+    from motorbus.busfile import default_bus_file as default_bus_file
+    from motorbus.busfile import load_bus_file as load_bus_file
     from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.la import InspireLA as InspireLA
     from motorbus.devices.la import ScanReport as ScanReport
@@ -63,6 +69,7 @@ if TYPE_CHECKING:
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError
+    from motorbus.errors import PortInUseError as PortInUseError
     from motorbus.errors import ProjectStopped as ProjectStopped
     from motorbus.errors import ProjectVerifyError as ProjectVerifyError
     from motorbus.errors import RemoteProtocolError as RemoteProtocolError
@@ -71,7 +78,6 @@ if TYPE_CHECKING:
     from motorbus.manager import BusManager as BusManager
     from motorbus.manager import DeviceStop as DeviceStop
     from motorbus.manager import StopReport as StopReport
-    from motorbus.manager import default_bus_file as default_bus_file
     from motorbus.protocol.base import Family as Family
     from motorbus.realtime import RealtimeReport as RealtimeReport
     from motorbus.shutdown import install_signal_handlers as install_signal_handlers

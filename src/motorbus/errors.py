@@ -11,9 +11,11 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- NotSentError                       dropped before sending (``start_by`` passed)
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
+         +-- PortInUseError [OSError]           another open holds the port's exclusive lock
          +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
+         +-- RigAborted                         ``run_rig``: a ceiling tripped; all paused
          +-- UsageError                         CLI: bad command-line input (exit code 2)
          +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
 
@@ -38,6 +40,8 @@ to a faulted actuator still returns its decoded reply.
 
 from __future__ import annotations
 
+import errno
+
 __all__ = [
     "BusClosedError",
     "CommandFailed",
@@ -45,10 +49,12 @@ __all__ = [
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
+    "PortInUseError",
     "ProjectStopped",
     "ProjectVerifyError",
     "RemoteProtocolError",
     "ReplyTimeoutError",
+    "RigAborted",
     "StreamEnded",
     "UsageError",
 ]
@@ -121,6 +127,22 @@ class BusClosedError(MotorbusError, ConnectionError):
     """The bus (or its port) is closed or was lost while a request was pending."""
 
 
+class PortInUseError(MotorbusError, OSError):
+    """A serial port could not be opened because another open holds its exclusive lock.
+
+    Attributes:
+        url: the port as given.
+        holders: ``(pid, command line)`` of each process the system names as holding
+            the lock (empty where it does not tell).
+    """
+
+    def __init__(self, message: str, *, url: str = "", holders: tuple[tuple[int, str], ...] = ()):
+        super().__init__(message)
+        self.errno = errno.EBUSY
+        self.url = url
+        self.holders = holders
+
+
 class StreamEnded(MotorbusError):
     """Raised by ``Stream.wait`` when a stream ended on an error (the cause is chained)."""
 
@@ -131,6 +153,11 @@ class ProjectStopped(MotorbusError):
 
 class ProjectVerifyError(MotorbusError):
     """The project read back through 0x3E differs from the one uploaded."""
+
+
+class RigAborted(MotorbusError):
+    """A rig test stopped because a ceiling tripped or an actuator faulted; every
+    actuator under test was paused.  The message says which and why."""
 
 
 class UsageError(MotorbusError):

@@ -26,18 +26,10 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from motorbus import Bus, InspireLA
-from motorbus.cli.common import (
-    LA_BAUD,
-    add_bus_options,
-    add_ids_argument,
-    check_ids,
-    open_bus,
-    parse_id_args,
-    plural,
-    print_json,
-    say,
-)
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.ids import add_ids_argument, check_ids, parse_id_args
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, UsageError
+from motorbus.cli.output import plural, print_json, say
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int

@@ -40,6 +40,7 @@ from motorbus.errors import (
     CommandFailed,
     LocalProtocolError,
     MotorbusError,
+    PortInUseError,
     ReplyTimeoutError,
     UsageError,
 )
@@ -203,8 +204,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (MotorbusError, OSError) as err:
         if args.debug:
             raise
-        print(f"motorbus {args.command}: {err}", file=sys.stderr)
+        print(f"motorbus {args.command}: {err}{_port_in_use_hint(err, args)}", file=sys.stderr)
         return EXIT_FAILURE
+
+
+#: Commands that only watch a bus: on a port another program holds, what to do instead.
+_WATCH_INSTEAD = (
+    " - to watch a bus another program drives, listen on a tap (a second adapter on "
+    "the RS-485 line, or `motorbus sim --tap PATH` for a simulator) with `motorbus "
+    "capture --port TAP`, or have that program read the statuses itself "
+    "(Streamer.follow(..., poll_status=True))"
+)
+
+
+def _port_in_use_hint(err: BaseException, args: argparse.Namespace) -> str:
+    """For ``monitor`` and ``capture`` on a port in use: where to look instead."""
+    if args.command not in ("monitor", "capture"):
+        return ""
+    seen: BaseException | None = err
+    while seen is not None:
+        if isinstance(seen, PortInUseError):
+            return _WATCH_INSTEAD
+        seen = seen.__cause__
+    return ""
 
 
 def _timeout_hint(args: argparse.Namespace) -> str:

@@ -29,18 +29,13 @@ from typing import Any
 
 from motorbus import Bus, InspireLA, scan
 from motorbus.cli import plot
-from motorbus.cli.common import (
-    LA_BAUD,
-    LiveText,
-    add_bus_options,
-    check_seconds,
-    open_bus,
-    parse_ids,
-    print_json,
-)
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.ids import parse_ids
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
 from motorbus.cli.main import UsageError
+from motorbus.cli.output import LiveText, print_json
 from motorbus.cli.scan import SCAN_TIMEOUT_S
+from motorbus.cli.values import check_seconds
 from motorbus.errors import ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int

@@ -50,16 +50,9 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from motorbus import ProjectStepper
-from motorbus.cli.common import (
-    STEP_ANGLE_SCALE,
-    STEPPER_BAUD,
-    add_bus_options,
-    check_seconds,
-    open_bus,
-    print_json,
-    say,
-    step_angle_x100,
-)
+from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, open_bus
+from motorbus.cli.output import print_json, say
+from motorbus.cli.values import STEP_ANGLE_SCALE, check_seconds, step_angle_x100
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Family, check_int

@@ -23,14 +23,9 @@ import asyncio
 from typing import Any
 
 from motorbus import QuadStepper
-from motorbus.cli.common import (
-    STEPPER_BAUD,
-    add_bus_options,
-    check_seconds,
-    open_bus,
-    say,
-    step_angle_x100,
-)
+from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, open_bus
+from motorbus.cli.output import say
+from motorbus.cli.values import check_seconds, step_angle_x100
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Family, check_int

@@ -39,8 +39,10 @@ from contextlib import AbstractAsyncContextManager
 from typing import Any, TextIO
 
 from motorbus import SCAN_PASSES_MAX, Bus, ScanReport, scan
-from motorbus.cli.common import LA_BAUD, add_bus_options, check_seconds, open_bus, parse_ids
-from motorbus.cli.common import print_json as _print_json
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.ids import parse_ids
+from motorbus.cli.output import print_json as _print_json
+from motorbus.cli.values import check_seconds
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.errors import ReplyTimeoutError, RigAborted
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
 from motorbus.rig.analysis import Sample
@@ -25,11 +25,6 @@ __all__ = ["RigAborted", "Sampler"]
 
 #: Faults that stop the motor (motor-abnormal is only a notice, manual 3.8).
 _STOPPING_FAULTS = la.ErrorFlags.STALL | la.ErrorFlags.OVER_TEMPERATURE | la.ErrorFlags.OVER_CURRENT
-
-
-class RigAborted(MotorbusError):
-    """A rig test stopped because a ceiling tripped or an actuator faulted; every
-    actuator under test was paused.  The message says which and why."""
 
 
 class Sampler:

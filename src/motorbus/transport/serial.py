@@ -18,18 +18,28 @@ Any pyserial URL works: a device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...
 RFC 2217 does not work with the two pyserial-family backends (a known upstream bug), and
 serialx waits for a modem-state acknowledgement that ser2net does not send for a pty;
 prefer ``socket://`` with a raw-TCP ser2net port.
+
+One process, one port: a device path is opened with an exclusive lock (``flock``, the
+lock pyserial's ``exclusive=True`` and serialx take, so other pyserial and serialx
+programs honour it too), whatever the backend.  A second open - another program, or a
+second bus in this one - fails with :class:`~motorbus.errors.PortInUseError` naming the
+holder where the system tells (Linux: ``/proc/locks``): ``/dev/ttyUSB0 is in use by PID
+1234 (python prog.py)``.  Two readers of one port each get part of the replies, so
+sharing is never silent: ``share=True`` opts out of the lock.  The lock is advisory: a
+program that opens the port without asking for it (``cat``, ``screen``) is not kept out.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
 import importlib
 import logging
 import os
 from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
-from motorbus.errors import BusClosedError, LocalProtocolError
+from motorbus.errors import BusClosedError, LocalProtocolError, PortInUseError
 from motorbus.protocol.base import check_flag
 from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
 from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
@@ -41,6 +51,7 @@ __all__ = [
     "SerialTransport",
     "available_backends",
     "open_transport",
+    "port_lock_holders",
 ]
 
 _log = logging.getLogger("motorbus.transport")
@@ -62,6 +73,13 @@ SERIALX_MAX_READ = 4096
 CLOSE_TIMEOUT_S = 1.0
 #: Where the Linux usb-serial drivers publish an adapter's receive latency timer (ms).
 USB_SERIAL_SYSFS = "/sys/bus/usb-serial/devices"
+#: Where Linux lists the file locks held, with the PID of each holder.
+PROC_LOCKS = "/proc/locks"
+#: Longest command line quoted in a "port in use" error.
+HOLDER_CMDLINE_MAX = 80
+#: errno values a refused exclusive lock shows as: pyserial reports flock's
+#: EWOULDBLOCK (EAGAIN), serialx turns it into EBUSY.
+_LOCK_ERRNOS = (errno.EAGAIN, errno.EWOULDBLOCK, errno.EBUSY)
 
 _ConnectionFactory = Callable[..., Coroutine[Any, Any, tuple[asyncio.BaseTransport, Any]]]
 
@@ -127,6 +145,86 @@ def read_latency_timer_ms(tty_name: str) -> int | None:
         return None
 
 
+def is_device_path(url: str) -> bool:
+    """True for a local device path (``/dev/ttyUSB0``), False for a URL (``socket://``)."""
+    return "://" not in url
+
+
+def port_lock_holders(url: str) -> tuple[tuple[int, str], ...]:
+    """``(pid, command line)`` of each process holding a lock on the device ``url``.
+
+    Read from ``/proc/locks`` (Linux); empty where the system does not tell (another
+    OS, no ``/proc``, a URL rather than a device path).  A symlink such as
+    ``/dev/serial/by-id/...`` is resolved: the lock is on the device itself.
+    """
+    if not is_device_path(url):
+        return ()
+    try:
+        st = os.stat(url)
+        with open(PROC_LOCKS, encoding="ascii", errors="replace") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return ()
+    want = (os.major(st.st_dev), os.minor(st.st_dev), st.st_ino)
+    pids: list[int] = []
+    for line in lines:
+        # "1: FLOCK  ADVISORY  WRITE 1234 00:05:87 0 EOF" ("->" marks a waiter)
+        fields = line.split()
+        if "->" in fields or len(fields) < 6:
+            continue
+        try:
+            major, minor, inode = fields[5].split(":")
+            where = (int(major, 16), int(minor, 16), int(inode))
+            pid = int(fields[4])
+        except ValueError:
+            continue
+        if where == want and pid not in pids:
+            pids.append(pid)
+    return tuple((pid, _cmdline(pid)) for pid in pids)
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            raw = f.read()
+    except OSError:
+        return ""
+    argv = [part.decode(errors="replace") for part in raw.split(b"\0") if part]
+    # "python prog.py --x": the program and a script by their names, not their paths.
+    argv = [os.path.basename(a) if i == 0 or a.endswith(".py") else a for i, a in enumerate(argv)]
+    text = " ".join(argv)
+    if len(text) > HOLDER_CMDLINE_MAX:
+        text = text[: HOLDER_CMDLINE_MAX - 3] + "..."
+    return text
+
+
+def _is_lock_refusal(err: BaseException) -> bool:
+    """True if opening failed because another open holds the port's exclusive lock."""
+    text = str(err).lower()
+    return (
+        getattr(err, "errno", None) in _LOCK_ERRNOS
+        or "exclusively lock" in text
+        or "already locked" in text
+    )
+
+
+def port_in_use_error(url: str, holders: tuple[tuple[int, str], ...]) -> PortInUseError:
+    """The error for a port whose exclusive lock another open holds, naming the holders."""
+    me = os.getpid()
+    named = [
+        f"PID {pid}" + (" (this process)" if pid == me else f" ({cmd})" if cmd else "")
+        for pid, cmd in holders
+    ]
+    who = " and ".join(named) if named else "another program (the system does not say which)"
+    return PortInUseError(
+        f"{url} is in use by {who}: one process, one port - close it there, or open with "
+        "share=True (share = true in a bus file) if sharing is meant: each reader then "
+        "gets part of the replies",
+        url=url,
+        holders=holders,
+    )
+
+
 class _Adapter(asyncio.Protocol):
     """Bridges one backend connection to the owner's callbacks; one per open."""
 
@@ -168,6 +266,7 @@ class SerialTransport(CountingTransport):
         rs485: bool = False,
         remove_echo: bool = False,
         low_latency: bool = True,
+        share: bool = False,
     ) -> None:
         """Describe a port; nothing is opened until :meth:`open`.
 
@@ -178,6 +277,9 @@ class SerialTransport(CountingTransport):
             rs485: let the kernel drive the RS-485 direction line (TIOCSRS485).
             remove_echo: drop the local echo of a half-duplex adapter.
             low_latency: ask a USB serial driver for its shortest latency timer.
+            share: open without the exclusive lock, so that other programs (or buses)
+                may open the port too.  Off by default: two readers of one port each
+                get part of the replies.
 
         Raises:
             LocalProtocolError: unknown backend, bad baudrate, or RS-485 with serialx.
@@ -187,6 +289,7 @@ class SerialTransport(CountingTransport):
         baudrate = check_baud("baudrate", baudrate)
         rs485, remove_echo = check_flag("rs485", rs485), check_flag("remove_echo", remove_echo)
         low_latency = check_flag("low_latency", low_latency)
+        share = check_flag("share", share)
         self._connect = _load_backend(backend)
         if rs485 and backend == "serialx":
             raise LocalProtocolError(
@@ -199,6 +302,7 @@ class SerialTransport(CountingTransport):
         self.backend = backend
         self.rs485 = rs485
         self.low_latency = low_latency
+        self.share = share
         self.latency_timer_ms: int | None = None
         self._transport: asyncio.Transport | None = None
         self._adapter: _Adapter | None = None
@@ -219,6 +323,8 @@ class SerialTransport(CountingTransport):
 
         Raises:
             LocalProtocolError: already open.
+            PortInUseError: another open holds the port's exclusive lock (an ``OSError``
+                naming the holder where the system tells); ``share=True`` opts out.
             OSError: the port cannot be opened or configured (``serial.SerialException``
                 is an ``OSError``; other backend errors are wrapped in one).
         """
@@ -227,9 +333,11 @@ class SerialTransport(CountingTransport):
         adapter = _Adapter(self)
         try:
             transport, _ = await self._connect(
-                loop, lambda: adapter, self.url, baudrate=self.baudrate
+                loop, lambda: adapter, self.url, baudrate=self.baudrate, **self._lock_options()
             )
-        except OSError:
+        except OSError as err:
+            if not self.share and is_device_path(self.url) and _is_lock_refusal(err):
+                raise port_in_use_error(self.url, port_lock_holders(self.url)) from err
             raise
         except Exception as err:
             raise OSError(f"cannot open {self.url} with backend {self.backend!r}: {err}") from err
@@ -243,6 +351,15 @@ class SerialTransport(CountingTransport):
         except BaseException:
             await self.close()
             raise
+
+    def _lock_options(self) -> dict[str, Any]:
+        """The backend's exclusive-lock argument: every backend takes ``flock`` on
+        ``exclusive=True`` (serialx does by default, so ``share`` must say False)."""
+        if self.backend == "serialx":
+            return {"exclusive": not self.share}
+        if self.share or not is_device_path(self.url):
+            return {}  # pyserial's default: no lock
+        return {"exclusive": True}
 
     def _configure(self, transport: asyncio.Transport) -> None:
         """Apply the options that need the opened port."""
@@ -365,7 +482,7 @@ def open_transport(
         baudrate: line speed in bits per second.
         backend: serial backend name, one of :data:`BACKENDS`.
         opts: further :class:`SerialTransport` options (``rs485``, ``remove_echo``,
-            ``low_latency``).
+            ``low_latency``, ``share``).
 
     Raises:
         LocalProtocolError: unknown backend or option, unregistered memory link.
@@ -373,7 +490,7 @@ def open_transport(
     """
     if url.startswith(MEMORY_SCHEME):
         return lookup_memory_link(url)
-    allowed = ("rs485", "remove_echo", "low_latency")
+    allowed = ("rs485", "remove_echo", "low_latency", "share")
     for key in opts:
         if key not in allowed:
             raise LocalProtocolError(
