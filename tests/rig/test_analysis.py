@@ -162,3 +162,16 @@ def test_sample_rate_and_jitter() -> None:
     assert rate == pytest.approx(500.0, rel=0.01)
     assert gaps.max == pytest.approx(2.5)
     assert gaps.min == pytest.approx(1.5)
+
+
+def test_peak_speed_ignores_replies_read_late() -> None:
+    # Every 40th reply is read 10 ms late (a busy host): its stamp lies, its position not.
+    def move(t: float) -> float:
+        return trapezoid(500.0, 1500.0, 1000.0, 10000.0, 0.0, t)
+
+    samples = [
+        Sample(i * 0.001 + (0.010 if i % 40 == 0 else 0.0), move(i * 0.001)) for i in range(1500)
+    ]
+    samples.sort(key=lambda s: s.t)
+    fig = step_figures(samples, 0.0, 500.0, 1500.0)
+    assert fig.peak_speed_units_per_s == pytest.approx(1000.0, rel=0.02)

@@ -127,14 +127,16 @@ def _crossing(samples: Sequence[Sample], level: float, rising: bool) -> float:
 
 
 def _slope(window: Sequence[Sample]) -> float:
-    """Least-squares slope of position against time (units/s)."""
-    n = len(window)
-    mt = sum(s.t for s in window) / n
-    mp = sum(s.position for s in window) / n
-    stt = sum((s.t - mt) ** 2 for s in window)
-    if stt == 0:
-        return 0.0
-    return sum((s.t - mt) * (s.position - mp) for s in window) / stt
+    """Robust speed over a window (units/s): the median of the slopes between samples
+    half a window apart.  One sample stamped late (a reply read after a stall of the
+    host) changes two of those slopes, and the median not at all."""
+    half = len(window) // 2
+    slopes = sorted(
+        (b.position - a.position) / (b.t - a.t)
+        for a, b in zip(window, window[half:], strict=False)
+        if b.t > a.t
+    )
+    return _percentile(slopes, 0.5) if slopes else 0.0
 
 
 def step_figures(
@@ -146,7 +148,7 @@ def step_figures(
     noise_band: float = 2.0,
     settle_band_pct: float = 1.0,
     tail_s: float = 0.1,
-    speed_window_s: float = 0.05,
+    speed_window_s: float = 0.1,
 ) -> StepFigures:
     """Figures of one step from ``start`` to ``end`` commanded at ``command_t``.
 
@@ -158,8 +160,8 @@ def step_figures(
         settle_band_pct: the settling band, in percent of the step size.
         tail_s: the steady-state error is the mean error of the samples in the last
             ``tail_s`` seconds.
-        speed_window_s: the peak speed is the largest least-squares slope of the
-            positions over any window of at least this length.
+        speed_window_s: the peak speed is the largest robust slope (see ``_slope``)
+            of the positions over any window of at least this length.
 
     Raises:
         ValueError: ``start == end`` or no sample after ``command_t``.
@@ -182,8 +184,8 @@ def step_figures(
     t90 = _crossing(after, frac_level(0.9), rising)
     rise_ms = (t90 - t10) * 1e3
     # Speed over a window, not between neighbours: positions are whole units, and two
-    # samples 0.5 ms apart one unit apart would read as 2,000 units/s; and a slope
-    # fitted to every sample in the window, so one reply read late cannot make a peak.
+    # samples 0.5 ms apart one unit apart would read as 2,000 units/s; and a median
+    # slope, so that one reply read late cannot make a peak.
     peak_speed = 0.0
     j = 0
     for i, a in enumerate(after):
