@@ -16,6 +16,7 @@ from motorbus.sim.la import LAModel
 from motorbus.streams import SafeAction, StreamEnded, Streamer
 from tests.conftest import PACINGS, sim_bus
 from tests.fakeclock import rig
+from tests.waiting import eventually
 
 
 def trajectory(n: int, k: int, i: int) -> int:
@@ -135,8 +136,7 @@ async def test_cancelled_block_applies_estop(pacing: Pacing) -> None:
                 await asyncio.sleep(10)
 
         task = asyncio.create_task(run())
-        while len(model.received) < 3:
-            await asyncio.sleep(0.005)
+        await eventually(lambda: len(model.received) >= 3, "3 targets at the model")
         task.cancel()
         with pytest.raises(asyncio.CancelledError):
             await task
@@ -151,8 +151,7 @@ async def test_pause_resume_and_new_targets_on_the_fly(pacing: Pacing) -> None:
     async with sim_bus([model], pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
         stream = streamer.follow(InspireLA(bus, 1), lambda t, s: 700, period=0.01)
-        while len(model.received) < 2:
-            await asyncio.sleep(0.005)
+        await eventually(lambda: len(model.received) >= 2, "2 targets at the model")
         stream.pause()
         await asyncio.sleep(0.03)
         paused_count = len(model.received)

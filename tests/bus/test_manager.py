@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 from pathlib import Path
 
 import pytest
@@ -14,6 +13,7 @@ from motorbus.manager import BusManager, parse_devices
 from motorbus.sim.la import LAModel, PowerState
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.quad_stepper import QuadStepperModel
+from tests.waiting import eventually
 
 
 def test_toml_file_is_parsed_and_validated(tmp_path: Path) -> None:
@@ -76,8 +76,7 @@ async def test_many_buses_stream_and_stop_safely() -> None:
             assert mgr.streamer("arm").phase != mgr.streamer("feeder").phase
             actuators = [mgr.la("arm", 1), mgr.la("arm", 2)]
             stream = mgr.streamer("arm").follow(actuators, lambda t, s: [800, 900], period=0.01)
-            while len(arm_models[0].received) < 3:
-                await asyncio.sleep(0.005)
+            await eventually(lambda: len(arm_models[0].received) >= 3, "3 targets at the arm")
             await mgr.quad_stepper("feeder").led(1, True)
             assert not stream.done
         assert all(m.power_state is PowerState.PAUSED for m in arm_models)

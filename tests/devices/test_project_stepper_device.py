@@ -18,6 +18,7 @@ from motorbus.sim.bus import Pacing
 from motorbus.sim.project_stepper import ProjectStepperModel
 from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import PROJECT_VARIANTS
+from tests.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -68,8 +69,7 @@ async def test_stop_ends_a_forever_project_with_project_stopped(
         stepper = ProjectStepper(bus)
         await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
         run = asyncio.create_task(stepper.run_project(1, timeout=10))
-        while not model.running:
-            await asyncio.sleep(0.005)
+        await eventually(lambda: model.running, "the project running")
         await stepper.stop_project()
         with pytest.raises(ProjectStopped):
             await run
@@ -136,8 +136,7 @@ async def test_cancelled_runs_stop_the_project_and_leave_no_unretrieved_exceptio
             await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
             for _ in range(5):
                 run = asyncio.create_task(stepper.run_project(1, timeout=10))
-                while not model.running:
-                    await asyncio.sleep(0.005)
+                await eventually(lambda: model.running, "the project running")
                 run.cancel()
                 with pytest.raises(asyncio.CancelledError):
                     await run
@@ -160,8 +159,7 @@ async def test_stop_project_ends_a_waiting_run_at_once() -> None:
         await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
         for _ in range(3):
             run = asyncio.create_task(stepper.run_project(1, timeout=30))
-            while not model.running:
-                await asyncio.sleep(0.005)
+            await eventually(lambda: model.running, "the project running")
             await stepper.stop_project()
             with pytest.raises(ProjectStopped):
                 await asyncio.wait_for(run, 5)
@@ -196,8 +194,7 @@ async def stop_then_run_again(variant: dict[str, Any], pacing: Pacing) -> str:
         # Long enough (two 150 ms step delays) that a stale EE DD lands inside the run.
         await stepper.upload(small_project(2, delay_ms=150), verify=False, save=False)
         run = asyncio.create_task(stepper.run_project(1, timeout=10))
-        while not model.running:
-            await asyncio.sleep(0.005)
+        await eventually(lambda: model.running, "the project running")
         await stepper.stop_project()
         try:
             await run

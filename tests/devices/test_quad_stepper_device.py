@@ -14,6 +14,7 @@ from motorbus.sim.bus import Pacing
 from motorbus.sim.quad_stepper import QuadStepperModel
 from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import QUAD_VARIANTS
+from tests.waiting import eventually
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])
@@ -111,8 +112,7 @@ async def test_cancelled_runs_stop_the_motor_and_leave_no_unretrieved_exception(
             await _long_move(quad, 2)
             for _ in range(5):
                 run = asyncio.create_task(quad.run(2, timeout=10))
-                while not model.motors[2].running:
-                    await asyncio.sleep(0.005)
+                await eventually(lambda: model.motors[2].running, "motor 2 running")
                 run.cancel()
                 with pytest.raises(asyncio.CancelledError):
                     await run

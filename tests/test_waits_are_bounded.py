@@ -1,0 +1,35 @@
+"""No test waits without a bound: a ``while ...: await asyncio.sleep(...)`` loop that
+never ends hangs the run until pytest-timeout; ``tests.waiting.eventually`` fails with
+a message instead."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+TESTS = Path(__file__).resolve().parent
+
+
+def _bare_sleep_loops(tree: ast.AST) -> list[int]:
+    lines = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.While) and len(node.body) == 1:
+            stmt = node.body[0]
+            if (
+                isinstance(stmt, ast.Expr)
+                and isinstance(stmt.value, ast.Await)
+                and isinstance(stmt.value.value, ast.Call)
+                and ast.unparse(stmt.value.value.func) == "asyncio.sleep"
+            ):
+                lines.append(node.lineno)
+    return lines
+
+
+def test_no_unbounded_sleep_loops() -> None:
+    found = [
+        f"{path.relative_to(TESTS)}:{line}"
+        for path in sorted(TESTS.rglob("*.py"))
+        if path.name != "waiting.py"
+        for line in _bare_sleep_loops(ast.parse(path.read_text(encoding="utf-8")))
+    ]
+    assert found == [], "use tests.waiting.eventually: " + ", ".join(found)
