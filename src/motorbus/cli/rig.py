@@ -26,24 +26,15 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from motorbus.cli.common import LA_BAUD, add_bus_options, open_bus, parse_id_args, print_json
 from motorbus.errors import CommandFailed, LocalProtocolError, UsageError
 from motorbus.protocol.base import Family
-from motorbus.rig import (
-    DEFAULT_FREQUENCIES,
-    TESTS,
-    RigAborted,
-    RigPlan,
-    RigResult,
-    Row,
-    compare_results,
-    default_window,
-    parse_tolerances,
-    run_rig,
-    write_report,
-)
+from motorbus.rig.plan import DEFAULT_FREQUENCIES, TESTS, RigPlan, default_window
+
+if TYPE_CHECKING:
+    from motorbus.rig import RigResult, Row
 
 __all__ = ["register", "run"]
 
@@ -164,6 +155,8 @@ class _Bar:
 
 
 async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
+    from motorbus.rig import RigAborted, run_rig, write_report
+
     bar = _Bar(plan.estimate_seconds())
     aborted: str | None = None
     result: RigResult | None = None
@@ -216,6 +209,8 @@ def _load(path_text: str) -> dict[str, dict[str, float]]:
 
 
 def _compare(args: argparse.Namespace) -> int:
+    from motorbus.rig import compare_results, parse_tolerances
+
     rest = args.ids[1:]
     if len(rest) != 2:
         raise UsageError("rig compare: give two runs, OLD and NEW (folders or results.json)")
