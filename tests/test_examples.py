@@ -15,7 +15,7 @@ EXAMPLES = ROOT / "examples"
 
 EXPECTED = {
     "la_basics.py": "over-current limit 1000 mA",
-    "stream_sine.py": "'ticks': 300",
+    "stream_sine.py": "300 ticks",
     "project_stepper.py": "project finished (EE DD)",
     "quad_stepper.py": "motor 1 done",
     "many_buses.py": "left-arm: 51 ticks",
