@@ -188,7 +188,8 @@ class Project:
     """A complete project: motor configuration, 1..10 steps, step loop and repeat count.
 
     Attributes:
-        number: project number 1..4.
+        number: project number 1..4 (the ``project`` of the commands, acks and
+            :class:`ProjectDump`; ``number`` in a project TOML file).
         subdivision: microstep subdivision, 1..65535.
         step_angle_x100: motor step angle, degrees x 100, 1..255 (A0-09).
         distance_per_rev: user units per revolution, 1..16777215 (A.3).
@@ -263,8 +264,12 @@ class ProjectDump:
     unlisted byte in ``reserved``, so ``decode(encode())`` is byte-exact.
 
     Attributes:
-        project: P from the header ``FF AA 3E P 00 00`` (1..4).
-        number, number_of_steps: [0][0], [0][1].
+        project: the project number 1..4: P of the header ``FF AA 3E P 00 00``, the
+            project that was read (``Project.number`` of the project it holds).
+        stored_number: [0][0], the number byte stored with the project: equal to
+            ``project`` once a project is uploaded (the manual does not say what a
+            cleared project holds here; the simulator keeps the number).
+        number_of_steps: [0][1].
         loop_start, loop_end, loop_count: [0][2..4].
         repeat_count: [0][5] (255 = forever).
         subdivision: [0][6..7]; step_angle_x100: [0][8]; distance_per_rev: [0][9..11].
@@ -276,7 +281,7 @@ class ProjectDump:
     """
 
     project: int
-    number: int
+    stored_number: int
     number_of_steps: int
     loop_start: int
     loop_end: int
@@ -295,7 +300,7 @@ class ProjectDump:
     def __post_init__(self) -> None:
         _check_project(self.project)
         for name in (
-            "number",
+            "stored_number",
             "number_of_steps",
             "loop_start",
             "loop_end",
@@ -360,7 +365,7 @@ class ProjectDump:
                 ) from err
         return cls(
             project=raw[3],
-            number=base(BASE_NUMBER),
+            stored_number=base(BASE_NUMBER),
             number_of_steps=base(BASE_STEPS),
             loop_start=base(BASE_LOOP_START),
             loop_end=base(BASE_LOOP_END),
@@ -386,7 +391,7 @@ class ProjectDump:
             off = dump_offset(0, k)
             out[off : off + len(data)] = data
 
-        put(BASE_NUMBER, bytes((self.number, self.number_of_steps)))
+        put(BASE_NUMBER, bytes((self.stored_number, self.number_of_steps)))
         put(BASE_LOOP_START, bytes((self.loop_start, self.loop_end, self.loop_count)))
         put(BASE_REPEAT, bytes((self.repeat_count,)))
         put(BASE_SUBDIVISION, _u16(self.subdivision) + bytes((self.step_angle_x100,)))
@@ -415,7 +420,7 @@ class ProjectDump:
                 example a cleared project with 0 steps); the message names the field.
         """
         return Project(
-            number=self.number,
+            number=self.stored_number,
             subdivision=self.subdivision,
             step_angle_x100=self.step_angle_x100,
             distance_per_rev=self.distance_per_rev,
@@ -454,7 +459,7 @@ class ProjectDump:
         n = len(project.steps)
         return cls(
             project=project.number,
-            number=project.number,
+            stored_number=project.number,
             number_of_steps=n,
             loop_start=project.loop_start,
             loop_end=project.loop_end,
