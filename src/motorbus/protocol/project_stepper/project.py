@@ -145,7 +145,7 @@ class StepSpec:
         ]
 
     def encode_data(self) -> bytes:
-        """Return the 16 data bytes of this step's dump block ([x][0..15], A.5)."""
+        """Return the 16 data bytes of this step's dump block (``[x][0..15]``, A.5)."""
         return (
             _u24(self.run_distance)
             + bytes((self.direction,))
@@ -159,7 +159,7 @@ class StepSpec:
 
     @classmethod
     def decode_data(cls, data: bytes) -> StepSpec:
-        """Decode the 16 data bytes of a dump step block ([x][0..15], A.5).
+        """Decode the 16 data bytes of a dump step block (``[x][0..15]``, A.5).
 
         Raises:
             LocalProtocolError: ``data`` is not 16 bytes or holds an out-of-range code.
@@ -266,18 +266,18 @@ class ProjectDump:
     Attributes:
         project: the project number 1..4: P of the header ``FF AA 3E P 00 00``, the
             project that was read (``Project.number`` of the project it holds).
-        stored_number: [0][0], the number byte stored with the project: equal to
+        stored_number: ``[0][0]``, the number byte stored with the project: equal to
             ``project`` once a project is uploaded (the manual does not say what a
             cleared project holds here; the simulator keeps the number).
-        number_of_steps: [0][1].
-        loop_start, loop_end, loop_count: [0][2..4].
-        repeat_count: [0][5] (255 = forever).
-        subdivision: [0][6..7]; step_angle_x100: [0][8]; distance_per_rev: [0][9..11].
-        stop_mode: [0][14]; mode4: [0][15]; power_on_homing: [0][16] (raw bytes).
+        number_of_steps: ``[0][1]``.
+        loop_start, loop_end, loop_count: ``[0][2..4]``.
+        repeat_count: ``[0][5]`` (255 = forever).
+        subdivision: ``[0][6..7]``; step_angle_x100: ``[0][8]``; distance_per_rev: ``[0][9..11]``.
+        stop_mode: ``[0][14]``; mode4: ``[0][15]``; power_on_homing: ``[0][16]`` (raw bytes).
         steps: decoded step blocks 1..min(number_of_steps, 10).
         unused_steps: 16 data bytes for each later block, in order.
-        reserved: the 45 unlisted bytes, in offset order ([0][12,13,17..19], then
-            [x][16..19] for x = 1..10).
+        reserved: the 45 unlisted bytes, in offset order (``[0][12,13,17..19]``, then
+            ``[x][16..19]`` for x = 1..10).
     """
 
     project: int
@@ -445,9 +445,9 @@ class ProjectDump:
 
         Args:
             project: the project.
-            stop_mode: [0][14], 0 slow or 1 immediate.
-            mode4: [0][15], 0..2.
-            power_on_homing: [0][16].
+            stop_mode: ``[0][14]``, 0 slow or 1 immediate.
+            mode4: ``[0][15]``, 0..2.
+            power_on_homing: ``[0][16]``.
             reserved: the 45 unlisted bytes (default zeros).
             unused_steps: data bytes of the unused step blocks (default zeros).
 
