@@ -283,7 +283,7 @@ class InspireLA:
         return await self.read(la.Register.OVER_CURRENT_LIMIT)
 
     async def set_over_current_limit(self, milliamps: int) -> None:
-        """Set the over-current limit, 300..1500 mA."""
+        """Set the over-current limit, 300..1500 mA (effective now; ``save()`` keeps it)."""
         await self.write(la.Register.OVER_CURRENT_LIMIT, milliamps)
 
     async def temperature_limits(self) -> tuple[float, float]:
@@ -294,6 +294,8 @@ class InspireLA:
 
     async def set_temperature_limits(self, over_c: float, recovery_c: float) -> None:
         """Set both temperature limits in degC, in an order that never passes an invalid pair.
+
+        Effective now, in RAM: ``save()`` keeps them over a power cycle.
 
         Args:
             over_c: over-temperature limit, 25.0..80.0 degC.

@@ -56,6 +56,8 @@ class QuadStepper:
     ) -> None:
         """Set a motor's microstepping, run length, direction, start frequency, ramp and speed.
 
+        The settings are lost at power-off unless :meth:`save` is called.
+
         Args:
             motor: 1..4.
             subdivision: microsteps per full step, 1..65535.
