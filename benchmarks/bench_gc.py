@@ -100,7 +100,7 @@ async def child_run(mode: str, seconds: float) -> dict[str, Any]:
                 idler = asyncio.get_running_loop().create_task(idle())
                 await stream.wait()
                 idler.cancel()
-            stats = stream.stats.summary()
+            stats = stream.stats.as_dict()
     return {
         "mode": mode,
         "stream": stats,

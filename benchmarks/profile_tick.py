@@ -41,7 +41,7 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
         s = motorbus.Streamer(bus).follow(actuators, rows, period=PERIOD_S, poll_status=True)
         await s.wait()
         cpu = time.process_time() - cpu0
-        return {"ticks": s.stats.ticks, "cpu_s": cpu, "stats": s.stats.summary()}
+        return {"ticks": s.stats.ticks, "cpu_s": cpu, "stats": s.stats.as_dict()}
 
 
 def main() -> int:

@@ -345,7 +345,7 @@ async def soak(duration: float, rate: float, seed: int, sample_every: float) -> 
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(task, 15)
         final = totals(buses, counters)
-        final["stream"] = {**stream.stats.summary(), "error": repr(stream.error)}
+        final["stream"] = {**stream.stats.as_dict(), "error": repr(stream.error)}
         await streamer.close(safe=False)
         final["duration_s"] = round(time.monotonic() - start, 1)
         final["errors_seen"] = counters.errors

@@ -1,4 +1,4 @@
-"""Each README device example against a ``motorbus sim`` child on a real pty, wire and prompt.
+"""Each device example in examples/ against a ``motorbus sim`` child on a real pty, wire and prompt.
 
 ``tests/test_examples.py`` runs the examples with their built-in (wire-paced) simulator;
 here each one is pointed with ``--port`` at a simulator process we start ourselves, once

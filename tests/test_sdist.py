@@ -25,6 +25,8 @@ REQUIRED = (
     "README.md",
     "pyproject.toml",
     ".ci/run",
+    "mkdocs.yml",
+    "CHANGELOG.md",
     "docs/protocols.md",
     "docs/platform.md",
     "docs/hardware.md",

@@ -65,3 +65,25 @@ def test_motorbus_run_ends_a_signalled_program_with_128_plus_the_signal() -> Non
     with pytest.raises(SystemExit) as ended:
         shutdown.run(main())
     assert ended.value.code == 128 + signal.SIGHUP
+
+
+def test_without_loop_signal_handlers_run_falls_back_to_signal_signal(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Windows' event loops have no add_signal_handler: Ctrl-C must still stop safely."""
+
+    def unsupported(*args: object) -> None:
+        raise NotImplementedError
+
+    monkeypatch.setattr(asyncio.AbstractEventLoop, "add_signal_handler", unsupported)
+    monkeypatch.setattr(asyncio.SelectorEventLoop, "add_signal_handler", unsupported)
+    previous = signal.getsignal(signal.SIGTERM)
+
+    async def main() -> None:
+        asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGTERM)
+        await asyncio.sleep(30)
+
+    with pytest.raises(SystemExit) as ended:
+        shutdown.run(main())
+    assert ended.value.code == 128 + signal.SIGTERM
+    assert signal.getsignal(signal.SIGTERM) is previous  # the fallback handler is removed

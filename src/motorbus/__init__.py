@@ -25,6 +25,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.devices.project_stepper": ("ProjectStepper",),
     "motorbus.devices.quad_stepper": ("QuadStepper",),
     "motorbus.errors": (
+        "ArrivalTimeoutError",
         "BusClosedError",
         "LocalProtocolError",
         "MotorbusError",
@@ -65,6 +66,7 @@ if TYPE_CHECKING:
     from motorbus.devices.la import scan as scan
     from motorbus.devices.project_stepper import ProjectStepper as ProjectStepper
     from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
+    from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError

@@ -9,6 +9,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          |   +-- IdListError                    an ID list ("1-3,7") the grammar refuses
          +-- RemoteProtocolError                the peer sent a frame that does not fit
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
+         +-- ArrivalTimeoutError [TimeoutError] ``move_to(wait=True)``: not there in time
          +-- NotSentError                       dropped before sending (``start_by`` passed)
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
          +-- PortInUseError [OSError]           another open holds the port's exclusive lock
@@ -43,6 +44,7 @@ from __future__ import annotations
 import errno
 
 __all__ = [
+    "ArrivalTimeoutError",
     "BusClosedError",
     "CommandFailed",
     "IdListError",
@@ -117,6 +119,24 @@ class RemoteProtocolError(MotorbusError):
 
 class ReplyTimeoutError(MotorbusError, TimeoutError):
     """No matching reply arrived before the request's deadline."""
+
+
+class ArrivalTimeoutError(MotorbusError, TimeoutError):
+    """An actuator did not reach its target within the time allowed.
+
+    Raised by ``InspireLA.move_to(..., wait=True)``; the actuator is not stopped.
+
+    Attributes:
+        id: the actuator's ID.
+        target: the position it was sent to.
+        status: the last status it reported (``status.position``, ``status.errors``).
+    """
+
+    def __init__(self, message: str, *, id: int, target: int, status: object) -> None:
+        super().__init__(message)
+        self.id = id
+        self.target = target
+        self.status = status
 
 
 class NotSentError(MotorbusError):

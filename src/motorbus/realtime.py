@@ -31,7 +31,6 @@ import gc
 import logging
 import math
 import os
-import resource
 import sys
 import time
 from collections import deque
@@ -40,6 +39,9 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from motorbus.errors import LocalProtocolError
+
+if sys.platform != "win32":  # Windows has no resource module (nor SCHED_FIFO, mlockall)
+    import resource
 
 __all__ = [
     "DEFAULT_PRIORITY",

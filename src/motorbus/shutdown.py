@@ -48,10 +48,13 @@ log = logging.getLogger("motorbus.shutdown")
 
 T = TypeVar("T")
 
-#: The signals that end a program and must stop the motion first.
-STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+#: The signals that end a program and must stop the motion first (those this platform
+#: has: Windows has no SIGHUP).
+STOP_SIGNALS: tuple[signal.Signals, ...] = tuple(
+    getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name)
+)
 #: Signals motorbus handles by itself while a bus is open, if nobody else does.
-_AUTO_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGTERM, signal.SIGHUP)
+_AUTO_SIGNALS: tuple[signal.Signals, ...] = tuple(s for s in STOP_SIGNALS if s != signal.SIGINT)
 #: Longest the closing of everything may take after a signal (each bus bounds its own
 #: safe stop much lower; this is only a backstop).
 STOP_EVERYTHING_TIMEOUT_S = 10.0
@@ -253,6 +256,9 @@ class SignalHandlers:
         self.task = task
         self.received: list[signal.Signals] = []
         self._signals: list[signal.Signals] = []
+        #: Handlers set with ``signal.signal`` where the loop cannot (Windows), and the
+        #: dispositions they replaced.
+        self._replaced: dict[signal.Signals, Any] = {}
 
     @property
     def first(self) -> signal.Signals | None:
@@ -270,6 +276,10 @@ class SignalHandlers:
     def uninstall(self) -> None:
         """Remove the handlers (the previous dispositions come back)."""
         signals, self._signals = self._signals, []
+        replaced, self._replaced = self._replaced, {}
+        if _in_main_thread():
+            for sig, previous in replaced.items():
+                signal.signal(sig, previous)
         if self.loop.is_closed():
             return
         for sig in signals:
@@ -296,9 +306,26 @@ def install_signal_handlers(
         raise RuntimeError("install_signal_handlers() needs a task to cancel")
     handlers = SignalHandlers(loop, owner)
     for sig in signals:
-        loop.add_signal_handler(sig, handlers._on_signal, sig)
+        try:
+            loop.add_signal_handler(sig, handlers._on_signal, sig)
+        except NotImplementedError:
+            # Windows' event loops have no add_signal_handler: a plain handler hands the
+            # signal to the loop instead (Python runs it in the main thread).
+            handlers._replaced[sig] = signal.signal(sig, _handing_to(loop, handlers, sig))
+            continue
         handlers._signals.append(sig)
     return handlers
+
+
+def _handing_to(
+    loop: asyncio.AbstractEventLoop, handlers: SignalHandlers, sig: signal.Signals
+) -> Callable[[int, object], None]:
+    """A ``signal.signal`` handler that passes ``sig`` on to ``handlers`` in ``loop``."""
+
+    def handler(signum: int, frame: object) -> None:
+        loop.call_soon_threadsafe(handlers._on_signal, sig)
+
+    return handler
 
 
 def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]]) -> T:

@@ -120,8 +120,22 @@ class StreamStats:
     #: Lateness of each tick's first frame against its absolute deadline.
     jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
 
-    def summary(self) -> dict[str, float]:
-        """Counts plus jitter p50/p99/max in microseconds."""
+    def summary(self) -> str:
+        """One line of text: ticks, late, skipped, slipped, polls and tick jitter.
+
+        ``as_dict()`` has the same figures as a JSON-ready dict.
+        """
+        d = self.as_dict()
+        return (
+            f"{d['ticks']} ticks ({d['frames']} frames), {d['late']} late, "
+            f"{d['skipped']} skipped, {d['slipped']} slipped; polls {d['polls']} "
+            f"({d['polls_skipped']} skipped), {d['feedback_timeouts']} feedback timeouts; "
+            f"jitter p50 {d['jitter_p50_us']:.0f} / p99 {d['jitter_p99_us']:.0f} / "
+            f"max {d['jitter_max_us']:.0f} us"
+        )
+
+    def as_dict(self) -> dict[str, float]:
+        """Counts plus jitter p50/p99/max in microseconds, as a dict (JSON-ready)."""
         j = self.jitter.summary()
         return {
             "ticks": self.ticks,

@@ -124,7 +124,8 @@ def test_a_silent_id_exits_1_with_a_timeout_message(quiet_sim: SimProcess) -> No
 def test_scan_finding_nothing_exits_1(quiet_sim: SimProcess) -> None:
     r = cli("scan", "--ids", "5-6", "--port", quiet_sim.path)
     assert (r.returncode, r.stdout) == (EXIT_FAILURE, "")
-    assert "no actuator answered (2 IDs tried)" in r.stderr
+    assert "no actuator answered (2 IDs tried at" in r.stderr
+    assert "docs/hardware.md" in r.stderr  # where to look next
 
 
 def test_debug_shows_a_traceback(quiet_sim: SimProcess) -> None:

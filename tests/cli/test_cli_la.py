@@ -93,7 +93,14 @@ def test_move_without_reply_sends_0x03(la_sim: SimProcess) -> None:
 def test_set_then_get_a_register_with_its_unit(la_sim: SimProcess) -> None:
     r = cli("la", "set", "1", "OVER_CURRENT_LIMIT", "800", "--port", la_sim.path)
     assert r.returncode == 0, r.stderr
-    assert r.stdout == "la:1 over_current_limit set to 800 mA\n"
+    assert r.stdout == (
+        "la:1 over_current_limit set to 800 mA: effective now, lost at power-off unless "
+        "`motorbus la save 1`\n"
+    )
+    r = cli("la", "set", "1", "baud", "115200", "--port", la_sim.path)
+    assert r.returncode == 0, r.stderr
+    assert "takes effect only after `motorbus la save 1` and a power cycle" in r.stdout
+    assert cli("la", "set", "1", "baud", "921600", "--port", la_sim.path).returncode == 0
     r = cli("la", "get", "1", "over_current_limit", "--port", la_sim.path)
     assert (r.returncode, r.stdout) == (0, "la:1 over_current_limit = 800 mA\n")
     r = cli("la", "get", "1", "Over_Temperature_Limit", "--port", la_sim.path, "--json")
@@ -165,7 +172,7 @@ def test_controls_answer_ok(la_sim: SimProcess) -> None:
 def test_scan_finds_the_three_actuators(la_sim: SimProcess) -> None:
     r = cli("scan", "--ids", "1-6", "--port", la_sim.path)
     assert (r.returncode, r.stdout) == (0, "1,2,3\n"), r.stderr
-    assert "6/6 tried, found 3" in r.stderr  # stderr is not a tty: progress lines
+    assert "6/6 IDs decided, found 3" in r.stderr  # stderr is not a tty: progress lines
     r = cli("scan", "--ids", "1-4", "--port", la_sim.path, "--json")
     assert json_lines(r.stdout) == [{"ids": [1, 2, 3], "tried": 4}]
 
@@ -291,8 +298,8 @@ def test_progress_bar_redraws_in_place_on_a_tty() -> None:
     bar(1, 2, True)
     bar(2, 2, False)
     assert out.text == (
-        "\r[" + "#" * 15 + "." * 15 + "] 1/2 found 1 (last la:1)"
-        "\r[" + "#" * 30 + "] 2/2 found 1 (last la:1)\n"
+        "\r[" + "#" * 15 + "." * 15 + "] 1/2 IDs decided, found 1: la:1"
+        "\r[" + "#" * 30 + "] 2/2 IDs decided, found 1: la:1\n"
     )
 
 

@@ -241,7 +241,7 @@ def test_capture_records_a_query_and_its_reply(bare_pty: tuple[int, str], tmp_pa
     out = tmp_path / "session.jsonl"
     r = capture(master, port, out, QUERY + b"\x00" + REPLY)
     assert r.returncode == 0, r.stderr
-    assert "motorbus capture: 2 frame, 1 garbage" in r.stderr
+    assert "motorbus capture: 2 frames, 1 garbage run" in r.stderr
     header, *records = [json.loads(line) for line in out.read_text(encoding="utf-8").splitlines()]
     assert (header["format"], header["version"], header["source"]) == (
         "motorbus-frame-log",

@@ -242,3 +242,10 @@ def test_module_non_hex_exits_2() -> None:
     assert proc.stderr.splitlines() == [
         "motorbus decode: line 2: hex input: '0G' is not hexadecimal"
     ]
+
+
+def test_a_bad_checksum_shows_the_expected_value(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["decode", "55", "AA", "04", "01", "21", "37", "14", "05", "77"]) == 0
+    assert "la checksum 77, expected 76" in capsys.readouterr().out
+    (doc,) = decode(capsys, "FF AA 01 00 00 00 00 00 00 00 00", "--direction", "request")
+    assert "checksum 00, expected AA" in doc["reason"]

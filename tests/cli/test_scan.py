@@ -37,7 +37,7 @@ def scan_sim() -> Iterator[SimProcess]:
 def test_two_passes_find_the_slow_and_the_silent_actuator(scan_sim: SimProcess) -> None:
     r = cli("scan", "--ids", "1-50", "--port", scan_sim.path)
     assert (r.returncode, r.stdout) == (0, "2,9,40\n"), r.stderr
-    assert "50/50 tried, found 3" in r.stderr
+    assert "50/50 IDs decided, found 3" in r.stderr
     summary = r.stderr.splitlines()[-1]
     assert summary.startswith("scan: 50 IDs in ") and summary.endswith("found 3")
     assert "budget per ID 1.43/" in summary  # two budgets: the floor, then longer
@@ -97,7 +97,7 @@ def test_progress_bar_labels_and_counts() -> None:
     bar = ProgressBar(out, tty=False, label="57600:")
     for ident, hit in [(1, False), (2, True)]:
         bar(ident, 2, hit)
-    assert out.getvalue().splitlines()[-1] == "scan: 57600: 2/2 tried, found 1 (last la:2)"
+    assert out.getvalue().splitlines()[-1] == "scan: 57600: 2/2 IDs decided, found 1: la:2"
 
 
 def per_baud_opener(

@@ -520,3 +520,14 @@ def test_random_valid_frames_only_raise_remote_errors(body: bytes, header: bytes
     except RemoteProtocolError as err:
         assert header == b"\x55\xaa"  # a valid reply frame never raises
         assert err.raw == raw
+
+
+def test_error_flags_print_as_names() -> None:
+    from motorbus.protocol import la
+
+    assert repr(la.ErrorFlags(0)) == "ErrorFlags(none)"
+    assert str(la.ErrorFlags.OVER_TEMPERATURE | la.ErrorFlags.STALL) == (
+        "ErrorFlags(STALL|OVER_TEMPERATURE)"
+    )
+    assert f"{la.ErrorFlags(0x14)}" == "ErrorFlags(OVER_CURRENT|0x10)"  # undefined bits in hex
+    assert int(la.ErrorFlags(0x14)) == 0x14

@@ -236,7 +236,7 @@ def test_synthesized_dump_decodes_to_the_vector_values() -> None:
     assert not ReadProject(2).matches_reply(raw)
     dump = ReadProject(1).decode_reply(raw)
     d = v["decoded"]
-    assert (dump.project, dump.number, dump.number_of_steps) == (1, d["project"], d["steps"])
+    assert (dump.project, dump.stored_number, dump.number_of_steps) == (1, d["project"], d["steps"])
     assert (dump.loop_start, dump.loop_end, dump.loop_count) == (
         d["loop_start"],
         d["loop_end"],

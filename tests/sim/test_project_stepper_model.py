@@ -192,7 +192,7 @@ def test_save_persists_power_cycle_reloads_clear_zeroes() -> None:
     assert model.current_project == 1
     assert ProjectDump.decode(send(model, ReadProject(1), 1.0)).to_project() == p1
     cleared = ProjectDump.decode(send(model, ReadProject(2), 1.0))
-    assert (cleared.number, cleared.number_of_steps, cleared.steps) == (2, 0, ())
+    assert (cleared.stored_number, cleared.number_of_steps, cleared.steps) == (2, 0, ())
     send(model, ClearProject(1), 2.0)
     raw = send(model, ReadProject(1), 2.0)
     assert raw == parse_hex("FF AA 3E 01 00 00 01") + bytes(DUMP_SIZE - 7)

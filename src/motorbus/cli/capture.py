@@ -61,6 +61,7 @@ from motorbus.cli.common import (
     add_json_option,
     check_seconds,
     open_port,
+    plural,
     print_json,
     resolve_port,
 )
@@ -208,12 +209,18 @@ def run_capture(args: argparse.Namespace) -> int:
         # Ctrl-C is the ordinary end of an open-ended capture.
         with contextlib.suppress(KeyboardInterrupt):
             asyncio.run(_capture(args, transport, recorder))
-        counts = ", ".join(f"{n} {k}" for k, n in sorted(recorder.counts.items())) or "nothing"
+        counts = ", ".join(_counted(n, k) for k, n in sorted(recorder.counts.items()))
+        counts = counts or "nothing"
         print(f"motorbus capture: {counts}", file=sys.stderr)
     finally:
         if out is not sys.stdout:
             out.close()
     return 0
+
+
+def _counted(n: int, kind: str) -> str:
+    """``206 frames``, ``1 event``, ``3 garbage runs``: a count of one kind of item."""
+    return f"{n} garbage {'run' if n == 1 else 'runs'}" if kind == "garbage" else plural(n, kind)
 
 
 def _since(start: float) -> Callable[[], float]:

@@ -22,8 +22,17 @@ import sys
 from collections.abc import Iterable, Iterator
 from typing import Any, TextIO
 
-from motorbus.protocol.base import Direction, Family, parse_hex
-from motorbus.protocol.describe import Description, describe
+from motorbus.protocol import la
+from motorbus.protocol.base import (
+    FF_AA,
+    LA_REPLY_HEADER,
+    LA_REQUEST_HEADER,
+    Direction,
+    Family,
+    parse_hex,
+    sum8,
+)
+from motorbus.protocol.describe import KIND_GARBAGE, Description, describe
 from motorbus.protocol.reassembler import Discarded, Item, Reassembler
 
 __all__ = ["GarbageJoiner", "add_arguments", "decode_lines", "register", "run", "text_line"]
@@ -159,6 +168,38 @@ def text_line(description: Description) -> str:
     return dataclasses.replace(description, fields=fields).to_line()
 
 
+def checksum_hint(raw: bytes) -> str | None:
+    """For a run discarded for a bad checksum: the checksum found and the one expected.
+
+    Looks at a frame header at the start of ``raw``: an LA frame (``55 AA``/``AA 55``,
+    its length byte, the sum of Len..DN) or a 9- or 11-byte ``FF AA`` stepper request
+    (the sum of every byte before the checksum).  ``None`` if no header there fits.
+    """
+    if raw[:2] in (LA_REQUEST_HEADER, LA_REPLY_HEADER) and len(raw) >= 3:
+        size = raw[2] + 5
+        if len(raw) >= size:
+            want = la.la_checksum(raw[: size - 1])
+            if want != raw[size - 1]:
+                return f"la checksum {raw[size - 1]:02X}, expected {want:02X}"
+    if raw[:2] == FF_AA:
+        for size in (11, 9):
+            if len(raw) >= size and sum8(raw[: size - 1]) != raw[size - 1]:
+                want = sum8(raw[: size - 1])
+                return (
+                    f"{size}-byte FF AA request checksum {raw[size - 1]:02X}, expected {want:02X}"
+                )
+    return None
+
+
+def _with_hint(description: Description) -> Description:
+    if description.kind != KIND_GARBAGE or "bad checksum" not in (description.reason or ""):
+        return description
+    hint = checksum_hint(parse_hex(description.hex))
+    if hint is None:
+        return description
+    return dataclasses.replace(description, reason=f"{description.reason}: {hint}")
+
+
 def run(args: argparse.Namespace, stdin: TextIO | None = None) -> int:
     """Run ``motorbus decode``; return the exit status (0).
 
@@ -175,7 +216,7 @@ def run(args: argparse.Namespace, stdin: TextIO | None = None) -> int:
         direction=_DIRECTIONS[args.direction],
         number_lines=not args.hex,
     )
-    for description in descriptions:
+    for description in map(_with_hint, descriptions):
         if args.json:
             out.write(json.dumps(description.to_json(), ensure_ascii=False) + "\n")
         else:

@@ -318,7 +318,7 @@ def _draw(
     global _drawn_lines
     lines = []
     la_bus = mgr.bus("la")
-    st = stream.stats.summary()
+    st = stream.stats.as_dict()
     lines.append(
         f"t={time.monotonic() - started:5.1f}s  stream: {st['ticks']} ticks, {st['late']} late, "
         f"{st['skipped']} skipped, jitter p99 {st['jitter_p99_us']:.0f} µs (host)  "
@@ -359,7 +359,7 @@ def _summary(
         "late_replies": sum(b.late_replies for b in stats),
         "late_reply_max_ms": max((b.late_reply_max for b in stats), default=0.0) * 1e3,
         "garbage_bytes": sum(b.garbage_bytes for b in stats),
-        "stream_host": stream.stats.summary(),
+        "stream_host": stream.stats.as_dict(),
         "stream_sim": timing,
         "missed_ticks": int(timing["missed_ticks"]),
         "project": log.project,

@@ -191,10 +191,13 @@ async def _run(args: argparse.Namespace) -> int:
         elif action == "set":
             reg = la.Register.by_name(args.register)
             await InspireLA(bus, args.id).write(reg, args.value)
+            note = _set_note(reg, args.id, args.value)
+            doc = {"id": args.id, "register": reg.name.lower(), "value": args.value}
             say(
                 args,
-                {"id": args.id, "register": reg.name.lower(), "value": args.value},
-                f"la:{args.id} {reg.name.lower()} set to {format_value(reg, args.value)}",
+                {**doc, "note": note} if note else doc,
+                f"la:{args.id} {reg.name.lower()} set to {format_value(reg, args.value)}"
+                + (f": {note}" if note else ""),
             )
         elif action == "set-id":
             # Two actuators with one ID answer together and garble each other (A2-12):
@@ -255,6 +258,19 @@ def format_value(reg: la.Register, value: int) -> str:
     if unit == _DECI_DEGREES:
         return f"{value} ({value / 10:.1f} °C)"
     return f"{value} {unit}".rstrip()
+
+
+def _set_note(reg: la.Register, ident: int, value: int) -> str:
+    """When a register written with ``la set`` takes effect, and how to keep it."""
+    if reg is la.Register.BAUD:
+        baud = la.BaudCode(value).baud if value in set(la.BaudCode) else value
+        return (
+            f"takes effect only after `motorbus la save {ident}` and a power cycle "
+            f"(then use --baud {baud})"
+        )
+    if reg in (la.Register.TARGET, la.Register.FORCE_ZERO):
+        return ""  # a motion command and a one-shot action: nothing to keep
+    return f"effective now, lost at power-off unless `motorbus la save {ident}`"
 
 
 def _error_names(status: la.Status) -> list[str]:

@@ -4,7 +4,7 @@ Each command lives in its own module under ``motorbus.cli`` with a ``register``
 function that adds its sub-parser; commands are imported when the parser is built,
 so one command's optional dependency never breaks another.
 
-Exit codes (documented in README):
+Exit codes (documented in docs/cli.md):
     0  success
     1  the command ran but failed: a reply timeout (a silent ID, also one of several),
        a device error or bad reply, a port that cannot open or was lost, a project verify

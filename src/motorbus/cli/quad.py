@@ -177,6 +177,6 @@ async def _run(args: argparse.Namespace) -> int:
             say(
                 args,
                 {"motor": args.motor, "configured": True},
-                f"motor {args.motor} configured",
+                f"motor {args.motor} configured (lost at power-off unless `motorbus quad save`)",
             )
     return 0

@@ -143,19 +143,38 @@ class ProgressBar:
             self.found.append(ident)
         share = self.done / total if total else 1.0
         found_text = f"found {len(self.found)}" + (
-            f" (last la:{self.found[-1]})" if self.found else ""
+            f": {_ids_text(self.found)}" if self.found else ""
         )
         label = f"{self.label} " if self.label else ""
         if self.tty:
             filled = round(BAR_WIDTH * share)
             bar = "#" * filled + "." * (BAR_WIDTH - filled)
             end = "\n" if self.done == total else ""
-            self.out.write(f"\r{label}[{bar}] {self.done}/{total} {found_text}{end}")
+            self.out.write(f"\r{label}[{bar}] {self.done}/{total} IDs decided, {found_text}{end}")
             self.out.flush()
         elif share >= self._next_line or self.done == total:
             self._next_line = share + LINE_EVERY_SHARE
-            self.out.write(f"scan: {label}{self.done}/{total} tried, {found_text}\n")
+            self.out.write(f"scan: {label}{self.done}/{total} IDs decided, {found_text}\n")
             self.out.flush()
+
+
+#: The most found IDs a progress line lists; the rest are counted.
+PROGRESS_IDS_SHOWN = 6
+
+#: Where to look when nothing answers (docs/hardware.md has the whole checklist).
+NOTHING_ANSWERED_HINT = (
+    "check power, wiring (RS-485 A/B swapped? common ground?), the port, the baud rate "
+    "(--baud all tries the four LA rates) and an echoing adapter (remove_echo); "
+    "docs/hardware.md has a first-contact checklist"
+)
+
+
+def _ids_text(found: list[int]) -> str:
+    """``la:1,la:4`` for the IDs found so far, ascending; ``+N more`` past a few."""
+    ids = sorted(found)
+    shown = ",".join(f"la:{i}" for i in ids[:PROGRESS_IDS_SHOWN])
+    more = len(ids) - PROGRESS_IDS_SHOWN
+    return shown + (f" +{more} more" if more > 0 else "")
 
 
 BusOpener = Callable[[int], AbstractAsyncContextManager[Bus]]
@@ -243,7 +262,11 @@ async def _scan(args: argparse.Namespace, ids: list[int]) -> int:
     elif found:
         print(",".join(str(i) for i in found))
     if not found:
-        print(f"motorbus scan: no actuator answered ({len(ids)} IDs tried)", file=sys.stderr)
+        print(
+            f"motorbus scan: no actuator answered ({len(ids)} IDs tried at {args.baud} bit/s): "
+            + NOTHING_ANSWERED_HINT,
+            file=sys.stderr,
+        )
         return 1
     return 0
 
@@ -271,7 +294,7 @@ async def _scan_all(args: argparse.Namespace, ids: list[int]) -> int:
     if not any(r.found for r in reports.values()):
         print(
             f"motorbus scan: no actuator answered at any baud rate ({len(ids)} IDs tried at "
-            f"each of {', '.join(str(b) for b in reports)})",
+            f"each of {', '.join(str(b) for b in reports)}): " + NOTHING_ANSWERED_HINT,
             file=sys.stderr,
         )
         return 1

@@ -279,7 +279,7 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
                 try:
                     await asyncio.wait_for(stream.wait(), STATS_EVERY_S)
                 except TimeoutError:
-                    st = stream.stats.summary()
+                    st = stream.stats.as_dict()
                     print(
                         f"stream: {st['ticks']}/{len(rows)} ticks, {st['late']} late, "
                         f"{st['skipped']} skipped, jitter p99 {st['jitter_p99_us']:.0f} us",
@@ -299,7 +299,7 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
         "ramp_ticks": len(ramp),
         "ramp_from": list(current),
         "period_s": args.period,
-        **stream.stats.summary(),
+        **stream.stats.as_dict(),
     }
     if args.json:
         print_json(summary)

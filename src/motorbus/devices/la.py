@@ -5,13 +5,23 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 from motorbus.bus.bus import REQUEST_TIMEOUT_MAX_S, Bus, Priority
-from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import check_choice, check_int, check_timeout
 
-__all__ = ["InspireLA", "ScanPass", "ScanReport", "scan"]
+__all__ = ["ArrivalTimeoutError", "InspireLA", "ScanPass", "ScanReport", "scan"]
+
+#: ``move_to(wait=True)`` defaults: within 10 units (0.5 % of the stroke), 10 s, a
+#: status query every 20 ms; and the largest values allowed.
+ARRIVAL_TOLERANCE = 10
+ARRIVAL_TOLERANCE_MAX = 200
+ARRIVAL_TIMEOUT_S = 10.0
+ARRIVAL_TIMEOUT_MAX_S = 600.0
+ARRIVAL_POLL_S = 0.02
+ARRIVAL_POLL_MAX_S = 10.0
 
 
 class InspireLA:
@@ -25,14 +35,62 @@ class InspireLA:
     Args:
         bus: an open :class:`~motorbus.bus.bus.Bus` carrying ``Family.LA``.
         id: the actuator ID, 1..254.
+        stroke_mm: the stroke of this model in millimetres (e.g. 30 for an LA..-30):
+            enables :meth:`position_mm`, :meth:`move_to_mm`, :meth:`to_mm` and
+            :meth:`from_mm` (0..2000 maps linearly to 0..stroke_mm).  The actuator
+            cannot report its stroke; the 0..2000 API is the same with or without it.
     """
 
-    def __init__(self, bus: Bus, id: int) -> None:
+    def __init__(self, bus: Bus, id: int, *, stroke_mm: float | None = None) -> None:
         self.bus = bus
         self.id = check_int("id", id, la.ID_MIN, la.ID_MAX)
+        self.stroke_mm = None if stroke_mm is None else _stroke("stroke_mm", stroke_mm)
 
     def __repr__(self) -> str:
         return f"InspireLA(id={self.id}, bus={self.bus.name!r})"
+
+    # -- millimetres (needs stroke_mm) ---------------------------------------------
+
+    def to_mm(self, position: float) -> float:
+        """A position in 0..2000 units as millimetres of the stroke (needs ``stroke_mm``)."""
+        return position * self._stroke() / la.POSITION_MAX
+
+    def from_mm(self, mm: float) -> int:
+        """Millimetres (0..``stroke_mm``) as the nearest position unit, 0..2000.
+
+        Raises:
+            LocalProtocolError: no ``stroke_mm``, or ``mm`` outside 0..stroke_mm.
+        """
+        stroke = self._stroke()
+        if isinstance(mm, bool) or not isinstance(mm, int | float) or not 0 <= mm <= stroke:
+            raise LocalProtocolError(
+                f"mm={mm!r} is out of range: allowed 0..{stroke:g} (the stroke of la:{self.id})",
+                field="mm",
+                value=mm,
+            )
+        return round(mm * la.POSITION_MAX / stroke)
+
+    async def position_mm(self) -> float:
+        """The current position in millimetres, from a status query (needs ``stroke_mm``)."""
+        self._stroke()
+        return self.to_mm((await self.status()).position)
+
+    async def move_to_mm(self, mm: float, **kwargs: Any) -> la.Status | None:
+        """:meth:`move_to` with the target in millimetres (0..``stroke_mm``).
+
+        Keyword arguments are those of :meth:`move_to`; ``tolerance`` stays in 0..2000
+        units.
+        """
+        return await self.move_to(self.from_mm(mm), **kwargs)
+
+    def _stroke(self) -> float:
+        if self.stroke_mm is None:
+            raise LocalProtocolError(
+                f"la:{self.id} has no stroke_mm: give InspireLA(bus, {self.id}, stroke_mm=...) "
+                "to use millimetres",
+                field="stroke_mm",
+            )
+        return self.stroke_mm
 
     def safe_stop_commands(self, action: object = "pause") -> list[la.Control]:
         """The commands that bring this actuator to a safe state, as values.
@@ -60,14 +118,72 @@ class InspireLA:
         """Query the status: target, position, temperature, current, force, error flags."""
         return await self._control(la.ControlAction.QUERY_STATUS, Priority.NORMAL)
 
-    async def move_to(self, position: int, *, reply: bool = True) -> la.Status | None:
+    async def move_to(
+        self,
+        position: int,
+        *,
+        reply: bool = True,
+        wait: bool = False,
+        tolerance: int = ARRIVAL_TOLERANCE,
+        timeout: float = ARRIVAL_TIMEOUT_S,
+        poll_interval: float = ARRIVAL_POLL_S,
+    ) -> la.Status | None:
         """Positioning move (planned, shortest time) to ``position`` 0..2000.
 
         With ``reply`` (0x21) returns the status; without (0x03) returns ``None`` as
         soon as the frame is sent.
+
+        The LA has no "in position" flag: its status reports only target and position.
+        With ``wait=True`` the move is followed by status queries every
+        ``poll_interval`` seconds until the reported position is within ``tolerance``
+        of ``position`` on two queries in a row (arrived and not passing through), and
+        the last status is returned.  The wait does not stop the actuator on a timeout.
+
+        Args:
+            position: the target, 0..2000 (0..100 % of the stroke).
+            reply: send 0x21 (with a status reply) rather than 0x03.
+            wait: return only once the actuator has arrived (see above).
+            tolerance: 0..200 position units (default 10, 0.5 % of the stroke).
+            timeout: seconds to wait for arrival after the move, 0..600 (default 10).
+            poll_interval: seconds between status queries, 0..10 (default 0.02; the
+                bus's 1 ms spacing is the floor).
+
+        Raises:
+            LocalProtocolError: a bad argument, before anything is sent.
+            ArrivalTimeoutError: ``wait`` and not arrived within ``timeout``; names the
+                actuator, the target, the tolerance and the last position reported.
         """
+        if wait:
+            check_int("tolerance", tolerance, 0, ARRIVAL_TOLERANCE_MAX)
+            check_timeout("timeout", timeout, ARRIVAL_TIMEOUT_MAX_S)
+            check_timeout("poll_interval", poll_interval, ARRIVAL_POLL_MAX_S)
         result: la.Status | None = await self.bus.request(la.MoveTo(self.id, position, reply))
+        if wait:
+            return await self._wait_arrived(position, tolerance, timeout, poll_interval)
         return result
+
+    async def _wait_arrived(
+        self, target: int, tolerance: int, timeout: float, poll: float
+    ) -> la.Status:
+        clock = self.bus.timer
+        deadline = clock.now() + timeout
+        within = 0
+        status: la.Status | None = None
+        while True:
+            status = await self.status()
+            within = within + 1 if abs(status.position - target) <= tolerance else 0
+            if within >= 2:
+                return status
+            if clock.now() + poll > deadline:
+                raise ArrivalTimeoutError(
+                    f"la:{self.id} did not reach {target} (tolerance {tolerance}) within "
+                    f"{timeout:g} s: last position {status.position}, target "
+                    f"{status.target}, errors {status.errors!r}",
+                    id=self.id,
+                    target=target,
+                    status=status,
+                )
+            await clock.sleep_until(clock.now() + poll)
 
     async def follow(self, position: int, *, reply: bool = True) -> la.Status | None:
         """Follow-mode target (0x20 with status, 0x19 without); send at a fixed 10-50 ms rate.
@@ -167,7 +283,7 @@ class InspireLA:
         return await self.read(la.Register.OVER_CURRENT_LIMIT)
 
     async def set_over_current_limit(self, milliamps: int) -> None:
-        """Set the over-current limit, 300..1500 mA."""
+        """Set the over-current limit, 300..1500 mA (effective now; ``save()`` keeps it)."""
         await self.write(la.Register.OVER_CURRENT_LIMIT, milliamps)
 
     async def temperature_limits(self) -> tuple[float, float]:
@@ -178,6 +294,8 @@ class InspireLA:
 
     async def set_temperature_limits(self, over_c: float, recovery_c: float) -> None:
         """Set both temperature limits in degC, in an order that never passes an invalid pair.
+
+        Effective now, in RAM: ``save()`` keeps them over a power cycle.
 
         Args:
             over_c: over-temperature limit, 25.0..80.0 degC.
@@ -226,6 +344,22 @@ class InspireLA:
         if save:
             await moved.save()
         return moved
+
+
+def _stroke(field: str, mm: object) -> float:
+    """A stroke length in mm: a finite number, 1..1000."""
+    if (
+        isinstance(mm, bool)
+        or not isinstance(mm, int | float)
+        or not math.isfinite(mm)
+        or not 1 <= mm <= 1000
+    ):
+        raise LocalProtocolError(
+            f"{field}={mm!r} is out of range: allowed 1..1000 (millimetres)",
+            field=field,
+            value=mm,
+        )
+    return float(mm)
 
 
 def _tenths(field: str, degrees: object) -> int:

@@ -56,6 +56,8 @@ class QuadStepper:
     ) -> None:
         """Set a motor's microstepping, run length, direction, start frequency, ramp and speed.
 
+        The settings are lost at power-off unless :meth:`save` is called.
+
         Args:
             motor: 1..4.
             subdivision: microsteps per full step, 1..65535.
@@ -88,15 +90,34 @@ class QuadStepper:
     ) -> None:
         """Start a motor's configured run; with ``wait``, return when it reports done.
 
+        **Awaited runs take turns.**  The controller answers a single-motor run, and
+        reports it done, with motor byte 0x00 rather than the motor's number (A1-02 in
+        docs/protocols.md), so a done reply can only be attributed while one awaited
+        run is in flight: two ``run(..., wait=True)`` under ``asyncio.gather`` run one
+        after the other, on one controller or across ``QuadStepper`` handles of it.
+
+        To run axes together: start them with ``wait=False`` (each returns on its ack
+        and the motors run at once) and wait for them yourself, e.g. through
+        ``bus.events.subscribe(QuadDone)`` created before the runs, or use
+        :meth:`run_all` (all four, no done reply documented, A1-04).
+
         A run whose done reply does not come in time is stopped (stop that motor; if
         that is not acknowledged, stop all) unless ``keep_running``.  A cancelled call
         (Ctrl-C, an enclosing timeout) always sends the stop before the cancellation
         goes on.
 
+        Args:
+            motor: 1..4.
+            wait: wait for the done reply (default) or return on the ack.
+            timeout: seconds to wait for done; default ``DEFAULT_DONE_TIMEOUT_S``
+                (600 s: the manual gives no duration and a slow long move can take
+                minutes).
+            keep_running: on a timeout, leave the motor running (the error says how
+                to stop it).
+
         Raises:
-            ReplyTimeoutError: no ack, or no done reply within ``timeout`` seconds
-                (default ``DEFAULT_DONE_TIMEOUT_S``); the message says whether the
-                motor was stopped.
+            ReplyTimeoutError: no ack, or no done reply within ``timeout`` seconds;
+                the message says whether the motor was stopped.
         """
         cmd = q.Run(motor)
         check_flag("wait", wait)

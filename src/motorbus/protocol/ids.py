@@ -44,7 +44,8 @@ def parse_id_items(
 
     Args:
         items: e.g. ``["1-3", "7"]``.
-        lo, hi: the allowed IDs (default: the LA's 1..254).
+        lo: the lowest allowed ID (default: the LA's 1).
+        hi: the highest allowed ID (default: the LA's 254).
         id_field: the name an out-of-range ID is given in the message
             (``"id=300 is out of range: allowed 1..254"``).
 

@@ -10,7 +10,7 @@ Memory model: four 220-byte project images laid out exactly as the 0x3E dump (A.
 in RAM and in simulated flash.  Programming commands write RAM fields of the project
 selected by the last 0x6E (A0-03); 0x2E copies RAM to flash; 0x1E zeroes both;
 ``power_cycle`` reloads RAM from flash.  A cleared image keeps its project number in
-[0][0] and is zero elsewhere (0 steps, so starting it ends at once).
+``[0][0]`` and is zero elsewhere (0 steps, so starting it ends at once).
 
 Kinematic model (simulator assumptions: doc 000 gives no timing, A0-09/A0-14):
 

@@ -211,6 +211,17 @@ class ErrorFlags(enum.IntFlag, boundary=enum.KEEP):
     OVER_CURRENT = 0x04
     MOTOR_ABNORMAL = 0x08
 
+    def __repr__(self) -> str:
+        """``ErrorFlags(none)``, ``ErrorFlags(STALL|OVER_CURRENT)``; undefined bits in hex."""
+        value = int(self)
+        names = [f.name for f in ErrorFlags if f.name and value & f.value]
+        undefined = value & ~0x0F
+        if undefined:
+            names.append(f"0x{undefined:02X}")
+        return f"ErrorFlags({'|'.join(names) or 'none'})"
+
+    __str__ = __repr__  # print() and f"{e}" show the names; int(e) is the byte
+
 
 #: The defined fault bits; anything else in B15 is reported raw but not treated as a fault.
 KNOWN_ERROR_BITS = (

@@ -111,7 +111,7 @@ class StepSpec:
         object.__setattr__(self, "stop_input", GatingInput(t))
 
     def encode_data(self) -> bytes:
-        """Return the 16 data bytes of this step's dump block ([x][0..15], A.5)."""
+        """Return the 16 data bytes of this step's dump block (``[x][0..15]``, A.5)."""
         return (
             _u24(self.run_distance)
             + bytes((self.direction,))
@@ -125,7 +125,7 @@ class StepSpec:
 
     @classmethod
     def decode_data(cls, data: bytes) -> StepSpec:
-        """Decode the 16 data bytes of a dump step block ([x][0..15], A.5).
+        """Decode the 16 data bytes of a dump step block (``[x][0..15]``, A.5).
 
         Raises:
             LocalProtocolError: ``data`` is not 16 bytes or holds an out-of-range code.
@@ -154,7 +154,8 @@ class Project:
     """A complete project: motor configuration, 1..10 steps, step loop and repeat count.
 
     Attributes:
-        number: project number 1..4.
+        number: project number 1..4 (the ``project`` of the commands, acks and
+            :class:`ProjectDump`; ``number`` in a project TOML file).
         subdivision: microstep subdivision, 1..65535.
         step_angle_x100: motor step angle, degrees x 100, 1..255 (A0-09).
         distance_per_rev: user units per revolution, 1..16777215 (A.3).
@@ -209,20 +210,24 @@ class ProjectDump:
     unlisted byte in ``reserved``, so ``decode(encode())`` is byte-exact.
 
     Attributes:
-        project: P from the header ``FF AA 3E P 00 00`` (1..4).
-        number, number_of_steps: [0][0], [0][1].
-        loop_start, loop_end, loop_count: [0][2..4].
-        repeat_count: [0][5] (255 = forever).
-        subdivision: [0][6..7]; step_angle_x100: [0][8]; distance_per_rev: [0][9..11].
-        stop_mode: [0][14]; mode4: [0][15]; power_on_homing: [0][16] (raw bytes).
+        project: the project number 1..4: P of the header ``FF AA 3E P 00 00``, the
+            project that was read (``Project.number`` of the project it holds).
+        stored_number: ``[0][0]``, the number byte stored with the project: equal to
+            ``project`` once a project is uploaded (the manual does not say what a
+            cleared project holds here; the simulator keeps the number).
+        number_of_steps: ``[0][1]``.
+        loop_start, loop_end, loop_count: ``[0][2..4]``.
+        repeat_count: ``[0][5]`` (255 = forever).
+        subdivision: ``[0][6..7]``; step_angle_x100: ``[0][8]``; distance_per_rev: ``[0][9..11]``.
+        stop_mode: ``[0][14]``; mode4: ``[0][15]``; power_on_homing: ``[0][16]`` (raw bytes).
         steps: decoded step blocks 1..min(number_of_steps, 10).
         unused_steps: 16 data bytes for each later block, in order.
-        reserved: the 45 unlisted bytes, in offset order ([0][12,13,17..19], then
-            [x][16..19] for x = 1..10).
+        reserved: the 45 unlisted bytes, in offset order (``[0][12,13,17..19]``, then
+            ``[x][16..19]`` for x = 1..10).
     """
 
     project: int
-    number: int
+    stored_number: int
     number_of_steps: int
     loop_start: int
     loop_end: int
@@ -241,7 +246,7 @@ class ProjectDump:
     def __post_init__(self) -> None:
         _check_project(self.project)
         for name in (
-            "number",
+            "stored_number",
             "number_of_steps",
             "loop_start",
             "loop_end",
@@ -306,7 +311,7 @@ class ProjectDump:
                 ) from err
         return cls(
             project=raw[3],
-            number=base(BASE_NUMBER),
+            stored_number=base(BASE_NUMBER),
             number_of_steps=base(BASE_STEPS),
             loop_start=base(BASE_LOOP_START),
             loop_end=base(BASE_LOOP_END),
@@ -332,7 +337,7 @@ class ProjectDump:
             off = dump_offset(0, k)
             out[off : off + len(data)] = data
 
-        put(BASE_NUMBER, bytes((self.number, self.number_of_steps)))
+        put(BASE_NUMBER, bytes((self.stored_number, self.number_of_steps)))
         put(BASE_LOOP_START, bytes((self.loop_start, self.loop_end, self.loop_count)))
         put(BASE_REPEAT, bytes((self.repeat_count,)))
         put(BASE_SUBDIVISION, _u16(self.subdivision) + bytes((self.step_angle_x100,)))
@@ -361,7 +366,7 @@ class ProjectDump:
                 example a cleared project with 0 steps); the message names the field.
         """
         return Project(
-            number=self.number,
+            number=self.stored_number,
             subdivision=self.subdivision,
             step_angle_x100=self.step_angle_x100,
             distance_per_rev=self.distance_per_rev,
@@ -386,9 +391,9 @@ class ProjectDump:
 
         Args:
             project: the project.
-            stop_mode: [0][14], 0 slow or 1 immediate.
-            mode4: [0][15], 0..2.
-            power_on_homing: [0][16].
+            stop_mode: ``[0][14]``, 0 slow or 1 immediate.
+            mode4: ``[0][15]``, 0..2.
+            power_on_homing: ``[0][16]``.
             reserved: the 45 unlisted bytes (default zeros).
             unused_steps: data bytes of the unused step blocks (default zeros).
 
@@ -400,7 +405,7 @@ class ProjectDump:
         n = len(project.steps)
         return cls(
             project=project.number,
-            number=project.number,
+            stored_number=project.number,
             number_of_steps=n,
             loop_start=project.loop_start,
             loop_end=project.loop_end,
