@@ -78,10 +78,10 @@ import serial
 
 from kernel_clock import KernelWriteTrace, grid_jitter, port_figures, write_gaps
 from motorbus.bus.bus import Bus
-from motorbus.bus.manager import BusManager
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.devices.la import InspireLA
 from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, wire_time
 from motorbus.sim.la import LAModel

@@ -39,8 +39,8 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from motorbus.bus.manager import BusManager
 from motorbus.errors import MotorbusError
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 
 HERE = Path(__file__).resolve().parent

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from kernel_clock import KernelWriteTrace, port_figures
-from motorbus.bus.manager import BusManager
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
 

@@ -46,8 +46,8 @@ from pathlib import Path
 from typing import Any
 
 from kernel_clock import KernelWriteTrace, port_figures, worst_tick_figures
-from motorbus.bus.manager import BusManager
 from motorbus.bus.timer import default_timer
+from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.sim.analysis import tick_timing
 from motorbus.sim.process import SimProcess
