@@ -76,6 +76,7 @@ ALLOWED: dict[str, set[str]] = {
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices"},
     "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "doctor": _LIBRARY_BASE | {"transport", "bus", "devices", "streams", "manager"},
     "sim": {"errors", "protocol", "transport"},
 }
 #: Re-exports kept so that old import paths work; nothing else may point upwards.

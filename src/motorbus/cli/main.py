@@ -65,6 +65,7 @@ COMMAND_MODULES = (
     "sim",
     "decode",
     "scan",
+    "doctor",
     "la",
     "stream",
     "monitor",

@@ -1,0 +1,624 @@
+"""The asyncio shell of ``motorbus doctor``: gather the facts, let checks.py judge them.
+
+The sequence is short and bounded, and read-only: status queries (LA ``0x22``/``0x04``)
+and nothing else, unless ``fix=True`` (then only the USB adapter's latency timer is
+written, if the user may).  Steps, in order:
+
+1. the port: what it is, permissions, who else holds it, the USB adapter (sysfs, /proc);
+2. the adapter's latency timer and ``ASYNC_LOW_LATENCY`` (sysfs, ``TIOCGSERIAL``);
+3. echo: one status query written with echo removal off; what comes back is compared;
+4. baud and IDs: ``motorbus.devices.la.scan`` at the baud; if nothing answers, at the
+   other LA rates (one pass each);
+5. turnaround: ``requests`` status queries to each device found, timed by the bus;
+6. the line: the bus counters over steps 5 and 7;
+7. the cycle budget: the occupancy model's theory, and status reads in the gaps the
+   stream's ticks would leave, for ``measure_s`` seconds;
+8. the host: timer, real-time grant, CPU governor, other real-time processes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fcntl
+import glob
+import grp
+import itertools
+import os
+import resource
+import stat
+import struct
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from motorbus.bus.bus import (
+    DEFAULT_HOST_MARGIN_S,
+    DEFAULT_TURNAROUND,
+    MIN_SPACING_S,
+    Bus,
+    Priority,
+)
+from motorbus.bus.occupancy import BusTiming
+from motorbus.bus.timer import default_timer
+from motorbus.devices.la import ScanReport, scan
+from motorbus.doctor import checks
+from motorbus.doctor.checks import (
+    DeviceScan,
+    EchoFacts,
+    Finding,
+    HostFacts,
+    LatencyFacts,
+    Level,
+    LineFacts,
+    MeasuredBudget,
+    PortFacts,
+    TurnaroundFacts,
+    UsbInfo,
+    skipped,
+)
+from motorbus.doctor.report import DoctorReport
+from motorbus.errors import LocalProtocolError, NotSentError, ReplyTimeoutError
+from motorbus.manager import BusManager
+from motorbus.protocol import la
+from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.families import STEPPER_DEFAULT_BAUD
+from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S
+from motorbus.transport import serial as serial_transport
+from motorbus.transport.serial import DEFAULT_BACKEND, open_transport, usb_serial_name
+from motorbus.validation import check_number
+
+__all__ = ["DOCTOR_BAUDS", "DoctorConfig", "diagnose"]
+
+#: The rates some family uses: the LA baud codes and the steppers' 9600 bit/s.
+DOCTOR_BAUDS = tuple(sorted({STEPPER_DEFAULT_BAUD, *(c.baud for c in la.BaudCode)}))
+#: Status queries per device for its turnaround.
+DEFAULT_REQUESTS = 30
+#: Seconds of measured cycle budget.
+DEFAULT_MEASURE_S = 2.0
+#: Reply budget of the turnaround queries: patient, so that a slow device is measured
+#: rather than timed out (the scan's budget for late answers).
+PATIENT_S = 0.050
+#: After the echo probe's write, how long to collect what comes back (at least).
+ECHO_WAIT_S = 0.030
+#: ``ioctl`` TIOCGSERIAL / TIOCSSERIAL and the ``ASYNC_LOW_LATENCY`` flag (linux/tty_flags.h).
+_TIOCGSERIAL = 0x541E
+_ASYNC_LOW_LATENCY = 1 << 13
+_SERIAL_STRUCT_SIZE = 72
+_SERIAL_FLAGS_OFFSET = 16  # int type, int line, unsigned port, int irq, int flags
+#: A memory lock limit this large lets ``--realtime`` lock the process.
+_MEMLOCK_ENOUGH = 256 << 20
+_CAP_SYS_NICE = 23
+_CAP_IPC_LOCK = 14
+
+
+@dataclass(frozen=True, slots=True)
+class DoctorConfig:
+    """What to diagnose; every value checked on construction (nothing is sent before).
+
+    Build it from a port (``DoctorConfig(url, baud)``) or from a bus file
+    (:meth:`from_bus_file`, every key of the ``[[bus]]`` table honoured).
+    """
+
+    url: str
+    baud: int
+    backend: str = DEFAULT_BACKEND
+    rs485: bool = False
+    remove_echo: bool = False
+    low_latency: bool = True
+    min_spacing_s: float = MIN_SPACING_S
+    host_margin_s: float = DEFAULT_HOST_MARGIN_S
+    families: frozenset[Family] = frozenset({Family.LA})
+    ids: tuple[int, ...] | None = None
+    bus_name: str | None = None
+    period_s: float = PERIOD_MIN_S
+    requests: int = DEFAULT_REQUESTS
+    measure_s: float = DEFAULT_MEASURE_S
+    fix: bool = False
+    where: str = "your bus options"
+
+    def __post_init__(self) -> None:
+        if self.baud not in DOCTOR_BAUDS:
+            raise LocalProtocolError(
+                f"baud={self.baud!r} is not a rate any family uses: choose one of "
+                f"{', '.join(str(b) for b in DOCTOR_BAUDS)}",
+                field="baud",
+                value=self.baud,
+            )
+        check_number("period", self.period_s, PERIOD_MIN_S, PERIOD_MAX_S, "s", slack=1e-9)
+        check_int("requests", self.requests, 1, 1000)
+        check_number("measure_s", self.measure_s, 0.0, 60.0, "s")
+        if self.ids is not None:
+            object.__setattr__(
+                self, "ids", tuple(check_int("id", i, la.ID_MIN, la.ID_MAX) for i in self.ids)
+            )
+        if "://" not in self.url and not os.path.exists(self.url):
+            raise LocalProtocolError(
+                f"port {self.url!r} does not exist", field="port", value=self.url
+            )
+
+    @classmethod
+    def from_bus_file(
+        cls, path: str | Path, bus: str | None = None, **options: object
+    ) -> DoctorConfig:
+        """The bus ``bus`` of a bus file (``BusManager.from_toml``: every key checked).
+
+        Raises:
+            LocalProtocolError: a bad file (naming the key), or no such bus.
+            OSError: the file cannot be read.
+        """
+        specs = BusManager.from_toml(path, safe_stop=False).specs
+        if bus is None:
+            if len(specs) != 1:
+                raise LocalProtocolError(
+                    f"{path} has {len(specs)} buses: choose one of {', '.join(specs)}",
+                    field="bus",
+                )
+            bus = next(iter(specs))
+        if bus not in specs:
+            raise LocalProtocolError(
+                f"{path} has no bus {bus!r}: choose one of {', '.join(specs)}",
+                field="bus",
+                value=bus,
+            )
+        spec = specs[bus]
+        ids = tuple(i for d in spec.devices if d.kind == "la" for i in d.ids)
+        return cls(
+            url=spec.url,
+            baud=spec.baud,
+            backend=spec.backend,
+            rs485=spec.rs485,
+            remove_echo=spec.remove_echo,
+            low_latency=spec.low_latency,
+            min_spacing_s=spec.min_spacing_ms / 1e3,
+            host_margin_s=spec.host_margin_ms / 1e3,
+            families=frozenset(spec.families()),
+            ids=ids or None,
+            bus_name=bus,
+            where=f"[[bus]] {bus!r} of {path}",
+            **options,  # type: ignore[arg-type]
+        )
+
+
+# -- facts from the system ----------------------------------------------------------------
+
+
+def _read(path: str) -> str:
+    try:
+        with open(path, encoding="utf-8", errors="replace") as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+def usb_info(tty_name: str, sysfs: str = "/sys") -> UsbInfo | None:
+    """The USB device behind ``ttyUSB0``/``ttyACM0`` from sysfs, or None."""
+    device = os.path.join(sysfs, "class", "tty", tty_name, "device")
+    if not os.path.exists(device):
+        return None
+    driver_link = os.path.join(device, "driver")
+    driver = os.path.basename(os.path.realpath(driver_link)) if os.path.exists(driver_link) else ""
+    here = os.path.realpath(device)
+    while here not in ("/", "") and here.startswith(os.path.realpath(sysfs)):
+        if os.path.exists(os.path.join(here, "idVendor")):
+            return UsbInfo(
+                vid=_read(os.path.join(here, "idVendor")),
+                pid=_read(os.path.join(here, "idProduct")),
+                driver=driver,
+                serial=_read(os.path.join(here, "serial")),
+                product=_read(os.path.join(here, "product")),
+                manufacturer=_read(os.path.join(here, "manufacturer")),
+            )
+        here = os.path.dirname(here)
+    return None
+
+
+def holders(path: str, proc: str = "/proc") -> tuple[tuple[int, str], ...]:
+    """Other processes that have ``path`` open, as ``(pid, name)`` (where /proc tells)."""
+    found = []
+    me = os.getpid()
+    for entry in os.listdir(proc):
+        if not entry.isdigit() or int(entry) == me:
+            continue
+        fd_dir = os.path.join(proc, entry, "fd")
+        try:
+            fds = os.listdir(fd_dir)
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                target = os.readlink(os.path.join(fd_dir, fd))
+            except OSError:
+                continue
+            if target == path:
+                found.append((int(entry), _read(os.path.join(proc, entry, "comm")) or "?"))
+                break
+    return tuple(found)
+
+
+def port_facts(
+    url: str,
+    *,
+    uid: int | None = None,
+    gids: Iterable[int] | None = None,
+    sysfs: str = "/sys",
+    proc: str = "/proc",
+) -> PortFacts:
+    """What the system says about a local port (``uid``/``gids``: whose access to judge)."""
+    path = os.path.realpath(url)
+    st = os.stat(path)
+    name = os.path.basename(path)
+    usb = usb_info(name, sysfs) if stat.S_ISCHR(st.st_mode) else None
+    if not stat.S_ISCHR(st.st_mode):
+        kind = "file"
+    elif path.startswith("/dev/pts/") or name == "ptmx":
+        kind = "pty"
+    elif usb is not None or name.startswith(("ttyUSB", "ttyACM")):
+        kind = "usb"
+    else:
+        kind = "tty"
+    try:
+        group = grp.getgrgid(st.st_gid).gr_name
+    except KeyError:
+        group = str(st.st_gid)
+    return PortFacts(
+        url=url,
+        path=path,
+        kind=kind,
+        mode=st.st_mode,
+        owner_uid=st.st_uid,
+        group_gid=st.st_gid,
+        group_name=group,
+        uid=os.geteuid() if uid is None else uid,
+        gids=frozenset([*os.getgroups(), os.getegid()] if gids is None else gids),
+        holders=holders(path, proc),
+        usb=usb,
+    )
+
+
+def _low_latency_flag(path: str) -> bool | None:
+    """``ASYNC_LOW_LATENCY`` of a serial port (TIOCGSERIAL), None if it has none."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    except OSError:
+        return None
+    try:
+        buf = fcntl.ioctl(fd, _TIOCGSERIAL, bytes(_SERIAL_STRUCT_SIZE))
+        (flags,) = struct.unpack_from("i", buf, _SERIAL_FLAGS_OFFSET)
+        return bool(flags & _ASYNC_LOW_LATENCY)
+    except OSError:
+        return None
+    finally:
+        os.close(fd)
+
+
+def latency_facts(url: str, driver: str, *, fix: bool = False) -> LatencyFacts:
+    """The latency timer (the sysfs value the bus checks on open) and the low-latency flag."""
+    tty = usb_serial_name(url)
+    if tty is None:
+        return LatencyFacts(None)
+    ms = serial_transport.read_latency_timer_ms(tty)
+    fixed = ""
+    if fix and ms is not None and ms > 1:
+        path = os.path.join(serial_transport.USB_SERIAL_SYSFS, tty, "latency_timer")
+        try:
+            with open(path, "w", encoding="ascii") as f:
+                f.write("1")
+        except OSError as err:
+            fixed = f"could not write {path}: {err.strerror or err}"
+        else:
+            fixed = f"latency_timer {ms} -> 1 ms (until the adapter is replugged)"
+            ms = serial_transport.read_latency_timer_ms(tty)
+    return LatencyFacts(tty, driver, ms, _low_latency_flag(os.path.realpath(url)), fixed)
+
+
+def _capable(number: int) -> bool:
+    text = _read("/proc/self/status")
+    for line in text.splitlines():
+        if line.startswith("CapEff:"):
+            return bool(int(line.split()[1], 16) >> number & 1)
+    return False
+
+
+def host_facts(timer_name: str, *, sysfs: str = "/sys", proc: str = "/proc") -> HostFacts:
+    """Whether real-time mode could be granted (without asking for it), governors, RT tasks."""
+    root = os.geteuid() == 0
+    rtprio = resource.getrlimit(resource.RLIMIT_RTPRIO)[0]
+    memlock = resource.getrlimit(resource.RLIMIT_MEMLOCK)[0]
+    can_fifo = root or _capable(_CAP_SYS_NICE) or rtprio == resource.RLIM_INFINITY or rtprio > 0
+    can_lock = (
+        root
+        or _capable(_CAP_IPC_LOCK)
+        or memlock == resource.RLIM_INFINITY
+        or memlock >= _MEMLOCK_ENOUGH
+    )
+    governors = frozenset(
+        _read(p)
+        for p in glob.glob(f"{sysfs}/devices/system/cpu/cpu[0-9]*/cpufreq/scaling_governor")
+    ) - {""}
+    return HostFacts(timer_name, can_fifo, can_lock, governors, _rt_processes(proc))
+
+
+def _rt_processes(proc: str) -> tuple[tuple[int, str], ...]:
+    """User processes (not kernel threads) under SCHED_FIFO or SCHED_RR, but this one."""
+    found = []
+    me = os.getpid()
+    for entry in os.listdir(proc):
+        if not entry.isdigit() or int(entry) == me:
+            continue
+        text = _read(os.path.join(proc, entry, "stat"))
+        if ")" not in text:
+            continue
+        fields = text.rsplit(")", 1)[1].split()
+        try:
+            policy = int(fields[38])  # field 41 of proc(5), counted after "comm)"
+        except (IndexError, ValueError):
+            continue
+        if policy in (1, 2) and _read(os.path.join(proc, entry, "cmdline")):
+            found.append((int(entry), _read(os.path.join(proc, entry, "comm"))))
+    return tuple(found)
+
+
+# -- facts from the bus ----------------------------------------------------------------------
+
+
+def _query(ident: int) -> la.Control:
+    return la.Control(ident, la.ControlAction.QUERY_STATUS)
+
+
+def _transport(config: DoctorConfig, baud: int, remove_echo: bool) -> object:
+    return open_transport(
+        config.url,
+        baudrate=baud,
+        backend=config.backend,
+        rs485=config.rs485,
+        remove_echo=remove_echo,
+        low_latency=config.low_latency,
+    )
+
+
+def _bus(config: DoctorConfig, baud: int, remove_echo: bool) -> Bus:
+    return Bus(
+        _transport(config, baud, remove_echo),  # type: ignore[arg-type]
+        name=config.bus_name or config.url,
+        families=config.families,
+        min_spacing=config.min_spacing_s,
+        host_margin=config.host_margin_s,
+        retries=0,
+        reconnect=False,
+    )
+
+
+async def echo_facts(config: DoctorConfig, ident: int) -> EchoFacts:
+    """Write one status query with echo removal off; keep what comes back."""
+    transport = _transport(config, config.baud, False)
+    got = bytearray()
+    await transport.open(got.extend, lambda exc: None)  # type: ignore[attr-defined]
+    raw = _query(ident).encode()
+    try:
+        transport.write(raw)  # type: ignore[attr-defined]
+        await asyncio.sleep(ECHO_WAIT_S + 3 * la.STATUS_FRAME_SIZE * 10 / config.baud)
+    finally:
+        await transport.close()  # type: ignore[attr-defined]
+    return EchoFacts(raw, bytes(got), config.remove_echo)
+
+
+async def scan_devices(config: DoctorConfig, remove_echo: bool) -> DeviceScan:
+    """``scan`` at the configured baud; at the other LA rates only if nothing answered."""
+    asked = config.ids or tuple(range(la.ID_MIN, la.ID_MAX + 1))
+    report = ScanReport()
+    async with _bus(config, config.baud, remove_echo) as bus:
+        found = await scan(bus, asked, report=report)
+    elsewhere: dict[int, tuple[int, ...]] = {}
+    if not found:
+        for code in reversed(la.BaudCode):  # the factory rate first
+            if code.baud == config.baud:
+                continue
+            async with _bus(config, code.baud, remove_echo) as other:
+                elsewhere[code.baud] = tuple(await scan(other, asked, passes=1))
+    return DeviceScan(
+        baud=config.baud,
+        asked=tuple(asked),
+        configured=config.ids is not None,
+        found=tuple(found),
+        late=tuple(report.late),
+        elsewhere=elsewhere,
+    )
+
+
+def _percentile(sorted_values: Sequence[float], p: float) -> float:
+    if not sorted_values:
+        return 0.0
+    rank = max(1, -(-len(sorted_values) * p // 100))
+    return sorted_values[int(rank) - 1]
+
+
+async def turnaround_facts(bus: Bus, ident: int, requests: int) -> TurnaroundFacts:
+    """``requests`` status queries to one device, each timed by the bus (write to reply)."""
+    key = f"la:{ident}"
+    deadline = bus.occupancy(_query(ident)).budget
+    latencies: list[float] = []
+    lost = 0
+    for _ in range(requests):
+        device = bus.stats.device(key)
+        before = device.latency.total, device.latency.count
+        try:
+            await bus.request(_query(ident), timeout=PATIENT_S, retries=0)
+        except ReplyTimeoutError:
+            lost += 1
+            continue
+        if device.latency.count == before[1] + 1:
+            latencies.append(device.latency.total - before[0])
+    latencies.sort()
+    return TurnaroundFacts(
+        key=key,
+        requests=requests,
+        p50=_percentile(latencies, 50),
+        p99=_percentile(latencies, 99),
+        max=latencies[-1] if latencies else 0.0,
+        replies=len(latencies),
+        late=sum(1 for x in latencies if x > deadline),
+        lost=lost,
+    )
+
+
+async def measure_budget(
+    bus: Bus, ids: Sequence[int], theory: checks.BudgetTheory, seconds: float
+) -> MeasuredBudget:
+    """Status reads round-robin in the gaps the stream's ticks would leave (read-only).
+
+    Each tick's own window (``theory.tick_s``) is left free, as the broadcast would hold
+    it; then reads go back to back, each only if it can be answered before the next tick
+    (``start_by``), as the stream's polls do.
+    """
+    timer = bus.timer
+    period = theory.period_s
+    ticks = max(1, round(seconds / period))
+    order = itertools.cycle(ids)
+    polls = lost = 0
+    start = timer.now() + period
+    for k in range(ticks):
+        tick = start + k * period
+        following = tick + period
+        await timer.sleep_until(tick + theory.tick_s)
+        while True:
+            latest = following - theory.poll_s
+            if timer.now() > latest:
+                break
+            future = bus.submit(
+                _query(next(order)), retries=0, start_by=latest, priority=Priority.BACKGROUND
+            )
+            try:
+                await future
+            except NotSentError:
+                break
+            except ReplyTimeoutError:
+                lost += 1
+            else:
+                polls += 1
+    end = start + ticks * period
+    return MeasuredBudget(ticks, polls, lost, polls / ticks, start, end)
+
+
+@dataclass(slots=True)
+class _Line:
+    """Bus counters at the start of the measured sequence."""
+
+    values: dict[str, int] = field(default_factory=dict)
+
+    @staticmethod
+    def take(bus: Bus) -> _Line:
+        s = bus.stats
+        return _Line(
+            {
+                "requests": s.requests,
+                "timeouts": s.timeouts,
+                "late_replies": s.late_replies,
+                "garbage_bytes": s.garbage_bytes,
+                "unexpected_frames": s.unexpected_frames,
+            }
+        )
+
+    def since(self, bus: Bus, reasons_before: dict[str, int]) -> LineFacts:
+        now = _Line.take(bus).values
+        d = {k: now[k] - v for k, v in self.values.items()}
+        reasons = {
+            k: v - reasons_before.get(k, 0)
+            for k, v in bus.stats.discarded_by_reason.items()
+            if v - reasons_before.get(k, 0)
+        }
+        return LineFacts(discarded_by_reason=reasons, **d)
+
+
+# -- the whole sequence --------------------------------------------------------------------
+
+
+async def diagnose(
+    config: DoctorConfig,
+    *,
+    uid: int | None = None,
+    gids: Iterable[int] | None = None,
+    sysfs: str = "/sys",
+    proc: str = "/proc",
+) -> DoctorReport:
+    """Run the doctor's bounded, read-only sequence on one bus; return its report.
+
+    ``uid``/``gids`` judge the port's permissions for another user (default: this
+    process's); ``sysfs``/``proc`` are where the system is read (tests point them at a
+    fake tree).
+    """
+    target = config.url if config.bus_name is None else f"{config.bus_name} ({config.url})"
+    report = DoctorReport(target, config.baud, config.period_s)
+    add = report.findings.append
+    later = ["echo", "devices", "line"]
+    # The timing the bus will have (``Bus.timing``), before any bus is opened.
+    timing = BusTiming(config.baud, config.min_spacing_s, config.host_margin_s, DEFAULT_TURNAROUND)
+
+    adapter_ms: int | None = None
+    usable = True
+    if "://" in config.url:
+        add(Finding("port", Level.GREEN, f"{config.url}: network port, no local checks"))
+        add(checks.check_latency(LatencyFacts(None), timing, config.period_s))
+    else:
+        pf = port_facts(config.url, uid=uid, gids=gids, sysfs=sysfs, proc=proc)
+        port = checks.check_port(pf)
+        add(port)
+        usable = port.level is not Level.RED
+        lf = latency_facts(config.url, pf.usb.driver if pf.usb else "", fix=config.fix)
+        adapter_ms = lf.latency_timer_ms
+        add(checks.check_latency(lf, timing, config.period_s))
+    la_bus = Family.LA in config.families
+    if usable and not la_bus:
+        usable = False
+        why = "the doctor checks LA actuators; this bus lists only stepper controllers"
+    else:
+        why = "the port is not usable (see the port check)"
+    remove_echo = config.remove_echo
+    found: tuple[int, ...] = ()
+    turnaround_over = False
+    measured: MeasuredBudget | None = None
+    n_theory = len(config.ids) if config.ids else 1
+    if usable:
+        try:
+            echo = await echo_facts(config, (config.ids or (la.ID_MIN,))[0])
+        except OSError as err:
+            add(
+                Finding("open", Level.RED, f"cannot open {config.url}: {err}", "see the port check")
+            )
+            usable, why = False, "the port did not open"
+        else:
+            add(checks.check_echo(echo, config.where))
+            remove_echo = remove_echo or echo.echoes
+            later.remove("echo")
+    if usable:
+        devices = await scan_devices(config, remove_echo)
+        add(checks.check_devices(devices, config.where))
+        later.remove("devices")
+        found = devices.found
+        if not found:
+            usable, why = False, f"no device answers at {config.baud} bit/s"
+    if usable:
+        n_theory = len(found)
+        async with _bus(config, config.baud, remove_echo) as bus:
+            line = _Line.take(bus)
+            reasons = dict(bus.stats.discarded_by_reason)
+            for ident in found:
+                facts = await turnaround_facts(bus, ident, config.requests)
+                finding = checks.check_turnaround(facts, bus.timing, config.period_s)
+                turnaround_over |= finding.level is not Level.GREEN
+                add(finding)
+            theory = checks.budget_theory(timing, n_theory, config.period_s)
+            if config.measure_s > 0:
+                measured = await measure_budget(bus, found, theory, config.measure_s)
+            add(checks.check_line(line.since(bus, reasons)))
+            later.remove("line")
+    for check in later:
+        add(skipped(check, why))
+    theory = checks.budget_theory(timing, n_theory, config.period_s)
+    add(
+        checks.check_budget(
+            theory, measured, adapter_ms=adapter_ms, turnaround_over=turnaround_over
+        )
+    )
+    host = host_facts(default_timer().name, sysfs=sysfs, proc=proc)
+    report.findings.extend(checks.check_host(host))
+    return report
