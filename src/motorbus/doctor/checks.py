@@ -734,6 +734,8 @@ def check_budget(
         "lost": measured.lost,
         "polls_per_tick": measured.polls_per_tick,
         "window_s": measured.ended - measured.started,
+        "started": measured.started,  # monotonic clock: to compare with a bus log
+        "ended": measured.ended,
     }
     text += f"; measured {measured.polls_per_tick:.1f} reads a tick over {measured.ticks} ticks"
     expected = t.polls_between_ticks
