@@ -712,10 +712,16 @@ def check_budget(
     theory: BudgetTheory,
     measured: MeasuredBudget | None,
     *,
-    adapter_ms: int | None,
-    turnaround_over: bool,
+    adapter_ms: int | None = None,
+    slow_device: bool = False,
+    line: LineFacts | None = None,
 ) -> Finding:
-    """Theory and measurement side by side; measurement short by over 20 %: yellow."""
+    """Theory and measurement side by side; measurement short by over 20 %: yellow.
+
+    The reason named is the first that applies: the adapter holds replies (latency timer
+    over 1 ms), a device slower than its turnaround (a red turnaround check), replies
+    lost on the line, else the host (late replies, a loop that wakes late).
+    """
     t = theory
     data: dict[str, Any] = {"theory": t.as_dict()}
     text = (
@@ -740,12 +746,20 @@ def check_budget(
     text += f"; measured {measured.polls_per_tick:.1f} reads a tick over {measured.ticks} ticks"
     expected = t.polls_between_ticks
     if expected and measured.polls_per_tick < expected * (1 - BUDGET_GAP_SHARE):
+        lost = max(0, line.timeouts - line.late_replies) if line is not None else 0
         if adapter_ms is not None and adapter_ms > 1:
             why, fix = "the adapter holds replies", "see the latency check"
-        elif turnaround_over or measured.lost:
-            why, fix = "device turnaround or lost replies", "see the turnaround and line checks"
+        elif slow_device:
+            why, fix = "device turnaround", "see the turnaround checks"
+        elif lost:
+            why, fix = "replies lost on the line", "see the line check"
         else:
-            why, fix = "host jitter (the loop wakes late)", "run with --realtime on a quiet host"
+            late = f", {measured.lost} replies late" if measured.lost else ""
+            why = f"host jitter{late}"
+            fix = (
+                "run with --realtime on a quieter host, or raise host_margin_ms (a timeout "
+                "holds its device for the 20 ms late guard)"
+            )
         gap = 1 - measured.polls_per_tick / expected
         data["gap"] = gap
         return Finding(

@@ -574,7 +574,8 @@ async def diagnose(
         why = "the port is not usable (see the port check)"
     remove_echo = config.remove_echo
     found: tuple[int, ...] = ()
-    turnaround_over = False
+    slow_device = False
+    line_facts: LineFacts | None = None
     measured: MeasuredBudget | None = None
     n_theory = len(config.ids) if config.ids else 1
     if usable:
@@ -604,19 +605,20 @@ async def diagnose(
             for ident in found:
                 facts = await turnaround_facts(bus, ident, config.requests)
                 finding = checks.check_turnaround(facts, bus.timing, config.period_s)
-                turnaround_over |= finding.level is not Level.GREEN
+                slow_device |= finding.level is Level.RED
                 add(finding)
             theory = checks.budget_theory(timing, n_theory, config.period_s)
             if config.measure_s > 0:
                 measured = await measure_budget(bus, found, theory, config.measure_s)
-            add(checks.check_line(line.since(bus, reasons)))
+            line_facts = line.since(bus, reasons)
+            add(checks.check_line(line_facts))
             later.remove("line")
     for check in later:
         add(skipped(check, why))
     theory = checks.budget_theory(timing, n_theory, config.period_s)
     add(
         checks.check_budget(
-            theory, measured, adapter_ms=adapter_ms, turnaround_over=turnaround_over
+            theory, measured, adapter_ms=adapter_ms, slow_device=slow_device, line=line_facts
         )
     )
     host = host_facts(default_timer().name, sysfs=sysfs, proc=proc)
