@@ -254,6 +254,7 @@ def test_a_device_within_its_turnaround_is_green_an_occasional_slow_reply_yellow
         (LineFacts(100, 0, 0, 0, 0), Level.GREEN),
         (LineFacts(100, 0, 0, 12, 0), Level.YELLOW),  # garbage, nothing lost
         (LineFacts(100, 3, 3, 0, 0), Level.YELLOW),  # late, not lost
+        (LineFacts(1000, 5, 5, 0, 0), Level.GREEN),  # 0.5 % late: a loaded host's stall
         (LineFacts(100, 2, 0, 40, 0), Level.YELLOW),  # 2 % lost
         (LineFacts(100, 9, 2, 40, 0), Level.RED),  # 7 % lost
     ],
