@@ -233,3 +233,20 @@ def test_a_bus_file_is_honoured_key_by_key(tmp_path: Path) -> None:
     assert "[[bus]] 'arm'" in config.where
     with pytest.raises(LocalProtocolError, match="no bus 'leg'"):
         DoctorConfig.from_bus_file(path, "leg")
+
+
+async def test_a_stepper_only_bus_gets_the_port_and_host_checks_and_the_rest_skipped(
+    tmp_path: Path,
+) -> None:
+    with PtySim([LAModel(id=1)]) as sim:
+        path = tmp_path / "buses.toml"
+        path.write_text(
+            f'[[bus]]\nname = "feeder"\nurl = "{sim.path}"\nbaud = 9600\n'
+            'devices = ["quad-stepper"]\n'
+        )
+        report = await diagnose(DoctorConfig.from_bus_file(path, "feeder", measure_s=0.0))
+        requests = sim.bus.stats.requests
+    assert report.finding("port").level is Level.GREEN
+    assert {report.finding(c).level for c in ("echo", "devices", "line", "budget")} == {Level.SKIP}
+    assert "stepper" in report.finding("devices").summary
+    assert report.exit_code == 0 and requests == 0

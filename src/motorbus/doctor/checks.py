@@ -412,7 +412,8 @@ def check_devices(scan: DeviceScan, where: str) -> Finding:
     return Finding(
         "devices",
         Level.RED,
-        f"no LA actuator answers ({len(scan.asked)} IDs asked at {tried} bit/s)",
+        f"no LA actuator answers ({len(scan.asked)} ID{'s' if len(scan.asked) != 1 else ''} "
+        f"asked at {tried} bit/s)",
         "check the power supply, A/B (D+/D-) not swapped, a common ground, 120 ohm "
         "termination at the ends, and the IDs (motorbus scan --baud all)",
         data,
