@@ -250,3 +250,31 @@ async def test_a_stepper_only_bus_gets_the_port_and_host_checks_and_the_rest_ski
     assert {report.finding(c).level for c in ("echo", "devices", "line", "budget")} == {Level.SKIP}
     assert "stepper" in report.finding("devices").summary
     assert report.exit_code == 0 and requests == 0
+
+
+async def test_stream_sends_each_actuator_the_position_it_reports_and_nothing_travels() -> None:
+    records: list[dict[str, Any]] = []
+    models = [LAModel(id=1, position=500), LAModel(id=2, position=1500)]
+    with PtySim(models, log=records.append) as sim:
+        report = await diagnose(DoctorConfig(sim.path, 921600, ids=(1, 2), stream=True, **QUICK))
+        positions = [m.position for m in sim.models]  # type: ignore[attr-defined]
+    assert not report.read_only
+    stream = report.finding("budget").data["stream"]
+    assert stream["ticks_planned"] == round(0.3 / 0.010)
+    broadcasts = [
+        r for r in records if r["dir"] == "rx" and str(r["hex"]).startswith("55 AA 07 FF F3")
+    ]
+    # One 0xF3 frame a tick, each actuator its own reported position (0x01F4, 0x05DC).
+    assert len(broadcasts) == stream["ticks"] > 0
+    assert all(r["hex"].startswith("55 AA 07 FF F3 01 F4 01 02 DC 05") for r in broadcasts)
+    assert positions == [500, 1500]
+
+
+async def test_without_stream_no_follow_frame_is_sent() -> None:
+    records: list[dict[str, Any]] = []
+    with PtySim([LAModel(id=1)], log=records.append) as sim:
+        report = await diagnose(DoctorConfig(sim.path, 921600, ids=(1,), **QUICK))
+    assert report.read_only
+    # Every frame the devices received is a status query: 55 AA 03 ID 04 00 22.
+    requests = [str(r["hex"]) for r in records if r["dir"] == "rx"]
+    assert requests and all(h.startswith("55 AA 03 ") and h[12:20] == "04 00 22" for h in requests)

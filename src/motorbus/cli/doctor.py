@@ -6,7 +6,8 @@ Example::
     $ motorbus doctor --bus-file buses.toml --bus arm --period 20 --json
 
 A short, bounded, read-only sequence (status queries only; ``--fix`` may set the USB
-adapter's latency timer to 1 ms, nothing else) prints one line per check, green,
+adapter's latency timer to 1 ms, ``--stream`` adds a real follow stream to the positions
+the actuators report) prints one line per check, green,
 yellow or red, each yellow or red line with the one thing to do about it:
 
 * port: exists, permissions (the exact usermod line), another process holding it,
@@ -83,6 +84,13 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="set the USB adapter's latency timer to 1 ms if it is longer (needs the right)",
     )
+    p.add_argument(
+        "--stream",
+        action="store_true",
+        help="also measure a real broadcast follow stream sending each actuator the position "
+        "it reports (nothing travels; a paused actuator is powered again: the LA reports no "
+        "pause state to restore)",
+    )
     p.set_defaults(func=run)
 
 
@@ -93,6 +101,7 @@ def _config(args: argparse.Namespace) -> DoctorConfig:
         "requests": args.requests,
         "measure_s": args.seconds,
         "fix": args.fix,
+        "stream": args.stream,
     }
     if args.ids:
         options["ids"] = tuple(parse_ids(args.ids))

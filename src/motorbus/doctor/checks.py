@@ -36,6 +36,7 @@ __all__ = [
     "LineFacts",
     "MeasuredBudget",
     "PortFacts",
+    "StreamMeasured",
     "TurnaroundFacts",
     "UsbInfo",
     "budget_theory",
@@ -235,7 +236,8 @@ class LatencyFacts:
     driver: str = ""
     latency_timer_ms: int | None = None
     low_latency_flag: bool | None = None
-    fixed: str = ""  # what ``--fix`` changed, if anything
+    fixed: str = ""  # what ``--fix`` changed (or why it could not), if anything
+    wrote: bool = False  # ``--fix`` wrote the latency timer
 
 
 def udev_rule(driver: str) -> str:
@@ -724,6 +726,32 @@ class MeasuredBudget:
     ended: float
 
 
+@dataclass(frozen=True, slots=True)
+class StreamMeasured:
+    """A real broadcast stream (``--stream``): each actuator sent the position it reported."""
+
+    ticks_planned: int
+    ticks: int
+    late: int
+    skipped: int
+    slipped: int
+    polls: int
+    polls_skipped: int
+    jitter_p99_s: float
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "ticks_planned": self.ticks_planned,
+            "ticks": self.ticks,
+            "late": self.late,
+            "skipped": self.skipped,
+            "slipped": self.slipped,
+            "polls": self.polls,
+            "polls_skipped": self.polls_skipped,
+            "jitter_p99_us": self.jitter_p99_s * 1e6,
+        }
+
+
 def check_budget(
     theory: BudgetTheory,
     measured: MeasuredBudget | None,
@@ -731,6 +759,7 @@ def check_budget(
     adapter_ms: int | None = None,
     slow_device: bool = False,
     line: LineFacts | None = None,
+    stream: StreamMeasured | None = None,
 ) -> Finding:
     """Theory and measurement side by side; measurement short by over 20 %: yellow.
 
@@ -760,6 +789,25 @@ def check_budget(
         "ended": measured.ended,
     }
     text += f"; measured {measured.polls_per_tick:.1f} reads a tick over {measured.ticks} ticks"
+    if stream is not None:
+        data["stream"] = stream.as_dict()
+        text += (
+            f"; a real stream sent {stream.ticks}/{stream.ticks_planned} ticks ({stream.late} "
+            f"late, {stream.skipped} skipped, jitter p99 {stream.jitter_p99_s * 1e6:.0f} us)"
+        )
+        short = stream.ticks_planned - stream.ticks
+        if (
+            stream.skipped
+            or short > BUDGET_GAP_SHARE * stream.ticks_planned
+            or (stream.late > BUDGET_GAP_SHARE * stream.ticks_planned)
+        ):
+            return Finding(
+                "budget",
+                Level.YELLOW,
+                f"{text}: the stream could not keep its ticks",
+                "run with --realtime on a quieter host, or a longer --period",
+                data,
+            )
     expected = t.polls_between_ticks
     if expected and measured.polls_per_tick < expected * (1 - BUDGET_GAP_SHARE):
         lost = max(0, line.timeouts - line.late_replies) if line is not None else 0

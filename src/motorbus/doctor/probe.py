@@ -40,7 +40,7 @@ from motorbus.bus.bus import (
 )
 from motorbus.bus.occupancy import BusTiming
 from motorbus.bus.timer import default_timer
-from motorbus.devices.la import ScanReport, scan
+from motorbus.devices.la import InspireLA, ScanReport, scan
 from motorbus.doctor import checks
 from motorbus.doctor.checks import (
     DeviceScan,
@@ -52,6 +52,7 @@ from motorbus.doctor.checks import (
     LineFacts,
     MeasuredBudget,
     PortFacts,
+    StreamMeasured,
     TurnaroundFacts,
     UsbInfo,
     skipped,
@@ -62,7 +63,7 @@ from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import STEPPER_DEFAULT_BAUD
-from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S
+from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S, SafeAction, Streamer
 from motorbus.transport import serial as serial_transport
 from motorbus.transport.serial import DEFAULT_BACKEND, open_transport, usb_serial_name
 from motorbus.validation import check_number
@@ -114,6 +115,7 @@ class DoctorConfig:
     requests: int = DEFAULT_REQUESTS
     measure_s: float = DEFAULT_MEASURE_S
     fix: bool = False
+    stream: bool = False
     where: str = "your bus options"
 
     def __post_init__(self) -> None:
@@ -298,6 +300,7 @@ def latency_facts(url: str, driver: str, *, fix: bool = False) -> LatencyFacts:
         return LatencyFacts(None)
     ms = serial_transport.read_latency_timer_ms(tty)
     fixed = ""
+    wrote = False
     if fix and ms is not None and ms > 1:
         path = os.path.join(serial_transport.USB_SERIAL_SYSFS, tty, "latency_timer")
         try:
@@ -307,8 +310,10 @@ def latency_facts(url: str, driver: str, *, fix: bool = False) -> LatencyFacts:
             fixed = f"could not write {path}: {err.strerror or err}"
         else:
             fixed = f"latency_timer {ms} -> 1 ms (until the adapter is replugged)"
+            wrote = True
             ms = serial_transport.read_latency_timer_ms(tty)
-    return LatencyFacts(tty, driver, ms, _low_latency_flag(os.path.realpath(url)), fixed)
+    flag = _low_latency_flag(os.path.realpath(url))
+    return LatencyFacts(tty, driver, ms, flag, fixed, wrote)
 
 
 def _capable(number: int) -> bool:
@@ -499,6 +504,45 @@ async def measure_budget(
     return MeasuredBudget(ticks, polls, lost, polls / ticks, start, end)
 
 
+async def measure_stream(
+    bus: Bus, ids: Sequence[int], period: float, seconds: float
+) -> StreamMeasured:
+    """A real broadcast follow stream (``--stream``) sending each actuator the position it
+    reports now, so nothing travels, with status polls in the free slots.
+
+    The LA reports no pause state: a paused actuator is powered again by the first
+    follow target (manual 3.5.4) and then holds where it is.
+    """
+    positions = []
+    for ident in ids:
+        status = await bus.request(_query(ident), timeout=PATIENT_S, retries=2)
+        positions.append(min(la.POSITION_MAX, max(la.POSITION_MIN, status.position)))
+    ticks = max(1, round(seconds / period))
+    streamer = Streamer(bus)
+    try:
+        stream = streamer.follow(
+            [InspireLA(bus, i) for i in ids],
+            [positions] * ticks,
+            period=period,
+            poll_status=True,
+            safe_action=SafeAction.HOLD,
+        )
+        await stream.wait()
+    finally:
+        await streamer.close(safe=False)
+    st = stream.stats
+    return StreamMeasured(
+        ticks_planned=ticks,
+        ticks=st.ticks,
+        late=st.late,
+        skipped=st.skipped,
+        slipped=st.slipped,
+        polls=st.polls,
+        polls_skipped=st.polls_skipped,
+        jitter_p99_s=st.jitter.percentile(99),
+    )
+
+
 @dataclass(slots=True)
 class _Line:
     """Bus counters at the start of the measured sequence."""
@@ -540,7 +584,11 @@ async def diagnose(
     sysfs: str = "/sys",
     proc: str = "/proc",
 ) -> DoctorReport:
-    """Run the doctor's bounded, read-only sequence on one bus; return its report.
+    """Run the doctor's bounded sequence on one bus; return its report.
+
+    Read-only (status queries) unless ``config.fix`` (the latency timer may be
+    written) or ``config.stream`` (a real follow stream to the positions reported);
+    ``report.read_only`` says whether anything was changed or streamed.
 
     ``uid``/``gids`` judge the port's permissions for another user (default: this
     process's); ``sysfs``/``proc`` are where the system is read (tests point them at a
@@ -565,6 +613,7 @@ async def diagnose(
         usable = port.level is not Level.RED
         lf = latency_facts(config.url, pf.usb.driver if pf.usb else "", fix=config.fix)
         adapter_ms = lf.latency_timer_ms
+        report.read_only = not lf.wrote
         add(checks.check_latency(lf, timing, config.period_s))
     la_bus = Family.LA in config.families
     if usable and not la_bus:
@@ -575,6 +624,7 @@ async def diagnose(
     remove_echo = config.remove_echo
     found: tuple[int, ...] = ()
     slow_device = False
+    streamed: StreamMeasured | None = None
     line_facts: LineFacts | None = None
     measured: MeasuredBudget | None = None
     n_theory = len(config.ids) if config.ids else 1
@@ -610,22 +660,28 @@ async def diagnose(
             theory = checks.budget_theory(timing, n_theory, config.period_s)
             if config.measure_s > 0:
                 measured = await measure_budget(bus, found, theory, config.measure_s)
+                if config.stream:
+                    report.read_only = False
+                    streamed = await measure_stream(bus, found, config.period_s, config.measure_s)
             line_facts = line.since(bus, reasons)
             add(checks.check_line(line_facts))
             later.remove("line")
     for check in later:
         add(skipped(check, why))
-    if not la_bus:
-        add(skipped("budget", why))
-        host = host_facts(default_timer().name, sysfs=sysfs, proc=proc)
-        report.findings.extend(checks.check_host(host))
-        return report
-    theory = checks.budget_theory(timing, n_theory, config.period_s)
-    add(
-        checks.check_budget(
-            theory, measured, adapter_ms=adapter_ms, slow_device=slow_device, line=line_facts
+    if la_bus:
+        theory = checks.budget_theory(timing, n_theory, config.period_s)
+        add(
+            checks.check_budget(
+                theory,
+                measured,
+                adapter_ms=adapter_ms,
+                slow_device=slow_device,
+                line=line_facts,
+                stream=streamed,
+            )
         )
-    )
+    else:
+        add(skipped("budget", why))
     host = host_facts(default_timer().name, sysfs=sysfs, proc=proc)
     report.findings.extend(checks.check_host(host))
     return report
