@@ -50,7 +50,7 @@ def test_pure_layers_import_no_io_and_no_clock() -> None:
 def test_the_doctors_verdicts_are_pure() -> None:
     # motorbus doctor: probe.py gathers facts (I/O), checks.py and report.py judge them.
     forbidden = {"asyncio", "anyio", "serial", "time", "socket", "threading", "os"}
-    for name in ("checks.py", "report.py"):
+    for name in ("checks.py", "budget.py", "host.py", "report.py"):
         bad = {n.split(".")[0] for n in imports_of(SRC / "doctor" / name)} & forbidden
         assert not bad, f"doctor/{name} imports {bad}"
 

@@ -10,26 +10,23 @@ import pytest
 from motorbus.bus.bus import DEFAULT_TURNAROUND
 from motorbus.bus.occupancy import BusTiming
 from motorbus.doctor import DoctorReport, Finding, Level
+from motorbus.doctor.budget import MeasuredBudget, budget_theory, check_budget
 from motorbus.doctor.checks import (
     DeviceScan,
     EchoFacts,
-    HostFacts,
     LatencyFacts,
     LineFacts,
-    MeasuredBudget,
     PortFacts,
     TurnaroundFacts,
     UsbInfo,
-    budget_theory,
-    check_budget,
     check_devices,
     check_echo,
-    check_host,
     check_latency,
     check_line,
     check_port,
     check_turnaround,
 )
+from motorbus.doctor.host import HostFacts, check_host
 from motorbus.doctor.report import SCHEMA
 
 
@@ -199,6 +196,8 @@ def test_our_own_bytes_coming_back_first_are_an_echo_and_remove_echo_is_the_fix(
 def test_devices_all_found_is_green_a_configured_id_missing_is_red() -> None:
     ok = check_devices(DeviceScan(921600, (1, 2), True, (1, 2)), "x")
     assert ok.level is Level.GREEN and "la:1,2" in ok.summary
+    late = check_devices(DeviceScan(921600, (1, 2), True, (1, 2), late=(2,)), "x")
+    assert late.level is Level.GREEN and "la:2 only after the scan's budget" in late.summary
     missing = check_devices(DeviceScan(921600, (1, 2, 3), True, (1, 3)), "x")
     assert missing.level is Level.RED and "la:2 silent" in missing.summary
 

@@ -8,7 +8,7 @@ written, if the user may).  Steps, in order:
 2. the adapter's latency timer and ``ASYNC_LOW_LATENCY`` (sysfs, ``TIOCGSERIAL``);
 3. echo: one status query written with echo removal off; what comes back is compared;
 4. baud and IDs: ``motorbus.devices.la.scan`` at the baud; if nothing answers, at the
-   other LA rates (one pass each);
+   other LA rates;
 5. turnaround: ``requests`` status queries to each device found, timed by the bus;
 6. the line: the bus counters over steps 5 and 7;
 7. the cycle budget: the occupancy model's theory, and status reads in the gaps the
@@ -42,21 +42,21 @@ from motorbus.bus.occupancy import BusTiming
 from motorbus.bus.timer import default_timer
 from motorbus.devices.la import InspireLA, ScanReport, scan
 from motorbus.doctor import checks
+from motorbus.doctor.budget import BudgetTheory, MeasuredBudget, StreamMeasured, budget_theory
+from motorbus.doctor.budget import check_budget as judge_budget
 from motorbus.doctor.checks import (
     DeviceScan,
     EchoFacts,
     Finding,
-    HostFacts,
     LatencyFacts,
     Level,
     LineFacts,
-    MeasuredBudget,
     PortFacts,
-    StreamMeasured,
     TurnaroundFacts,
     UsbInfo,
     skipped,
 )
+from motorbus.doctor.host import HostFacts, check_host
 from motorbus.doctor.report import DoctorReport
 from motorbus.errors import LocalProtocolError, NotSentError, ReplyTimeoutError
 from motorbus.manager import BusManager
@@ -418,13 +418,17 @@ async def scan_devices(config: DoctorConfig, remove_echo: bool) -> DeviceScan:
         for code in reversed(la.BaudCode):  # the factory rate first
             if code.baud == config.baud:
                 continue
+            # Two passes, as at the configured baud: a reply late for the first pass's
+            # tight budget (a busy host) is asked again patiently, and late ones count.
+            other_report = ScanReport()
             async with _bus(config, code.baud, remove_echo) as other:
-                elsewhere[code.baud] = tuple(await scan(other, asked, passes=1))
+                await scan(other, asked, report=other_report)
+            elsewhere[code.baud] = tuple(sorted({*other_report.found, *other_report.late}))
     return DeviceScan(
         baud=config.baud,
         asked=tuple(asked),
         configured=config.ids is not None,
-        found=tuple(found),
+        found=tuple(sorted({*found, *report.late})),  # late, but there: measured next
         late=tuple(report.late),
         elsewhere=elsewhere,
     )
@@ -467,7 +471,7 @@ async def turnaround_facts(bus: Bus, ident: int, requests: int) -> TurnaroundFac
 
 
 async def measure_budget(
-    bus: Bus, ids: Sequence[int], theory: checks.BudgetTheory, seconds: float
+    bus: Bus, ids: Sequence[int], theory: BudgetTheory, seconds: float
 ) -> MeasuredBudget:
     """Status reads round-robin in the gaps the stream's ticks would leave (read-only).
 
@@ -657,7 +661,7 @@ async def diagnose(
                 finding = checks.check_turnaround(facts, bus.timing, config.period_s)
                 slow_device |= finding.level is Level.RED
                 add(finding)
-            theory = checks.budget_theory(timing, n_theory, config.period_s)
+            theory = budget_theory(timing, n_theory, config.period_s)
             if config.measure_s > 0:
                 measured = await measure_budget(bus, found, theory, config.measure_s)
                 if config.stream:
@@ -669,9 +673,9 @@ async def diagnose(
     for check in later:
         add(skipped(check, why))
     if la_bus:
-        theory = checks.budget_theory(timing, n_theory, config.period_s)
+        theory = budget_theory(timing, n_theory, config.period_s)
         add(
-            checks.check_budget(
+            judge_budget(
                 theory,
                 measured,
                 adapter_ms=adapter_ms,
@@ -683,5 +687,5 @@ async def diagnose(
     else:
         add(skipped("budget", why))
     host = host_facts(default_timer().name, sysfs=sysfs, proc=proc)
-    report.findings.extend(checks.check_host(host))
+    report.findings.extend(check_host(host))
     return report
