@@ -26,11 +26,6 @@ from motorbus.sim.pty import PtySim
 
 #: Short runs: what is asserted is which check says what, not how fast.
 QUICK: dict[str, Any] = {"requests": 10, "measure_s": 0.3, "host_margin_s": 0.05}
-TIMING_CHECKS = ("budget", "host timer", "host realtime", "host cpufreq", "host rt-processes")
-
-
-def levels(report: DoctorReport) -> dict[str, Level]:
-    return {f.check: f.level for f in report.findings}
 
 
 def red(report: DoctorReport) -> list[str]:
@@ -41,9 +36,11 @@ async def test_a_healthy_bus_is_green_and_exits_0() -> None:
     with PtySim([LAModel(id=1), LAModel(id=2)]) as sim:
         report = await diagnose(DoctorConfig(sim.path, 921600, ids=(1, 2), **QUICK))
     assert red(report) == [] and report.exit_code == 0
-    for check, level in levels(report).items():
-        if check not in TIMING_CHECKS:
-            assert level is Level.GREEN, (check, report.format_text())
+    for check in ("port", "latency", "echo", "devices"):
+        assert report.finding(check).level is Level.GREEN, report.format_text()
+    # Reply times include this host's wake-ups: a stall on a loaded machine may make a
+    # turnaround tail, the line's late replies or the measured budget yellow (the doctor
+    # says so, and why); none of them is red.
     assert report.finding("devices").data["found"] == [1, 2]
     assert report.finding("turnaround la:2").data["replies"] == 10
     assert report.read_only
