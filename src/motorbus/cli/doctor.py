@@ -7,8 +7,8 @@ Example::
 
 A short, bounded, read-only sequence (status queries only; ``--fix`` may set the USB
 adapter's latency timer to 1 ms, ``--stream`` adds a real follow stream to the positions
-the actuators report) prints one line per check, green,
-yellow or red, each yellow or red line with the one thing to do about it:
+the actuators report) prints one line per check, green, yellow or red, each yellow or
+red line with the one thing to do about it:
 
 * port: exists, permissions (the exact usermod line), another process holding it,
   the USB adapter (VID:PID, driver, serial number);
