@@ -30,6 +30,7 @@ import struct
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from motorbus.bus.bus import (
     DEFAULT_HOST_MARGIN_S,
@@ -65,6 +66,7 @@ from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import STEPPER_DEFAULT_BAUD
 from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S, SafeAction, Streamer
 from motorbus.transport import serial as serial_transport
+from motorbus.transport.base import Transport
 from motorbus.transport.serial import DEFAULT_BACKEND, open_transport, usb_serial_name
 from motorbus.validation import check_number
 
@@ -140,7 +142,7 @@ class DoctorConfig:
 
     @classmethod
     def from_bus_file(
-        cls, path: str | Path, bus: str | None = None, **options: object
+        cls, path: str | Path, bus: str | None = None, **options: Any
     ) -> DoctorConfig:
         """The bus ``bus`` of a bus file (``BusManager.from_toml``: every key checked).
 
@@ -177,7 +179,7 @@ class DoctorConfig:
             ids=ids or None,
             bus_name=bus,
             where=f"[[bus]] {bus!r} of {path}",
-            **options,  # type: ignore[arg-type]
+            **options,
         )
 
 
@@ -370,7 +372,7 @@ def _query(ident: int) -> la.Control:
     return la.Control(ident, la.ControlAction.QUERY_STATUS)
 
 
-def _transport(config: DoctorConfig, baud: int, remove_echo: bool) -> object:
+def _transport(config: DoctorConfig, baud: int, remove_echo: bool) -> Transport:
     return open_transport(
         config.url,
         baudrate=baud,
@@ -383,7 +385,7 @@ def _transport(config: DoctorConfig, baud: int, remove_echo: bool) -> object:
 
 def _bus(config: DoctorConfig, baud: int, remove_echo: bool) -> Bus:
     return Bus(
-        _transport(config, baud, remove_echo),  # type: ignore[arg-type]
+        _transport(config, baud, remove_echo),
         name=config.bus_name or config.url,
         families=config.families,
         min_spacing=config.min_spacing_s,
@@ -397,13 +399,13 @@ async def echo_facts(config: DoctorConfig, ident: int) -> EchoFacts:
     """Write one status query with echo removal off; keep what comes back."""
     transport = _transport(config, config.baud, False)
     got = bytearray()
-    await transport.open(got.extend, lambda exc: None)  # type: ignore[attr-defined]
+    await transport.open(got.extend, lambda exc: None)
     raw = _query(ident).encode()
     try:
-        transport.write(raw)  # type: ignore[attr-defined]
+        transport.write(raw)
         await asyncio.sleep(ECHO_WAIT_S + 3 * la.STATUS_FRAME_SIZE * 10 / config.baud)
     finally:
-        await transport.close()  # type: ignore[attr-defined]
+        await transport.close()
     return EchoFacts(raw, bytes(got), config.remove_echo)
 
 
