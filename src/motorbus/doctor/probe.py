@@ -59,7 +59,12 @@ from motorbus.doctor.checks import (
 )
 from motorbus.doctor.host import HostFacts, check_host
 from motorbus.doctor.report import DoctorReport
-from motorbus.errors import LocalProtocolError, NotSentError, ReplyTimeoutError
+from motorbus.errors import (
+    LocalProtocolError,
+    NotSentError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
 from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
@@ -414,7 +419,8 @@ async def scan_devices(config: DoctorConfig, remove_echo: bool) -> DeviceScan:
     asked = config.ids or tuple(range(la.ID_MIN, la.ID_MAX + 1))
     report = ScanReport()
     async with _bus(config, config.baud, remove_echo) as bus:
-        found = await scan(bus, asked, report=report)
+        await scan(bus, asked, report=report)
+    found = tuple(sorted({*report.found, *report.late}))  # late, but there: measured next
     elsewhere: dict[int, tuple[int, ...]] = {}
     if not found:
         for code in reversed(la.BaudCode):  # the factory rate first
@@ -430,7 +436,7 @@ async def scan_devices(config: DoctorConfig, remove_echo: bool) -> DeviceScan:
         baud=config.baud,
         asked=tuple(asked),
         configured=config.ids is not None,
-        found=tuple(sorted({*found, *report.late})),  # late, but there: measured next
+        found=found,
         late=tuple(report.late),
         elsewhere=elsewhere,
     )
@@ -454,7 +460,7 @@ async def turnaround_facts(bus: Bus, ident: int, requests: int) -> TurnaroundFac
         before = device.latency.total, device.latency.count
         try:
             await bus.request(_query(ident), timeout=PATIENT_S, retries=0)
-        except ReplyTimeoutError:
+        except (ReplyTimeoutError, RemoteProtocolError):  # no reply, or none it could use
             lost += 1
             continue
         if device.latency.count == before[1] + 1:
@@ -502,7 +508,7 @@ async def measure_budget(
                 await future
             except NotSentError:
                 break
-            except ReplyTimeoutError:
+            except (ReplyTimeoutError, RemoteProtocolError):
                 lost += 1
             else:
                 polls += 1
@@ -519,16 +525,21 @@ async def measure_stream(
     The LA reports no pause state: a paused actuator is powered again by the first
     follow target (manual 3.5.4) and then holds where it is.
     """
-    positions = []
+    positions: dict[int, int] = {}
     for ident in ids:
-        status = await bus.request(_query(ident), timeout=PATIENT_S, retries=2)
-        positions.append(min(la.POSITION_MAX, max(la.POSITION_MIN, status.position)))
+        try:
+            status = await bus.request(_query(ident), timeout=PATIENT_S, retries=2)
+        except (ReplyTimeoutError, RemoteProtocolError):
+            continue  # its position is not known: it is not streamed
+        positions[ident] = min(la.POSITION_MAX, max(la.POSITION_MIN, status.position))
     ticks = max(1, round(seconds / period))
+    if not positions:
+        return StreamMeasured(ticks, 0, 0, 0, 0, 0, 0, 0.0)
     streamer = Streamer(bus)
     try:
         stream = streamer.follow(
-            [InspireLA(bus, i) for i in ids],
-            [positions] * ticks,
+            [InspireLA(bus, i) for i in positions],
+            [list(positions.values())] * ticks,
             period=period,
             poll_status=True,
             safe_action=SafeAction.HOLD,
