@@ -9,7 +9,7 @@ import pytest
 
 from motorbus.doctor import Level
 from motorbus.doctor.checks import check_latency, check_port
-from motorbus.doctor.probe import holders, latency_facts, port_facts, usb_info
+from motorbus.doctor.system import holders, latency_facts, port_facts, usb_info
 from motorbus.transport import serial as serial_transport
 
 from .test_checks import timing
