@@ -5,8 +5,8 @@
     report.exit_code                 # 0 when nothing is red
     report.as_dict()                 # the --json form
 
-``checks`` judges facts (pure), ``probe`` gathers them (asyncio, read-only), ``report``
-prints them.
+``checks``, ``host`` and ``budget`` judge facts (pure); ``system`` reads them from sysfs
+and /proc, ``probe`` from the bus (asyncio, read-only); ``report`` prints them.
 """
 
 from __future__ import annotations
