@@ -46,8 +46,16 @@ def test_pure_layers_import_no_io_and_no_clock() -> None:
             assert not bad, f"{path.name} imports {bad}"
 
 
+def test_the_doctors_verdicts_are_pure() -> None:
+    # motorbus doctor: probe.py gathers facts (I/O), checks.py and report.py judge them.
+    forbidden = {"asyncio", "anyio", "serial", "time", "socket", "threading", "os"}
+    for name in ("checks.py", "budget.py", "host.py", "report.py"):
+        bad = {n.split(".")[0] for n in imports_of(SRC / "doctor" / name)} & forbidden
+        assert not bad, f"doctor/{name} imports {bad}"
+
+
 def test_library_modules_do_not_import_sim_or_cli() -> None:
-    for layer in ("protocol", "bus", "transport", "devices"):
+    for layer in ("protocol", "bus", "transport", "devices", "doctor"):
         for path in (SRC / layer).rglob("*.py"):
             bad = {n for n in imports_of(path) if n.startswith(("motorbus.sim", "motorbus.cli"))}
             assert not bad, f"{layer}/{path.name} imports {bad}"
@@ -78,6 +86,7 @@ ALLOWED: dict[str, set[str]] = {
     "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams", "busfile"},
     # Tools built on the library (never imported by it): they use it, and nothing else.
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "doctor": _LIBRARY_BASE | {"transport", "bus", "devices", "streams", "busfile", "manager"},
     "sim": {"errors", "protocol", "transport"},
 }
 

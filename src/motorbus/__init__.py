@@ -23,6 +23,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
     "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
+    "motorbus.doctor": ("DoctorConfig", "DoctorReport", "diagnose"),
     "motorbus.devices.quad_stepper": ("QuadStepper",),
     "motorbus.errors": (
         "ArrivalTimeoutError",
@@ -66,6 +67,9 @@ if TYPE_CHECKING:
     from motorbus.devices.la import scan as scan
     from motorbus.devices.project_stepper import ProjectStepper as ProjectStepper
     from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
+    from motorbus.doctor import DoctorConfig as DoctorConfig
+    from motorbus.doctor import DoctorReport as DoctorReport
+    from motorbus.doctor import diagnose as diagnose
     from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
     from motorbus.errors import LocalProtocolError as LocalProtocolError

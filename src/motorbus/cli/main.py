@@ -66,6 +66,7 @@ COMMAND_MODULES = (
     "sim",
     "decode",
     "scan",
+    "doctor",
     "la",
     "stream",
     "monitor",

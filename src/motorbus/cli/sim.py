@@ -92,6 +92,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="busy-poll the port: precise arrival timestamps for timing measurements, "
         "at the cost of a whole CPU core",
     )
+    parser.add_argument(
+        "--echo",
+        action="store_true",
+        help="send every byte the host writes straight back, as a half-duplex RS-485 "
+        "adapter that hears itself (motorbus doctor finds it)",
+    )
+    parser.add_argument(
+        "--strict-baud",
+        action="store_true",
+        help="devices ignore the host while it has the port at another rate than --baud, "
+        "as a UART at the wrong rate would",
+    )
 
 
 def register(subparsers: Any) -> None:
@@ -142,6 +154,8 @@ def run(args: argparse.Namespace) -> int:
                 spin=getattr(args, "spin", False),
                 tap=getattr(args, "tap", None),
                 pacing=getattr(args, "pacing", "wire"),
+                echo=getattr(args, "echo", False),
+                strict_baud=getattr(args, "strict_baud", False),
             ).start()
         except (OSError, LocalProtocolError) as err:
             print(f"motorbus sim: error: {err}", file=sys.stderr)

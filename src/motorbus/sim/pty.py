@@ -23,6 +23,12 @@ sniffer on an RS-485 line would.  The simulator does not keep the tap's slave op
 it can tell when nobody listens (the master polls as hung up); it then copies nothing,
 and what a listener left unread is flushed when it goes, so the next one starts fresh.
 What the tap could not take is counted (``tap_dropped_bytes``), never waited for.
+
+Two options make the link misbehave as real ones do (``motorbus doctor`` is tested on
+them): ``echo=True`` sends every byte the host writes straight back, as a half-duplex
+RS-485 adapter whose receiver is not disabled while it transmits; ``strict_baud=True``
+makes the devices deaf while the host's end of the pty is set to another rate than
+``baud`` (a UART at the wrong rate reads framing errors; they answer nothing).
 """
 
 from __future__ import annotations
@@ -55,6 +61,12 @@ _log = logging.getLogger("motorbus.sim")
 
 #: Bytes read from the master per wake-up; far more than one frame (at most 260 bytes).
 READ_SIZE = 4096
+#: termios speed constant -> bit/s, for ``strict_baud``.
+_SPEEDS = {
+    getattr(termios, f"B{rate}"): rate
+    for rate in (9600, 19200, 38400, 57600, 115200, 230400, 460800, 921600)
+    if hasattr(termios, f"B{rate}")
+}
 
 
 class PtySim:
@@ -79,6 +91,10 @@ class PtySim:
             arrived at ``baud``; ``"prompt"`` writes it as soon as the request is read
             (turnaround 0, no wire time): a device behind a link that does not pace
             bytes (USB-CDC, a TCP bridge).  See ``motorbus.sim.bus``.
+        echo: send every byte read from the host straight back (a half-duplex adapter
+            that hears itself), before any reply.
+        strict_baud: ignore what the host sends while its end of the pty is set to
+            another rate than ``baud`` (counted in ``baud_mismatch_bytes``).
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
@@ -88,6 +104,8 @@ class PtySim:
         tap_bytes: bytes copied to the tap while someone listened.
         tap_dropped_bytes: bytes a listener on the tap did not drain in time.
         error: the exception that stopped the sim thread, if any.
+        echoed_bytes: bytes sent back by ``echo``.
+        baud_mismatch_bytes: bytes ignored by ``strict_baud``.
     """
 
     def __init__(
@@ -103,6 +121,8 @@ class PtySim:
         spin: bool = False,
         tap: str | os.PathLike[str] | None = None,
         pacing: Pacing = "wire",
+        echo: bool = False,
+        strict_baud: bool = False,
     ) -> None:
         self.link = Path(link) if link is not None else None
         self.tap = Path(tap) if tap is not None else None
@@ -123,6 +143,10 @@ class PtySim:
             log=self._write_log if wants_log else None,
             pacing=pacing,
         )
+        self.echo = bool(echo)
+        self.strict_baud = bool(strict_baud)
+        self.echoed_bytes = 0
+        self.baud_mismatch_bytes = 0
         self.path = ""
         self.dropped_bytes = 0
         self.tap_path = ""
@@ -368,7 +392,24 @@ class PtySim:
                     now = time.monotonic()
                     if self._tap_master is not None:
                         self._copy_to_tap(data)
+                    if self.echo:
+                        self._write(data)
+                        self.echoed_bytes += len(data)
+                    if self.strict_baud and self._host_baud() not in (None, bus.baud):
+                        self.baud_mismatch_bytes += len(data)
+                        continue
                     bus.receive(data, now)
+
+    def _host_baud(self) -> int | None:
+        """The rate the host set on its end of the pty, or None if unknown."""
+        slave = self._slave
+        if slave is None:
+            return None
+        try:
+            speed = termios.tcgetattr(slave)[5]
+        except (OSError, termios.error):
+            return None
+        return _SPEEDS.get(speed)
 
     def _write(self, data: bytes) -> None:
         master = self._master
