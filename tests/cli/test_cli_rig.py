@@ -111,3 +111,24 @@ def test_bad_plans_are_refused_before_the_port_opens(args: list[str], message: s
     r = cli("rig", *args, "--out", "/nonexistent/x", "--port", "/dev/nonexistent-port")
     assert r.returncode == 2, r.stderr
     assert message in r.stderr
+
+
+def test_rig_quad_times_runs_against_the_simulator() -> None:
+    with SimProcess(["quad-stepper"], baud=9600) as sim:
+        config = cli(
+            "quad", "config", "2", "--subdivision", "8", "--pulses", "1600", "--start-hz", "50",
+            "--accel", "0", "--rpm", "600", "--port", sim.path,
+        )  # fmt: skip
+        assert config.returncode == 0, config.stderr
+        r = cli("rig", "quad", "2", "--runs", "3", "--json", "--port", sim.path)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["what"] == "quad motor 2" and doc["runs"] == 3
+    # 1600 pulses at 16,000 pulses/s = 100 ms, plus the frames on a 9600 bit/s wire.
+    assert all(100.0 < t < 200.0 for t in doc["times_ms"])
+
+
+def test_rig_project_needs_one_number() -> None:
+    r = cli("rig", "project", "--port", "/dev/nonexistent-port")
+    assert r.returncode == 2
+    assert "give one project number 1..4" in r.stderr

@@ -5,6 +5,8 @@ Examples::
     motorbus rig 1 --out rig-run --port /dev/ttyUSB0
     motorbus rig 1-3 --tests step,latency --min 200 --max 1800 --out run2
     motorbus rig compare golden/ run2/ --tolerance step.rise_time_ms=5%
+    motorbus rig project 1 --runs 20 --port /dev/ttyUSB1     # start -> EE DD times
+    motorbus rig quad 2 --runs 20 --port /dev/ttyUSB2        # run -> done times
 
 Every target stays inside --min..--max (default: the stroke less 5 % at each end);
 each test first moves the actuator to its start in positioning mode (the actuator's own
@@ -15,6 +17,10 @@ every actuator under test and ends the run (exit code 1).  However the run ends
 The run writes results.json, samples.csv and report.html (one self-contained file)
 into --out; docs/rig.md defines every figure.  ``rig compare OLD NEW`` prints each
 figure of two runs side by side and exits 1 if any regressed beyond its tolerance.
+``rig project N`` runs stored project N of a project stepper ``--runs`` times and
+reports the start -> ``EE DD`` times (p50/p99/max); ``rig quad MOTOR`` does the same
+for a 4-axis run -> its done reply (the motor's stored settings; --baud defaults to
+the steppers' rate).  A run that does not finish within --timeout is stopped.
 """
 
 from __future__ import annotations
@@ -28,9 +34,17 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from motorbus.cli.common import LA_BAUD, add_bus_options, open_bus, parse_id_args, print_json
+from motorbus.cli.common import (
+    LA_BAUD,
+    STEPPER_BAUD,
+    add_bus_options,
+    check_seconds,
+    open_bus,
+    parse_id_args,
+    print_json,
+)
 from motorbus.errors import CommandFailed, LocalProtocolError, UsageError
-from motorbus.protocol.base import Family
+from motorbus.protocol.base import Family, check_int
 from motorbus.rig.plan import DEFAULT_FREQUENCIES, TESTS, RigPlan, default_window
 
 if TYPE_CHECKING:
@@ -51,7 +65,7 @@ def register(subparsers: Any) -> None:
         "ids",
         metavar="ID",
         nargs="+",
-        help="actuator IDs 1..254 (3, 1,2,3 or 1-3,7); or: compare OLD NEW",
+        help="actuator IDs 1..254 (3, 1,2,3 or 1-3,7); or: compare OLD NEW; project N; quad MOTOR",
     )
     lo, hi = default_window()
     p.add_argument("--tests", default="all", help=f"comma list of {', '.join(TESTS)} or all")
@@ -72,6 +86,8 @@ def register(subparsers: Any) -> None:
     p.add_argument("--repeat-count", type=int, default=5, help="approaches per side (default 5)")
     p.add_argument("--max-current", type=int, default=1500, help="abort above, mA")
     p.add_argument("--max-force", type=int, default=30000, help="abort above, grams")
+    p.add_argument("--runs", type=int, default=10, help="project/quad: runs (default 10)")
+    p.add_argument("--timeout", type=float, default=60.0, help="project/quad: seconds a run")
     p.add_argument(
         "--tolerance",
         default="",
@@ -116,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
     """Run ``motorbus rig`` (or ``rig compare``)."""
     if args.ids and args.ids[0] == "compare":
         return _compare(args)
+    if args.ids and args.ids[0] in ("project", "quad"):
+        return _stepper(args)
     plan = _plan(args)  # every bad value is refused here, before the port opens
     if not args.out:
         raise UsageError("rig: give --out DIR for results.json, samples.csv and report.html")
@@ -251,3 +269,36 @@ def _row_dict(r: Row) -> dict[str, Any]:
         "allowed": r.allowed,
         "regressed": r.regressed,
     }
+
+
+def _stepper(args: argparse.Namespace) -> int:
+    """``rig project N`` / ``rig quad MOTOR``: start -> finish times of N runs."""
+    kind, rest = args.ids[0], args.ids[1:]
+    if len(rest) != 1 or not rest[0].isdigit():
+        what = "project number 1..4" if kind == "project" else "motor 1..4"
+        raise UsageError(f"rig {kind}: give one {what}, e.g. rig {kind} 1 --runs 10")
+    number = int(rest[0])
+    check_int("--runs", args.runs, 1, 10_000)
+    check_seconds("--timeout", args.timeout, 0.001)
+    args._default_baud = STEPPER_BAUD  # the steppers' rate unless --baud or a bus file says
+    family = Family.PROJECT_STEPPER if kind == "project" else Family.QUAD_STEPPER
+    return asyncio.run(_time_runs(args, kind, number, family))
+
+
+async def _time_runs(args: argparse.Namespace, kind: str, number: int, family: Family) -> int:
+    from motorbus.rig.steppers import time_project_runs, time_quad_runs
+
+    async with open_bus(args, [family]) as bus:
+        if kind == "project":
+            times = await time_project_runs(bus, number, args.runs, timeout=args.timeout)
+        else:
+            times = await time_quad_runs(bus, number, args.runs, timeout=args.timeout)
+    doc = times.as_dict()
+    if args.json:
+        print_json(doc)
+    else:
+        print(
+            f"{doc['what']}: {doc['runs']} runs, start -> finish p50 {doc['p50_ms']:.2f} ms, "
+            f"p99 {doc['p99_ms']:.2f} ms, max {doc['max_ms']:.2f} ms (min {doc['min_ms']:.2f})"
+        )
+    return 0
