@@ -72,6 +72,7 @@ COMMAND_MODULES = (
     "project",
     "quad",
     "capture",
+    "replay",
     "rig",
 )
 
