@@ -16,6 +16,11 @@ it) and the fields of ``motorbus decode --json`` (kind, family, direction, name,
 hex, reason).  It prints "listening" on standard error once the port is open, and ends
 after ``--seconds`` or at Ctrl-C (exit code 0).  ``motorbus replay FILE`` shows the log
 again; ``replay FILE --to URL`` sends its requests again.
+
+``--format csv`` or ``--format text`` (one line a frame, in columns like candump) write
+a view for reading instead of the frame log.  ``--id``, ``--dir`` and ``--command`` keep
+only the frames asked for, e.g. ``--id 3 --command MoveTo,Status``; a filtered frame log
+names its filter in its header.
 """
 
 from __future__ import annotations
@@ -24,11 +29,10 @@ import argparse
 import asyncio
 import contextlib
 import datetime
-import json
 import sys
 import time
-from collections.abc import Callable, Iterable
-from typing import Any, TextIO
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, Protocol, TextIO
 
 from motorbus import Transport
 from motorbus.cli.common import (
@@ -41,13 +45,19 @@ from motorbus.cli.common import (
     resolve_port,
 )
 from motorbus.cli.decode import GarbageJoiner
+from motorbus.cli.logformat import (
+    LogWriter,
+    add_filter_options,
+    add_format_option,
+    record_filter,
+)
 from motorbus.errors import BusClosedError
 from motorbus.protocol import framelog
 from motorbus.protocol.base import Family
 from motorbus.protocol.describe import describe
 from motorbus.protocol.reassembler import Item, Reassembler
 
-__all__ = ["FAMILY_BAUD", "Recorder", "register", "run_capture", "utc_now"]
+__all__ = ["FAMILY_BAUD", "RecordSink", "Recorder", "register", "run_capture", "utc_now"]
 
 #: Default baud rate of each family (LA manual 3.1; doc 000 A.1; doc 001 A1-01).
 FAMILY_BAUD = {
@@ -69,7 +79,9 @@ def register(subparsers: Any) -> None:
         "--family", required=True, choices=[f.value for f in Family], help="the bus's family"
     )
     p.add_argument("--seconds", type=float, help="stop after this long (default: at Ctrl-C)")
-    p.add_argument("--out", metavar="FILE.jsonl", help="write here (default: standard output)")
+    p.add_argument("--out", metavar="FILE", help="write here (default: standard output)")
+    add_format_option(p, "jsonl")
+    add_filter_options(p, family=False)
     add_bus_options(p, default_baud=None, json_option=False)
     p.set_defaults(func=run_capture)
 
@@ -80,37 +92,53 @@ def utc_now() -> str:
     return now.isoformat(timespec="microseconds").replace("+00:00", "Z")
 
 
+class RecordSink(Protocol):
+    """Where a :class:`Recorder` puts what it heard (a :class:`LogWriter`, a monitor)."""
+
+    def header(self, doc: Mapping[str, Any]) -> None:
+        """Start the session with its header."""
+
+    def write(self, record: Mapping[str, Any]) -> bool:
+        """Take one frame-log record; return whether it was kept."""
+
+    def flush(self) -> None:
+        """Called after the records of one chunk."""
+
+
 class Recorder:
-    """Cuts received bytes into described items and writes one frame-log record each.
+    """Cuts received bytes into described items and hands one frame-log record each on.
 
     Args:
         family: the family on the bus (also the hint for look-alike stepper replies).
-        out: where the JSON lines go.
+        sink: takes the header and the records.
         clock: returns seconds since the capture started.
     """
 
-    def __init__(self, family: Family, out: TextIO, clock: Callable[[], float]) -> None:
+    def __init__(self, family: Family, sink: RecordSink, clock: Callable[[], float]) -> None:
         self.family = family
-        self.out = out
+        self.sink = sink
         self.clock = clock
+        #: Items kept, by kind (``frame``, ``garbage``, ``event``).
         self.counts: dict[str, int] = {}
+        #: Items the sink's filter left out.
+        self.dropped = 0
         self._reassembler = Reassembler(direction=None, families=(family,))
         self._joiner = GarbageJoiner()
 
     def start(self, port: str, baud: int) -> None:
-        """Write the header line (call once, when ``clock`` reads 0)."""
+        """Write the header (call once, when ``clock`` reads 0)."""
         doc = framelog.header(
             "capture", started_utc=utc_now(), families=[self.family], baud=baud, port=port
         )
-        self.out.write(json.dumps(doc) + "\n")
-        self.out.flush()
+        self.sink.header(doc)
+        self.sink.flush()
 
     def feed(self, data: bytes) -> None:
-        """Describe and write every item ``data`` completes."""
+        """Describe and hand on every item ``data`` completes."""
         self._write(self._joiner.push(self._reassembler.feed(data)))
 
     def finish(self) -> None:
-        """Write what is left at the end of the capture (a partial frame as garbage)."""
+        """Hand on what is left at the end of the capture (a partial frame as garbage)."""
         self._write(self._joiner.push(self._reassembler.end_of_stream()))
         self._write(self._joiner.flush())
 
@@ -119,12 +147,13 @@ class Recorder:
         wrote = False
         for item in items:
             d = describe(item, family_hint=self.family)
-            self.counts[d.kind] = self.counts.get(d.kind, 0) + 1
-            record = framelog.from_description(t, d)
-            self.out.write(json.dumps(record, ensure_ascii=False) + "\n")
+            if self.sink.write(framelog.from_description(t, d)):
+                self.counts[d.kind] = self.counts.get(d.kind, 0) + 1
+            else:
+                self.dropped += 1
             wrote = True
         if wrote:
-            self.out.flush()
+            self.sink.flush()
 
 
 def run_capture(args: argparse.Namespace) -> int:
@@ -135,6 +164,7 @@ def run_capture(args: argparse.Namespace) -> int:
         OSError: the port or the output file cannot be opened.
     """
     check_seconds("--seconds", args.seconds, 1e-3)
+    keep = record_filter(args)
     resolve_port(args)
     family = Family(args.family)
     if args.baud is None:
@@ -142,12 +172,14 @@ def run_capture(args: argparse.Namespace) -> int:
     transport = open_port(args)
     out: TextIO = open(args.out, "w", encoding="utf-8") if args.out else sys.stdout  # noqa: SIM115
     try:
-        recorder = Recorder(family, out, lambda: 0.0)
+        recorder = Recorder(family, LogWriter(out, args.format, keep), lambda: 0.0)
         # Ctrl-C is the ordinary end of an open-ended capture.
         with contextlib.suppress(KeyboardInterrupt):
             asyncio.run(_capture(args, transport, recorder))
         counts = ", ".join(_counted(n, k) for k, n in sorted(recorder.counts.items()))
         counts = counts or "nothing"
+        if recorder.dropped:
+            counts += f" ({recorder.dropped} left out by the filter)"
         print(f"motorbus capture: {counts}", file=sys.stderr)
     finally:
         if out is not sys.stdout:

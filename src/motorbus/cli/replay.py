@@ -15,6 +15,11 @@ with motion commands is sent only after a yes at the terminal, or with ``--yes``
 no terminal and no ``--yes`` it is refused (exit code 2).  ``--dry-run`` prints what
 would be sent and opens nothing.
 
+``--format jsonl|csv|text`` shows the log as a frame log again (a filtered copy),
+as CSV, or as candump-like columns; ``--id``, ``--family``, ``--dir`` and ``--command``
+keep only the frames asked for, also for ``--to`` (only the requests they keep are
+sent).
+
 ``--speed F`` plays the log F times as fast (0.5: half speed); ``--loop N`` plays it N
 times, each pass one mean gap between requests after the previous one's last request
 (so a periodic recording keeps its rhythm).  Each request
@@ -45,10 +50,16 @@ from motorbus.cli.common import (
     open_port,
     print_json,
 )
+from motorbus.cli.logformat import (
+    LogWriter,
+    add_filter_options,
+    add_format_option,
+    record_filter,
+)
 from motorbus.cli.main import UsageError
 from motorbus.cli.tee import Tee
 from motorbus.errors import LocalProtocolError, MotorbusError
-from motorbus.protocol import framelog, la, project_stepper, quad_stepper
+from motorbus.protocol import framelog, la, logview, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Direction, Family, check_int, format_hex, parse_hex
 from motorbus.protocol.describe import KIND_FRAME, Description, describe
 from motorbus.protocol.reassembler import Frame, Reassembler
@@ -124,6 +135,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--yes", action="store_true", help="with --to: send motion commands without asking"
     )
+    add_format_option(p, None)
+    add_filter_options(p, family=True)
     add_json_option(p)
     p.set_defaults(func=run_replay)
 
@@ -182,15 +195,18 @@ def run_replay(args: argparse.Namespace) -> int:
             value=args.speed,
         )
     check_int("--loop", args.loop, 1, MAX_LOOP)
+    keep = record_filter(args)
+    if args.format is not None and (args.json or args.to is not None):
+        raise UsageError("--format shows a log: it goes neither with --json nor with --to")
     path = Path(args.file)
     log = load_log(path)
     records = framelog.continuous_times(log)
     if args.to is None:
         if args.dry_run or args.yes:
             raise UsageError("--dry-run and --yes go with --to URL")
-        for record in records:
-            _print_record(args, record)
+        _show_log(args, log, records, keep)
         return 0
+    records = [r for r in records if keep.keeps(r, framelog.describe_record(r))]
     families = _families(log, records)
     if args.baud is None:
         args.baud = min((FAMILY_BAUD[f] for f in families), default=LA_BAUD)
@@ -243,6 +259,34 @@ def _check_gaps(plan: list[_Planned], speed: float, max_gap: float, path: Path) 
 
 
 _FAMILY_VALUES = frozenset(f.value for f in Family)
+
+
+def _show_log(
+    args: argparse.Namespace,
+    log: framelog.FrameLog,
+    records: list[dict[str, Any]],
+    keep: logview.RecordFilter,
+) -> None:
+    """Print the records ``keep`` passes, in ``--format`` (default: decoded lines)."""
+    if args.format is None:
+        for record in records:
+            if keep.keeps(record, framelog.describe_record(record)):
+                _print_record(args, record)
+        return
+    writer = LogWriter(sys.stdout, args.format, keep)
+    if args.format == "jsonl":
+        # A frame log again: each session's header, the records with their own times.
+        session = -1
+        for record in log.records:
+            if record["session"] != session:
+                session = record["session"]
+                if log.headers[session]:
+                    writer.header(log.headers[session])
+            writer.write(record)
+        return
+    writer.header({})
+    for record in records:
+        writer.write(record)
 
 
 def _print_record(args: argparse.Namespace, record: dict[str, Any]) -> None:
