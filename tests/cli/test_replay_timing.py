@@ -3,11 +3,19 @@ by ``--speed``, pass after pass with ``--loop``; checked on the fake clock, exac
 
 from __future__ import annotations
 
+import json
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 
 from motorbus import Priority
 from motorbus.cli.replay import _Planned, _schedule, _Sender
-from motorbus.protocol import la
+from motorbus.protocol import framelog, la
+from motorbus.sim.process import SimProcess
+from tests.cli.test_cli_la import CLI_TIMEOUT_S
 from tests.fakeclock import rig
 
 
@@ -53,3 +61,29 @@ async def test_a_request_due_while_a_reply_is_owed_waits_for_the_bus() -> None:
     assert first.before == start
     assert second.before > first.after  # never both at once
     assert sender.failed == 0
+
+
+def test_ctrl_c_ends_a_replay_through_the_bus_close(tmp_path: Path) -> None:
+    """Interrupted, a replay stops sending at once, closes its bus and exits 130: the
+    pending timer handle is cancelled, so nothing is submitted to the closed bus."""
+    header = framelog.header("capture", started_utc="2026-01-01T00:00:00.000000Z", families=["la"])
+    query = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
+    lines = [header] + [
+        {"t": round(0.05 * n, 3), "kind": "frame", "family": "la", "direction": "request",
+         "hex": query} for n in range(200)
+    ]  # fmt: skip
+    log = tmp_path / "long.jsonl"
+    log.write_text("".join(json.dumps(x) + "\n" for x in lines), encoding="utf-8")
+    with SimProcess(["la:1"], baud=921600, log_file=tmp_path / "sim.jsonl") as sim:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "motorbus", "replay", str(log), "--to", sim.path],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        assert proc.stdout is not None
+        assert "la request Control id=1" in proc.stdout.readline()  # sending has begun
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=CLI_TIMEOUT_S)
+        heard = [x for x in sim.log_records() if x["direction"] == "request"]
+    assert proc.returncode == 130, err
+    assert err.endswith("motorbus: interrupted\n") and "Traceback" not in err, err
+    assert 1 <= len(heard) < 200
