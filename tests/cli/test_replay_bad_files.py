@@ -159,3 +159,13 @@ def test_bad_speed_loop_and_max_gap_are_refused(
     assert main(["replay", str(log), *option]) == 2
     _, err = capsys.readouterr()
     assert err.startswith(f"motorbus replay: {message}"), err
+
+
+@pytest.mark.parametrize("option", [["--speed", "2"], ["--loop", "2"], ["--max-gap", "5"]])
+def test_pace_options_go_with_to(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], option: list[str]
+) -> None:
+    log = write(tmp_path / "ok.jsonl", [HEADER, request(0)])
+    assert main(["replay", str(log), *option]) == 2
+    _, err = capsys.readouterr()
+    assert err == "motorbus replay: --speed, --loop and --max-gap go with --to URL\n"

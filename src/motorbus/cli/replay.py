@@ -182,7 +182,8 @@ def run_replay(args: argparse.Namespace) -> int:
     Raises:
         LocalProtocolError: a bad file, ``--wait``, ``--baud``, ``--speed``, ``--loop`` or
             ``--max-gap``, or a wait between two requests over ``--max-gap``.
-        UsageError: ``--dry-run`` or ``--yes`` without ``--to``.
+        UsageError: ``--dry-run``, ``--yes``, ``--speed``, ``--loop`` or ``--max-gap``
+            without ``--to``; ``--format`` with ``--json`` or ``--to``.
         OSError: the file or the ``--to`` port cannot be opened.
     """
     check_seconds("--wait", args.wait)
@@ -204,6 +205,8 @@ def run_replay(args: argparse.Namespace) -> int:
     if args.to is None:
         if args.dry_run or args.yes:
             raise UsageError("--dry-run and --yes go with --to URL")
+        if (args.speed, args.loop, args.max_gap) != (1.0, 1, DEFAULT_MAX_GAP_S):
+            raise UsageError("--speed, --loop and --max-gap go with --to URL")
         _show_log(args, log, records, keep)
         return 0
     records = [r for r in records if keep.keeps(r, framelog.describe_record(r))]
