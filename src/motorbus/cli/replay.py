@@ -384,6 +384,7 @@ def _confirm(args: argparse.Namespace, total: int, motion: list[_Planned]) -> bo
     what = (
         f"{args.file} has {len(motion)} motion command{'s' if len(motion) != 1 else ''} "
         f"({', '.join(names)}) among {total} requests"
+        + (f", played {args.loop} times" if args.loop > 1 else "")
     )
     if not sys.stdin.isatty():
         print(
