@@ -20,13 +20,13 @@ as CSV, or as candump-like columns; ``--id``, ``--family``, ``--dir`` and ``--co
 keep only the frames asked for, also for ``--to`` (only the requests they keep are
 sent).
 
-``--speed F`` plays the log F times as fast (0.5: half speed); ``--loop N`` plays it N
-times, each pass one mean gap between requests after the previous one's last request
-(so a periodic recording keeps its rhythm).  Each request
-goes out from a callback of the bus's own timer (timerfd on Linux) at its recorded time,
-as a stream tick does.  A wait of more than ``--max-gap`` seconds (default 60) between
-two requests is refused before anything is sent: a broken or edited file must not
-leave a replay asleep for days.  A replay ends through the bus's close (also at Ctrl-C).
+``--speed F`` plays the log F times as fast (0.5: half speed).  ``--loop N`` plays it
+N times; a pass lasts the recording's span plus its mean gap between requests, so a
+periodic recording keeps its rhythm.  Each request goes out from a callback of the
+bus's own timer (timerfd on Linux) at its recorded time, as a stream tick does.  A wait
+of more than ``--max-gap`` seconds (default 60) between two requests is refused before
+anything is sent: a broken or edited file must not leave a replay asleep for days.  A
+replay ends through its bus's close, also at Ctrl-C.
 """
 
 from __future__ import annotations
