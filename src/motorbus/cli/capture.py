@@ -35,13 +35,11 @@ from collections.abc import Callable, Iterable, Mapping
 from typing import Any, Protocol, TextIO
 
 from motorbus import Transport
-from motorbus.cli.common import (
+from motorbus.cli.bus_options import (
     LA_BAUD,
     STEPPER_BAUD,
     add_bus_options,
-    check_seconds,
     open_port,
-    plural,
     resolve_port,
 )
 from motorbus.cli.decode import GarbageJoiner
@@ -51,6 +49,8 @@ from motorbus.cli.logformat import (
     add_format_option,
     record_filter,
 )
+from motorbus.cli.output import plural
+from motorbus.cli.values import check_seconds
 from motorbus.errors import BusClosedError
 from motorbus.protocol import framelog
 from motorbus.protocol.base import Family

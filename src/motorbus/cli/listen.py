@@ -26,9 +26,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from motorbus import Transport
+from motorbus.cli.bus_options import open_port
 from motorbus.cli.capture import Recorder
-from motorbus.cli.common import LiveText, open_port, print_json
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
+from motorbus.cli.output import LiveText, print_json
 from motorbus.errors import BusClosedError, MotorbusError
 from motorbus.protocol import framelog, la, logview
 from motorbus.protocol.base import Direction, Family, parse_hex

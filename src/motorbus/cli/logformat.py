@@ -13,7 +13,7 @@ import json
 from collections.abc import Mapping
 from typing import Any, TextIO
 
-from motorbus.cli.common import parse_ids
+from motorbus.cli.ids import parse_ids
 from motorbus.protocol import framelog, logview
 from motorbus.protocol.base import Direction, Family
 from motorbus.protocol.describe import Description

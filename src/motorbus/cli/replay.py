@@ -41,15 +41,8 @@ from pathlib import Path
 from typing import Any
 
 from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, Priority, Transport
+from motorbus.cli.bus_options import CLI_HOST_MARGIN_S, LA_BAUD, open_port
 from motorbus.cli.capture import FAMILY_BAUD
-from motorbus.cli.common import (
-    CLI_HOST_MARGIN_S,
-    LA_BAUD,
-    add_json_option,
-    check_seconds,
-    open_port,
-    print_json,
-)
 from motorbus.cli.logformat import (
     LogWriter,
     add_filter_options,
@@ -57,7 +50,9 @@ from motorbus.cli.logformat import (
     record_filter,
 )
 from motorbus.cli.main import UsageError
+from motorbus.cli.output import add_json_option, print_json
 from motorbus.cli.tee import Tee
+from motorbus.cli.values import check_seconds
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import framelog, la, logview, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Direction, Family, check_int, format_hex, parse_hex
