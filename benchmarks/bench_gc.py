@@ -51,7 +51,7 @@ MODES = ("default", "gc-only", "realtime")
 
 async def child_run(mode: str, seconds: float) -> dict[str, Any]:
     from motorbus import realtime
-    from motorbus.bus.manager import BusManager
+    from motorbus.manager import BusManager
     from motorbus.sim.process import SimProcess
 
     history: collections.deque[dict[str, Any]] = collections.deque(maxlen=HISTORY_TICKS)
