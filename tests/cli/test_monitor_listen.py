@@ -76,7 +76,7 @@ def test_the_la_table_has_a_status_row_an_id_heard() -> None:
     assert header.split() == ["id", "target", "position", "temp", "current", "force", "errors"]
     assert first.split()[:3] == ["1", "100", "90"]
     assert second == "    2  no status heard yet (-> MoveTo position=1300 reply=True)"
-    assert watch.summary() == "2 requests, 1 replies"
+    assert watch.summary() == "2 requests, 1 reply"
 
 
 def test_ids_limit_what_the_table_shows() -> None:

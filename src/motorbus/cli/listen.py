@@ -29,7 +29,7 @@ from motorbus import Transport
 from motorbus.cli.bus_options import open_port
 from motorbus.cli.capture import Recorder
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
-from motorbus.cli.output import LiveText, print_json
+from motorbus.cli.output import LiveText, plural, print_json
 from motorbus.errors import BusClosedError, MotorbusError
 from motorbus.protocol import framelog, la, logview
 from motorbus.protocol.base import Direction, Family, parse_hex
@@ -94,13 +94,12 @@ class Watch:
         return True
 
     def summary(self) -> str:
-        """Counts of what was heard, one line."""
-        others = {k: n for k, n in self.counts.items() if k not in ("request", "reply")}
-        extra = "".join(f", {n} {k}" for k, n in sorted(others.items()))
-        return (
-            f"{self.counts.get('request', 0)} requests, "
-            f"{self.counts.get('reply', 0)} replies{extra}"
-        )
+        """Counts of what was heard, one line: ``3 requests, 1 reply, 2 garbage runs``."""
+        n = self.counts.get
+        parts = [plural(n("request", 0), "request"), plural(n("reply", 0), "reply", "replies")]
+        parts += [plural(n(k, 0), "event") for k in ("event",) if n(k)]
+        parts += [plural(n(k, 0), "garbage run") for k in ("garbage",) if n(k)]
+        return ", ".join(parts)
 
     def lines(self) -> list[str]:
         """The table: a row a device heard, by ID."""
