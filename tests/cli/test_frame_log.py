@@ -13,8 +13,8 @@ from typing import Any
 
 import pytest
 
-from motorbus.cli.capture import load_records
 from motorbus.cli.common import PORT_ENV
+from motorbus.cli.replay import load_records
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
 from motorbus.sim.process import SimProcess

@@ -73,6 +73,7 @@ COMMAND_MODULES = (
     "project",
     "quad",
     "capture",
+    "replay",
     "rig",
 )
 
@@ -213,7 +214,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 _WATCH_INSTEAD = (
     " - to watch a bus another program drives, listen on a tap (a second adapter on "
     "the RS-485 line, or `motorbus sim --tap PATH` for a simulator) with `motorbus "
-    "capture --port TAP`, or have that program read the statuses itself "
+    "monitor --listen --port TAP` or `motorbus capture --port TAP`, or have that "
+    "program read the statuses itself "
     "(Streamer.follow(..., poll_status=True))"
 )
 

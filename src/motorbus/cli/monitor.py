@@ -15,6 +15,12 @@ scanned first.
 the table: in the terminal with plain characters (``--plot`` or ``--plot terminal``),
 or in a matplotlib window (``--plot window``, which needs a display).  The terminal
 plot shows the last refreshes that fit its width.
+
+``--listen`` sends nothing: it watches what another program does on the bus, from a tap
+(``motorbus sim --tap``) or a second adapter on the line, and shows the last status each
+actuator sent (``--family`` for a stepper bus; ``--seconds`` ends it)::
+
+    motorbus monitor --listen --port /tmp/ttyLA.tap
 """
 
 from __future__ import annotations
@@ -28,8 +34,9 @@ import time
 from typing import Any
 
 from motorbus import Bus, InspireLA, scan
-from motorbus.cli import plot
+from motorbus.cli import listen, plot
 from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.capture import FAMILY_BAUD
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
 from motorbus.cli.main import UsageError
@@ -70,6 +77,18 @@ def register(subparsers: Any) -> None:
         choices=("terminal", "window"),
         help="plot position, target and force against time (default: in the terminal)",
     )
+    p.add_argument(
+        "--listen",
+        action="store_true",
+        help="send nothing: show what another program's traffic says (on a tap, or a second "
+        "adapter on the line)",
+    )
+    p.add_argument(
+        "--family",
+        choices=[f.value for f in Family],
+        help="with --listen: the bus's family (default la)",
+    )
+    p.add_argument("--seconds", type=float, help="with --listen: stop after this long")
     add_bus_options(p, default_baud=LA_BAUD)
     p.set_defaults(func=run)
 
@@ -84,6 +103,15 @@ def run(args: argparse.Namespace) -> int:
     check_seconds("--interval", args.interval, MIN_INTERVAL_S)
     if args.count is not None:
         check_int("--count", args.count, 1, MAX_COUNT)
+    if args.listen:
+        if args.plot is not None:
+            raise UsageError("--plot does not go with --listen")
+        check_seconds("--seconds", args.seconds, 1e-3)
+        family = Family(args.family or Family.LA.value)
+        args._default_baud = FAMILY_BAUD[family]
+        return listen.run_listen(args, ids, family)
+    if args.family is not None or args.seconds is not None:
+        raise UsageError("--family and --seconds go with --listen")
     plot_mode = getattr(args, "plot", None)
     if plot_mode is not None and args.json:
         raise UsageError("--plot and --json do not go together: choose one")

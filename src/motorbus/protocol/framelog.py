@@ -20,6 +20,7 @@ so one file can hold several sessions; a reader keeps them apart by their header
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -40,15 +41,18 @@ __all__ = [
     "FORMAT",
     "KINDS",
     "KIND_LINK",
+    "MAX_T",
     "REQUIRED_KEYS",
     "SOURCES",
     "TIME_DECIMALS",
     "VERSION",
     "FrameLog",
+    "continuous_times",
     "describe_record",
     "from_description",
     "from_sim",
     "header",
+    "quote",
     "read_frame_log",
 ]
 
@@ -58,6 +62,11 @@ FORMAT = "motorbus-frame-log"
 VERSION = 1
 #: Decimal places of ``t`` (one microsecond).
 TIME_DECIMALS = 6
+#: Largest ``t`` a record may carry (seconds since its session started: about 116 days).
+#: Anything larger is a broken file, not a recording (a replay would wait that long).
+MAX_T = 10_000_000
+#: Longest text of a bad value quoted in an error message.
+_QUOTE_MAX = 40
 #: A change of the simulated link (disconnect fault): ``name`` is ``"down"`` or ``"up"``.
 KIND_LINK = "link"
 KINDS = frozenset((KIND_FRAME, KIND_EVENT, KIND_GARBAGE, KIND_LINK))
@@ -69,6 +78,8 @@ REQUIRED_KEYS = ("t", "kind", "hex")
 #: simulator wrote to its ``--log`` file before version 1.
 _SIM_KEYS = ("t", "dir", "hex")
 _DISCARDED = "discarded: "
+_FAMILY_VALUES = frozenset(f.value for f in Family)
+_DIRECTION_VALUES = frozenset(d.value for d in Direction)
 
 
 def header(
@@ -168,26 +179,31 @@ class FrameLog:
     translated: int = 0
 
 
-def read_frame_log(lines: Iterable[str], name: str = "frame log") -> FrameLog:
+def read_frame_log(lines: Iterable[str | bytes], name: str = "frame log") -> FrameLog:
     """Parse the lines of a frame log (blank lines are skipped).
 
     Also reads what older versions wrote: captures without a header line, and the
     simulator's ``{t, dir, hex, family, fault}`` lines, translated with :func:`from_sim`.
+    Lines may be given as bytes (a file opened in binary mode), so that text that is not
+    UTF-8 is reported with its line.
 
     Raises:
-        LocalProtocolError: a line that is not JSON, not an object, lacks a required
-            key, has a bad ``t``/``kind``/``hex``, or a header of another format or a
-            newer version.  The message names ``name``, the line number and the key.
+        LocalProtocolError: a line that is not UTF-8, not JSON (or nested too deeply),
+            not an object, lacks a required key, has a bad ``t`` (not a number, or outside
+            ``0..MAX_T``), ``kind``, ``hex``, ``family`` or ``direction``, a frame of a
+            family its session's header does not name, or a header of another format, a
+            newer version or without its list of families.  The message names ``name``,
+            the line number and the key.
     """
     log = FrameLog()
-    for n, line in enumerate(lines, start=1):
+    families: frozenset[str] | None = None  # of the current session; None: no header
+    header_line = 0
+    for n, raw in enumerate(lines, start=1):
+        where = f"{name} line {n}"
+        line = _text(raw, where)
         if not line.strip():
             continue
-        where = f"{name} line {n}"
-        try:
-            value = json.loads(line)
-        except ValueError as err:
-            raise LocalProtocolError(f"{where} is not JSON: {err}", field="file") from err
+        value = _json(line, where)
         if not isinstance(value, dict):
             raise LocalProtocolError(
                 f"{where} is not a frame-log record: a JSON {type(value).__name__}, "
@@ -196,6 +212,8 @@ def read_frame_log(lines: Iterable[str], name: str = "frame log") -> FrameLog:
             )
         if "format" in value:
             log.headers.append(_check_header(value, where))
+            families = frozenset(value["families"])
+            header_line = n
             continue
         if not log.headers:
             log.headers.append({})
@@ -203,19 +221,93 @@ def read_frame_log(lines: Iterable[str], name: str = "frame log") -> FrameLog:
             value = from_sim(value)
             log.translated += 1
         record = _check_record(value, where)
+        family = record.get("family")
+        if families is not None and family is not None and family not in families:
+            raise LocalProtocolError(
+                f"{where}: a {family} {record['kind']} in a session whose header (line "
+                f"{header_line}) names {', '.join(sorted(families)) or 'no family'}: "
+                "refused (a log carries the families its header names)",
+                field="file",
+            )
         log.records.append({**record, "session": len(log.headers) - 1, "line": n})
     return log
+
+
+def continuous_times(log: FrameLog) -> list[dict[str, Any]]:
+    """Return the records of ``log`` with ``t`` relative to the first record.
+
+    A later session (the simulator appends to its log) continues where the one before
+    ended, so times never jump back at a session boundary.  ``t`` keeps 6 decimals.
+    """
+    records: list[dict[str, Any]] = []
+    offset = 0.0
+    session = 0
+    first: float | None = None
+    last = 0.0
+    for record in log.records:
+        t = float(record["t"])
+        if first is None:
+            first = t
+        if record["session"] != session:
+            session = record["session"]
+            offset = last - t
+        rel = round(t - first + offset, TIME_DECIMALS)
+        last = rel + first
+        records.append({**record, "t": rel})
+    return records
+
+
+def quote(value: object) -> str:
+    """``repr(value)``, cut to a readable length for an error message."""
+    text = repr(value)
+    return text if len(text) <= _QUOTE_MAX else text[: _QUOTE_MAX - 3] + "..."
+
+
+def _text(raw: str | bytes, where: str) -> str:
+    if isinstance(raw, str):
+        return raw
+    try:
+        return raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        bad = raw[err.start : err.start + 1].hex().upper()
+        raise LocalProtocolError(
+            f"{where} is not UTF-8 text: byte 0x{bad} at column {err.start + 1} "
+            "(a frame log is UTF-8 JSON lines)",
+            field="file",
+        ) from None
+
+
+def _json(line: str, where: str) -> Any:
+    try:
+        return json.loads(line)
+    except RecursionError:
+        raise LocalProtocolError(
+            f"{where} is not a frame-log record: JSON nested too deeply", field="file"
+        ) from None
+    except ValueError as err:
+        raise LocalProtocolError(f"{where} is not JSON: {err}", field="file") from err
 
 
 def _check_header(value: dict[str, Any], where: str) -> dict[str, Any]:
     if value.get("format") != FORMAT:
         raise LocalProtocolError(
-            f"{where}: format={value.get('format')!r} is not {FORMAT!r}", field="file"
+            f"{where}: format={quote(value.get('format'))} is not {FORMAT!r}", field="file"
         )
     version = value.get("version")
     if isinstance(version, bool) or not isinstance(version, int) or not 1 <= version <= VERSION:
         raise LocalProtocolError(
-            f"{where}: version={version!r} is not one this motorbus reads (1..{VERSION})",
+            f"{where}: version={quote(version)} is not one this motorbus reads (1..{VERSION})",
+            field="file",
+        )
+    families = value.get("families")
+    if (
+        not isinstance(families, list)
+        or not families
+        or not all(isinstance(f, str) and f in _FAMILY_VALUES for f in families)
+    ):
+        raise LocalProtocolError(
+            f"{where}: families={quote(families)} is not a list of the bus's families "
+            f"(each one of {', '.join(sorted(_FAMILY_VALUES))})",
             field="file",
         )
     return value
@@ -231,16 +323,39 @@ def _check_record(value: dict[str, Any], where: str) -> dict[str, Any]:
             )
     t = value["t"]
     if isinstance(t, bool) or not isinstance(t, int | float) or t != t:
-        raise LocalProtocolError(f"{where}: t={t!r} is not a number of seconds", field="file")
+        raise LocalProtocolError(f"{where}: t={quote(t)} is not a number of seconds", field="file")
+    # Compared before any float(): an int of 400 digits must not overflow here.
+    if not (isinstance(t, int) or math.isfinite(t)) or not 0 <= t <= MAX_T:
+        raise LocalProtocolError(
+            f"{where}: t={quote(t)} is out of range: allowed 0..{MAX_T} "
+            "(seconds since the session started)",
+            field="file",
+        )
     kind = value["kind"]
     if kind not in KINDS:
         raise LocalProtocolError(
-            f"{where}: kind={kind!r} is not one of {', '.join(sorted(KINDS))}", field="file"
+            f"{where}: kind={quote(kind)} is not one of {', '.join(sorted(KINDS))}",
+            field="file",
         )
+    hex_ = value["hex"]
+    if not isinstance(hex_, str):
+        raise LocalProtocolError(f"{where}: hex={quote(hex_)} is not a string", field="file")
     try:
-        parse_hex(str(value["hex"])) if value["hex"] else b""
+        parse_hex(hex_) if hex_ else b""
     except ValueError as err:
-        raise LocalProtocolError(f"{where}: hex={value['hex']!r}: {err}", field="file") from err
+        raise LocalProtocolError(f"{where}: hex={quote(hex_)}: {err}", field="file") from err
+    for key, allowed in (("family", _FAMILY_VALUES), ("direction", _DIRECTION_VALUES)):
+        got = value.get(key)
+        if got is not None and got not in allowed:
+            raise LocalProtocolError(
+                f"{where}: {key}={quote(got)} is not one of {', '.join(sorted(allowed))} (or null)",
+                field="file",
+            )
+    for key, kinds, what in (("name", str, "a string"), ("fields", dict, "an object")):
+        if key in value and not isinstance(value[key], kinds):
+            raise LocalProtocolError(
+                f"{where}: {key}={quote(value[key])} is not {what}", field="file"
+            )
     return value
 
 
