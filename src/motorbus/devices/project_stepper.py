@@ -17,6 +17,7 @@ from motorbus.errors import (
     ReplyTimeoutError,
 )
 from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
@@ -29,6 +30,8 @@ DEFAULT_RUN_TIMEOUT_S = 600.0
 #: After a stop, how long a new run waits before it starts: a controller may answer the
 #: stop with a late EE DD (A0-06 leaves it open), which must not end the next run's wait.
 STOP_SETTLE_S = 0.5
+#: The controller's device key (one per bus).
+KEY = ps.StartProject.family.value
 #: What to tell a user who let a timed-out project keep running.
 STOP_HINT = "`motorbus project stop` ends it"
 
@@ -54,7 +57,22 @@ class ProjectStepper:
     def safe_stop_commands(self) -> list[ps.ProjectStepperCommand[object]]:
         """The commands that stop everything this controller may be doing, as values:
         stop the running project (0x5E), then stop manual motion of its motor (0x0D)."""
-        return [ps.StopProject(), ps.ManualStop(motor=self.motor)]
+        commands = safety.safe_stop_commands(KEY, "pause", motor=self.motor)
+        return [cmd for cmd in commands if isinstance(cmd, ps.ProjectStepperCommand)]
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the program's hold on this controller (motion started outside any lease).
+
+        A project run, a jog, a single run or homing started outside an explicit lease
+        (``bus.lease``) is owned by the bus's implicit lease, and the bus stops the
+        controller (``safe_stop_commands``) when it closes.  ``release()`` stops it
+        now; ``release(hold=True)`` ends the ownership on purpose and sends nothing:
+        what runs keeps running, also after the bus closes.
+
+        Raises:
+            LeaseConflictError: an explicit lease holds the controller (release that).
+        """
+        await self.bus.release([KEY], hold=hold)
 
     async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
         for cmd in commands:

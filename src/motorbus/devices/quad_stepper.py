@@ -9,6 +9,7 @@ from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
 from motorbus.errors import MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
+from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["QuadStepper"]
@@ -19,6 +20,8 @@ log = logging.getLogger("motorbus.quad_stepper")
 #: the manual documents no duration (A1-09), and a long move at low speed can take
 #: minutes, so the default is generous; pass ``timeout`` for anything tighter.
 DEFAULT_DONE_TIMEOUT_S = 600.0
+#: The controller's device key (one per bus).
+KEY = q.StopAll.family.value
 
 
 class QuadStepper:
@@ -40,7 +43,21 @@ class QuadStepper:
 
     def safe_stop_commands(self) -> list[q.QuadCommand]:
         """The commands that stop every motor of this controller, as values (stop all)."""
-        return [q.StopAll()]
+        return [cmd for cmd in safety.safe_stop_commands(KEY) if isinstance(cmd, q.QuadCommand)]
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the program's hold on this controller (motion started outside any lease).
+
+        A run, a run of all motors or homing started outside an explicit lease
+        (``bus.lease``) is owned by the bus's implicit lease, and the bus sends stop all
+        when it closes.  ``release()`` sends it now; ``release(hold=True)`` ends the
+        ownership on purpose and sends nothing: what runs keeps running, also after the
+        bus closes.
+
+        Raises:
+            LeaseConflictError: an explicit lease holds the controller (release that).
+        """
+        await self.bus.release([KEY], hold=hold)
 
     async def configure(
         self,
