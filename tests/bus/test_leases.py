@@ -85,7 +85,7 @@ def test_a_safe_action_sent_since_the_last_motion_is_not_owed_again() -> None:
     table = LeaseTable()
     implicit = table.implicit(pause_for, "pause")
     table.claim(["la:1", "la:2"], implicit)
-    table.moved(["la:1", "la:2"])
+    table.moved(la.Broadcast(la.BroadcastMode.POSITION, ((1, 500), (2, 600))))
     table.sent(la.Control(1, la.ControlAction.PAUSE))
     assert table.owed("la:1") == ()
     table.sent(la.Control(2, la.ControlAction.QUERY_STATUS))  # not a stop
@@ -97,7 +97,7 @@ def test_motion_after_the_safe_action_owes_it_again() -> None:
     table = LeaseTable()
     lease = table.acquire("rig", ["la:1"], pause_for)
     table.sent(la.Control(1, la.ControlAction.PAUSE))
-    table.moved(["la:1"])
+    table.moved(la.MoveTo(1, 500))
     assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.PAUSE)]
 
 
@@ -144,6 +144,7 @@ def test_id_255_stands_for_every_actuator_the_bus_addressed() -> None:
     implicit = table.implicit(pause_for, "pause")
     assert table.expand(["la:255"]) == ("la:255",)  # none addressed yet: itself
     table.claim(safety.motion_keys(la.MoveTo(255, 500, False)), implicit)
+    table.moved(la.MoveTo(255, 500, False))
     assert table.release(implicit, hold=False) == [la.Control(255, la.ControlAction.PAUSE)]
     for key in ("la:2", "la:10", "la:1"):
         table.note(key)
@@ -184,8 +185,43 @@ def test_the_project_steppers_motor_comes_from_its_motion() -> None:
     table = LeaseTable()
     implicit = table.implicit(pause_for, "pause")
     table.claim(["project_stepper"], implicit)
+    table.moved(ps.JogForward(motor=5))
     table.set_safe("project_stepper", safety.safe_stop_commands("project_stepper", motor=5))
-    assert table.release(implicit, hold=False) == [ps.StopProject(), ps.ManualStop(motor=5)]
+    assert table.snapshot()[0].safe_frames == (
+        ps.StopProject().encode(),
+        ps.ManualStop(motor=5).encode(),
+    )
+    assert table.release(implicit, hold=False) == [ps.ManualStop(motor=5)]
+
+
+def test_motion_outside_a_lease_owes_what_ends_that_motion_only() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["la:1"], implicit)
+    assert table.owed("la:1") == ()  # claimed, not yet written: nothing moved
+    table.claim(["project_stepper", "quad_stepper"], implicit)
+    table.moved(ps.StartProject(1))
+    table.moved(q.Run(2))
+    table.moved(q.Run(3))
+    assert table.owed("project_stepper") == (ps.StopProject(),)
+    assert table.owed("quad_stepper") == (q.Stop(2), q.Stop(3))
+    table.sent(q.Stop(2))
+    assert table.owed("quad_stepper") == (q.Stop(3),)
+    table.sent(q.StopAll())  # covers every motor's stop
+    table.sent(safety.AT_REST_AFTER_PROJECT_END)  # the project's EE DD
+    assert table.release(implicit, hold=False) == []
+
+
+def test_a_quad_runs_done_reply_pays_its_stop() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["quad_stepper"], implicit)
+    table.moved(q.Run(1))
+    rest = safety.at_rest_after_done(q.Run(1))
+    assert rest == q.Stop(1)
+    table.sent(rest)
+    assert table.release(implicit, hold=False) == []
+    assert safety.at_rest_after_done(q.RunAll()) is None
 
 
 @pytest.mark.parametrize(

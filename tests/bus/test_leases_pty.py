@@ -192,24 +192,46 @@ async def test_a_bus_manager_stops_each_device_once() -> None:
     assert to_la(2, recorder.frames)[-1] == PAUSE_2
 
 
+async def long_quad_run(quad: QuadStepper, motor: int) -> None:
+    """Configure ``motor`` for a run far longer than any test, and start it."""
+    await quad.configure(
+        motor, subdivision=8, step_angle_x100=180, pulses=16777215,
+        start_hz=10, accel_hz=0, speed_rpm=1,
+    )  # fmt: skip
+    await quad.run(motor, wait=False)
+
+
 @pytest.mark.parametrize("pacing", PACINGS)
-async def test_stepper_runs_then_close_end_with_their_stops(pacing: Pacing) -> None:
+async def test_stepper_motion_then_close_ends_with_their_stops(pacing: Pacing) -> None:
     models = [ProjectStepperModel(), QuadStepperModel()]
     with pty_sim(models, STEPPER_BAUD, pacing) as (sim, recorder):
         bus = open_bus(sim, [Family.PROJECT_STEPPER, Family.QUAD_STEPPER])
         async with bus:
-            await ProjectStepper(bus).start_project(1)
-            await QuadStepper(bus).run(2, wait=False)
+            await ProjectStepper(bus).jog()
+            await long_quad_run(QuadStepper(bus), 2)
             assert {i.key for i in bus.leases} == {"project_stepper", "quad_stepper"}
         await asyncio.sleep(0.1)
     frames = recorder.frames
-    start = frames.index(ps.StartProject(1).encode())
+    jog = frames.index(ps.JogForward(motor=ps.DEFAULT_MOTOR).encode())
     run = frames.index(q.Run(2).encode())
-    assert set(frames[max(start, run) + 1 :]) == {
-        ps.StopProject().encode(),
-        ps.ManualStop(motor=ps.DEFAULT_MOTOR).encode(),
-        q.StopAll().encode(),
-    }
+    # What ends each motion, after both, and nothing else.
+    assert sorted(frames[max(jog, run) + 1 :]) == sorted(
+        [ps.ManualStop(motor=ps.DEFAULT_MOTOR).encode(), q.Stop(2).encode()]
+    )
+
+
+async def test_a_finished_quad_run_is_not_stopped_at_close() -> None:
+    with pty_sim([QuadStepperModel()], STEPPER_BAUD, "prompt") as (sim, recorder):
+        bus = open_bus(sim, [Family.QUAD_STEPPER])
+        async with bus:
+            quad = QuadStepper(bus)
+            await quad.configure(
+                1, subdivision=1, step_angle_x100=180, pulses=10,
+                start_hz=1000, accel_hz=0, speed_rpm=600,
+            )  # fmt: skip
+            await quad.run(1, wait=True, timeout=5)  # its done reply came
+        await asyncio.sleep(0.1)
+    assert recorder.frames[-1] == q.Run(1).encode()
 
 
 async def test_a_stepper_run_released_with_hold_keeps_running() -> None:
@@ -217,10 +239,10 @@ async def test_a_stepper_run_released_with_hold_keeps_running() -> None:
         bus = open_bus(sim, [Family.QUAD_STEPPER])
         async with bus:
             quad = QuadStepper(bus)
-            await quad.run(1, wait=False)
+            await long_quad_run(quad, 1)
             await quad.release(hold=True)
         await asyncio.sleep(0.1)
-    assert recorder.frames == [q.Run(1).encode()]
+    assert recorder.frames[-1] == q.Run(1).encode()
 
 
 async def test_a_bus_used_from_another_loop_raises_at_once() -> None:

@@ -225,6 +225,7 @@ class _DoneWatch:
     shapes: tuple[FrameShape, ...]
     kind: str
     led: int | None
+    cmd: Command[object]
 
 
 @dataclass(slots=True)
@@ -912,7 +913,7 @@ class Bus:
         )
         job.tx_time = after
         if cmd.starts_motion:
-            self._leases.moved(safety.motion_keys(cmd))
+            self._leases.moved(cmd)
         elif not expects:
             self._leases.sent(cmd)
         if expects:
@@ -1043,6 +1044,7 @@ class Bus:
                 stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedMarker:
+                self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
                 self._publish(ProjectFinished(self.name, now))
 
     def _on_frame(self, frame: Frame, start: int, now: float) -> None:
@@ -1113,6 +1115,9 @@ class Bus:
             if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
                 del self._done_watches[i]
                 self._expect_shapes()
+                rest = safety.at_rest_after_done(watch.cmd)
+                if rest is not None:
+                    self._leases.sent(rest)  # the run is over: its stop is not owed
                 self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
                 return True
         return False
@@ -1257,4 +1262,4 @@ def _safe_commands_for(action: str) -> _leases.SafeCommandsForKey:
 
 def _done_watch(cmd: Command[object]) -> _DoneWatch:
     led = getattr(cmd, "led", None)
-    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)
+    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led, cmd)

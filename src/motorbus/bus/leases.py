@@ -11,10 +11,13 @@ submit of a command that ``starts_motion``, and what it applies in one place, it
   from the implicit one (the same program moved them before, e.g. a ``move_to`` to the
   start of a stream); never from another explicit lease.
 * Every leased device has a **safe action** (``motorbus.protocol.safety``: an LA pause or
-  e-stop, a stepper stop) and a record of whether it is still owed: it is owed from the
-  lease's start and after every motion frame written to the device, and paid when a
-  command that covers it (``safety.covers``) was written and, if it expects a reply,
-  answered (by the lease's owner, a stream's own safe action or a ``BusManager``'s stop).
+  e-stop, a stepper stop) and a record of what of it is still owed: all of it from an
+  explicit lease's start; after every motion frame written, what ends that motion (an
+  LA's pause, the stop project after a project start, a quad motor's stop after its
+  run).  A command that covers it (``safety.covers``), written and answered if it
+  expects a reply, pays it: the owner's own stop, a stream's safe action, a
+  ``BusManager``'s stop, or the device's report that the motion ended (``EE DD``, a quad
+  run's done reply).
 * A lease ends by ``release(hold=False)``: the safe actions still owed are returned for
   the bus to send; with ``hold=True`` nothing is (the owner ends on purpose and the
   devices keep their last command).  The bus ends every lease still held when it closes,
@@ -282,7 +285,8 @@ class LeaseTable:
                 raise LeaseConflictError(key, entry.lease.owner, owner)
         lease = Lease(self, owner, safe_commands_for_key, safe_action=safe_action)
         for key in wanted:
-            self._take(key, lease)
+            safe = lease.safe_for(key)
+            self._entries[key] = _Entry(lease, safe, safe)  # all of it owed from the start
         self._changed()
         return lease
 
@@ -314,38 +318,34 @@ class LeaseTable:
         for key in keys:
             entry = entries.get(key)
             if entry is None or entry.lease is not lease:
-                self._take(key, lease)
+                # Owed: what the implicit lease owed; the motion adds its own (``moved``).
+                owed = () if entry is None else entry.owed
+                entries[key] = _Entry(lease, lease.safe_for(key), owed)
                 changed = True
         if changed:
             self._changed()
         return changed
 
-    def _take(self, key: DeviceKey, lease: Lease) -> None:
-        old = self._entries.get(key)
-        safe = lease.safe_for(key)
-        # Taken over from the implicit lease: still owed whatever it owed.
-        owed = safe if old is None or old.owed else ()
-        self._entries[key] = _Entry(lease, safe, owed)
-
     def set_safe(self, key: DeviceKey, commands: tuple[Command[object], ...]) -> None:
         """Replace ``key``'s safe commands (a project stepper's motor byte, learnt from
-        its motion); what is owed becomes the new commands if anything was owed."""
+        its motion)."""
         entry = self._entries.get(key)
         if entry is None or entry.safe == commands:
             return
         entry.safe = commands
-        if entry.owed:
-            entry.owed = commands
         self._changed()
 
     # -- what the bus wrote ------------------------------------------------------------
 
-    def moved(self, keys: Iterable[DeviceKey]) -> None:
-        """A motion frame for ``keys`` was written: their safe actions are owed again."""
-        for key in self.expand(keys):
+    def moved(self, cmd: Command[object]) -> None:
+        """The motion frame ``cmd`` was written: what ends its motion is owed, on each
+        device it moves, besides what was owed already (``safety.motion_stops``)."""
+        for key in self.expand(safety.motion_keys(cmd)):
             entry = self._entries.get(key)
             if entry is not None:
-                entry.owed = entry.safe
+                stops = safety.motion_stops(key, cmd, entry.lease.safe_action)
+                if entry.owed != stops:
+                    entry.owed = tuple(dict.fromkeys((*entry.owed, *stops)))
 
     def sent(self, cmd: Command[object]) -> None:
         """``cmd`` was written (and answered, if it expects a reply): what it covers of

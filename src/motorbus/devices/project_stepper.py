@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
 from motorbus.errors import (
+    LeaseConflictError,
     LocalProtocolError,
     MotorbusError,
     ProjectStopped,
@@ -167,7 +169,8 @@ class ProjectStepper:
         Args:
             number: the project, 1..4.
             timeout: seconds to wait for ``EE DD`` (default 600).
-            keep_running: on timeout, leave the project running instead of stopping it.
+            keep_running: on timeout, leave the project running instead of stopping it
+                (also after the bus closes: it ends the program's hold with ``hold``).
 
         Raises:
             ReplyTimeoutError: no ``EE DD`` within ``timeout``; the message says whether
@@ -205,6 +208,7 @@ class ProjectStepper:
                 except ReplyTimeoutError:
                     waited = f"project {number} did not finish (no EE DD) within {limit:g} s"
                     if keep_running:
+                        await self._keep_running()
                         raise ReplyTimeoutError(f"{waited}: still running; {STOP_HINT}") from None
                     raise ReplyTimeoutError(f"{waited}: {await self._stop_after(number)}") from None
             except asyncio.CancelledError:
@@ -212,6 +216,12 @@ class ProjectStepper:
                 raise
             finally:
                 self._run_sub = None
+
+    async def _keep_running(self) -> None:
+        """The caller chose to leave the motion running: end the implicit lease with
+        hold (an explicit lease is its owner's to end)."""
+        with contextlib.suppress(LeaseConflictError):
+            await self.release(hold=True)
 
     async def _stop_after(self, number: int) -> str:
         """Send stop project after a run ended without ``EE DD``; say what happened."""

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
-from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.errors import LeaseConflictError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
@@ -106,7 +107,8 @@ class QuadStepper:
         """Start a motor's configured run; with ``wait``, return when it reports done.
 
         A run whose done reply does not come in time is stopped (stop that motor; if
-        that is not acknowledged, stop all) unless ``keep_running``.  A cancelled call
+        that is not acknowledged, stop all) unless ``keep_running`` (then it runs on,
+        also after the bus closes: the program's hold on it ends with ``hold``).  A cancelled call
         (Ctrl-C, an enclosing timeout) always sends the stop before the cancellation
         goes on.
 
@@ -131,6 +133,7 @@ class QuadStepper:
                     except ReplyTimeoutError:
                         waited = f"motor {motor} did not report done within {limit:g} s"
                         if keep_running:
+                            await self._keep_running()
                             raise ReplyTimeoutError(
                                 f"{waited}: still running; `motorbus quad stop {motor}` ends it"
                             ) from None
@@ -139,6 +142,12 @@ class QuadStepper:
         except asyncio.CancelledError:
             await self._stop_after(motor)
             raise
+
+    async def _keep_running(self) -> None:
+        """The caller chose to leave the motion running: end the implicit lease with
+        hold (an explicit lease is its owner's to end)."""
+        with contextlib.suppress(LeaseConflictError):
+            await self.release(hold=True)
 
     async def _stop_after(self, motor: int) -> str:
         """Stop ``motor`` after a run was abandoned (stop all if that fails); say what was done."""

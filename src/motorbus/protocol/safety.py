@@ -29,12 +29,15 @@ from motorbus.protocol.base import Command, Family
 from motorbus.protocol.families import FAMILIES
 
 __all__ = [
+    "AT_REST_AFTER_PROJECT_END",
     "SAFE_ACTIONS",
+    "at_rest_after_done",
     "check_key",
     "check_safe_action",
     "covers",
     "family_of_key",
     "motion_keys",
+    "motion_stops",
     "pending_after",
     "safe_stop_commands",
 ]
@@ -122,6 +125,35 @@ def safe_stop_commands(
     return (q.StopAll(),)
 
 
+def motion_stops(
+    key: str, cmd: Command[object], action: object = "pause"
+) -> tuple[Command[object], ...]:
+    """What ends the motion ``cmd`` started on device ``key`` (one of its
+    ``motion_keys``): an LA's pause or e-stop; the stop of what a stepper command
+    started (stop project after a project start, the motor's stop after manual motion or
+    a quad run); nothing for ``"hold"``."""
+    name = check_safe_action(action, "action")
+    if name == "hold":
+        return ()
+    if isinstance(cmd, ps.StartProject):
+        return (ps.StopProject(),)
+    if isinstance(cmd, ps.ProjectStepperCommand):
+        return (ps.ManualStop(motor=getattr(cmd, "motor", ps.DEFAULT_MOTOR)),)
+    if isinstance(cmd, (q.Run, q.Home)):
+        return (q.Stop(cmd.motor),)
+    return safe_stop_commands(key, name)
+
+
+def at_rest_after_done(cmd: Command[object]) -> Command[object] | None:
+    """The stop a motion's own "done" reply is as good as (a quad run's done: that
+    motor's stop), or None."""
+    return q.Stop(cmd.motor) if isinstance(cmd, q.Run) else None
+
+
+#: A project's end (``EE DD``) is as good as a stop project.
+AT_REST_AFTER_PROJECT_END: Command[object] = ps.StopProject()
+
+
 def motion_keys(cmd: Command[object]) -> tuple[str, ...]:
     """The devices a motion command moves: its own key, or each entry of an LA broadcast
     (F2/F3).  An LA command to ID 255 answers ``("la:255",)``: every LA on the bus."""
@@ -134,9 +166,12 @@ def covers(sent: Command[object], safe: Command[object]) -> bool:
     """True if ``sent`` brings its device at least as far as the safe command ``safe``.
 
     The same command covers itself; an LA e-stop covers a pause (not the other way
-    round), and a control frame to ID 255 covers every actuator's.
+    round), a control frame to ID 255 covers every actuator's, and the quad's stop all
+    covers each motor's stop.
     """
     if sent == safe:
+        return True
+    if isinstance(sent, q.StopAll) and isinstance(safe, q.Stop):
         return True
     if isinstance(sent, la.Control) and isinstance(safe, la.Control):
         return (sent.id in (safe.id, la.BROADCAST_ID)) and safe.action in _LA_STOPS.get(
