@@ -699,8 +699,7 @@ class Bus:
         """The lease rule of a motion command (raises ``LeaseConflictError``)."""
         table = self._leases
         keys = safety.motion_keys(cmd)
-        for key in keys:
-            table.note(key)
+        table.note_all(keys)
         if lease is None or lease.table is not table or not lease.active:
             lease = _leases.lease_for(table)
         if lease is None:

@@ -237,8 +237,11 @@ class LeaseTable:
 
     def note(self, key: DeviceKey) -> None:
         """Remember that the bus addressed ``key`` (what ``"la:255"`` stands for)."""
-        if key not in self._seen and key not in _WILDCARDS:
-            self._seen.add(key)
+        self._seen.add(key)
+
+    def note_all(self, keys: Iterable[DeviceKey]) -> None:
+        """``note`` each of ``keys``."""
+        self._seen.update(keys)
 
     def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:
         """``keys`` with each wildcard (``"la:255"``) replaced by the family's devices
@@ -308,8 +311,14 @@ class LeaseTable:
             LeaseConflictError: another explicit lease holds one of the keys (nothing
                 changes).
         """
-        changed = False
         entries = self._entries
+        for key in keys:  # the hot path (every stream tick): all held already
+            entry = entries.get(key)
+            if entry is None or entry.lease is not lease or key in _WILDCARDS:
+                break
+        else:
+            return False
+        changed = False
         keys = self.expand(keys)
         for key in keys:
             entry = entries.get(key)
@@ -339,13 +348,26 @@ class LeaseTable:
 
     def moved(self, cmd: Command[object]) -> None:
         """The motion frame ``cmd`` was written: what ends its motion is owed, on each
-        device it moves, besides what was owed already (``safety.motion_stops``)."""
-        for key in self.expand(safety.motion_keys(cmd)):
-            entry = self._entries.get(key)
-            if entry is not None:
-                stops = safety.motion_stops(key, cmd, entry.lease.safe_action)
-                if entry.owed != stops:
-                    entry.owed = tuple(dict.fromkeys((*entry.owed, *stops)))
+        device it moves, besides what was owed already (``safety.motion_stops``; the
+        device's whole safe action where the motion names no smaller stop)."""
+        keys = safety.motion_keys(cmd)
+        if any(key in _WILDCARDS for key in keys):
+            keys = self.expand(keys)
+        stops = safety.motion_stops(cmd)
+        entries = self._entries
+        for key in keys:
+            entry = entries.get(key)
+            if entry is None:
+                continue
+            # A "hold" lease's devices have no safe action, so they owe nothing.
+            owes = entry.safe if stops is None or not entry.safe else stops
+            owed = entry.owed
+            if owed is owes or not owes:
+                continue  # the hot path: a streamed actuator owes its pause already
+            if not owed:
+                entry.owed = owes
+            elif owed != owes:
+                entry.owed = tuple(dict.fromkeys((*owed, *owes)))
 
     def sent(self, cmd: Command[object]) -> None:
         """``cmd`` was written (and answered, if it expects a reply): what it covers of
@@ -408,7 +430,7 @@ class LeaseTable:
 
 def bind(lease: Lease) -> None:
     """Make ``lease`` the running task's (and its future child tasks')."""
-    _current.set((*_current.get(), lease))
+    _current.set((*(held for held in _current.get() if held.active), lease))
 
 
 def lease_for(table: LeaseTable) -> Lease | None:

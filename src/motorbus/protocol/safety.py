@@ -51,6 +51,8 @@ _LA_STOPS = {
     la.ControlAction.ESTOP: frozenset({la.ControlAction.PAUSE, la.ControlAction.ESTOP}),
 }
 _LA_PREFIX = f"{Family.LA.value}:"
+#: "la:0".."la:255", built once: a stream's broadcast names up to 31 of them per tick.
+_LA_KEYS = tuple(f"{_LA_PREFIX}{ident}" for ident in range(la.BROADCAST_ID + 1))
 
 
 def check_safe_action(action: object, field: str = "safe_action") -> str:
@@ -125,23 +127,20 @@ def safe_stop_commands(
     return (q.StopAll(),)
 
 
-def motion_stops(
-    key: str, cmd: Command[object], action: object = "pause"
-) -> tuple[Command[object], ...]:
-    """What ends the motion ``cmd`` started on device ``key`` (one of its
-    ``motion_keys``): an LA's pause or e-stop; the stop of what a stepper command
-    started (stop project after a project start, the motor's stop after manual motion or
-    a quad run); nothing for ``"hold"``."""
-    name = check_safe_action(action, "action")
-    if name == "hold":
-        return ()
+def motion_stops(cmd: Command[object]) -> tuple[Command[object], ...] | None:
+    """What ends the motion ``cmd`` starts, where that is less than the device's whole
+    safe action: the stop project after a project start, the motor's manual stop after a
+    jog, a single run or homing, a quad motor's stop after its run or homing.  ``None``
+    means the device's safe action itself (an LA's pause or e-stop, a quad's stop all)."""
+    if cmd.family is Family.LA:
+        return None  # the stream's path: no isinstance chain
     if isinstance(cmd, ps.StartProject):
         return (ps.StopProject(),)
     if isinstance(cmd, ps.ProjectStepperCommand):
         return (ps.ManualStop(motor=getattr(cmd, "motor", ps.DEFAULT_MOTOR)),)
     if isinstance(cmd, (q.Run, q.Home)):
         return (q.Stop(cmd.motor),)
-    return safe_stop_commands(key, name)
+    return None
 
 
 def at_rest_after_done(cmd: Command[object]) -> Command[object] | None:
@@ -158,7 +157,7 @@ def motion_keys(cmd: Command[object]) -> tuple[str, ...]:
     """The devices a motion command moves: its own key, or each entry of an LA broadcast
     (F2/F3).  An LA command to ID 255 answers ``("la:255",)``: every LA on the bus."""
     if isinstance(cmd, la.Broadcast):
-        return tuple(f"{_LA_PREFIX}{ident}" for ident, _ in cmd.entries)
+        return tuple([_LA_KEYS[ident] for ident, _ in cmd.entries])
     return (cmd.device_key,)
 
 
