@@ -32,6 +32,7 @@ from motorbus.sim.model import DeviceModel
 from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
+from motorbus.streams import Streamer
 from motorbus.transport.serial import SerialTransport
 from tests.conftest import PACINGS
 
@@ -268,3 +269,21 @@ async def test_a_bus_used_from_another_loop_raises_at_once() -> None:
         assert (await actuator.status()).id == 1  # its own loop still works
         assert recorder.frames[before:] == [la.Control(1, la.ControlAction.QUERY_STATUS).encode()]
         assert bus.leases == ()
+
+
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_a_stream_that_ends_normally_ends_with_the_pause_at_close(pacing: Pacing) -> None:
+    # Issue 19 case 1: the targets end, the stream stops, the bus closes: the last frame
+    # each actuator received must be its pause, not an F3 target.
+    async with la_bus(pacing) as (bus, recorder):
+        streamer = Streamer(bus)
+        ramp = [{1: 100 + 10 * k, 2: 200 + 10 * k} for k in range(5)]
+        stream = streamer.follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)], ramp, period=0.01, safe_action="pause"
+        )
+        await asyncio.wait_for(stream.wait(), timeout=10)
+        await stream.stop(safe=True)
+    frames = recorder.frames
+    assert any(f[3] == la.BROADCAST_ID and f[4] == la.CMD_BROADCAST_FOLLOW for f in frames)
+    last_broadcast = max(i for i, f in enumerate(frames) if f[3] == la.BROADCAST_ID)
+    assert sorted(frames[last_broadcast + 1 :]) == sorted([PAUSE_1, PAUSE_2])
