@@ -710,8 +710,11 @@ class Bus:
             key = cmd.device_key
             table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
 
-    async def _release_lease(self, lease: Lease, hold: bool) -> None:
-        await self._send_safe(self._leases.release(lease, hold=check_flag("hold", hold)))
+    async def _release_lease(
+        self, lease: Lease, hold: bool, keys: frozenset[str] | None = None
+    ) -> None:
+        hold = check_flag("hold", hold)
+        await self._send_safe(self._leases.release(lease, hold=hold, keys=keys))
 
     async def _end_leases(self) -> None:
         """End every lease still held, with its safe action (the bus is closing)."""
