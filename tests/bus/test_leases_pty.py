@@ -287,3 +287,14 @@ async def test_a_stream_that_ends_normally_ends_with_the_pause_at_close(pacing: 
     assert any(f[3] == la.BROADCAST_ID and f[4] == la.CMD_BROADCAST_FOLLOW for f in frames)
     last_broadcast = max(i for i, f in enumerate(frames) if f[3] == la.BROADCAST_ID)
     assert sorted(frames[last_broadcast + 1 :]) == sorted([PAUSE_1, PAUSE_2])
+
+
+async def test_an_unbound_lease_owns_only_what_is_submitted_with_it() -> None:
+    # A streamer's lease: its frames name it; the program's own task is another owner.
+    async with la_bus("prompt") as (bus, recorder):
+        lease = bus.lease(["la:1"], owner="streams", bind=False)
+        with pytest.raises(LeaseConflictError):
+            await InspireLA(bus, 1).move_to(100)
+        await bus.submit(la.MoveTo(1, 300), lease=lease)
+        assert [(i.key, i.owner) for i in bus.leases] == [("la:1", "streams")]
+    assert to_la(1, recorder.frames) == [la.MoveTo(1, 300).encode(), PAUSE_1]

@@ -624,7 +624,14 @@ class Bus:
 
     # -- leases: one owner per moving device, a safe end for every motion --------------
 
-    def lease(self, keys: Iterable[str] | str, *, owner: str, safe_action: str = "pause") -> Lease:
+    def lease(
+        self,
+        keys: Iterable[str] | str,
+        *,
+        owner: str,
+        safe_action: str = "pause",
+        bind: bool = True,
+    ) -> Lease:
         """Hold ``keys`` (``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``) for
         ``owner`` from now on; nothing is sent.
 
@@ -640,6 +647,9 @@ class Bus:
             owner: a name for errors, logs and ``bus.leases`` (not ``"program"``).
             safe_action: ``"pause"``, ``"estop"`` or ``"hold"`` (steppers: any but hold
                 sends their stop).
+            bind: make it the running task's lease (default).  ``False`` for an owner
+                that sends from elsewhere (a streamer's tick loop) and passes the lease
+                to ``submit(..., lease=...)``: the caller's own motion stays apart.
 
         Raises:
             LeaseConflictError: another owner's lease holds one of the devices (devices
@@ -647,7 +657,7 @@ class Bus:
             LocalProtocolError: a bad key, owner or action, or a family the bus does
                 not carry.
         """
-        return self._lease_keeper.lease(keys, owner, safe_action)
+        return self._lease_keeper.lease(keys, owner, safe_action, bind=check_flag("bind", bind))
 
     @property
     def leases(self) -> tuple[LeaseInfo, ...]:

@@ -53,7 +53,9 @@ class LeaseKeeper:
             action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
         }
 
-    def lease(self, keys: Iterable[str] | str, owner: str, safe_action: str) -> Lease:
+    def lease(
+        self, keys: Iterable[str] | str, owner: str, safe_action: str, *, bind: bool = True
+    ) -> Lease:
         """``Bus.lease``: check, acquire, bind to the running task."""
         action = safety.check_safe_action(safe_action)
         keys = (keys,) if isinstance(keys, str) else tuple(keys)
@@ -68,7 +70,8 @@ class LeaseKeeper:
                 )
         lease = self.table.acquire(owner, keys, self._safe_for[action], safe_action=action)
         lease.releaser = self._release
-        _leases.bind(lease)
+        if bind:
+            _leases.bind(lease)
         return lease
 
     def claim(self, cmd: Command[object], lease: Lease | None) -> None:
