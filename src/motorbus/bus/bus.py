@@ -587,7 +587,6 @@ class Bus:
                 "in this loop, or run the call on the bus's loop "
                 "(asyncio.run_coroutine_threadsafe)"
             )
-        self._leases.note(cmd.device_key)
         if cmd.starts_motion:
             self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
@@ -643,7 +642,7 @@ class Bus:
         with the safe action however the block is left.  The bus closing ends it too.
 
         Args:
-            keys: the devices; ``"la:255"`` stands for every LA the bus has addressed.
+            keys: the devices; ``"la:255"`` stands for every LA that answered or was moved by ID.
             owner: a name for errors, logs and ``bus.leases`` (not ``"program"``).
             safe_action: ``"pause"``, ``"estop"`` or ``"hold"`` (steppers: any but hold
                 sends their stop).
@@ -1020,6 +1019,7 @@ class Bus:
         except RemoteProtocolError as err:
             self._finish(job, err)
             return
+        self._leases.note(job.key)  # it answered: "la:255" stands for it too
         if not job.cmd.starts_motion:
             self._leases.sent(job.cmd)  # a safe action answered: no longer owed
         if job.cmd.done_shapes():

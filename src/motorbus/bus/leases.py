@@ -25,8 +25,8 @@ submit of a command that ``starts_motion``, and what it applies in one place, it
 
 Device keys are ``Command.device_key`` strings: ``"la:3"``, ``"project_stepper"``,
 ``"quad_stepper"``.  ``"la:255"`` (an LA command to every actuator) stands for every LA
-the bus has addressed so far (itself if it addressed none yet: its safe action is then
-a pause to ID 255).
+that answered on the bus or was moved by its ID so far (itself if there is none yet: its
+safe action is then a pause to ID 255).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ SafeCommandsForKey: TypeAlias = Callable[[DeviceKey], "tuple[Command[object], ..
 #: Longest owner name (it appears in errors, logs and the guard's records).
 OWNER_MAX = 200
 
-#: Keys that stand for every device of a family the bus has addressed ("la:255").
+#: Keys that stand for every device of a family that answered or was moved ("la:255").
 _WILDCARDS = {
     f"{info.key}:{info.broadcast_id}": f"{info.key}:"
     for info in FAMILIES.values()
@@ -250,7 +250,8 @@ class LeaseTable:
     # -- keys ------------------------------------------------------------------------
 
     def note(self, key: DeviceKey) -> None:
-        """Remember that the bus addressed ``key`` (what ``"la:255"`` stands for)."""
+        """Remember that ``key`` answered on the bus, or was moved by name (what
+        ``"la:255"`` stands for: not every ID a scan asked)."""
         self._seen.add(key)
 
     def note_all(self, keys: Iterable[DeviceKey]) -> None:
@@ -259,7 +260,7 @@ class LeaseTable:
 
     def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:
         """``keys`` with each wildcard (``"la:255"``) replaced by the family's devices
-        the bus has addressed or leased (the wildcard itself if there are none)."""
+        that answered, were moved by ID or are leased (the wildcard itself if there are none)."""
         out: list[DeviceKey] = []
         for key in keys:
             prefix = _WILDCARDS.get(key)
