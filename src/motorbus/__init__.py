@@ -21,6 +21,7 @@ __version__ = "0.1.0"
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "Priority"),
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
+    "motorbus.bus.leases": ("Lease", "LeaseInfo"),
     "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
     "motorbus.doctor": ("DoctorConfig", "DoctorReport", "diagnose"),
@@ -28,6 +29,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.errors": (
         "ArrivalTimeoutError",
         "BusClosedError",
+        "LeaseConflictError",
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
@@ -37,6 +39,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "RemoteProtocolError",
         "ReplyTimeoutError",
         "StreamEnded",
+        "WrongLoopError",
     ),
     "motorbus.busfile": ("BusFile", "BusSpec", "default_bus_file", "load_bus_file"),
     "motorbus.manager": ("BusManager", "DeviceStop", "StopReport"),
@@ -57,6 +60,8 @@ if TYPE_CHECKING:
     from motorbus.bus.events import FaultChanged as FaultChanged
     from motorbus.bus.events import ProjectFinished as ProjectFinished
     from motorbus.bus.events import QuadDone as QuadDone
+    from motorbus.bus.leases import Lease as Lease
+    from motorbus.bus.leases import LeaseInfo as LeaseInfo
     from motorbus.busfile import BusFile as BusFile
     from motorbus.busfile import BusSpec as BusSpec
     from motorbus.busfile import default_bus_file as default_bus_file
@@ -72,6 +77,7 @@ if TYPE_CHECKING:
     from motorbus.doctor import diagnose as diagnose
     from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
+    from motorbus.errors import LeaseConflictError as LeaseConflictError
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError
@@ -81,6 +87,7 @@ if TYPE_CHECKING:
     from motorbus.errors import RemoteProtocolError as RemoteProtocolError
     from motorbus.errors import ReplyTimeoutError as ReplyTimeoutError
     from motorbus.errors import StreamEnded as StreamEnded
+    from motorbus.errors import WrongLoopError as WrongLoopError
     from motorbus.manager import BusManager as BusManager
     from motorbus.manager import DeviceStop as DeviceStop
     from motorbus.manager import StopReport as StopReport

@@ -13,6 +13,8 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- NotSentError                       dropped before sending (``start_by`` passed)
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
          +-- PortInUseError [OSError]           another open holds the port's exclusive lock
+         +-- LeaseConflictError                 another owner holds the device (nothing sent)
+         +-- WrongLoopError [RuntimeError]      a bus used from another event loop than its own
          +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
@@ -48,6 +50,7 @@ __all__ = [
     "BusClosedError",
     "CommandFailed",
     "IdListError",
+    "LeaseConflictError",
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
@@ -59,6 +62,7 @@ __all__ = [
     "RigAborted",
     "StreamEnded",
     "UsageError",
+    "WrongLoopError",
 ]
 
 
@@ -161,6 +165,30 @@ class PortInUseError(MotorbusError, OSError):
         self.errno = errno.EBUSY
         self.url = url
         self.holders = holders
+
+
+class LeaseConflictError(MotorbusError):
+    """A motion command or a lease names a device that another owner holds.
+
+    Nothing was sent.  Attributes: ``key`` (the device, ``"la:3"``), ``owner`` (who
+    holds it) and ``refused`` (who asked).
+    """
+
+    def __init__(self, key: str, owner: str, refused: str) -> None:
+        super().__init__(
+            f"{key} is leased by {owner!r}, so {refused!r} may not move it (nothing "
+            f"sent): one owner per device; end the lease of {owner!r} first"
+        )
+        self.key = key
+        self.owner = owner
+        self.refused = refused
+
+
+class WrongLoopError(MotorbusError, RuntimeError):
+    """A bus (or a device on it) was used from another event loop than the one it was
+    opened on; nothing was sent.  A bus belongs to one loop (one thread): open a bus of
+    its own in the other loop, or hand the work to the bus's loop
+    (``asyncio.run_coroutine_threadsafe``)."""
 
 
 class StreamEnded(MotorbusError):

@@ -60,6 +60,8 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
+from motorbus.bus.lease_shell import LeaseKeeper
+from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
@@ -69,8 +71,9 @@ from motorbus.errors import (
     NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
+    WrongLoopError,
 )
-from motorbus.protocol import families
+from motorbus.protocol import families, safety
 from motorbus.protocol.base import (
     Command,
     Family,
@@ -138,6 +141,9 @@ HOST_STALL_S = 1e-3
 WRITE_COST_DECAY = 0.99
 WRITE_COST_MIN_S = 50e-6
 WRITE_COST_MAX_S = 500e-6
+#: Retries of each safe-action command a lease's end sends (pause, e-stop, stop project,
+#: stop all are idempotent: sending one twice is harmless, missing one is not).
+SAFE_STOP_RETRIES = 2
 #: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
@@ -222,6 +228,7 @@ class _DoneWatch:
     shapes: tuple[FrameShape, ...]
     kind: str
     led: int | None
+    cmd: Command[object]
 
 
 @dataclass(slots=True)
@@ -254,6 +261,17 @@ class Bus:
         wire_floor: also refuse (and count as ``early_replies``) a reply that completed
             sooner than the wire at the bus's baud allows; only for a link that provably
             paces bytes (a real UART).  Off by default: a reply is accepted by causality.
+        safe_action: the safe action of motion sent outside any lease (the implicit
+            lease, owner ``"program"``), applied when the bus closes: ``"pause"``
+            (default), ``"estop"`` or ``"hold"`` (nothing).
+
+    Every command that starts motion is owned (``motorbus.bus.leases``): by the explicit
+    lease (``bus.lease(...)``) of the task that sends it, or else by the bus's implicit
+    lease.  A device another explicit lease holds is refused with
+    ``LeaseConflictError``, nothing sent.  When a lease ends - ``release()``, the end of
+    its ``async with``, or the bus closing (after its streams stopped, before the port
+    closes) - each of its devices gets its safe action, unless released with
+    ``hold=True`` or already brought to it since its last motion.
     """
 
     def __init__(
@@ -270,6 +288,7 @@ class Bus:
         reconnect: bool = True,
         timer: Timer | None = None,
         wire_floor: bool = False,
+        safe_action: str = "pause",
     ) -> None:
         # Every option checked (type, finiteness, range) before anything is built.
         name = check_name("name", name, optional=True)
@@ -281,6 +300,7 @@ class Bus:
         late_guard = check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s")
         reconnect = check_flag("reconnect", reconnect)
         wire_floor = check_flag("wire_floor", wire_floor)
+        self.safe_action = safety.check_safe_action(safe_action)
         self.transport = transport
         self.name = name or transport.url
         self.families = frozenset(families)
@@ -318,6 +338,15 @@ class Bus:
         self._last_errors: dict[int, int] = {}
         self._closing = False
         self._observers: list[BusObserver] = []
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._lease_keeper = LeaseKeeper(
+            self.name,
+            self.families,
+            self.safe_action,
+            lambda cmd: self.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES),
+            lambda: self.state.value,
+        )
+        self._leases = self._lease_keeper.table  # the hot paths' direct reference
 
     # -- life cycle --------------------------------------------------------------
 
@@ -343,6 +372,7 @@ class Bus:
         if self.state is BusState.OPEN:
             return
         self._closing = False
+        self._loop = asyncio.get_running_loop()
         self._new_reassembler()
         realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
         await self.transport.open(self._on_data, self._on_lost)
@@ -409,6 +439,9 @@ class Bus:
                         await hook()
                     except Exception as err:
                         log.error("bus %s: a close hook failed: %s", self.name, err)
+            # The one place every lease still held ends: after the streams stopped (a
+            # target after a pause would resume an LA), before the port closes.
+            await self._lease_keeper.end_all()
         self._closing = True
         task = self._reconnect_task
         if task is not None and not task.done():
@@ -506,6 +539,7 @@ class Bus:
         start_by: float | None = None,
         reserved: bool = False,
         refresh: Refresh | None = None,
+        lease: Lease | None = None,
     ) -> asyncio.Future[R]:
         """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
 
@@ -524,6 +558,12 @@ class Bus:
                 to write now (rebuilt from what is still wanted) or None to drop it
                 unsent (the future then resolves to None).  A stream uses it so that a
                 frame queued before the stream stopped is never written after.
+            lease: the lease a motion command belongs to (default: the running task's
+                explicit lease on this bus, else the implicit one).
+
+        Raises (besides ``request``'s):
+            LeaseConflictError: ``cmd`` starts motion of a device another owner holds.
+            WrongLoopError: called from another event loop than the bus was opened on.
         """
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
@@ -544,6 +584,16 @@ class Bus:
             )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        loop = asyncio.get_running_loop()
+        if loop is not self._loop:
+            raise WrongLoopError(
+                f"bus {self.name} was opened on another event loop (thread) than the one "
+                f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
+                "in this loop, or run the call on the bus's loop "
+                "(asyncio.run_coroutine_threadsafe)"
+            )
+        if cmd.starts_motion:
+            self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
         occ = self.occupancy(cmd, len(raw))
         budget = occ.budget if timeout is None else float(timeout)
@@ -553,7 +603,7 @@ class Bus:
         job = _Job(
             cmd=cmd,
             raw=raw,
-            future=asyncio.get_running_loop().create_future(),
+            future=loop.create_future(),
             priority=int(priority),
             seq=next(self._seq),
             timeout=budget,
@@ -575,6 +625,69 @@ class Bus:
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
         await self.request(cmd, priority=priority)
+
+    # -- leases: one owner per moving device, a safe end for every motion --------------
+
+    def lease(
+        self,
+        keys: Iterable[str] | str,
+        *,
+        owner: str,
+        safe_action: str = "pause",
+        bind: bool = True,
+    ) -> Lease:
+        """Hold ``keys`` (``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``) for
+        ``owner`` from now on; nothing is sent.
+
+        Motion submitted from this task (and from tasks it starts afterwards) belongs to
+        the lease; motion of these devices from anyone else is refused.  End it with
+        ``await lease.release()`` (the safe action for each device) or
+        ``await lease.release(hold=True)`` (nothing sent: the devices keep their last
+        command), or use ``async with bus.lease(...) as lease:``, which releases it
+        with the safe action however the block is left.  The bus closing ends it too.
+
+        Args:
+            keys: the devices; ``"la:255"`` stands for every LA that answered or was moved by ID.
+            owner: a name for errors, logs and ``bus.leases`` (not ``"program"``).
+            safe_action: ``"pause"``, ``"estop"`` or ``"hold"`` (steppers: any but hold
+                sends their stop).
+            bind: make it the running task's lease (default).  ``False`` for an owner
+                that sends from elsewhere (a streamer's tick loop) and passes the lease
+                to ``submit(..., lease=...)``: the caller's own motion stays apart.
+
+        Raises:
+            LeaseConflictError: another owner's lease holds one of the devices (devices
+                moved outside any lease are taken over).
+            LocalProtocolError: a bad key, owner or action, or a family the bus does
+                not carry.
+        """
+        return self._lease_keeper.lease(keys, owner, safe_action, bind=check_flag("bind", bind))
+
+    @property
+    def leases(self) -> tuple[LeaseInfo, ...]:
+        """Every leased device now: key, owner and the frames of its safe action."""
+        return self._leases.snapshot()
+
+    def add_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Call ``fn(bus.leases)`` after every change of the leases (a guard process
+        mirrors them).  ``fn`` runs synchronously inside the change: keep it short."""
+        self._leases.add_listener(fn)
+
+    def remove_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Forget a listener added with ``add_lease_listener``; unknown ones are ignored."""
+        self._leases.remove_listener(fn)
+
+    async def release(self, keys: Iterable[str] | None = None, *, hold: bool = False) -> None:
+        """End the implicit lease (motion sent outside any lease) on ``keys`` (default:
+        every device it holds): each gets its safe action now, unless ``hold=True``,
+        which ends it on purpose and sends nothing (the devices keep their last command,
+        and the bus's close will not stop them).
+
+        Raises:
+            LeaseConflictError: an explicit lease holds one of the devices: release
+                that lease instead.
+        """
+        await self._lease_keeper.release_implicit(keys, hold)
 
     # -- reservations --------------------------------------------------------------
 
@@ -757,6 +870,10 @@ class Bus:
         job.tx_time = after
         if self._observers:
             self._tell(lambda o: o.on_write(cmd, after))
+        if cmd.starts_motion:
+            self._leases.moved(cmd)
+        elif not expects:
+            self._leases.sent(cmd)
         if expects:
             if self.config.wire_floor:
                 baud = self.baudrate
@@ -885,6 +1002,7 @@ class Bus:
                 stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedMarker:
+                self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
                 self._publish(ProjectFinished(self.name, now))
 
     def _on_frame(self, frame: Frame, start: int, now: float) -> None:
@@ -930,6 +1048,9 @@ class Bus:
         except RemoteProtocolError as err:
             self._finish(job, err)
             return
+        self._leases.note(job.key)  # it answered: "la:255" stands for it too
+        if not job.cmd.starts_motion:
+            self._leases.sent(job.cmd)  # a safe action answered: no longer owed
         if job.cmd.done_shapes():
             self._watch_done(_done_watch(job.cmd))
         self._observe(job.cmd.fault_state(value), value, now)
@@ -956,6 +1077,9 @@ class Bus:
             if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
                 del self._done_watches[i]
                 self._expect_shapes()
+                rest = safety.at_rest_after_done(watch.cmd)
+                if rest is not None:
+                    self._leases.sent(rest)  # the run is over: its stop is not owed
                 self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
                 return True
         return False
@@ -1091,4 +1215,4 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
 
 def _done_watch(cmd: Command[object]) -> _DoneWatch:
     led = getattr(cmd, "led", None)
-    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)
+    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led, cmd)
