@@ -235,10 +235,15 @@ def test_replay_goes_through_a_bus_spacing_and_awaiting_replies(
         ("reply", "AA 55 11 02"),
         ("request", hexof(MOVE_1)[:11]),
         ("reply", "AA 55 11 01"),
+        # The replayed move is owned by the bus's lease: closing the bus pauses la:1.
+        ("request", hexof(la.Control(1, la.ControlAction.PAUSE).encode())[:11]),
+        ("reply", "AA 55 11 01"),
     ]
     assert "3 requests sent" in r.stderr and "3 replies, 0 failed" in r.stderr
+    assert "then 1 safe-stop frame as the bus closed" in r.stderr
     out = r.stdout.splitlines()
-    assert ["request" in line for line in out] == [True, False, True, False, True, False]
+    # Printed as they cross the wire, the closing pause and its reply included.
+    assert ["request" in line for line in out] == [True, False] * 4
 
 
 def test_a_request_no_decoder_accepts_is_refused_before_sending(
@@ -302,7 +307,9 @@ def test_motion_is_sent_after_a_yes_at_the_terminal(
     wire = [x["hex"] for x in received_since(la_sim, before) if x["direction"] == "request"]
     if sent:
         assert proc.returncode == 0, err
-        assert wire == [hexof(QUERY_1), hexof(QUERY_2), hexof(MOVE_1)]
+        # The replayed move is owned by the bus's lease: closing the bus pauses la:1.
+        pause = hexof(la.Control(1, la.ControlAction.PAUSE).encode())
+        assert wire == [hexof(QUERY_1), hexof(QUERY_2), hexof(MOVE_1), pause]
     else:
         assert proc.returncode == 2
         assert err.endswith("motorbus replay: not sent\n")

@@ -409,7 +409,9 @@ async def _replay(
     hint = next(iter(families)) if len(families) == 1 else None
     replies = Reassembler(direction=Direction.REPLY, families=families)
     requests = Reassembler(direction=Direction.REQUEST, families=families)
-    counts = {"replies": 0}
+    # What the replay sent and heard, and apart from it what the bus sent as it closed
+    # (the safe action owed for motion the replay started: leases, docs/leases.md).
+    counts = {"replies": 0, "safe": 0, "closing": 0}
     started = time.monotonic()  # the bus timer's clock; reset when sending starts
 
     def now() -> float:
@@ -417,11 +419,12 @@ async def _replay(
 
     def on_sent(data: bytes) -> None:
         for item in requests.feed(data):
+            counts["safe"] += counts["closing"]
             _show(args, now(), describe(item, family_hint=hint))
 
     def on_received(data: bytes) -> None:
         for item in replies.feed(data):
-            counts["replies"] += 1
+            counts["replies"] += 1 - counts["closing"]
             _show(args, now(), describe(item, family_hint=hint))
 
     bus = Bus(
@@ -441,14 +444,19 @@ async def _replay(
         await sender.run()
         await bus.timer.sleep_until(bus.timer.now() + args.wait)
     finally:
+        counts["closing"] = 1
         await bus.close()
     for failure in sender.failures:
         print(f"motorbus replay: {failure}", file=sys.stderr)
     passes = f" ({args.loop} passes)" if args.loop > 1 else ""
+    safe = counts["safe"]
+    closing = (
+        f"; then {safe} safe-stop frame{'s' if safe != 1 else ''} as the bus closed" if safe else ""
+    )
     print(
         f"motorbus replay: {sender.sent} requests sent to {transport.url} through a bus"
         f"{passes}, {counts['replies']} replies, {sender.failed} failed (timeouts or bad "
-        "replies)",
+        f"replies){closing}",
         file=sys.stderr,
     )
     return 0
