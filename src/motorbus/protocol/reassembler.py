@@ -264,7 +264,8 @@ class Reassembler:
             pos += cut
         self._buf = rest
         self._buf_abs += pos
-        self._close_run()
+        if self._run is not None:
+            self._close_run()
         return out
 
     def end_of_stream(self) -> list[Item]:
@@ -565,7 +566,9 @@ class Reassembler:
             # Positions before the index (a query from inside an earlier candidate).
             self._index_range(buf, s, ix.lo)
             ix.lo = s
-        ix.prune(base)
+        valid = ix.valid
+        if valid and valid[0] < base:
+            ix.prune(base)
         due = ix.due
         while due and due[0][0] <= n_abs:
             _, q = heapq.heappop(due)
@@ -573,9 +576,12 @@ class Reassembler:
                 self._judge(buf, q)
             else:
                 ix.forget(q)
-        found = ix.first_valid(s)
-        if found >= 0:
-            return found - base
+        if valid:
+            found = ix.first_valid(s)
+            if found >= 0:
+                return found - base
+        if ix.to >= n_abs - 1:
+            return -1  # every place a header can start is judged: none is valid
         return self._extend_index(buf, s)
 
     def _extend_index(self, buf: bytes, s: int) -> int:

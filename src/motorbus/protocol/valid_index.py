@@ -42,24 +42,30 @@ class ValidIndex:
     __slots__ = ("due", "lo", "next", "to", "valid")
 
     def __init__(self) -> None:
-        self.restart(0)
-
-    def restart(self, at: int) -> None:
-        self.lo = at
-        self.to = at
+        self.lo = self.to = 0
         self.valid: list[int] = []
         self.due: list[tuple[int, int]] = []
         self.next: list[int] = [-1] * 4
 
+    def restart(self, at: int) -> None:
+        """Forget everything; judge again from stream offset ``at``."""
+        self.lo = self.to = at
+        self.valid.clear()
+        self.due.clear()
+        self.next[:] = (-1, -1, -1, -1)
+
     def record(self, q: int, valid: bool, due: int) -> None:
+        """Note the verdict on ``q`` and when (``due`` >= 0) to judge it again."""
+        if due >= 0:
+            heapq.heappush(self.due, (due, q))
+        if not valid and not self.valid:
+            return
         i = bisect_left(self.valid, q)
         listed = i < len(self.valid) and self.valid[i] == q
         if valid and not listed:
             self.valid.insert(i, q)
         elif listed and not valid:
             del self.valid[i]
-        if due >= 0:
-            heapq.heappush(self.due, (due, q))
 
     def prune(self, base: int) -> None:
         """Drop valid positions the stream has moved past."""
@@ -68,11 +74,13 @@ class ValidIndex:
             del valid[: bisect_left(valid, base)]
 
     def forget(self, q: int) -> None:
+        """``q`` is behind the stream: it is no answer any more."""
         i = bisect_left(self.valid, q)
         if i < len(self.valid) and self.valid[i] == q:
             del self.valid[i]
 
     def first_valid(self, s: int) -> int:
+        """The first valid position at or after ``s``, or -1."""
         valid = self.valid
         i = bisect_left(valid, s)
         return valid[i] if i < len(valid) else -1
