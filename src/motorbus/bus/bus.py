@@ -25,7 +25,10 @@ the pending request, routes events (``EE DD``, quad "done" replies), and counts 
 rest: garbage, late replies, unexpected frames.  A reply is accepted by causality: a
 frame whose first byte arrived after the request was handed to the OS may be its reply,
 however soon (a pty, a USB-CDC device or a TCP bridge does not pace bytes at the baud);
-a frame that began before the write is older traffic.  Whether a reply is on time is
+a frame that began before the write is older traffic.  "Before" is what the OS had
+received, not what the loop had read: a request's write is preceded by a read of what
+the OS already holds (``Transport.drain_input``), so a lagging loop cannot make an old
+reply look newer than the request.  Whether a reply is on time is
 decided by when its bytes were seen against the deadline, whichever callback runs
 first.  A late reply is never given to a later request: after a timeout, the next
 request to that device waits ``late_guard``, and the late frame is recognised by its
@@ -704,6 +707,9 @@ class Bus:
         device.requests += 1
         expects = cmd.expects_reply
         if expects:
+            # Bytes the OS already holds came before this write, whenever the loop gets
+            # round to them: read them first, so that they fall before the mark.
+            self.transport.drain_input()
             # Registered before the write: no callback can run during it, and whatever
             # the reassembler holds or has consumed so far came before it.
             job.rx_mark = self._rx_total
