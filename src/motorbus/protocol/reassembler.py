@@ -81,7 +81,6 @@ from motorbus.protocol.base import (
     Direction,
     Family,
     FrameShape,
-    ProjectFinished,
     ProjectFinishedMarker,
 )
 from motorbus.protocol.valid_index import ValidIndex, sum8_at
@@ -92,7 +91,6 @@ __all__ = [
     "Discarded",
     "Frame",
     "Item",
-    "ProjectFinished",
     "ProjectFinishedMarker",
     "Reassembler",
     "ReassemblerStats",
