@@ -296,7 +296,7 @@ class Bus:
         self.events = EventHub()
         self.state = BusState.CLOSED
         self._timer = timer
-        self._reassembler = Reassembler(families=self.families)
+        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
         self._heap: list[_Job] = []
         self._seq = itertools.count()
         self._pending: _Job | None = None
@@ -351,7 +351,7 @@ class Bus:
 
     def _new_reassembler(self) -> None:
         """A fresh stream (on open and after a lost port): nothing buffered, offsets at 0."""
-        self._reassembler = Reassembler(families=self.families)
+        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
         self._rx_total = 0
         self._expected_shapes = None
         self._expect_shapes()
@@ -856,11 +856,9 @@ class Bus:
             if type(item) is Frame:
                 self._on_frame(item, start, now)
             elif type(item) is Discarded:
-                stats.garbage_bytes += len(item.raw)
-                by_reason = stats.discarded_by_reason
-                by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
-                stats.resyncs += 1
-                log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
+                # Counted by the reassembler, in stats.reassembler (garbage_bytes, ...).
+                if log.isEnabledFor(logging.DEBUG):
+                    log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedMarker:
                 self._publish(ProjectFinished(self.name, now))
 

@@ -177,6 +177,8 @@ class Reassembler:
             simulator (what hosts send), ``None`` for both (``motorbus decode``).
         families: the device families that may appear on this stream.
         max_buffer: bound on the bytes kept between calls (see ``MAX_BUFFER``).
+        stats: the counters to add to (a bus keeps one set across the reassemblers of
+            its reconnects); fresh ones by default.
     """
 
     def __init__(
@@ -185,11 +187,12 @@ class Reassembler:
         direction: Direction | None = Direction.REPLY,
         families: Iterable[Family] = tuple(Family),
         max_buffer: int = MAX_BUFFER,
+        stats: ReassemblerStats | None = None,
     ) -> None:
         self.direction = direction
         self.families = frozenset(families)
         self.max_buffer = max_buffer
-        self.stats = ReassemblerStats()
+        self.stats = stats if stats is not None else ReassemblerStats()
         self._buf = b""
         #: Stream offset of ``self._buf[0]`` (bytes consumed so far), and of ``buf[0]`` in
         #: the buffer being scanned.
