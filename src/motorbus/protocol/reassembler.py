@@ -376,14 +376,6 @@ class Reassembler:
                 best = p
         return best
 
-    def _next_header(self, buf: bytes, pos: int) -> int:
-        best = -1
-        for h in self._headers:
-            p = buf.find(h, pos)
-            if p >= 0 and (best < 0 or p < best):
-                best = p
-        return best
-
     def _parse_at(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
         """Try to parse one item at ``p``: (state, size or reason code, item)."""
         b0 = buf[p]
