@@ -19,7 +19,10 @@ bus, ``motorbus decode`` with every family and both directions, a simulator read
 requests of every family), fed in 4 KiB chunks and in 64-byte chunks (what a pty read
 delivers at speed).  "Dense" junk is 90 % the two header bytes in random order, 10 %
 random bytes: full of candidate headers whose length or checksum is wrong.  The goal is
-bounded work per byte: every kind of junk within 3x of the others.
+bounded work per byte: every kind of junk within 3x of the others.  A second table
+counts the work instead of timing it (function calls per byte, through
+``sys.setprofile``), also for 8-byte and 1-byte reads: it does not depend on the load
+of a shared machine.
 
 Usage: ``python benchmarks/bench_reassembler.py [--seconds 2] [--quick] [--profile] [--junk-only]``
 """
@@ -71,6 +74,10 @@ JUNK_SETUPS: tuple[tuple[str, Direction | None, tuple[Family, ...]], ...] = (
     ("simulator", Direction.REQUEST, tuple(Family)),
 )
 JUNK_KINDS = ("normal", "random", "aa55-dense", "ffaa-dense", "all-ff")
+#: Bytes per kind and read sizes for the calls-per-byte table (a byte at a time is slow
+#: under the profiling hook, hence the small size).
+WORK_BYTES = 4000
+WORK_CHUNKS = (4096, 64, 8, 1)
 
 
 # -- streams ---------------------------------------------------------------------------------
@@ -251,6 +258,42 @@ def ns_per_byte(
     return best / len(data) * 1e9
 
 
+def calls_per_byte(
+    data: bytes, chunk: int, setup: tuple[str, Direction | None, tuple[Family, ...]]
+) -> float:
+    """Function calls (Python and C) per byte fed: work, counted rather than timed."""
+    _, direction, families = setup
+    calls = 0
+
+    def count(frame: object, event: str, arg: object) -> None:
+        nonlocal calls
+        if event in ("call", "c_call"):
+            calls += 1
+
+    sys.setprofile(count)
+    try:
+        junk_pass(data, chunk, direction, families)
+    finally:
+        sys.setprofile(None)
+    return calls / len(data)
+
+
+def work_table() -> dict[str, dict[str, dict[str, float]]]:
+    """Calls per byte for each set-up, kind and read size (deterministic: no clock)."""
+    streams = junk_streams(WORK_BYTES, random.Random(SEED + 1))
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    print(f"\ncalls per byte fed (counted, not timed), {WORK_BYTES:,} bytes per kind")
+    print(f"{'set-up':10} {'read':>5} " + " ".join(f"{k:>11}" for k in JUNK_KINDS))
+    for setup in JUNK_SETUPS:
+        for chunk in WORK_CHUNKS:
+            row = {
+                kind: calls_per_byte(streams[setup[0]][kind], chunk, setup) for kind in JUNK_KINDS
+            }
+            table.setdefault(setup[0], {})[str(chunk)] = {k: round(v, 2) for k, v in row.items()}
+            print(f"{setup[0]:10} {chunk:>5} " + " ".join(f"{row[k]:>11.1f}" for k in JUNK_KINDS))
+    return table
+
+
 def junk_table(size: int, repeats: int) -> dict[str, Any]:
     """Measure, print and return the time-per-byte table."""
     streams = junk_streams(size, random.Random(SEED + 1))
@@ -281,6 +324,7 @@ def junk_table(size: int, repeats: int) -> dict[str, Any]:
     met = worst <= GOAL_JUNK_SPREAD
     print(f"goal {'junk_within_3x':30} {'met' if met else 'NOT met'} (worst spread {worst:.1f}x)")
     return {
+        "calls_per_byte": work_table(),
         "ns_per_byte": table,
         "bytes_per_kind": size,
         "worst_spread": round(worst, 2),
