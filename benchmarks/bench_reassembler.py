@@ -13,7 +13,18 @@ registers, the closest Modbus frame to an LA status).  ``handleFrame`` consumes 
 buffer and returns at most one PDU (RTU is one frame per read), so it gets one call per
 frame, not per chunk.  Every figure is the best of ``--repeats`` runs of ``--seconds``.
 
-Usage: ``python benchmarks/bench_reassembler.py [--seconds 2] [--quick] [--profile]``
+Then the resynchronisation table: time per byte of junk (random bytes, ``AA 55``-dense,
+``FF AA``-dense, all ``FF``) against a normal stream, for three reassembler set-ups (an LA
+bus, ``motorbus decode`` with every family and both directions, a simulator reading
+requests of every family), fed in 4 KiB chunks and in 64-byte chunks (what a pty read
+delivers at speed).  "Dense" junk is 90 % the two header bytes in random order, 10 %
+random bytes: full of candidate headers whose length or checksum is wrong.  The goal is
+bounded work per byte: every kind of junk within 3x of the others.  A second table
+counts the work instead of timing it (function calls per byte, through
+``sys.setprofile``), also for 8-byte and 1-byte reads: it does not depend on the load
+of a shared machine.
+
+Usage: ``python benchmarks/bench_reassembler.py [--seconds 2] [--quick] [--profile] [--junk-only]``
 """
 
 from __future__ import annotations
@@ -33,7 +44,7 @@ from pathlib import Path
 from typing import Any
 
 from motorbus.protocol import la
-from motorbus.protocol.base import Family
+from motorbus.protocol.base import Direction, Family, sum8
 from motorbus.protocol.reassembler import Frame, Reassembler
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "reassembler.json"
@@ -50,6 +61,23 @@ MODBUS_REGISTERS = 8
 GOAL_FRAMES_PER_S = 1_000_000
 GOAL_DECODED_PER_S = 400_000
 GOAL_RATIO_VS_PYMODBUS = 5.0
+#: Junk kinds must cost within this factor of each other per byte.
+GOAL_JUNK_SPREAD = 3.0
+#: Bytes of each kind of junk per measured pass.
+JUNK_BYTES = 100_000
+#: Read sizes for the junk table: a bulk read, and a small pty read.
+JUNK_CHUNKS = (4096, 64)
+#: Reassembler set-ups: (name, direction, families).
+JUNK_SETUPS: tuple[tuple[str, Direction | None, tuple[Family, ...]], ...] = (
+    ("la-bus", Direction.REPLY, (Family.LA,)),
+    ("decode", None, tuple(Family)),
+    ("simulator", Direction.REQUEST, tuple(Family)),
+)
+JUNK_KINDS = ("normal", "random", "aa55-dense", "ffaa-dense", "all-ff")
+#: Bytes per kind and read sizes for the calls-per-byte table (a byte at a time is slow
+#: under the profiling hook, hence the small size).
+WORK_BYTES = 4000
+WORK_CHUNKS = (4096, 64, 8, 1)
 
 
 # -- streams ---------------------------------------------------------------------------------
@@ -171,6 +199,139 @@ def best_rate(one_pass: Callable[[], int], seconds: float, repeats: int) -> tupl
     return best, per_pass
 
 
+# -- junk: time per byte -------------------------------------------------------------------------
+
+
+def dense_junk(size: int, pair: tuple[int, int], rng: random.Random) -> bytes:
+    """``size`` bytes, 90 % drawn from ``pair`` (in random order), 10 % random."""
+    return bytes(
+        rng.choice(pair) if rng.random() < 0.9 else rng.randrange(256) for _ in range(size)
+    )
+
+
+def project_requests(size: int, rng: random.Random) -> bytes:
+    """About ``size`` bytes of valid 11-byte project stepper requests."""
+    out = bytearray()
+    while len(out) < size:
+        body = bytes((0xFF, 0xAA, rng.randint(1, 4), *rng.randbytes(7)))
+        out += body + bytes((sum8(body),))
+    return bytes(out)
+
+
+def junk_streams(size: int, rng: random.Random) -> dict[str, dict[str, bytes]]:
+    """Per set-up, the stream of each kind (the normal stream depends on the set-up)."""
+    common = {
+        "random": rng.randbytes(size),
+        "aa55-dense": dense_junk(size, (0xAA, 0x55), rng),
+        "ffaa-dense": dense_junk(size, (0xFF, 0xAA), rng),
+        "all-ff": b"\xff" * size,
+    }
+    statuses = b"".join(status_frames(size // la.STATUS_FRAME_SIZE, rng))
+    requests = project_requests(size, rng)
+    return {
+        name: {"normal": requests if direction is Direction.REQUEST else statuses, **common}
+        for name, direction, _ in JUNK_SETUPS
+    }
+
+
+def junk_pass(
+    data: bytes, chunk: int, direction: Direction | None, families: tuple[Family, ...]
+) -> None:
+    """Feed ``data`` in ``chunk``-byte reads to a fresh reassembler, then end the stream."""
+    r = Reassembler(direction=direction, families=families)
+    feed = r.feed
+    for i in range(0, len(data), chunk):
+        feed(data[i : i + chunk])
+    r.end_of_stream()
+
+
+def ns_per_byte(
+    data: bytes, chunk: int, setup: tuple[str, Direction | None, tuple[Family, ...]], repeats: int
+) -> float:
+    """Best time per byte (ns) over ``repeats`` passes."""
+    _, direction, families = setup
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        junk_pass(data, chunk, direction, families)
+        best = min(best, time.perf_counter() - start)
+    return best / len(data) * 1e9
+
+
+def calls_per_byte(
+    data: bytes, chunk: int, setup: tuple[str, Direction | None, tuple[Family, ...]]
+) -> float:
+    """Function calls (Python and C) per byte fed: work, counted rather than timed."""
+    _, direction, families = setup
+    calls = 0
+
+    def count(frame: object, event: str, arg: object) -> None:
+        nonlocal calls
+        if event in ("call", "c_call"):
+            calls += 1
+
+    sys.setprofile(count)
+    try:
+        junk_pass(data, chunk, direction, families)
+    finally:
+        sys.setprofile(None)
+    return calls / len(data)
+
+
+def work_table() -> dict[str, dict[str, dict[str, float]]]:
+    """Calls per byte for each set-up, kind and read size (deterministic: no clock)."""
+    streams = junk_streams(WORK_BYTES, random.Random(SEED + 1))
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    print(f"\ncalls per byte fed (counted, not timed), {WORK_BYTES:,} bytes per kind")
+    print(f"{'set-up':10} {'read':>5} " + " ".join(f"{k:>11}" for k in JUNK_KINDS))
+    for setup in JUNK_SETUPS:
+        for chunk in WORK_CHUNKS:
+            row = {
+                kind: calls_per_byte(streams[setup[0]][kind], chunk, setup) for kind in JUNK_KINDS
+            }
+            table.setdefault(setup[0], {})[str(chunk)] = {k: round(v, 2) for k, v in row.items()}
+            print(f"{setup[0]:10} {chunk:>5} " + " ".join(f"{row[k]:>11.1f}" for k in JUNK_KINDS))
+    return table
+
+
+def junk_table(size: int, repeats: int) -> dict[str, Any]:
+    """Measure, print and return the time-per-byte table."""
+    streams = junk_streams(size, random.Random(SEED + 1))
+    table: dict[str, dict[str, dict[str, float]]] = {}
+    print(f"\ntime per byte (ns), best of {repeats}, {size:,} bytes per kind")
+    print(
+        f"{'set-up':10} {'read':>5} "
+        + " ".join(f"{k:>11}" for k in JUNK_KINDS)
+        + f" {'junk spread':>12}"
+    )
+    spreads: list[float] = []
+    for setup in JUNK_SETUPS:
+        name = setup[0]
+        for chunk in JUNK_CHUNKS:
+            row = {
+                kind: ns_per_byte(streams[name][kind], chunk, setup, repeats) for kind in JUNK_KINDS
+            }
+            junk = [v for k, v in row.items() if k != "normal"]
+            spread = max(junk) / min(junk)
+            spreads.append(spread)
+            table.setdefault(name, {})[str(chunk)] = {k: round(v, 1) for k, v in row.items()}
+            print(
+                f"{name:10} {chunk:>5} "
+                + " ".join(f"{row[k]:>11,.1f}" for k in JUNK_KINDS)
+                + f" {spread:>11.1f}x"
+            )
+    worst = max(spreads)
+    met = worst <= GOAL_JUNK_SPREAD
+    print(f"goal {'junk_within_3x':30} {'met' if met else 'NOT met'} (worst spread {worst:.1f}x)")
+    return {
+        "calls_per_byte": work_table(),
+        "ns_per_byte": table,
+        "bytes_per_kind": size,
+        "worst_spread": round(worst, 2),
+        "junk_within_3x": met,
+    }
+
+
 # -- reporting ----------------------------------------------------------------------------------
 
 
@@ -189,7 +350,31 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="0.2 s runs, a smaller stream")
     parser.add_argument("--profile", action="store_true", help="profile the decoding pass")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
+    parser.add_argument("--junk-only", action="store_true", help="only the time-per-byte table")
     args = parser.parse_args(argv)
+    junk_size = JUNK_BYTES // 4 if args.quick else JUNK_BYTES
+    if args.junk_only:
+        junk = junk_table(junk_size, args.repeats)
+        report_junk: dict[str, Any] = {
+            "benchmark": "reassembler-junk",
+            "junk": junk,
+            "chunks": list(JUNK_CHUNKS),
+            "repeats": args.repeats,
+            "quick": args.quick,
+            "machine": {
+                "platform": platform.platform(),
+                "python": platform.python_version(),
+                "cpu_count": os.cpu_count(),
+            },
+            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        }
+        out = (
+            args.out if args.out != DEFAULT_OUT else DEFAULT_OUT.with_name("reassembler_junk.json")
+        )
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(report_junk, indent=2) + "\n", encoding="utf-8")
+        print(f"wrote {out}")
+        return 0
     seconds = 0.2 if args.quick else args.seconds
     count = STREAM_FRAMES // 4 if args.quick else STREAM_FRAMES
 
@@ -242,12 +427,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     for name, met in goals.items():
         print(f"goal {name:30} {'met' if met else 'NOT met'}")
+    junk = junk_table(junk_size, args.repeats)
 
     report: dict[str, Any] = {
         "benchmark": "reassembler",
         **{k: round(v) for k, v in measured.items()},
         "ratio_vs_pymodbus": round(ratio, 3),
-        "goals": goals,
+        "goals": {**goals, "junk_within_3x": junk["junk_within_3x"]},
+        "junk": junk,
         "frames_per_pass": count,
         "chunk_bytes": CHUNK_SIZE,
         "garbage_share": GARBAGE_SHARE,

@@ -126,6 +126,9 @@ class TimedTransport(Transport):
         self.inner.write(data)
         self.writes.append(WriteRecord(before, self.timer.now(), bytes(data)))
 
+    def drain_input(self) -> None:
+        self.inner.drain_input()
+
     async def close(self) -> None:
         await self.inner.close()
 

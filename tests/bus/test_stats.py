@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import math
 import random
 import statistics
@@ -11,7 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from motorbus.bus.bus import Bus, BusState
 from motorbus.bus.stats import BusStats, LatencyHistogram
+from motorbus.protocol.base import Family
+from motorbus.transport.memory import memory_pair
 
 PERCENTILES = (0, 1, 10, 25, 50, 75, 90, 99, 99.9, 100)
 
@@ -151,3 +155,25 @@ def test_percentile_scan_and_record_agree_on_buckets() -> None:
         h = LatencyHistogram()
         h.record(x)
         assert h.counts[stats._bucket_of(x)] == 1, x
+
+
+async def test_discards_are_counted_once_by_the_reassembler_and_kept_across_reconnects() -> None:
+    """``garbage_bytes``, ``discarded_by_reason`` and ``resyncs`` read the reassembler's
+    counters (one set, not a second tally in the bus), and a reconnect, which starts a
+    new reassembler, keeps adding to them."""
+    host, peer = memory_pair()
+    async with Bus(host, families={Family.LA}) as bus:
+        peer.send(b"\x01\x02\x03")
+        await asyncio.sleep(0.01)
+        assert bus.stats.reassembler.discarded_bytes == bus.stats.garbage_bytes == 3
+        peer.unplug()
+        await asyncio.wait_for(bus.wait_state(BusState.LOST), 2.0)
+        peer.plug()
+        await asyncio.wait_for(bus.wait_state(BusState.OPEN), 5.0)
+        peer.send(b"\x04\x05")
+        await asyncio.sleep(0.01)
+        stats = bus.stats
+        assert stats.garbage_bytes == stats.reassembler.discarded_bytes == 5
+        assert stats.discarded_by_reason == {"garbage": 5} == stats.as_dict()["discarded_by_reason"]
+        assert stats.resyncs == stats.reassembler.resyncs == 2
+        assert stats.as_dict()["garbage_bytes"] == 5

@@ -19,7 +19,7 @@ from motorbus.protocol.describe import (
     Description,
     describe,
 )
-from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinished, Reassembler
+from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from tests.vectors import load_vectors
 
 LA, PROJECT, QUAD = Family.LA, Family.PROJECT_STEPPER, Family.QUAD_STEPPER
@@ -236,7 +236,7 @@ def test_project_dump_lists_its_steps() -> None:
 
 
 def test_project_finished_is_an_event() -> None:
-    d = describe(ProjectFinished())
+    d = describe(ProjectFinishedMarker())
     assert (d.kind, d.family, d.direction, d.name, d.fields, d.hex) == (
         KIND_EVENT,
         "project_stepper",

@@ -36,7 +36,7 @@ from motorbus.protocol.project_stepper import (
     OutputPort,
     Project,
     ProjectDump,
-    ProjectFinished,
+    ProjectFinishedMarker,
     ProjectStepperCommand,
     ReadInput,
     ReadProject,
@@ -472,7 +472,7 @@ CONTEXT_FREE: list[tuple[str, object]] = [
     ("FF AA 03 09 00 0A", Ack(ReplyKind.STEP, 0x09, motor=3, step=10)),
     ("FF AA 00 0C 04 00", Ack(ReplyKind.OUTPUT, 0x0C, port=4)),
     ("FF AA 00 0B 05 01", Ack(ReplyKind.INPUT, 0x0B, port=5, value=1)),
-    ("EE DD", ProjectFinished()),
+    ("EE DD", ProjectFinishedMarker()),
 ]
 
 
@@ -493,7 +493,7 @@ def test_decode_reply_context_free_refuses(hex_text: str) -> None:
 
 def test_project_finished_marker() -> None:
     assert PROJECT_FINISHED == b"\xee\xdd"
-    assert ProjectFinished() == ProjectFinished()
+    assert ProjectFinishedMarker() == ProjectFinishedMarker()
 
 
 # -- hypothesis --------------------------------------------------------------------------

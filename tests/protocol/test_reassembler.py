@@ -13,7 +13,7 @@ from motorbus.protocol.reassembler import (
     Discarded,
     Frame,
     Item,
-    ProjectFinished,
+    ProjectFinishedMarker,
     Reassembler,
 )
 from tests.vectors import load_vectors
@@ -143,7 +143,7 @@ def test_ee_dd_between_stepper_frames_is_an_event() -> None:
     items = r.feed(ack + b"\xee\xdd" + ack)
     assert items == [
         Frame(Family.PROJECT_STEPPER, Direction.REPLY, ack),
-        ProjectFinished(),
+        ProjectFinishedMarker(),
         Frame(Family.PROJECT_STEPPER, Direction.REPLY, ack),
     ]
     assert r.stats.events == 1
@@ -158,7 +158,7 @@ def test_ee_dd_and_ff_aa_inside_the_226_byte_dump_are_data() -> None:
     items = feed_all(r, [bytes(dump[i : i + 7]) for i in range(0, 226, 7)] + [b"\xee\xdd"])
     assert items == [
         Frame(Family.PROJECT_STEPPER, Direction.REPLY, bytes(dump)),
-        ProjectFinished(),
+        ProjectFinishedMarker(),
     ]
 
 
@@ -201,7 +201,7 @@ def test_decode_mode_tells_requests_from_replies() -> None:
     assert kinds == [
         (Family.PROJECT_STEPPER, Direction.REQUEST),
         (Family.PROJECT_STEPPER, Direction.REPLY),
-        "ProjectFinished",
+        "ProjectFinishedMarker",
         (Family.LA, Direction.REQUEST),
         (Family.QUAD_STEPPER, Direction.REQUEST),
         (Family.QUAD_STEPPER, Direction.REPLY),

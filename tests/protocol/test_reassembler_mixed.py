@@ -20,7 +20,7 @@ from motorbus.protocol.reassembler import (
     Discarded,
     Frame,
     Item,
-    ProjectFinished,
+    ProjectFinishedMarker,
     Reassembler,
 )
 
@@ -252,7 +252,7 @@ def test_expect_empty_refuses_every_stepper_reply_and_la_frames_still_pass() -> 
         Discarded(PROJECT_ACK, "unexpected reply shape"),
     ]
     assert r.stats.by_reason == {"unexpected reply shape": 12}
-    assert r.feed(b"\xee\xdd") == [ProjectFinished()]
+    assert r.feed(b"\xee\xdd") == [ProjectFinishedMarker()]
     r.expect(None)
     assert r.feed(PROJECT_ACK) == [Frame(Family.PROJECT_STEPPER, Direction.REPLY, PROJECT_ACK)]
 
@@ -463,8 +463,8 @@ def test_items_cover_the_consumed_bytes_contiguously_and_in_order(
     items += r.end_of_stream()
     assert b"".join(i.raw for i in items) == stream
     assert r.buffered == 0
-    assert all(i.raw == b"\xee\xdd" for i in items if isinstance(i, ProjectFinished))
+    assert all(i.raw == b"\xee\xdd" for i in items if isinstance(i, ProjectFinishedMarker))
     discarded = [i for i in items if isinstance(i, Discarded)]
     assert r.stats.discarded_bytes == sum(len(i.raw) for i in discarded)
     assert r.stats.frames == sum(isinstance(i, Frame) for i in items)
-    assert r.stats.events == sum(isinstance(i, ProjectFinished) for i in items)
+    assert r.stats.events == sum(isinstance(i, ProjectFinishedMarker) for i in items)

@@ -25,7 +25,10 @@ the pending request, routes events (``EE DD``, quad "done" replies), and counts 
 rest: garbage, late replies, unexpected frames.  A reply is accepted by causality: a
 frame whose first byte arrived after the request was handed to the OS may be its reply,
 however soon (a pty, a USB-CDC device or a TCP bridge does not pace bytes at the baud);
-a frame that began before the write is older traffic.  Whether a reply is on time is
+a frame that began before the write is older traffic.  "Before" is what the OS had
+received, not what the loop had read: a request's write is preceded by a read of what
+the OS already holds (``Transport.drain_input``), so a lagging loop cannot make an old
+reply look newer than the request.  Whether a reply is on time is
 decided by when its bytes were seen against the deadline, whichever callback runs
 first.  A late reply is never given to a later request: after a timeout, the next
 request to that device waits ``late_guard``, and the late frame is recognised by its
@@ -317,7 +320,7 @@ class Bus:
         self.events = EventHub()
         self.state = BusState.CLOSED
         self._timer = timer
-        self._reassembler = Reassembler(families=self.families)
+        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
         self._heap: list[_Job] = []
         self._seq = itertools.count()
         self._pending: _Job | None = None
@@ -383,7 +386,7 @@ class Bus:
 
     def _new_reassembler(self) -> None:
         """A fresh stream (on open and after a lost port): nothing buffered, offsets at 0."""
-        self._reassembler = Reassembler(families=self.families)
+        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
         self._rx_total = 0
         self._expected_shapes = None
         self._expect_shapes()
@@ -844,6 +847,9 @@ class Bus:
         device.requests += 1
         expects = cmd.expects_reply
         if expects:
+            # Bytes the OS already holds came before this write, whenever the loop gets
+            # round to them: read them first, so that they fall before the mark.
+            self.transport.drain_input()
             # Registered before the write: no callback can run during it, and whatever
             # the reassembler holds or has consumed so far came before it.
             job.rx_mark = self._rx_total
@@ -996,11 +1002,9 @@ class Bus:
             if type(item) is Frame:
                 self._on_frame(item, start, now)
             elif type(item) is Discarded:
-                stats.garbage_bytes += len(item.raw)
-                by_reason = stats.discarded_by_reason
-                by_reason[item.reason] = by_reason.get(item.reason, 0) + len(item.raw)
-                stats.resyncs += 1
-                log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
+                # Counted by the reassembler, in stats.reassembler (garbage_bytes, ...).
+                if log.isEnabledFor(logging.DEBUG):
+                    log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedMarker:
                 self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
                 self._publish(ProjectFinished(self.name, now))

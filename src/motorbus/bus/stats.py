@@ -8,6 +8,8 @@ from bisect import bisect_left
 from dataclasses import dataclass, field
 from itertools import accumulate
 
+from motorbus.protocol.reassembler import ReassemblerStats
+
 __all__ = ["BusStats", "DeviceStats", "LatencyHistogram"]
 
 # Histogram buckets: each 1 % wider than the one before, from 10 ns to 100 s.  Bucket 0
@@ -131,11 +133,9 @@ class BusStats:
     failed: int = 0  # requests that ended in an error for the caller
     late_replies: int = 0  # replies that came after their request's deadline
     unexpected_frames: int = 0  # valid frames that answered nothing we asked
-    garbage_bytes: int = 0  # bytes the reassembler discarded
-    #: The same bytes by the reassembler's reason ("garbage", "bad checksum",
-    #: "unexpected reply shape", ...).
-    discarded_by_reason: dict[str, int] = field(default_factory=dict)
-    resyncs: int = 0  # runs of discarded bytes
+    #: The reassembler's own counters (frames cut, ``EE DD`` markers, discarded bytes by
+    #: reason, resyncs), kept across reconnects: the one place discards are counted.
+    reassembler: ReassemblerStats = field(default_factory=ReassemblerStats)
     events: int = 0  # device events delivered (EE DD, done replies, fault changes)
     done_watches_dropped: int = 0  # awaited "done" replies given up (never came)
     not_sent: int = 0  # requests dropped unsent: they could not start by their start_by
@@ -153,6 +153,22 @@ class BusStats:
     latency: LatencyHistogram = field(default_factory=LatencyHistogram)
     #: Per device, keyed like ``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``.
     devices: dict[str, DeviceStats] = field(default_factory=dict)
+
+    @property
+    def garbage_bytes(self) -> int:
+        """Bytes the reassembler discarded (``reassembler.discarded_bytes``)."""
+        return self.reassembler.discarded_bytes
+
+    @property
+    def discarded_by_reason(self) -> dict[str, int]:
+        """The same bytes by the reassembler's reason ("garbage", "bad checksum",
+        "unexpected reply shape", ...): ``reassembler.by_reason``."""
+        return self.reassembler.by_reason
+
+    @property
+    def resyncs(self) -> int:
+        """Runs of discarded bytes (``reassembler.resyncs``)."""
+        return self.reassembler.resyncs
 
     def device(self, key: str) -> DeviceStats:
         """The stats of one device (created on first use)."""

@@ -49,6 +49,9 @@ class Tee(Transport):
         self.inner.write(data)
         self._on_sent(bytes(data))
 
+    def drain_input(self) -> None:
+        self.inner.drain_input()
+
     async def close(self) -> None:
         await self.inner.close()
 

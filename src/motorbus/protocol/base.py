@@ -28,7 +28,6 @@ __all__ = [
     "Family",
     "FaultState",
     "FrameShape",
-    "ProjectFinished",
     "ProjectFinishedMarker",
     "ReplyT_co",
     "as_real",
@@ -247,21 +246,14 @@ class FrameShape:
         return cls(length, tuple(pattern))
 
 
-class ProjectFinished(NamedTuple):
+class ProjectFinishedMarker(NamedTuple):
     """The project stepper's bare ``EE DD``: the running project has finished (A0-06).
 
-    A stream item (the reassembler's), not the bus event of the same name: the bus turns it into
-    ``motorbus.bus.events.ProjectFinished`` for its subscribers.  Code should say
-    :data:`ProjectFinishedMarker`, which cannot be confused with the event; the
-    class keeps its runtime name because item kinds are reported by class name
-    (``type(item).__name__``, ``motorbus decode``).
+    A stream item (the reassembler's); the bus turns it into the event
+    ``motorbus.bus.events.ProjectFinished`` for its subscribers.
     """
 
     raw: bytes = PROJECT_FINISHED_BYTES
-
-
-#: The unambiguous name of the ``EE DD`` stream item (the bus event is another class).
-ProjectFinishedMarker = ProjectFinished
 
 
 class FaultState(NamedTuple):

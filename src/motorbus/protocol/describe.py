@@ -23,7 +23,7 @@ from typing import Any, TypeAlias
 from motorbus.errors import MotorbusError
 from motorbus.protocol import la, project_stepper, quad_stepper
 from motorbus.protocol.base import FF_AA, Direction, Family, format_hex
-from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinished
+from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker
 
 __all__ = [
     "KIND_EVENT",
@@ -116,7 +116,7 @@ class Description:
 
 
 def describe(
-    item: Frame | ProjectFinished | Discarded, *, family_hint: Family | None = None
+    item: Frame | ProjectFinishedMarker | Discarded, *, family_hint: Family | None = None
 ) -> Description:
     """Describe one item returned by ``Reassembler.feed`` or ``end_of_stream``.
 
@@ -134,7 +134,7 @@ def describe(
         return Description(
             KIND_GARBAGE, None, None, NAME_GARBAGE, {}, format_hex(item.raw), item.reason
         )
-    if isinstance(item, ProjectFinished):
+    if isinstance(item, ProjectFinishedMarker):
         return Description(
             KIND_EVENT,
             Family.PROJECT_STEPPER.value,

@@ -54,6 +54,12 @@ A header that claims more bytes than have arrived waits for them - unless a late
 complete, checksum-valid frame is already in the buffer, which proves the header was
 garbage; the reassembler then skips to that frame instead of stalling behind it.
 
+Work per input byte is bounded whatever the junk and however the stream is read: the
+search for that later frame is kept across ``feed`` calls (``valid_index.ValidIndex``:
+each candidate header is judged when first seen and again only when bytes its verdict
+depends on arrive), checksums are summed in C, and a run of discarded bytes is joined
+once.  ``tests/protocol/test_reassembler_work.py`` counts the calls per byte.
+
 Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
 in order (``ProjectFinishedMarker.raw`` is ``EE DD``), so the stream offset of an item is
 the sum of ``len(raw)`` of the items before it; every byte fed is in a frame, an
@@ -62,6 +68,7 @@ event, a discarded run, or the buffer.
 
 from __future__ import annotations
 
+import heapq
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -74,9 +81,9 @@ from motorbus.protocol.base import (
     Direction,
     Family,
     FrameShape,
-    ProjectFinished,
     ProjectFinishedMarker,
 )
+from motorbus.protocol.valid_index import ValidIndex, sum8_at
 
 __all__ = [
     "LA_MAX_FRAME",
@@ -84,7 +91,6 @@ __all__ = [
     "Discarded",
     "Frame",
     "Item",
-    "ProjectFinished",
     "ProjectFinishedMarker",
     "Reassembler",
     "ReassemblerStats",
@@ -171,6 +177,8 @@ class Reassembler:
             simulator (what hosts send), ``None`` for both (``motorbus decode``).
         families: the device families that may appear on this stream.
         max_buffer: bound on the bytes kept between calls (see ``MAX_BUFFER``).
+        stats: the counters to add to (a bus keeps one set across the reassemblers of
+            its reconnects); fresh ones by default.
     """
 
     def __init__(
@@ -179,15 +187,22 @@ class Reassembler:
         direction: Direction | None = Direction.REPLY,
         families: Iterable[Family] = tuple(Family),
         max_buffer: int = MAX_BUFFER,
+        stats: ReassemblerStats | None = None,
     ) -> None:
         self.direction = direction
         self.families = frozenset(families)
         self.max_buffer = max_buffer
-        self.stats = ReassemblerStats()
+        self.stats = stats if stats is not None else ReassemblerStats()
         self._buf = b""
+        #: Stream offset of ``self._buf[0]`` (bytes consumed so far), and of ``buf[0]`` in
+        #: the buffer being scanned.
+        self._buf_abs = 0
+        self._base = 0
         self._expected: tuple[FrameShape, ...] | None = None
-        # (buffer, start, answer) of the last ``_later_valid_frame`` call.
-        self._later_memo: tuple[bytes, int, int] = (b"", 0, -1)
+        # The open discarded run of a ``feed`` call: (out, index in out, parts, reason), so that a
+        # run of single-byte discards is joined once instead of copied at every byte.
+        self._run: tuple[list[Item], int, list[bytes], str] | None = None
+        self._index = ValidIndex()
         la = Family.LA in self.families
         project = Family.PROJECT_STEPPER in self.families
         quad = Family.QUAD_STEPPER in self.families
@@ -206,6 +221,11 @@ class Reassembler:
         #: LA headers this stream may carry: a stepper candidate that one of them starts
         #: inside of is checked against it (checksummed frames win).
         self._la_headers = tuple(la_headers)
+        #: Headers of self-validating frames (the only ones that prove a header garbage).
+        valid_headers = list(la_headers)
+        if (project or quad) and direction is not Direction.REPLY:
+            valid_headers.append(FF_AA)
+        self._valid_headers = tuple(valid_headers)
         self._project = project
         self._quad = quad
         # The hot path (one family, one header) gets a single bytes.find per frame.
@@ -235,23 +255,31 @@ class Reassembler:
         """Add ``data`` to the stream; return every item it completed, in order."""
         buf = self._buf + data if self._buf else bytes(data)
         out: list[Item] = []
+        self._base = self._buf_abs
         pos = self._scan(buf, 0, out, final=False)
         rest = buf[pos:]
         if len(rest) > self.max_buffer:
             cut = len(rest) - self.max_buffer
             self._discard(out, rest[:cut], "overflow")
             rest = rest[cut:]
+            pos += cut
         self._buf = rest
-        self._later_memo = (b"", 0, -1)  # do not keep this call's buffer alive
+        self._buf_abs += pos
+        if self._run is not None:
+            self._close_run()
         return out
 
     def end_of_stream(self) -> list[Item]:
         """No more bytes will come: resolve what is buffered (for finite inputs)."""
         buf, self._buf = self._buf, b""
         out: list[Item] = []
+        self._base = self._buf_abs
         pos = self._scan(buf, 0, out, final=True)
         if pos < len(buf):
             self._discard(out, buf[pos:], "truncated frame")
+        self._buf_abs += len(buf)
+        self._index = ValidIndex()
+        self._close_run()
         return out
 
     # -- the scanner -------------------------------------------------------------
@@ -348,14 +376,6 @@ class Reassembler:
                 best = p
         return best
 
-    def _next_header(self, buf: bytes, pos: int) -> int:
-        best = -1
-        for h in self._headers:
-            p = buf.find(h, pos)
-            if p >= 0 and (best < 0 or p < best):
-                best = p
-        return best
-
     def _parse_at(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
         """Try to parse one item at ``p``: (state, size or reason code, item)."""
         b0 = buf[p]
@@ -378,7 +398,7 @@ class Reassembler:
         if avail < total:
             return _INCOMPLETE, 0, None
         end = p + total
-        if sum(buf[p + 2 : end - 1]) & 0xFF != buf[end - 1]:
+        if sum8_at(buf, p + 2, end - 1) != buf[end - 1]:
             return _INVALID, _BAD_CHECKSUM, None
         return _COMPLETE, total, Frame(Family.LA, direction, buf[p:end])
 
@@ -401,7 +421,7 @@ class Reassembler:
         quad_ok = (
             self._quad
             and avail >= QUAD_REQUEST_SIZE
-            and sum(buf[p : p + QUAD_REQUEST_SIZE - 1]) & 0xFF == buf[p + QUAD_REQUEST_SIZE - 1]
+            and sum8_at(buf, p, p + QUAD_REQUEST_SIZE - 1) == buf[p + QUAD_REQUEST_SIZE - 1]
         )
         candidates: list[tuple[int, Family]] = []
         waiting = False
@@ -409,7 +429,7 @@ class Reassembler:
             end = p + PROJECT_REQUEST_SIZE
             if avail < PROJECT_REQUEST_SIZE:
                 waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
-            elif sum(buf[p : end - 1]) & 0xFF == buf[end - 1]:
+            elif sum8_at(buf, p, end - 1) == buf[end - 1]:
                 # If the 9-byte checksum holds too, the 11-byte frame is preferred; it
                 # cannot end in the ``FF AA`` of a next frame (see the module docstring).
                 candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
@@ -519,49 +539,162 @@ class Reassembler:
         return Family.PROJECT_STEPPER
 
     def _later_valid_frame(self, buf: bytes, start: int) -> int:
-        """Position of a complete checksum-valid frame after ``start``, or -1.
+        """Position of the first complete checksum-valid frame at or after ``start``, or -1.
 
         Only self-validating frames count (LA frames, stepper requests): a stepper
-        reply has no checksum, so finding one proves nothing.  The last answer is
-        remembered: asked again about the same buffer from a start between the last
-        start and the frame found, the answer is the same (so a run of garbage headers
-        costs one scan, not one per header).
+        reply has no checksum, so finding one proves nothing.  The answer comes from
+        an index kept across ``feed`` calls (``ValidIndex``): each candidate header is
+        judged when first seen and again only when bytes it depends on arrive, so a
+        stream of look-alike headers costs bounded work per byte however it is read.
         """
-        memo_buf, memo_start, memo_found = self._later_memo
-        if memo_buf is buf and memo_start <= start and (memo_found < 0 or start <= memo_found):
-            return memo_found
-        found = self._scan_for_valid_frame(buf, start)
-        self._later_memo = (buf, start, found)
-        return found
+        ix = self._index
+        base = self._base
+        n_abs = base + len(buf)
+        s = base + start
+        if s >= n_abs:
+            return -1
+        if s > ix.to:
+            ix.restart(s)
+        elif s < ix.lo:
+            # Positions before the index (a query from inside an earlier candidate).
+            self._index_range(buf, s, ix.lo)
+            ix.lo = s
+        valid = ix.valid
+        if valid and valid[0] < base:
+            ix.prune(base)
+        due = ix.due
+        while due and due[0][0] <= n_abs:
+            _, q = heapq.heappop(due)
+            if q >= base:
+                self._judge(buf, q)
+            else:
+                ix.forget(q)
+        if valid:
+            found = ix.first_valid(s)
+            if found >= 0:
+                return found - base
+        if ix.to >= n_abs - 1:
+            return -1  # every place a header can start is judged: none is valid
+        return self._extend_index(buf, s)
 
-    def _scan_for_valid_frame(self, buf: bytes, start: int) -> int:
-        p = start
+    def _extend_index(self, buf: bytes, s: int) -> int:
+        """Index candidates from ``ix.to`` on until one is valid at or after ``s``."""
+        ix = self._index
+        base = self._base
         n = len(buf)
-        while p < n:
-            p = self._next_header(buf, p)
-            if p < 0:
+        nxt = ix.next
+        headers = self._valid_headers
+        last = base + n - 1  # a header needs two bytes: none can start here yet
+        while True:
+            best = -1
+            for i, header in enumerate(headers):
+                q = nxt[i]
+                if q < ix.to:
+                    # Unknown (-1), stale (found before ``to``), or none before ``-q - 2``.
+                    since = max(ix.to, -q - 2, base)
+                    if since >= last:
+                        continue
+                    found = buf.find(header, since - base)
+                    q = nxt[i] = found + base if found >= 0 else -last - 2
+                    if found < 0:
+                        continue
+                if best < 0 or q < best:
+                    best = q
+            if best < 0:
+                ix.to = max(ix.to, base + n - 1)
                 return -1
-            b0 = buf[p]
-            if b0 in (0xAA, 0x55):
-                state, _, _ = self._parse_la(buf, p, Direction.REPLY)
-                if state == _COMPLETE:
-                    return p
-            elif b0 == 0xFF and self.direction is not Direction.REPLY:
-                state, _, _ = self._parse_stepper_request(buf, p, n - p, True)
-                if state == _COMPLETE:
-                    return p
-            p += 1
-        return -1
+            ix.to = best + 1
+            if self._judge(buf, best) and best >= s:
+                return best - base
+
+    def _index_range(self, buf: bytes, lo: int, hi: int) -> None:
+        """Judge every candidate header at stream offsets ``lo <= q < hi``."""
+        base = self._base
+        for header in self._valid_headers:
+            q = buf.find(header, lo - base, hi - base + 1)
+            while q >= 0:
+                self._judge(buf, q + base)
+                q = buf.find(header, q + 1, hi - base + 1)
+
+    def _judge(self, buf: bytes, q_abs: int) -> bool:
+        """Is the candidate at stream offset ``q_abs`` a complete valid frame now?
+
+        Records the answer in the index, and when later bytes may change it.
+        """
+        p = q_abs - self._base
+        n = len(buf)
+        avail = n - p
+        if buf[p] == 0xFF:
+            state, _, _ = self._parse_stepper_request(buf, p, avail, True)
+            due = self._request_due(buf, p, avail)
+        else:
+            state, _, _ = self._parse_la(buf, p, Direction.REPLY)
+            if avail < 3:
+                due = p + 3
+            elif buf[p + 2] < LA_MIN_LEN:
+                due = -1
+            else:
+                total = buf[p + 2] + 5
+                due = p + total if avail < total else -1
+        valid = state == _COMPLETE
+        self._index.record(q_abs, valid, due + self._base if due >= 0 else -1)
+        return valid
+
+    def _request_due(self, buf: bytes, p: int, avail: int) -> int:
+        """Where a stepper request's verdict (at ``p``) may next change, or -1 if never.
+
+        Before the shortest request is in, nothing is decided: when it is.  Then, until
+        the widest window (11 bytes and the header that may start at its last byte) is
+        in: at the next byte.  Then: when an LA frame starting inside it is complete.
+        """
+        shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
+        if avail < shortest:
+            return p + shortest
+        window = PROJECT_REQUEST_SIZE + 1
+        if avail < window:
+            return p + avail + 1
+        due = -1
+        n = p + avail
+        for header in self._la_headers:
+            q = buf.find(header, p + 1, p + window)
+            while q >= 0:
+                if n - q < 3:
+                    d = q + 3
+                elif buf[q + 2] >= LA_MIN_LEN and n - q < buf[q + 2] + 5:
+                    d = q + buf[q + 2] + 5
+                else:
+                    d = -1
+                if d >= 0 and (due < 0 or d < due):
+                    due = d
+                q = buf.find(header, q + 1, p + window)
+        return due
 
     def _discard(self, out: list[Item], raw: bytes, reason: str) -> None:
         stats = self.stats
         stats.discarded_bytes += len(raw)
         stats.by_reason[reason] = stats.by_reason.get(reason, 0) + len(raw)
         if out and type(out[-1]) is Discarded and out[-1].reason == reason:
-            out[-1] = Discarded(out[-1].raw + raw, reason)
+            # Join the run once, when it closes: appending to it here would copy the
+            # whole run at every discarded byte (quadratic in the run's length).
+            run = self._run
+            if run is not None and run[0] is out and run[1] == len(out) - 1:
+                run[2].append(raw)
+            else:
+                self._close_run()
+                self._run = (out, len(out) - 1, [out[-1].raw, raw], reason)
         else:
+            if self._run is not None:
+                self._close_run()
             stats.resyncs += 1
             out.append(Discarded(raw, reason))
+
+    def _close_run(self) -> None:
+        """Join the parts of the open discarded run into its item."""
+        run = self._run
+        if run is not None:
+            out, index, parts, reason = run
+            out[index] = Discarded(b"".join(parts), reason)
+            self._run = None
 
 
 _BAD_LENGTH = 1

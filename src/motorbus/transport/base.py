@@ -156,6 +156,15 @@ class Transport(abc.ABC):
     async def close(self) -> None:
         """Close the port; idempotent.  ``on_lost`` is not called for a deliberate close."""
 
+    def drain_input(self) -> None:
+        """Deliver now, through ``on_data``, the bytes already received but not yet read.
+
+        Never blocks.  The bus calls it right before writing a request: bytes that arrived
+        before the write cannot be its reply, yet a lagging event loop would read them
+        after it.  A transport that cannot tell does nothing (this default).
+        """
+        return None
+
     @property
     @abc.abstractmethod
     def is_open(self) -> bool:

@@ -13,6 +13,7 @@ URL (the CLI, :func:`motorbus.transport.open_transport`) can be pointed at a sim
 from __future__ import annotations
 
 import asyncio
+import collections
 import itertools
 import logging
 import random
@@ -71,6 +72,10 @@ class MemoryTransport(CountingTransport):
         # Bumped on every open and close, so deliveries queued for an earlier session
         # are dropped instead of reaching a later one.
         self._session = 0
+        # Chunks sent by the peer and not yet delivered (what a kernel would hold), and
+        # how many queued delivery callbacks ``drain_input`` has already done the work of.
+        self._inflight: collections.deque[tuple[int, bytes]] = collections.deque()
+        self._drained = 0
 
     @property
     def peer(self) -> MemoryPeer:
@@ -120,13 +125,26 @@ class MemoryTransport(CountingTransport):
         self._on_lost = None
         self._echo.reset()
 
+    def drain_input(self) -> None:
+        """Deliver now every chunk the peer has sent and the loop has not delivered yet."""
+        while self._inflight:
+            self._drained += 1
+            self._deliver(*self._inflight.popleft())
+
     def _schedule(self, chunks: list[bytes]) -> bool:
         """Queue peer-to-host chunks; return False if nobody is listening."""
         if self._loop is None or not self.is_open:
             return False
         for chunk in chunks:
-            self._loop.call_soon(self._deliver, self._session, chunk)
+            self._inflight.append((self._session, chunk))
+            self._loop.call_soon(self._deliver_next)
         return True
+
+    def _deliver_next(self) -> None:
+        if self._drained:
+            self._drained -= 1  # ``drain_input`` delivered this callback's chunk
+            return
+        self._deliver(*self._inflight.popleft())
 
     def _deliver(self, session: int, chunk: bytes) -> None:
         if session != self._session or self._on_data is None:

@@ -36,6 +36,7 @@ import errno
 import importlib
 import logging
 import os
+import select
 from collections.abc import Callable, Coroutine
 from typing import Any, cast
 
@@ -71,6 +72,8 @@ _BACKEND_MODULES: dict[str, tuple[str, str]] = {
 SERIALX_MAX_READ = 4096
 #: How long close() waits for the backend to release the port before aborting it.
 CLOSE_TIMEOUT_S = 1.0
+#: Reads ``drain_input`` makes at most (each up to the backend's read size).
+DRAIN_READS_MAX = 8
 #: Where the Linux usb-serial drivers publish an adapter's receive latency timer (ms).
 USB_SERIAL_SYSFS = "/sys/bus/usb-serial/devices"
 #: Where Linux lists the file locks held, with the PID of each holder.
@@ -425,6 +428,29 @@ class SerialTransport(CountingTransport):
         if data and self._transport is not None:
             self._transport.write(data)
 
+    def drain_input(self) -> None:
+        """Read at once what the OS already holds for the port (see ``Transport``).
+
+        All three backends read through ``_read_ready``, the callback the loop runs when
+        the port is readable (it delivers to ``on_data`` and reports a lost port as
+        usual).  It is called only while ``select`` says the port is readable (a raw
+        tty read with nothing to read returns 0 bytes, which a backend takes for a hang
+        up), at most ``DRAIN_READS_MAX`` times.
+        """
+        transport = self._transport
+        read_ready = getattr(transport, "_read_ready", None)
+        fd = _readable_fd(transport)
+        if read_ready is None or fd is None:
+            return
+        for _ in range(DRAIN_READS_MAX):
+            try:
+                readable, _, _ = select.select([fd], [], [], 0)
+            except (OSError, ValueError):
+                return
+            if not readable or self._transport is not transport:
+                return
+            read_ready()
+
     async def close(self) -> None:
         """Close the port and wait (up to ``CLOSE_TIMEOUT_S``) until it is released."""
         transport, adapter = self._transport, self._adapter
@@ -462,6 +488,23 @@ class SerialTransport(CountingTransport):
         _log.debug("%s: port lost: %r", self.url, exc)
         if on_lost is not None:
             on_lost(exc)
+
+
+def _readable_fd(transport: object) -> int | None:
+    """The file descriptor a backend transport reads from, if it tells."""
+    fd = getattr(transport, "_fileno", None)  # serialx
+    if isinstance(fd, int):
+        return fd
+    get_extra_info = getattr(transport, "get_extra_info", None)
+    pyserial = get_extra_info("serial") if get_extra_info is not None else None
+    fileno = getattr(pyserial, "fileno", None)
+    if fileno is None:
+        return None
+    try:
+        fd = fileno()
+    except (OSError, ValueError, AttributeError):  # pyserial raises these for URLs without one
+        return None
+    return fd if isinstance(fd, int) else None
 
 
 def open_transport(

@@ -24,7 +24,6 @@ The package: ``wire`` (sizes, opcodes, enums, framing, ``Ack``), ``commands``,
 
 from __future__ import annotations
 
-from motorbus.protocol.base import ProjectFinished as ProjectFinished
 from motorbus.protocol.base import ProjectFinishedMarker as ProjectFinishedMarker
 from motorbus.protocol.ff_aa import RotationDirection as RotationDirection
 from motorbus.protocol.project_stepper.commands import (
@@ -476,7 +475,6 @@ __all__ = [
     "OutputPort",
     "Project",
     "ProjectDump",
-    "ProjectFinished",
     "ProjectFinishedMarker",
     "ProjectStepperCommand",
     "ReadInput",
