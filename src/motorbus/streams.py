@@ -28,6 +28,20 @@ they are written (``Bus.submit(refresh=...)``), from the streams still running, 
 tick queued or being built when the stop began is dropped, not sent after the safe
 action's pause (a follow target would resume a paused actuator, LA manual 3.5.4).
 
+Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
+of its ``async with`` block, an error, a gap it was told to stop on, the bus closing),
+its safe action (``safe_action``: "pause" or "estop") goes to its actuators, unless the
+owner ends it explicitly with ``stop(hold=True)`` (the actuators then hold their last
+target).
+
+After a gap, a ramp: when the bus comes back after losing its port, or the stream fell
+``GAP_TICKS`` or more ticks behind (a stalled host), the targets have moved on while the
+actuators have not.  With ``on_gap="ramp"`` (the default) the stream reads where each
+actuator is and ramps from there to the trajectory at its ``max_speed``; with
+``on_gap="stop"`` it applies its safe action and ends with an error.  Either way the gap
+is a ``StreamGap`` event (``stream.gaps``, or ``bus.events``) and a count
+(``stats.gaps``).
+
 All the streamers of one bus share one time budget: a set of streams that cannot fit
 the bus is refused when it starts, with an error that says what would fit, and an
 actuator can be streamed by one stream at a time.
@@ -39,6 +53,7 @@ import asyncio
 import contextlib
 import enum
 import inspect
+import itertools
 import logging
 import math
 import weakref
@@ -49,6 +64,7 @@ from typing import Any, TypeAlias
 
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
+from motorbus.bus.events import BusEvent, Subscription
 from motorbus.bus.occupancy import occupancy
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
@@ -61,9 +77,11 @@ from motorbus.validation import PHASE_MAX_S, check_number, is_scalar, target_id,
 __all__ = [
     "PERIOD_MAX_S",
     "PERIOD_MIN_S",
+    "GapPolicy",
     "SafeAction",
     "Stream",
     "StreamEnded",
+    "StreamGap",
     "StreamStats",
     "Streamer",
 ]
@@ -88,17 +106,55 @@ COALESCE_WINDOW_S = 200e-6
 PLAN_AHEAD_S = 0.050
 #: Polls stop this long before the next tick, to leave time to prepare it.
 PREPARE_S = 1e-3
+#: A stream this many ticks behind (or more) has had a gap: its actuators are no longer
+#: where its trajectory is (``on_gap``).  Fewer are skipped and counted, nothing more.
+GAP_TICKS = 3
+#: Default ``max_speed`` (position units per second) of the ramp after a gap: the full
+#: 0..2000 stroke in 4 s.
+DEFAULT_MAX_SPEED = 500.0
+#: Largest ``max_speed``: the full stroke in 0.1 s, beyond what an LA can do.
+MAX_SPEED_LIMIT = 20_000.0
 
 Targets: TypeAlias = Mapping[int, int]
 TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
 
 
 class SafeAction(enum.Enum):
-    """What a stream does to its actuators when it ends abnormally or is cancelled."""
+    """What a stream does to its actuators when it ends (unless ended with ``hold``)."""
 
     HOLD = "hold"  # nothing: each actuator holds its last target
     PAUSE = "pause"  # CMD_MC pause: power stage off, the next target resumes
     ESTOP = "estop"  # CMD_MC e-stop: power stage off, "work" needed to move again
+
+
+class GapPolicy(enum.Enum):
+    """What a stream does after a gap (the bus was lost, or the stream fell behind)."""
+
+    RAMP = "ramp"  # read each position, ramp from there to the trajectory at max_speed
+    STOP = "stop"  # apply the safe action and end the stream with an error
+
+
+@dataclass(frozen=True, slots=True)
+class StreamGap(BusEvent):
+    """A stream had a gap: its targets stopped reaching its actuators for a while.
+
+    Attributes:
+        stream: the stream's ``number`` (``Stream.number``).
+        ids: the stream's actuators.
+        cause: ``"outage"`` (the bus lost its port and came back) or ``"behind"`` (the
+            stream fell ``GAP_TICKS`` or more ticks behind).
+        missed: ticks not sent since the last tick that was.
+        positions: where each actuator reported it was after the gap (``"ramp"``).
+        action: ``"ramp"`` (ramping from ``positions``) or ``"stop"`` (safe action
+            applied, stream ended; also when a position could not be read).
+    """
+
+    stream: int
+    ids: tuple[int, ...]
+    cause: str
+    missed: int
+    positions: Mapping[int, int]
+    action: str
 
 
 @dataclass(slots=True)
@@ -117,6 +173,7 @@ class StreamStats:
     #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
     #: whose free slots held no poll at all.
     polls_skipped: int = 0
+    gaps: int = 0  # gaps handled (``StreamGap`` events)
     #: Lateness of each tick's first frame against its absolute deadline.
     jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
 
@@ -132,6 +189,7 @@ class StreamStats:
             "feedback_timeouts": self.feedback_timeouts,
             "polls": self.polls,
             "polls_skipped": self.polls_skipped,
+            "gaps": self.gaps,
             "jitter_p50_us": j["p50_us"],
             "jitter_p99_us": j["p99_us"],
             "jitter_max_us": j["max_us"],
@@ -154,7 +212,13 @@ class Stream:
 
     An item is a position 0..2000 for a single actuator, a sequence with one position
     per actuator (in the order given), or a mapping ``{id: position}``.
+
+    However the stream ends, its ``safe_action`` goes to its actuators once, unless it
+    is ended with ``stop(hold=True)``.  ``gaps`` queues its ``StreamGap`` events
+    (``await stream.gaps.next(timeout)``); it closes when the stream ends.
     """
+
+    _numbers = itertools.count(1)
 
     def __init__(
         self,
@@ -166,14 +230,30 @@ class Stream:
         feedback: bool,
         poll_status: bool,
         safe_action: SafeAction,
+        on_gap: GapPolicy = GapPolicy.RAMP,
+        max_speed: float = DEFAULT_MAX_SPEED,
     ) -> None:
         self.streamer = streamer
         self.actuators = tuple(actuators)
         self.ids = tuple(a.id for a in self.actuators)
+        self.number = next(Stream._numbers)
         self.period = period
         self.feedback = feedback
         self.poll_status = poll_status
         self.safe_action = safe_action
+        self.on_gap = on_gap
+        self.max_speed = max_speed
+        #: True once the safe action was sent (or ``hold`` chose to send none).
+        self.safe_applied = False
+        self.gaps: Subscription[StreamGap] = streamer.bus.events.subscribe(
+            StreamGap, lambda e: e.stream == self.number
+        )
+        #: While ramping after a gap: the position each ramping actuator was last sent.
+        self.ramp: dict[int, float] | None = None
+        #: The bus's disconnect count when this stream last had it up (an outage since?).
+        self.disconnects_seen = streamer.bus.stats.disconnects
+        #: ``stats.skipped`` when the last tick went out (the ticks a gap missed).
+        self.skipped_mark = 0
         self.stats = StreamStats()
         self.statuses: dict[int, la.Status] = {}
         self.last_targets: dict[int, int] = {}
@@ -239,17 +319,20 @@ class Stream:
         """True while the stream may still write targets (not paused, stopping or done)."""
         return not (self.paused or self.stopping or self.done)
 
-    async def stop(self, *, safe: bool = False) -> None:
-        """End the stream; with ``safe``, apply its safe action first.  Idempotent.
+    async def stop(self, *, hold: bool = False, safe: bool | None = None) -> None:
+        """End the stream and apply its safe action; with ``hold``, send none.  Idempotent.
 
         From the moment this is called, nothing more of the stream is written: a tick
-        being built or queued is dropped, so the safe action is the last word.
+        being built or queued is dropped, so the safe action is the last word.  A stream
+        that already ended (its targets ran out, an error) applied its safe action then;
+        one ended with ``hold`` gets it now.  ``hold=True`` leaves the actuators holding
+        their last target: say so where you rely on it.  ``safe=False`` is the older
+        spelling of ``hold=True`` (``safe=True`` is the default).
         """
-        if self.done:
-            return
+        hold = _hold_flag(hold, safe)
         self.stopping = True
         try:
-            if safe:
+            if not hold:
                 with deferred_interrupts():
                     await self.apply_safe_action()
         finally:
@@ -262,11 +345,14 @@ class Stream:
             raise StreamEnded(f"stream to {list(self.ids)} ended: {self.error}") from self.error
 
     async def apply_safe_action(self) -> None:
-        """Bring every actuator of the stream to the configured safe state.
+        """Bring every actuator of the stream to the configured safe state, once.
 
         The stream stops sending first (``stopping``), so no target follows the stop.
         """
         self.stopping = True
+        if self.safe_applied:
+            return
+        self.safe_applied = True
         if self.safe_action is SafeAction.HOLD:
             return
         action = (
@@ -282,12 +368,22 @@ class Stream:
             except MotorbusError as err:
                 log.warning("safe action %s on la:%d failed: %s", action.name, ident, err)
 
+    async def _end(self, error: BaseException | None) -> None:
+        """End from the tick loop (targets ran out, a failure, a gap): safe action, then done."""
+        self.stopping = True
+        try:
+            with deferred_interrupts():
+                await self.apply_safe_action()
+        finally:
+            self._finish(error)
+
     def _finish(self, error: BaseException | None) -> None:
         if self.done:
             return
         self.stopping = True
         self.done = True
         self.error = error
+        self.gaps.close()
         if not self._finished.done():
             self._finished.set_result(None)
         self.streamer._remove(self)
@@ -301,9 +397,9 @@ class Stream:
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
-        # Leaving the block normally ends the stream with the actuators holding; an
-        # exception or a cancellation applies the safe action.
-        await self.stop(safe=exc_type is not None)
+        # However the block is left, the safe action goes out (a ``stop(hold=True)``
+        # inside the block is the way to leave the actuators holding).
+        await self.stop()
 
     # -- targets ------------------------------------------------------------------
 
@@ -387,6 +483,20 @@ class Stream:
             except (ValueError, OverflowError):  # NaN or infinity: round() refuses them
                 pass
         return {i: _position(v, f"targets[{i}]") for i, v in zip(self.ids, values, strict=True)}
+
+
+def _hold_flag(hold: object, safe: object) -> bool:
+    """``hold`` from ``stop``/``close``'s ``hold`` and older ``safe`` arguments."""
+    held = check_flag("hold", hold)
+    if safe is None:
+        return held
+    if check_flag("safe", safe) and held:
+        raise LocalProtocolError(
+            "hold=True and safe=True contradict each other: hold sends no safe action",
+            field="hold",
+            value=hold,
+        )
+    return held or not safe
 
 
 _PLAIN_NUMBERS = (int, float)
@@ -515,6 +625,8 @@ class Streamer:
         feedback: bool = False,
         poll_status: bool = False,
         safe_action: SafeAction | str = SafeAction.HOLD,
+        on_gap: GapPolicy | str = GapPolicy.RAMP,
+        max_speed: float = DEFAULT_MAX_SPEED,
     ) -> Stream:
         """Start streaming follow-mode targets; returns the running ``Stream``.
 
@@ -526,11 +638,19 @@ class Streamer:
                 into 0xF3 broadcasts with the other no-feedback streams of the bus).
             poll_status: in the slots a tick leaves free, query the status of this
                 stream's actuators round-robin (no-feedback streams).
-            safe_action: applied on cancellation or error: "hold", "pause" or "estop".
+            safe_action: "hold", "pause" or "estop"; applied however the stream ends (its
+                targets run out, ``stop()``, the end of its ``async with`` block, an
+                error, the bus closing), unless it is ended with ``stop(hold=True)``.
+            on_gap: after a gap (the bus lost its port and came back, or the stream
+                fell ``GAP_TICKS`` ticks behind): "ramp" (default) reads each actuator's
+                position and ramps from there to the trajectory at ``max_speed``;
+                "stop" applies the safe action and ends the stream with an error.
+            max_speed: the stream's speed limit in position units per second, for the
+                ramp after a gap (default 500: the full stroke in 4 s).
 
         Raises:
-            LocalProtocolError: a bad period, an empty or foreign actuator list, an
-                actuator already streamed, or a load that does not fit the bus.
+            LocalProtocolError: a bad period, option, an empty or foreign actuator list,
+                an actuator already streamed, or a load that does not fit the bus.
         """
         if isinstance(actuators, InspireLA):
             group = [actuators]
@@ -554,6 +674,15 @@ class Streamer:
                 f"safe_action={safe_action!r} is not allowed: choose hold, pause or estop",
                 field="safe_action",
             ) from None
+        try:
+            gap_policy = GapPolicy(on_gap)
+        except ValueError:
+            raise LocalProtocolError(
+                f"on_gap={on_gap!r} is not allowed: choose ramp or stop",
+                field="on_gap",
+                value=on_gap,
+            ) from None
+        max_speed = check_number("max_speed", max_speed, 1.0, MAX_SPEED_LIMIT, "units/s")
         busy = {i for s in self._bus_streams() for i in s.ids}
         for a in group:
             if a.bus is not self.bus:
@@ -576,6 +705,8 @@ class Streamer:
             feedback=feedback,
             poll_status=poll_status,
             safe_action=action,
+            on_gap=gap_policy,
+            max_speed=max_speed,
         )
         self.check_budget(stream)
         now = self.bus.timer.now()
@@ -598,17 +729,19 @@ class Streamer:
             self._update_tick_cost()
             self._ring()
 
-    async def close(self, *, safe: bool = True) -> None:
-        """End every stream (applying safe actions if ``safe``) and stop the task.
+    async def close(self, *, hold: bool = False, safe: bool | None = None) -> None:
+        """End every stream with its safe action (none with ``hold``) and stop the task.
 
         Every stream stops sending at once, before the first safe action is sent.
+        ``safe=False`` is the older spelling of ``hold=True``.
         """
+        hold = _hold_flag(hold, safe)
         streams = list(self.streams)
         for s in streams:
             s.stopping = True
         with deferred_interrupts():
             for s in streams:
-                await s.stop(safe=safe)
+                await s.stop(hold=hold)
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -678,18 +811,24 @@ class Streamer:
                 continue
             if not s.sending:
                 continue
+            cause = self._gap_cause(s, behind)
+            if cause is not None:
+                await self._gap(s, cause)
+                continue  # the ramp (or nothing, after a stop) starts next tick
             try:
                 targets = await s._targets(k, k * s.period)
             except Exception as err:  # the user's target source failed: end that stream
                 log.warning("stream to %s: target source failed: %s", list(s.ids), err)
-                try:
-                    await s.apply_safe_action()
-                finally:
-                    s._finish(err)
+                await s._end(err)
                 continue
-            if targets is None:
-                s._finish(None)
+            if targets is None:  # a normal end: still a safe one
+                await s._end(None)
                 continue
+            if s.ramp is not None:
+                targets = ramp_step(s.ramp, targets, s.max_speed * s.period)
+                if not s.ramp:
+                    s.ramp = None  # every actuator is back on the trajectory
+            s.skipped_mark = s.stats.skipped
             s.last_targets.update(targets)
             served.append(s)
             if s.feedback:
@@ -740,6 +879,65 @@ class Streamer:
             if lateness > LATE_AFTER_S:
                 s.stats.late += 1
         await self._poll(served)
+
+    def _gap_cause(self, s: Stream, behind: int) -> str | None:
+        """Why ``s`` has a gap to handle before its next targets, or None."""
+        if self.bus.stats.disconnects != s.disconnects_seen:
+            return "outage"
+        if behind >= GAP_TICKS:
+            return "behind"
+        return None
+
+    async def _gap(self, s: Stream, cause: str) -> None:
+        """Handle a gap of ``s`` by its ``on_gap``: read where each actuator is and ramp
+        from there, or apply the safe action and end it.  Publishes ``StreamGap``.
+
+        An actuator whose position cannot be read cannot be ramped: that ends the
+        stream as "stop" does.
+        """
+        bus = self.bus
+        s.disconnects_seen = bus.stats.disconnects
+        s.stats.gaps += 1
+        missed = s.stats.skipped - s.skipped_mark
+        s.skipped_mark = s.stats.skipped
+        positions: dict[int, int] = {}
+        unread: list[int] = []
+        if s.on_gap is GapPolicy.RAMP:
+            for ident in s.ids:
+                try:
+                    status = await bus.request(
+                        la.Control(ident, la.ControlAction.QUERY_STATUS), priority=Priority.HIGH
+                    )
+                except MotorbusError as err:
+                    log.warning("stream to %s: la:%d position unread: %s", list(s.ids), ident, err)
+                    unread.append(ident)
+                    continue
+                s.statuses[ident] = status
+                positions[ident] = min(max(status.position, la.POSITION_MIN), la.POSITION_MAX)
+        ramp = s.on_gap is GapPolicy.RAMP and not unread and s.sending
+        action = "ramp" if ramp else "stop"
+        bus.events.publish(
+            StreamGap(bus.name, bus.timer.now(), s.number, s.ids, cause, missed, positions, action)
+        )
+        log.warning(
+            "stream to %s: gap (%s, %d ticks missed): %s",
+            list(s.ids),
+            cause,
+            missed,
+            f"ramping from {positions}" if ramp else "safe action, stream ended",
+        )
+        if not ramp:
+            if s.sending:
+                why = f"la:{', la:'.join(map(str, unread))} unread" if unread else 'on_gap="stop"'
+                await s._end(StreamEnded(f"gap ({cause}, {missed} ticks missed; {why})"))
+            return
+        s.ramp = {i: float(p) for i, p in positions.items()}
+        # The reads took time: the stream goes on from the next slot still ahead.
+        upcoming = math.ceil((bus.timer.now() - s.origin) / s.period)
+        if upcoming > s.next_tick:
+            s.stats.skipped += upcoming - s.next_tick
+            s.next_tick = upcoming
+        s.skipped_mark = s.stats.skipped
 
     async def _send_at(
         self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
@@ -848,6 +1046,27 @@ class Streamer:
                 s.stats.polls += 1
             if polled == 0:
                 s.stats.polls_skipped += 1
+
+
+def ramp_step(ramp: dict[int, float], targets: Targets, step: float) -> dict[int, int]:
+    """One tick of the ramp after a gap: move each ramping actuator at most ``step``
+    from where it was last sent (``ramp``) toward its target.
+
+    ``ramp`` is updated in place; an actuator that reaches its target leaves it (from
+    then on it follows the targets as they come).  Actuators not ramping pass through.
+    """
+    out = dict(targets)
+    for ident, goal in targets.items():
+        at = ramp.get(ident)
+        if at is None:
+            continue
+        if abs(goal - at) <= step:
+            del ramp[ident]
+            continue
+        at += step if goal > at else -step
+        ramp[ident] = at
+        out[ident] = round(at)
+    return out
 
 
 def _while_sending(stream: Stream, cmd: la.Follow) -> Callable[[], la.Follow | None]:
