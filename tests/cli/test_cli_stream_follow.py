@@ -1,0 +1,72 @@
+"""``motorbus stream`` checks that the actuators follow: it enables them (or, with
+``--no-enable``, finds out that they did not move), reports which did not follow with
+exit code 1, and pauses them at the end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from motorbus.protocol import la
+from motorbus.sim.process import SimProcess
+from tests.cli.test_cli_la import cli, json_lines, rx_frames
+
+
+def write_csv(path: Path, rows: int) -> Path:
+    """la:1 and la:2 from 1000 out to 1000 + 3 * rows (10 ms rows)."""
+    lines = ["t,1,2"] + [f"{k * 0.01:.2f},{1000 + 3 * k},{1000 + 3 * k}" for k in range(rows)]
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def last_frame_to(sim: SimProcess, ident: int) -> bytes:
+    """The last frame that addressed la:``ident`` (0xF3 entries included), status
+    queries aside."""
+    last = b""
+    query = la.Control(ident, la.ControlAction.QUERY_STATUS).encode()
+    for h in rx_frames(sim):
+        raw = bytes.fromhex(h)
+        if raw == query:
+            continue
+        if raw[3] == ident or (raw[3] == 0xFF and ident in raw[5:-1:3]):
+            last = raw
+    return last
+
+
+def positions(sim: SimProcess) -> list[int]:
+    r = cli("la", "status", "1-2", "--json", "--port", sim.path)
+    assert r.returncode == 0, r.stderr
+    return [d["position"] for d in json_lines(r.stdout)]
+
+
+def test_stream_enables_estopped_actuators_follows_and_pauses_at_the_end(tmp_path: Path) -> None:
+    with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "frames.jsonl") as sim:
+        assert cli("la", "move", "1", "1000", "--port", sim.path).returncode == 0
+        assert cli("la", "move", "2", "1000", "--port", sim.path).returncode == 0
+        assert cli("la", "estop", "1-2", "--port", sim.path).returncode == 0
+        csv_file = write_csv(tmp_path / "out.csv", 40)
+        r = cli("stream", str(csv_file), "--ramp", "0", "--json", "--port", sim.path)
+        (summary,) = json_lines(r.stdout)
+        # The e-stopped actuators were enabled: they moved out along the rows.
+        assert all(p > 1000 + 10 for p in positions(sim)), positions(sim)
+        assert r.returncode == (0 if summary["skipped"] == 0 else 1), r.stderr
+        assert (summary["enabled"], summary["not_following"]) == (True, [])
+        for ident in (1, 2):
+            assert last_frame_to(sim, ident) == la.Control(ident, la.ControlAction.PAUSE).encode()
+
+
+def test_stream_no_enable_reports_the_actuator_that_did_not_follow(tmp_path: Path) -> None:
+    with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "frames.jsonl") as sim:
+        assert cli("la", "estop", "2", "--port", sim.path).returncode == 0
+        csv_file = write_csv(tmp_path / "out.csv", 40)
+        r = cli(
+            "stream", str(csv_file), "--ramp", "0.2", "--no-enable", "--json", "--port", sim.path
+        )
+        assert r.returncode == 1
+        (summary,) = json_lines(r.stdout)
+        assert (summary["enabled"], summary["not_following"]) == (False, [2])
+        (line,) = [ln for ln in r.stderr.splitlines() if "did not follow" in ln]
+        assert line.startswith("motorbus stream: failed: 1 actuator of 2 did not follow (la:2 ")
+        assert "paused or e-stopped" in line
+        sent = rx_frames(sim)
+        assert len(sent) > 40  # the log is read
+        assert not any(h[12:14] == "04" and h[18:20] == "04" for h in sent)  # no "work"
