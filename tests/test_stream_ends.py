@@ -27,7 +27,8 @@ from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from motorbus.sim.pty import PtySim
-from motorbus.streams import Streamer, StreamGap, ramp_step
+from motorbus.streaming.targets import ramp_step
+from motorbus.streams import Streamer, StreamGap
 from motorbus.transport.serial import SerialTransport
 from tests.bus.test_bus_faults import eventually
 from tests.conftest import PACINGS, sim_bus
@@ -299,3 +300,56 @@ async def test_bad_gap_options_are_refused() -> None:
         with pytest.raises(LocalProtocolError, match="max_speed"):
             streamer.follow(InspireLA(bus, 1), [1], max_speed=0)
         assert bus.stats.requests == 0
+
+
+# -- the budget is the bus's ----------------------------------------------------------------
+
+
+async def test_the_streams_of_a_bus_share_the_budget_the_bus_holds() -> None:
+    from motorbus.streaming.budget import StreamBudget, tick_cost
+
+    models = [LAModel(i) for i in range(1, 21)]
+    async with sim_bus(models) as (bus, _):
+        first, second = Streamer(bus), Streamer(bus)
+        assert isinstance(bus.stream_budget, StreamBudget)
+        assert first.budget is second.budget is bus.stream_budget
+        stream = first.follow(InspireLA(bus, 1), lambda t, s: 500, period=PERIOD_S)
+        with pytest.raises(LocalProtocolError, match="la:1 is already streamed on bus sim"):
+            second.follow(InspireLA(bus, 1), [500], period=PERIOD_S)
+        # 5 feedback round trips a 10 ms tick fit beside la:1's broadcast, but not beside
+        # 12 more every 50 ms that the other streamer serves: the budget is the bus's.
+        fb = first.follow(
+            [InspireLA(bus, i) for i in range(2, 14)],
+            lambda t, s: [500] * 12,
+            period=0.05,
+            feedback=True,
+        )
+        five = [InspireLA(bus, i) for i in range(14, 19)]
+        with pytest.raises(LocalProtocolError, match=r"would need \d+ % of the bus"):
+            second.follow(five, lambda t, s: [500] * 5, period=PERIOD_S, feedback=True)
+        assert bus.stream_budget.streams == [stream, fb]
+        assert set(tick_cost(bus.timing, bus.stream_budget.streams)) == {PERIOD_S, 0.05}
+        await fb.stop()
+        assert bus.stream_budget.streams == [stream]
+        late = second.follow(five, lambda t, s: [500] * 5, period=PERIOD_S, feedback=True)
+        await first.close()
+        await second.close()
+        assert bus.stream_budget.streams == [] and late.done
+
+
+def test_fifteen_broadcast_actuators_cost_one_frame_a_tick() -> None:
+    from motorbus.bus.occupancy import BusTiming
+    from motorbus.streaming.budget import slot_cost, tick_cost
+
+    timing = BusTiming(LA_BAUD, 0.001, 0.0005, {Family.LA: 0.0008})
+
+    class Planned:
+        def __init__(self, n: int, feedback: bool) -> None:
+            self.ids = tuple(range(1, n + 1))
+            self.period = PERIOD_S
+            self.feedback = feedback
+
+    one_frame = slot_cost(timing, request_bytes=6 + 3 * 15, reply_bytes=0)
+    assert tick_cost(timing, [Planned(15, False)]) == {PERIOD_S: one_frame}
+    assert tick_cost(timing, [Planned(16, False)])[PERIOD_S] > one_frame
+    assert tick_cost(timing, [Planned(2, True)])[PERIOD_S] > 2 * 0.001

@@ -313,6 +313,9 @@ class Bus:
         self._done_watches: list[_DoneWatch] = []
         self._last_errors: dict[int, int] = {}
         self._closing = False
+        #: The time budget this bus's streams share (``motorbus.streaming.budget``), set
+        #: by its first ``Streamer``: the bus owns it, whichever streamer serves a stream.
+        self.stream_budget: Any = None
 
     # -- life cycle --------------------------------------------------------------
 
