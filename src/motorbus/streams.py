@@ -338,6 +338,7 @@ class Streamer:
                 continue
             cause = self._gap_cause(s, behind)
             if cause is not None:
+                s.stats.skipped += 1  # this tick goes to reading the positions
                 await self._gap(s, cause)
                 continue  # the ramp (or nothing, after a stop) starts next tick
             try:

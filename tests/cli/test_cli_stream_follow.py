@@ -6,6 +6,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
 from tests.cli.test_cli_la import cli, json_lines, rx_frames
@@ -70,3 +72,29 @@ def test_stream_no_enable_reports_the_actuator_that_did_not_follow(tmp_path: Pat
         sent = rx_frames(sim)
         assert len(sent) > 40  # the log is read
         assert not any(h[12:14] == "04" and h[18:20] == "04" for h in sent)  # no "work"
+
+
+async def test_a_faulted_actuator_is_refused_before_anything_is_sent() -> None:
+    from motorbus.cli.main import CommandFailed
+    from motorbus.cli.stream import check_actuators
+    from motorbus.sim.la import LAModel
+    from tests.conftest import sim_bus
+
+    models = [LAModel(1), LAModel(2)]
+    async with sim_bus(models) as (bus, _):
+        models[1].trigger_fault("stall", bus.timer.now())
+        with pytest.raises(CommandFailed, match=r"1 actuator of 2 report a fault \(la:2 stall\)"):
+            await check_actuators(bus, [1, 2], 921600)
+        assert models[0].received == models[1].received == []  # status queries only
+
+
+def test_follow_check_names_only_actuators_asked_to_move_that_did_not() -> None:
+    from motorbus.cli.stream import FollowCheck
+
+    rows = [(100, 500, 900), (200, 505, 900)]
+    check = FollowCheck([1, 2, 3], (100, 500, 900), rows)
+    targets = check.source(0.01)
+    assert targets(0.0, {}) == rows[0] and targets(0.02, {}) is None
+    # la:1 was asked to move 100 and did not; la:2 (5) and la:3 (0) were not asked to.
+    assert check.not_following({1: 103, 2: 500, 3: 900}) == [1]
+    assert check.not_following({1: 150}) == []

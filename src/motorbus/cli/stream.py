@@ -75,7 +75,15 @@ from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 
-__all__ = ["Trajectory", "ramp_rows", "read_trajectory", "register", "run"]
+__all__ = [
+    "FollowCheck",
+    "Trajectory",
+    "check_actuators",
+    "ramp_rows",
+    "read_trajectory",
+    "register",
+    "run",
+]
 
 #: The time column may differ from ``k * period`` steps by this share of the period.
 TIME_TOLERANCE = 0.01
@@ -254,7 +262,7 @@ def ramp_rows(start: tuple[int, ...], end: tuple[int, ...], ticks: int) -> list[
     ]
 
 
-async def _statuses(bus: Bus, ids: list[int], baud: int) -> list[la.Status]:
+async def check_actuators(bus: Bus, ids: list[int], baud: int) -> list[la.Status]:
     """Every actuator's status; refuses to go on if one does not answer or is faulted.
 
     Raises:
@@ -363,7 +371,7 @@ class FollowCheck:
 async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
     rows = trajectory.rows * args.loop
     async with open_bus(args, [Family.LA], host_margin=STREAM_HOST_MARGIN_S) as bus:
-        statuses = await _statuses(bus, trajectory.ids, args.baud)
+        statuses = await check_actuators(bus, trajectory.ids, args.baud)
         current = tuple(min(max(s.position, 0), la.POSITION_MAX) for s in statuses)
         if not args.no_enable:
             await _enable(bus, trajectory.ids)
