@@ -36,8 +36,10 @@ target).
 
 After a gap, a ramp: when the bus comes back after losing its port, or the stream fell
 ``GAP_TICKS`` or more ticks behind (a stalled host), the targets have moved on while the
-actuators have not.  With ``on_gap="ramp"`` (the default) the stream reads where each
-actuator is and ramps from there to the trajectory at its ``max_speed``; with
+actuators have not.  With ``on_gap="ramp"`` (the default) the stream finds where each
+actuator is (after an outage it reads each status; after falling behind, each is where
+the last target sent put it) and ramps from there to the trajectory at its
+``max_speed``; with
 ``on_gap="stop"`` it applies its safe action and ends with an error.  Either way the gap
 is a ``StreamGap`` event (``stream.gaps``, or ``bus.events``) and a count
 (``stats.gaps``).
@@ -180,11 +182,13 @@ class Streamer:
                 targets run out, ``stop()``, the end of its ``async with`` block, an
                 error, the bus closing), unless it is ended with ``stop(hold=True)``.
             on_gap: after a gap (the bus lost its port and came back, or the stream
-                fell ``GAP_TICKS`` ticks behind): "ramp" (default) reads each actuator's
-                position and ramps from there to the trajectory at ``max_speed``;
-                "stop" applies the safe action and ends the stream with an error.
+                fell ``GAP_TICKS`` ticks behind): "ramp" (default) starts from where
+                each actuator is (read after an outage; the last target sent after
+                falling behind) and ramps to the trajectory at ``max_speed``; "stop"
+                applies the safe action and ends the stream with an error.
             max_speed: the stream's speed limit in position units per second, for the
-                ramp after a gap (default 500: the full stroke in 4 s).
+                ramp after a gap (default 500: the full stroke in 4 s).  A trajectory
+                faster than that is caught up with where it turns back.
 
         Raises:
             LocalProtocolError: a bad period, option, an empty or foreign actuator list,
@@ -415,11 +419,15 @@ class Streamer:
         return None
 
     async def _gap(self, s: Stream, cause: str) -> None:
-        """Handle a gap of ``s`` by its ``on_gap``: read where each actuator is and ramp
+        """Handle a gap of ``s`` by its ``on_gap``: find where each actuator is and ramp
         from there, or apply the safe action and end it.  Publishes ``StreamGap``.
 
-        An actuator whose position cannot be read cannot be ramped: that ends the
-        stream as "stop" does.
+        After an outage each position is read (the actuators may have been moved, or
+        power-cycled).  After falling behind, an actuator that got targets is where the
+        last of them sent it (follow mode tracks it, and nothing else moved it): the ramp
+        starts there, without reads that would load a host already too slow.  An
+        actuator whose position cannot be read cannot be ramped: that ends the stream as
+        "stop" does.
         """
         bus = self.bus
         s.disconnects_seen = bus.stats.disconnects
@@ -429,7 +437,11 @@ class Streamer:
         positions: dict[int, int] = {}
         unread: list[int] = []
         if s.on_gap is GapPolicy.RAMP:
+            known = s.last_targets if cause == "behind" else {}
             for ident in s.ids:
+                if ident in known:
+                    positions[ident] = known[ident]
+                    continue
                 try:
                     status = await bus.request(
                         la.Control(ident, la.ControlAction.QUERY_STATUS), priority=Priority.HIGH
@@ -445,7 +457,8 @@ class Streamer:
         bus.events.publish(
             StreamGap(bus.name, bus.timer.now(), s.number, s.ids, cause, missed, positions, action)
         )
-        log.warning(
+        log.log(
+            logging.WARNING if cause == "outage" or not ramp else logging.INFO,
             "stream to %s: gap (%s, %d ticks missed): %s",
             list(s.ids),
             cause,

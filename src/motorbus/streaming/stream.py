@@ -57,7 +57,9 @@ class StreamGap(BusEvent):
         cause: ``"outage"`` (the bus lost its port and came back) or ``"behind"`` (the
             stream fell ``GAP_TICKS`` or more ticks behind).
         missed: ticks not sent since the last tick that was.
-        positions: where each actuator reported it was after the gap (``"ramp"``).
+        positions: where the ramp starts (``"ramp"``): each actuator's reported
+            position after an outage; after falling behind, the last target it was sent
+            (read only if it had none).
         action: ``"ramp"`` (ramping from ``positions``) or ``"stop"`` (safe action
             applied, stream ended; also when a position could not be read).
     """
