@@ -59,7 +59,7 @@ def test_stream_enables_estopped_actuators_follows_and_pauses_at_the_end(tmp_pat
 def test_stream_no_enable_reports_the_actuator_that_did_not_follow(tmp_path: Path) -> None:
     with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "frames.jsonl") as sim:
         assert cli("la", "estop", "2", "--port", sim.path).returncode == 0
-        csv_file = write_csv(tmp_path / "out.csv", 40)
+        csv_file = write_csv(tmp_path / "out.csv", 300)  # 3 s of rows
         r = cli(
             "stream", str(csv_file), "--ramp", "0.2", "--no-enable", "--json", "--port", sim.path
         )
@@ -69,6 +69,11 @@ def test_stream_no_enable_reports_the_actuator_that_did_not_follow(tmp_path: Pat
         (line,) = [ln for ln in r.stderr.splitlines() if "did not follow" in ln]
         assert line.startswith("motorbus stream: failed: 1 actuator of 2 did not follow (la:2 ")
         assert "paused or e-stopped" in line
+        # Stopped once a status showed la:2 still, not after the whole 3 s: la:1 did not
+        # go on alone to the end of the rows.
+        assert "; stopped at tick " in line
+        assert summary["ticks"] < 250
+        assert last_frame_to(sim, 1) == la.Control(1, la.ControlAction.PAUSE).encode()
         sent = rx_frames(sim)
         assert len(sent) > 40  # the log is read
         assert not any(h[12:14] == "04" and h[18:20] == "04" for h in sent)  # no "work"
@@ -94,7 +99,27 @@ def test_follow_check_names_only_actuators_asked_to_move_that_did_not() -> None:
     rows = [(100, 500, 900), (200, 505, 900)]
     check = FollowCheck([1, 2, 3], (100, 500, 900), rows)
     targets = check.source(0.01)
-    assert targets(0.0, {}) == rows[0] and targets(0.02, {}) is None
+    assert targets(0.0, {}) == rows[0] and targets(0.01, {}) == rows[1]
+    assert targets(0.02, {}) is None
+    assert check.asked == {1: 100, 2: 5, 3: 0}  # as far as the rows sent asked
     # la:1 was asked to move 100 and did not; la:2 (5) and la:3 (0) were not asked to.
     assert check.not_following({1: 103, 2: 500, 3: 900}) == [1]
     assert check.not_following({1: 150}) == []
+
+
+def test_follow_check_stops_the_stream_when_a_fresh_status_shows_no_motion() -> None:
+    from motorbus.cli.stream import FOLLOW_GRACE_S, FollowCheck
+    from motorbus.errors import CommandFailed
+
+    period = 0.01
+    rows = [(100 + 5 * k, 500 + 5 * k) for k in range(200)]
+    check = FollowCheck([1, 2], (100, 500), rows)
+    targets = check.source(period)
+    grace = round(FOLLOW_GRACE_S / period)
+    still = la.Status(2, target=500, position=500)
+    for k in range(grace + 3):  # la:2 asked to move from tick 3; only its status of tick 0
+        moving = la.Status(1, target=rows[k][0], position=rows[k][0])
+        assert targets(k * period, {1: moving, 2: still}) == rows[k]
+    with pytest.raises(CommandFailed, match=r"la:2 did not move 0.5 s after"):
+        targets((grace + 3) * period, {2: la.Status(2, target=600, position=500)})
+    assert check.stopped_at == grace + 3

@@ -27,7 +27,9 @@ not become a full-speed lunge.
 The stream checks that the actuators follow: it polls their status in the slots a tick
 leaves free (or reads the feedback replies) and reads each position at the end.  An
 actuator asked to move more than 10 units that never moved more than 10 units from
-where it started is reported ("did not follow") and makes the exit code 1.
+where it started is reported ("did not follow") and makes the exit code 1; once a
+status read 0.5 s after it was asked to move shows that, the stream stops there (the
+others would go on without it).
 
 At the end (the last row, or a failure) the actuators are paused.  If the port is lost
 and comes back, the stream reads each position and ramps back to the trajectory at
@@ -70,8 +72,13 @@ from motorbus.cli.common import (
     plural,
     print_json,
 )
-from motorbus.cli.main import CommandFailed
-from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
+from motorbus.errors import (
+    CommandFailed,
+    LocalProtocolError,
+    MotorbusError,
+    ReplyTimeoutError,
+    StreamEnded,
+)
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 
@@ -103,6 +110,9 @@ MAX_RAMP_S = 60.0
 #: An actuator asked to move farther than this (position units) must move farther than
 #: this from where it started, or it did not follow.
 FOLLOW_TOLERANCE = 10
+#: An actuator whose status this long after it was asked to move shows it has not stops
+#: the stream (seconds): the LA follows a target within a tick or two.
+FOLLOW_GRACE_S = 0.5
 
 
 def register(subparsers: Any) -> None:
@@ -335,25 +345,54 @@ class FollowCheck:
 
     ``source`` is the stream's target function: it plays ``rows`` and records how far
     each actuator's reported position (polls or feedback) got from where it started.
+    An actuator asked to move beyond ``FOLLOW_TOLERANCE`` whose status, first read
+    ``FOLLOW_GRACE_S`` or more after that, shows it has not ends the stream there
+    (``CommandFailed``; ``stopped_at`` is the tick): the others would go on without it.
     """
 
     def __init__(self, ids: list[int], start: tuple[int, ...], rows: list[tuple[int, ...]]):
         self.ids = ids
         self.start = dict(zip(ids, start, strict=True))
-        self.asked = {
-            i: max(abs(row[n] - self.start[i]) for row in rows) for n, i in enumerate(ids)
-        }
+        #: How far the targets sent so far asked each actuator to move.
+        self.asked = dict.fromkeys(ids, 0)
         self.moved = dict.fromkeys(ids, 0)
         self.rows = rows
+        self.stopped_at: int | None = None
 
     def source(self, period: float) -> Any:
-        rows, start, moved = self.rows, self.start, self.moved
+        rows, start, moved, asked, ids = self.rows, self.start, self.moved, self.asked, self.ids
+        grace = max(1, round(FOLLOW_GRACE_S / period))
+        asked_at: dict[int, int] = {}  # the first tick whose target is beyond tolerance
+        fresh: dict[int, tuple[la.Status, int]] = {}  # the last status, and its first tick
 
         def targets(t: float, statuses: dict[int, la.Status]) -> tuple[int, ...] | None:
-            for ident, status in statuses.items():
-                moved[ident] = max(moved[ident], abs(status.position - start[ident]))
             k = round(t / period)
-            return rows[k] if k < len(rows) else None
+            for ident, status in statuses.items():
+                seen = fresh.get(ident)
+                if seen is None or seen[0] is not status:
+                    fresh[ident] = (status, k)
+                    moved[ident] = max(moved[ident], abs(status.position - start[ident]))
+            stuck = [
+                i
+                for i, since in asked_at.items()
+                if moved[i] <= FOLLOW_TOLERANCE and i in fresh and fresh[i][1] >= since + grace
+            ]
+            if stuck:
+                self.stopped_at = k
+                raise CommandFailed(
+                    f"{', '.join(f'la:{i}' for i in stuck)} did not move "
+                    f"{FOLLOW_GRACE_S:g} s after being asked to: stream stopped"
+                )
+            if k >= len(rows):
+                return None
+            row = rows[k]
+            for n, ident in enumerate(ids):
+                distance = abs(row[n] - start[ident])
+                if distance > asked[ident]:
+                    asked[ident] = distance
+                    if distance > FOLLOW_TOLERANCE and ident not in asked_at:
+                        asked_at[ident] = k
+            return row
 
         return targets
 
@@ -401,6 +440,11 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
                         flush=True,
                     )
             await stream.wait()  # raises StreamEnded if the stream failed
+        except StreamEnded as err:
+            if not isinstance(err.__cause__, CommandFailed):
+                await stream.stop()
+                raise
+            # The follow check stopped the stream (with its pause): reported below.
         except BaseException:
             # Ctrl-C (cancellation) or a failure: pause the actuators before the port closes.
             await stream.stop()
@@ -440,10 +484,15 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
         moved = ", ".join(
             f"la:{i} asked to move {check.asked[i]}, moved {check.moved[i]}" for i in lagging
         )
+        stopped = (
+            f"; stopped at tick {check.stopped_at} of {len(rows)}"
+            if check.stopped_at is not None
+            else ""
+        )
         print(
             f"motorbus stream: failed: {plural(len(lagging), 'actuator')} of "
-            f"{len(trajectory.ids)} did not follow ({moved}; tolerance {FOLLOW_TOLERANCE}): "
-            f"{hint}",
+            f"{len(trajectory.ids)} did not follow ({moved}; tolerance {FOLLOW_TOLERANCE}"
+            f"{stopped}): {hint}",
             file=sys.stderr,
         )
         failed = True
@@ -457,7 +506,7 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
     if summary["skipped"]:
         cause = (
             f"the actuators answered late ({missing} missing)"
-            if summary["feedback_timeouts"]
+            if summary["feedback_timeouts"] and args.feedback
             else "the host or the port could not keep up (a loaded machine, a slow adapter)"
         )
         print(
@@ -467,6 +516,6 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             file=sys.stderr,
         )
         return 1
-    if summary["feedback_timeouts"] and not failed:
+    if summary["feedback_timeouts"] and args.feedback and not failed:
         print(f"motorbus stream: warning: {missing} missing (late or lost)", file=sys.stderr)
     return 1 if failed else 0
