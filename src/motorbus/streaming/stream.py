@@ -119,7 +119,7 @@ class Stream:
         self.safe_action = safe_action
         self.on_gap = on_gap
         self.max_speed = max_speed
-        #: True once the safe action was sent (or ``hold`` chose to send none).
+        #: True once the safe action was sent: no later end sends it again.
         self.safe_applied = False
         self.gaps: Subscription[StreamGap] = streamer.bus.events.subscribe(
             StreamGap, lambda e: e.stream == self.number
