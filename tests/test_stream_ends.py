@@ -27,6 +27,7 @@ from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from motorbus.sim.pty import PtySim
+from motorbus.streaming.model import GAP_TICKS
 from motorbus.streaming.targets import ramp_step
 from motorbus.streams import Streamer, StreamGap
 from motorbus.transport.serial import SerialTransport
@@ -222,10 +223,14 @@ async def test_after_an_outage_the_stream_ramps_from_the_read_positions(
                 assert isinstance(before[-1], int) and isinstance(after[0], int)
                 # The sweep moved ~300 units during the outage; the actuator did not.
                 assert abs(after[0] - before[-1]) <= step + 10, (i, before[-3:], after[:3])
-            gap = await stream.gaps.next(timeout=BOUND_S)
-            assert isinstance(gap, StreamGap)
-            assert (gap.cause, gap.action, gap.ids) == ("outage", "ramp", ids)
-            assert gap.missed > 0 and stream.stats.gaps == 1
+            # A loaded host may also have stalled 3 ticks (a "behind" gap): look for the
+            # outage among the gaps.
+            gaps = [await stream.gaps.next(timeout=BOUND_S), *stream.gaps.pending()]
+            assert all(isinstance(g, StreamGap) for g in gaps)
+            assert stream.stats.gaps == len(gaps)
+            (gap,) = [g for g in gaps if g.cause == "outage"]
+            assert (gap.action, gap.ids) == ("ramp", ids)
+            assert gap.missed > 0
             assert stream.max_speed * PERIOD_S == STEP
             for i in ids:
                 after = [v for kind, v in frames.of(i)[cut:] if kind == "target"]
@@ -240,13 +245,18 @@ async def test_after_an_outage_the_stream_ramps_from_the_read_positions(
     assert not [c for c in handled if "Fatal" in str(c.get("message"))], handled
 
 
+#: A period at which only a host stalled 150 ms falls 3 ticks behind (a "behind" gap
+#: would end an on_gap="stop" stream before the outage the test makes).
+SLOW_S = 0.05
+
+
 @pytest.mark.parametrize("pacing", PACINGS)
 async def test_on_gap_stop_pauses_and_ends_the_stream_with_an_error(pacing: Pacing) -> None:
     models = [LAModel(1)]
     async with sim_bus(models, pacing=pacing) as (bus, sim):
         streamer = Streamer(bus)
         stream = streamer.follow(
-            InspireLA(bus, 1), sweep_one, period=PERIOD_S, safe_action="pause", on_gap="stop"
+            InspireLA(bus, 1), sweep_one, period=SLOW_S, safe_action="pause", on_gap="stop"
         )
         await eventually(lambda: len(models[0].received) >= 3, "targets to arrive")
         sim.peer.unplug()
@@ -282,13 +292,15 @@ async def test_a_stalled_host_is_a_gap_too(pacing: Pacing) -> None:
         with bus.events.subscribe(StreamGap) as gaps:
             stream = streamer.follow(InspireLA(bus, 1), stalls_once, period=PERIOD_S)
             await eventually(lambda: len(models[0].received) >= 40, "40 ticks")
-            # The sweep moved 60 units during the stall; the targets never jump.
+            # The sweep (3 units a tick) moved 60 units during the stall; the targets
+            # never jump.  Up to GAP_TICKS - 1 ticks skipped on a loaded machine are no
+            # gap: 9 units at most.
             targets = [p for _, _, p in models[0].received]
             jumps = [abs(b - a) for a, b in itertools.pairwise(targets)]
-            assert max(jumps) <= STEP + 1, targets
+            assert max(jumps) <= 3 * GAP_TICKS, targets
             gap = await gaps.next(timeout=BOUND_S)
         assert (gap.cause, gap.action) == ("behind", "ramp") and gap.missed >= 3
-        assert stream.stats.gaps == 1
+        assert stream.stats.gaps >= 1  # more if the machine stalled again
         await streamer.close()
 
 
