@@ -28,6 +28,22 @@ they are written (``Bus.submit(refresh=...)``), from the streams still running, 
 tick queued or being built when the stop began is dropped, not sent after the safe
 action's pause (a follow target would resume a paused actuator, LA manual 3.5.4).
 
+Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
+of its ``async with`` block, an error, a gap it was told to stop on, the bus closing),
+its safe action (``safe_action``: "pause" or "estop") goes to its actuators, unless the
+owner ends it explicitly with ``stop(hold=True)`` (the actuators then hold their last
+target).
+
+After a gap, a ramp: when the bus comes back after losing its port, or the stream fell
+``GAP_TICKS`` or more ticks behind (a stalled host), the targets have moved on while the
+actuators have not.  With ``on_gap="ramp"`` (the default) the stream finds where each
+actuator is (after an outage it reads each status; after falling behind, each is where
+the last target sent put it) and ramps from there to the trajectory at its
+``max_speed``; with
+``on_gap="stop"`` it applies its safe action and ends with an error.  Either way the gap
+is a ``StreamGap`` event (``stream.gaps``, or ``bus.events``) and a count
+(``stats.gaps``).
+
 All the streamers of one bus share one time budget: a set of streams that cannot fit
 the bus is refused when it starts, with an error that says what would fit, and an
 actuator can be streamed by one stream at a time.
@@ -37,47 +53,50 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import enum
-import inspect
 import logging
 import math
-import weakref
-from collections.abc import AsyncIterator, Callable, Iterable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any, TypeAlias
+from collections.abc import Sequence
+from typing import Any
 
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
-from motorbus.bus.occupancy import occupancy
-from motorbus.bus.stats import LatencyHistogram
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, check_flag
 from motorbus.shutdown import deferred_interrupts
-from motorbus.validation import PHASE_MAX_S, check_number, is_scalar, target_id, target_position
+from motorbus.streaming.budget import StreamBudget, tick_cost
+from motorbus.streaming.model import (
+    DEFAULT_MAX_SPEED,
+    GAP_TICKS,
+    LATE_AFTER_S,
+    PERIOD_MAX_S,
+    PERIOD_MIN_S,
+    GapPolicy,
+    SafeAction,
+    StreamStats,
+    broadcast_builder,
+    check_follow_options,
+    hold_flag,
+    while_sending,
+)
+from motorbus.streaming.stream import Stream, StreamGap
+from motorbus.streaming.targets import TargetSource, ramp_step
+from motorbus.validation import PHASE_MAX_S, check_number
 
 __all__ = [
     "PERIOD_MAX_S",
     "PERIOD_MIN_S",
+    "GapPolicy",
     "SafeAction",
     "Stream",
     "StreamEnded",
+    "StreamGap",
     "StreamStats",
     "Streamer",
 ]
 
 log = logging.getLogger("motorbus.streams")
 
-#: Follow-mode targets must come at a fixed interval of 10..50 ms (LA manual 3.5.3).
-PERIOD_MIN_S = 0.010
-PERIOD_MAX_S = 0.050
-#: Share of each tick that streams may plan to use; the rest absorbs host jitter and
-#: the user's own requests.
-TICK_BUDGET_SHARE = 0.8
-#: A tick sent later than this after its deadline counts as late (it is still sent).
-LATE_AFTER_S = 1e-3
 #: Ticks within this of each other are served together (and coalesced).
 COALESCE_WINDOW_S = 200e-6
 #: A tick's targets are computed as soon as the previous tick's frames, feedback and
@@ -88,324 +107,6 @@ COALESCE_WINDOW_S = 200e-6
 PLAN_AHEAD_S = 0.050
 #: Polls stop this long before the next tick, to leave time to prepare it.
 PREPARE_S = 1e-3
-
-Targets: TypeAlias = Mapping[int, int]
-TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
-
-
-class SafeAction(enum.Enum):
-    """What a stream does to its actuators when it ends abnormally or is cancelled."""
-
-    HOLD = "hold"  # nothing: each actuator holds its last target
-    PAUSE = "pause"  # CMD_MC pause: power stage off, the next target resumes
-    ESTOP = "estop"  # CMD_MC e-stop: power stage off, "work" needed to move again
-
-
-@dataclass(slots=True)
-class StreamStats:
-    """Timing and counts of one stream (durations in seconds)."""
-
-    ticks: int = 0  # ticks served (frames sent)
-    late: int = 0  # ticks sent more than LATE_AFTER_S after their deadline
-    skipped: int = 0  # ticks dropped because the stream fell a whole period behind
-    #: Ticks whose first frame could not be written at the deadline itself (a reply
-    #: was still owed, or the 1 ms spacing from the previous write): sent that much later.
-    slipped: int = 0
-    frames: int = 0  # frames sent for this stream (broadcasts shared count once each)
-    feedback_timeouts: int = 0
-    polls: int = 0
-    #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
-    #: whose free slots held no poll at all.
-    polls_skipped: int = 0
-    #: Lateness of each tick's first frame against its absolute deadline.
-    jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
-
-    def summary(self) -> str:
-        """One line of text: ticks, late, skipped, slipped, polls and tick jitter.
-
-        ``as_dict()`` has the same figures as a JSON-ready dict.
-        """
-        d = self.as_dict()
-        return (
-            f"{d['ticks']} ticks ({d['frames']} frames), {d['late']} late, "
-            f"{d['skipped']} skipped, {d['slipped']} slipped; polls {d['polls']} "
-            f"({d['polls_skipped']} skipped), {d['feedback_timeouts']} feedback timeouts; "
-            f"jitter p50 {d['jitter_p50_us']:.0f} / p99 {d['jitter_p99_us']:.0f} / "
-            f"max {d['jitter_max_us']:.0f} us"
-        )
-
-    def as_dict(self) -> dict[str, float]:
-        """Counts plus jitter p50/p99/max in microseconds, as a dict (JSON-ready)."""
-        j = self.jitter.summary()
-        return {
-            "ticks": self.ticks,
-            "late": self.late,
-            "skipped": self.skipped,
-            "slipped": self.slipped,
-            "frames": self.frames,
-            "feedback_timeouts": self.feedback_timeouts,
-            "polls": self.polls,
-            "polls_skipped": self.polls_skipped,
-            "jitter_p50_us": j["p50_us"],
-            "jitter_p99_us": j["p99_us"],
-            "jitter_max_us": j["max_us"],
-        }
-
-
-class Stream:
-    """A running (or finished) follow-mode stream; create it with ``Streamer.follow``.
-
-    Targets, per tick ``k`` at time ``t = k * period`` since the stream started, come
-    from ``source``, one of:
-
-    * a sequence (list, tuple, array): item ``k`` each tick; the stream ends after the
-      last item;
-    * an iterator or generator: the next item each tick, ending with it;
-    * an async iterator: awaited each tick;
-    * a callable ``f(t, statuses)``, where ``statuses`` maps ID to the latest
-      ``la.Status`` (feedback replies and polls): its return value each tick; return
-      ``None`` to end the stream.
-
-    An item is a position 0..2000 for a single actuator, a sequence with one position
-    per actuator (in the order given), or a mapping ``{id: position}``.
-    """
-
-    def __init__(
-        self,
-        streamer: Streamer,
-        actuators: Sequence[InspireLA],
-        source: TargetSource,
-        *,
-        period: float,
-        feedback: bool,
-        poll_status: bool,
-        safe_action: SafeAction,
-    ) -> None:
-        self.streamer = streamer
-        self.actuators = tuple(actuators)
-        self.ids = tuple(a.id for a in self.actuators)
-        self.period = period
-        self.feedback = feedback
-        self.poll_status = poll_status
-        self.safe_action = safe_action
-        self.stats = StreamStats()
-        self.statuses: dict[int, la.Status] = {}
-        self.last_targets: dict[int, int] = {}
-        self.error: BaseException | None = None
-        self.origin = 0.0
-        self.next_tick = 0
-        self.paused = False
-        #: True from the moment the stream starts to stop: nothing more of it is written.
-        self.stopping = False
-        self.done = False
-        self._source = source
-        self._sequence: Sequence[Any] | None = None
-        self._iterator: Iterator[Any] | None = None
-        self._aiterator: AsyncIterator[Any] | None = None
-        self._callable: Callable[..., Any] | None = None
-        self._finished = asyncio.get_running_loop().create_future()
-        self._poll_cursor = 0
-        self._bind(source)
-
-    # -- control ----------------------------------------------------------------
-
-    def _bind(self, source: TargetSource) -> None:
-        self._sequence = self._iterator = self._aiterator = self._callable = None
-        if isinstance(source, (str, bytes, bytearray)):
-            # Strings are sequences: "1500" would stream the targets 1, 5, 0, 0.
-            raise LocalProtocolError(
-                f"targets must be positions, not text: got {source!r}", field="targets"
-            )
-        if isinstance(source, Sequence):
-            self._sequence = source
-        elif hasattr(source, "__len__") and hasattr(source, "__getitem__"):
-            self._sequence = source  # numpy arrays and the like
-        elif hasattr(source, "__anext__"):
-            self._aiterator = source
-        elif hasattr(source, "__next__") or (hasattr(source, "__iter__") and not callable(source)):
-            self._iterator = iter(source)
-        elif callable(source):
-            self._callable = source
-        else:
-            raise LocalProtocolError(
-                f"targets must be a sequence, an iterator, an async iterator or a callable "
-                f"f(t, statuses); got {type(source).__name__}",
-                field="targets",
-            )
-
-    def set_targets(self, source: TargetSource) -> None:
-        """Replace the target source on the fly; it starts at its own index 0 next tick."""
-        self._bind(source)
-        self._index_base = self.next_tick
-
-    _index_base = 0
-
-    def pause(self) -> None:
-        """Stop sending targets (the tick grid keeps running, so resume is on the grid)."""
-        self.paused = True
-
-    def resume(self) -> None:
-        """Send targets again from the next tick."""
-        self.paused = False
-
-    @property
-    def sending(self) -> bool:
-        """True while the stream may still write targets (not paused, stopping or done)."""
-        return not (self.paused or self.stopping or self.done)
-
-    async def stop(self, *, safe: bool = False) -> None:
-        """End the stream; with ``safe``, apply its safe action first.  Idempotent.
-
-        From the moment this is called, nothing more of the stream is written: a tick
-        being built or queued is dropped, so the safe action is the last word.
-        """
-        if self.done:
-            return
-        self.stopping = True
-        try:
-            if safe:
-                with deferred_interrupts():
-                    await self.apply_safe_action()
-        finally:
-            self._finish(None)
-
-    async def wait(self) -> None:
-        """Wait until the stream ends; raises ``StreamEnded`` if it ended on an error."""
-        await asyncio.shield(self._finished)
-        if self.error is not None:
-            raise StreamEnded(f"stream to {list(self.ids)} ended: {self.error}") from self.error
-
-    async def apply_safe_action(self) -> None:
-        """Bring every actuator of the stream to the configured safe state.
-
-        The stream stops sending first (``stopping``), so no target follows the stop.
-        """
-        self.stopping = True
-        if self.safe_action is SafeAction.HOLD:
-            return
-        action = (
-            la.ControlAction.ESTOP
-            if self.safe_action is SafeAction.ESTOP
-            else la.ControlAction.PAUSE
-        )
-        for ident in self.ids:
-            try:
-                await self.streamer.bus.request(
-                    la.Control(ident, action), priority=Priority.EMERGENCY
-                )
-            except MotorbusError as err:
-                log.warning("safe action %s on la:%d failed: %s", action.name, ident, err)
-
-    def _finish(self, error: BaseException | None) -> None:
-        if self.done:
-            return
-        self.stopping = True
-        self.done = True
-        self.error = error
-        if not self._finished.done():
-            self._finished.set_result(None)
-        self.streamer._remove(self)
-
-    async def __aenter__(self) -> Stream:
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        # Leaving the block normally ends the stream with the actuators holding; an
-        # exception or a cancellation applies the safe action.
-        await self.stop(safe=exc_type is not None)
-
-    # -- targets ------------------------------------------------------------------
-
-    async def _targets(self, k: int, t: float) -> Targets | None:
-        """The targets of tick ``k`` (time ``t`` since start), or None when exhausted."""
-        item: Any
-        i = k - self._index_base
-        if self._sequence is not None:
-            if i >= len(self._sequence):
-                return None
-            item = self._sequence[i]
-        elif self._iterator is not None:
-            try:
-                item = next(self._iterator)
-            except StopIteration:
-                return None
-        elif self._aiterator is not None:
-            try:
-                item = await self._aiterator.__anext__()
-            except StopAsyncIteration:
-                return None
-        else:
-            assert self._callable is not None
-            item = self._callable(t, self.statuses)
-            if inspect.isawaitable(item):
-                item = await item
-        if item is None:
-            return None
-        return self._normalise(item)
-
-    def _normalise(self, item: Any) -> Targets:
-        kind = type(item)
-        if kind is list or kind is tuple:  # the common case first: no ABC checks
-            return self._normalise_values(item)
-        if kind is float or kind is int:
-            return self._normalise_scalar(item)
-        if isinstance(item, Mapping):
-            targets = {target_id(i): _position(v, f"targets[{i}]") for i, v in item.items()}
-            unknown = set(targets) - set(self.ids)
-            if unknown:
-                raise LocalProtocolError(
-                    f"targets name ids {sorted(unknown)} that this stream does not drive "
-                    f"(it drives {list(self.ids)})",
-                    field="targets",
-                )
-            return targets
-        if isinstance(item, (int, float)) or _is_scalar(item):
-            return self._normalise_scalar(item)
-        if isinstance(item, str | bytes):  # a sequence, but of characters
-            raise LocalProtocolError(
-                f"targets must be positions, not text: got {item!r}", field="targets"
-            )
-        # A numpy row (a 1-D array, or a row of a 2-D array of ticks x actuators):
-        # tolist() gives plain floats/ints, which take the fast path below.
-        tolist = getattr(item, "tolist", None)
-        values = tolist() if callable(tolist) else list(item)
-        return self._normalise_values(values)
-
-    def _normalise_scalar(self, item: Any) -> Targets:
-        if len(self.ids) != 1:
-            raise LocalProtocolError(
-                f"a single target was given for {len(self.ids)} actuators; give one "
-                "per actuator or a mapping {id: position}",
-                field="targets",
-            )
-        return {self.ids[0]: _position(item, "target")}
-
-    def _normalise_values(self, values: Sequence[Any]) -> Targets:
-        if len(values) != len(self.ids):
-            raise LocalProtocolError(
-                f"targets has {len(values)} values for {len(self.ids)} actuators",
-                field="targets",
-            )
-        # The common case, once a tick per bus: plain numbers all in range.  Anything
-        # else (a bool, NaN, a string, out of range) takes the checking path below,
-        # which names the offending value.
-        if all(type(v) in _PLAIN_NUMBERS for v in values):
-            try:
-                if min(values) >= la.POSITION_MIN and max(values) <= la.POSITION_MAX:
-                    return dict(zip(self.ids, map(round, values), strict=True))
-            except (ValueError, OverflowError):  # NaN or infinity: round() refuses them
-                pass
-        return {i: _position(v, f"targets[{i}]") for i, v in zip(self.ids, values, strict=True)}
-
-
-_PLAIN_NUMBERS = (int, float)
-_is_scalar = is_scalar
-_position = target_position
 
 
 class Streamer:
@@ -430,17 +131,14 @@ class Streamer:
         self._tick_cost_s = 0.0
         #: The window of a tick prepared or in progress: (deadline, end of its frames).
         self._active: tuple[float, float] | None = None
-        _streamers_of(bus).add(self)
+        #: The budget every streamer of this bus shares, held by the bus.
+        self.budget = _budget_of(bus)
         bus.add_reservation_source(self._reservation)
         # Whatever ends the program closes the bus: the streams stop safely first.
         bus.add_close_hook(self._on_bus_close)
 
     async def _on_bus_close(self) -> None:
         await self.close(safe=True)
-
-    def _bus_streams(self) -> list[Stream]:
-        """Every running stream on this streamer's bus, whichever streamer serves it."""
-        return [st for streamer in _streamers_of(self.bus) for st in streamer.streams]
 
     def _reservation(self, now: float) -> tuple[float, float] | None:
         """The next window this streamer's ticks need (see ``Bus.add_reservation_source``)."""
@@ -454,69 +152,7 @@ class Streamer:
         return deadline, deadline + self._tick_cost_s
 
     def _update_tick_cost(self) -> None:
-        self._tick_cost_s = sum(self.tick_cost(self.streams).values())
-
-    # -- planning -------------------------------------------------------------------
-
-    def slot_cost(self, *, reply_bytes: int, request_bytes: int) -> float:
-        """Bus time one frame occupies when the device answers in time
-        (``Occupancy.answered``): the spacing, or its round trip if longer."""
-        return occupancy(
-            self.bus.timing, Family.LA, request_bytes=request_bytes, reply_bytes=reply_bytes
-        ).answered
-
-    def tick_cost(self, streams: Iterable[Stream]) -> dict[float, float]:
-        """Planned bus time per tick, per period, for a set of streams."""
-        by_period: dict[float, tuple[int, int]] = {}
-        for s in streams:
-            broadcast, feedback = by_period.get(s.period, (0, 0))
-            if s.feedback:
-                feedback += len(s.ids)
-            else:
-                broadcast += len(s.ids)
-            by_period[s.period] = (broadcast, feedback)
-        follow_bytes = len(la.Follow(1, 0).encode())
-        costs: dict[float, float] = {}
-        for period, (broadcast, feedback) in by_period.items():
-            frames = math.ceil(broadcast / la.MAX_BROADCAST_ENTRIES)
-            cost = 0.0
-            if frames:
-                full, rest = divmod(broadcast, la.MAX_BROADCAST_ENTRIES)
-                sizes = [la.MAX_BROADCAST_ENTRIES] * full + ([rest] if rest else [])
-                cost += sum(self.slot_cost(request_bytes=6 + 3 * n, reply_bytes=0) for n in sizes)
-            cost += feedback * self.slot_cost(
-                request_bytes=follow_bytes, reply_bytes=la.STATUS_FRAME_SIZE
-            )
-            costs[period] = cost
-        return costs
-
-    def check_budget(self, extra: Stream) -> None:
-        """Refuse ``extra`` if the streams of this bus would no longer fit their ticks.
-
-        The budget is the bus's, shared by every streamer on it.
-        """
-        streams = [*self._bus_streams(), extra]
-        costs = self.tick_cost(streams)
-        load = sum(cost / period for period, cost in costs.items())
-        if load <= TICK_BUDGET_SHARE:
-            return
-        poll = self.slot_cost(
-            request_bytes=len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()),
-            reply_bytes=la.STATUS_FRAME_SIZE,
-        )
-        usable = extra.period * TICK_BUDGET_SHARE
-        others = load - costs.get(extra.period, 0.0) / extra.period
-        free_ms = max(0.0, (TICK_BUDGET_SHARE - others) * extra.period) * 1e3
-        fit_feedback = int(max(0.0, usable - 0.0) // poll)
-        raise LocalProtocolError(
-            f"streams on bus {self.bus.name} would need {load * 100:.0f} % of the bus "
-            f"(limit {TICK_BUDGET_SHARE * 100:.0f} %): a {extra.period * 1e3:.0f} ms tick has "
-            f"{usable * 1e3:.1f} ms usable, {free_ms:.1f} ms still free. What fits per tick: "
-            f"at most {fit_feedback} actuators with feedback (one {poll * 1e3:.2f} ms round "
-            f"trip each), or {la.MAX_BROADCAST_ENTRIES} actuators per broadcast frame without "
-            "feedback; or use a longer period",
-            field="streams",
-        )
+        self._tick_cost_s = sum(tick_cost(self.bus.timing, self.streams).values())
 
     # -- starting and stopping --------------------------------------------------------
 
@@ -529,6 +165,8 @@ class Streamer:
         feedback: bool = False,
         poll_status: bool = False,
         safe_action: SafeAction | str = SafeAction.HOLD,
+        on_gap: GapPolicy | str = GapPolicy.RAMP,
+        max_speed: float = DEFAULT_MAX_SPEED,
     ) -> Stream:
         """Start streaming follow-mode targets; returns the running ``Stream``.
 
@@ -540,11 +178,21 @@ class Streamer:
                 into 0xF3 broadcasts with the other no-feedback streams of the bus).
             poll_status: in the slots a tick leaves free, query the status of this
                 stream's actuators round-robin (no-feedback streams).
-            safe_action: applied on cancellation or error: "hold", "pause" or "estop".
+            safe_action: "hold", "pause" or "estop"; applied however the stream ends (its
+                targets run out, ``stop()``, the end of its ``async with`` block, an
+                error, the bus closing), unless it is ended with ``stop(hold=True)``.
+            on_gap: after a gap (the bus lost its port and came back, or the stream
+                fell ``GAP_TICKS`` ticks behind): "ramp" (default) starts from where
+                each actuator is (read after an outage; the last target sent after
+                falling behind) and ramps to the trajectory at ``max_speed``; "stop"
+                applies the safe action and ends the stream with an error.
+            max_speed: the stream's speed limit in position units per second, for the
+                ramp after a gap (default 500: the full stroke in 4 s).  A trajectory
+                faster than that is caught up with where it turns back.
 
         Raises:
-            LocalProtocolError: a bad period, an empty or foreign actuator list, an
-                actuator already streamed, or a load that does not fit the bus.
+            LocalProtocolError: a bad period, option, an empty or foreign actuator list,
+                an actuator already streamed, or a load that does not fit the bus.
         """
         if isinstance(actuators, InspireLA):
             group = [actuators]
@@ -557,41 +205,37 @@ class Streamer:
             )
         if not group:
             raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
-        # 10..50 ms (LA manual 3.5.3); the slack admits a float32 0.01 (0.00999999978).
-        period = check_number("period", period, PERIOD_MIN_S, PERIOD_MAX_S, "s", slack=1e-9)
-        check_flag("feedback", feedback)
-        check_flag("poll_status", poll_status)
-        try:
-            action = SafeAction(safe_action)
-        except ValueError:
-            raise LocalProtocolError(
-                f"safe_action={safe_action!r} is not allowed: choose hold, pause or estop",
-                field="safe_action",
-            ) from None
-        busy = {i for s in self._bus_streams() for i in s.ids}
+        options = check_follow_options(
+            period=period,
+            feedback=feedback,
+            poll_status=poll_status,
+            safe_action=safe_action,
+            on_gap=on_gap,
+            max_speed=max_speed,
+        )
         for a in group:
             if a.bus is not self.bus:
                 raise LocalProtocolError(
                     f"actuator la:{a.id} is on bus {a.bus.name}, not {self.bus.name}",
                     field="actuators",
                 )
-            if a.id in busy:
-                raise LocalProtocolError(
-                    f"actuator la:{a.id} is already streamed on bus {self.bus.name}",
-                    field="actuators",
-                )
-        if len({a.id for a in group}) != len(group):
-            raise LocalProtocolError("actuators lists an id twice", field="actuators")
+        self.budget.check_ids([a.id for a in group])
         stream = Stream(
             self,
             group,
             targets,
-            period=float(period),
-            feedback=feedback,
-            poll_status=poll_status,
-            safe_action=action,
+            period=options.period,
+            feedback=options.feedback,
+            poll_status=options.poll_status,
+            safe_action=options.safe_action,
+            on_gap=options.on_gap,
+            max_speed=options.max_speed,
         )
-        self.check_budget(stream)
+        try:
+            self.budget.admit(self.bus.timing, stream)
+        except LocalProtocolError:
+            stream.gaps.close()
+            raise
         now = self.bus.timer.now()
         # Align the origin to this bus's grid so streams of one period coalesce.
         grid = self.phase + math.ceil((now + 0.002 - self.phase) / stream.period) * stream.period
@@ -606,23 +250,27 @@ class Streamer:
             self._ring()
         return stream
 
-    def _remove(self, stream: Stream) -> None:
+    def discard(self, stream: Stream) -> None:
+        """Forget an ended stream (``Stream`` calls it as it finishes)."""
+        self.budget.release(stream)
         if stream in self.streams:
             self.streams.remove(stream)
             self._update_tick_cost()
             self._ring()
 
-    async def close(self, *, safe: bool = True) -> None:
-        """End every stream (applying safe actions if ``safe``) and stop the task.
+    async def close(self, *, hold: bool = False, safe: bool | None = None) -> None:
+        """End every stream with its safe action (none with ``hold``) and stop the task.
 
         Every stream stops sending at once, before the first safe action is sent.
+        ``safe=False`` is the older spelling of ``hold=True``.
         """
+        hold = hold_flag(hold, safe)
         streams = list(self.streams)
         for s in streams:
             s.stopping = True
         with deferred_interrupts():
             for s in streams:
-                await s.stop(safe=safe)
+                await s.stop(hold=hold)
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -692,18 +340,25 @@ class Streamer:
                 continue
             if not s.sending:
                 continue
+            cause = self._gap_cause(s, behind)
+            if cause is not None:
+                s.stats.skipped += 1  # this tick goes to reading the positions
+                await self._gap(s, cause)
+                continue  # the ramp (or nothing, after a stop) starts next tick
             try:
-                targets = await s._targets(k, k * s.period)
+                targets = await s.next_targets(k)
             except Exception as err:  # the user's target source failed: end that stream
                 log.warning("stream to %s: target source failed: %s", list(s.ids), err)
-                try:
-                    await s.apply_safe_action()
-                finally:
-                    s._finish(err)
+                await s.end(err)
                 continue
-            if targets is None:
-                s._finish(None)
+            if targets is None:  # a normal end: still a safe one
+                await s.end(None)
                 continue
+            if s.ramp is not None:
+                targets = ramp_step(s.ramp, targets, s.max_speed * s.period)
+                if not s.ramp:
+                    s.ramp = None  # every actuator is back on the trajectory
+            s.skipped_mark = s.stats.skipped
             s.last_targets.update(targets)
             served.append(s)
             if s.feedback:
@@ -733,7 +388,7 @@ class Streamer:
                         follow,
                         priority=Priority.HIGH,
                         reserved=True,
-                        refresh=_while_sending(s, follow),
+                        refresh=while_sending(s, follow),
                     )
                 except MotorbusError:
                     s.stats.feedback_timeouts += 1
@@ -754,6 +409,74 @@ class Streamer:
             if lateness > LATE_AFTER_S:
                 s.stats.late += 1
         await self._poll(served)
+
+    def _gap_cause(self, s: Stream, behind: int) -> str | None:
+        """Why ``s`` has a gap to handle before its next targets, or None."""
+        if self.bus.stats.disconnects != s.disconnects_seen:
+            return "outage"
+        if behind >= GAP_TICKS:
+            return "behind"
+        return None
+
+    async def _gap(self, s: Stream, cause: str) -> None:
+        """Handle a gap of ``s`` by its ``on_gap``: find where each actuator is and ramp
+        from there, or apply the safe action and end it.  Publishes ``StreamGap``.
+
+        After an outage each position is read (the actuators may have been moved, or
+        power-cycled).  After falling behind, an actuator that got targets is where the
+        last of them sent it (follow mode tracks it, and nothing else moved it): the ramp
+        starts there, without reads that would load a host already too slow.  An
+        actuator whose position cannot be read cannot be ramped: that ends the stream as
+        "stop" does.
+        """
+        bus = self.bus
+        s.disconnects_seen = bus.stats.disconnects
+        s.stats.gaps += 1
+        missed = s.stats.skipped - s.skipped_mark
+        s.skipped_mark = s.stats.skipped
+        positions: dict[int, int] = {}
+        unread: list[int] = []
+        if s.on_gap is GapPolicy.RAMP:
+            known = s.last_targets if cause == "behind" else {}
+            for ident in s.ids:
+                if ident in known:
+                    positions[ident] = known[ident]
+                    continue
+                try:
+                    status = await bus.request(
+                        la.Control(ident, la.ControlAction.QUERY_STATUS), priority=Priority.HIGH
+                    )
+                except MotorbusError as err:
+                    log.warning("stream to %s: la:%d position unread: %s", list(s.ids), ident, err)
+                    unread.append(ident)
+                    continue
+                s.statuses[ident] = status
+                positions[ident] = min(max(status.position, la.POSITION_MIN), la.POSITION_MAX)
+        ramp = s.on_gap is GapPolicy.RAMP and not unread and s.sending
+        action = "ramp" if ramp else "stop"
+        bus.events.publish(
+            StreamGap(bus.name, bus.timer.now(), s.number, s.ids, cause, missed, positions, action)
+        )
+        log.log(
+            logging.WARNING if cause == "outage" or not ramp else logging.INFO,
+            "stream to %s: gap (%s, %d ticks missed): %s",
+            list(s.ids),
+            cause,
+            missed,
+            f"ramping from {positions}" if ramp else "safe action, stream ended",
+        )
+        if not ramp:
+            if s.sending:
+                why = f"la:{', la:'.join(map(str, unread))} unread" if unread else 'on_gap="stop"'
+                await s.end(StreamEnded(f"gap ({cause}, {missed} ticks missed; {why})"))
+            return
+        s.ramp = {i: float(p) for i, p in positions.items()}
+        # The reads took time: the stream goes on from the next slot still ahead.
+        upcoming = math.ceil((bus.timer.now() - s.origin) / s.period)
+        if upcoming > s.next_tick:
+            s.stats.skipped += upcoming - s.next_tick
+            s.next_tick = upcoming
+        s.skipped_mark = s.stats.skipped
 
     async def _send_at(
         self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
@@ -785,7 +508,7 @@ class Streamer:
             futures = []
             try:
                 for chunk in chunks:
-                    build = _broadcast_builder(chunk)
+                    build = broadcast_builder(chunk)
                     first = build()
                     if first is None:
                         continue
@@ -840,7 +563,7 @@ class Streamer:
                 # round robin goes on next tick; that is not a skipped poll.
                 if max(timer.now(), self.bus.next_write_at) > start_by or not s.sending:
                     break
-                ident = s.ids[s._poll_cursor % len(s.ids)]
+                ident = s.poll_id
                 try:
                     status = await self.bus.submit(
                         la.Control(ident, la.ControlAction.QUERY_STATUS),
@@ -853,10 +576,10 @@ class Streamer:
                     polled = -1  # counted already
                     break
                 except MotorbusError:
-                    s._poll_cursor += 1
+                    s.poll_done()
                     s.stats.feedback_timeouts += 1
                     continue
-                s._poll_cursor += 1
+                s.poll_done()
                 polled += 1
                 s.statuses[ident] = status
                 s.stats.polls += 1
@@ -864,43 +587,9 @@ class Streamer:
                 s.stats.polls_skipped += 1
 
 
-def _while_sending(stream: Stream, cmd: la.Follow) -> Callable[[], la.Follow | None]:
-    """A ``refresh`` for one feedback frame: drop it if its stream no longer sends."""
-    return lambda: cmd if stream.sending else None
-
-
-def _broadcast_builder(
-    chunk: list[tuple[Stream, tuple[int, int]]],
-) -> Callable[[], la.Broadcast | None]:
-    """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
-
-    While every stream of the chunk still sends, the frame built first is reused (it is
-    built once a tick, at the deadline, on the hot path).
-    """
-    streams = tuple({s: None for s, _ in chunk})
-    built: list[la.Broadcast] = []
-
-    def build() -> la.Broadcast | None:
-        if all(s.sending for s in streams):
-            if not built:
-                built.append(
-                    la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, tuple(p for _, p in chunk))
-                )
-            return built[0]
-        pairs = tuple(pair for s, pair in chunk if s.sending)
-        if not pairs:
-            return None
-        return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
-
-    return build
-
-
-_STREAMERS: weakref.WeakKeyDictionary[Bus, weakref.WeakSet[Streamer]] = weakref.WeakKeyDictionary()
-
-
-def _streamers_of(bus: Bus) -> weakref.WeakSet[Streamer]:
-    """The streamers of ``bus`` (they share its budget and its actuators)."""
-    found = _STREAMERS.get(bus)
-    if found is None:
-        found = _STREAMERS[bus] = weakref.WeakSet()
-    return found
+def _budget_of(bus: Bus) -> StreamBudget:
+    """The budget of ``bus``'s streams, which the bus holds (created on first use)."""
+    budget = bus.stream_budget
+    if not isinstance(budget, StreamBudget):
+        budget = bus.stream_budget = StreamBudget(bus.name)
+    return budget

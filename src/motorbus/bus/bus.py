@@ -350,6 +350,9 @@ class Bus:
             lambda: self.state.value,
         )
         self._leases = self._lease_keeper.table  # the hot paths' direct reference
+        #: The time budget this bus's streams share (``motorbus.streaming.budget``), set
+        #: by its first ``Streamer``: the bus owns it, whichever streamer serves a stream.
+        self.stream_budget: Any = None
 
     # -- life cycle --------------------------------------------------------------
 

@@ -16,10 +16,24 @@ column does not pace anything, it is only checked to increase by the period from
 to row (within 1 %), so a file made for another rate is refused instead of played at
 the wrong speed.  --loop N plays the rows N times.
 
-Before the first tick every listed actuator must answer a status query (else
-nothing is streamed, exit code 1), and each is ramped from the position it reports
-to its first target over --ramp seconds (default 1; --ramp 0 jumps straight there),
-so the first row does not become a full-speed lunge.
+Before the first tick every listed actuator must answer a status query and report
+no fault (else nothing is streamed, exit code 1), and is enabled ("work", so an
+e-stopped actuator moves again; --no-enable sends nothing of the kind: the LA status
+does not report its power state, so a paused or e-stopped actuator is then only found
+out by not moving).  Each is ramped from the position it reports to its first target
+over --ramp seconds (default 1; --ramp 0 jumps straight there), so the first row does
+not become a full-speed lunge.
+
+The stream checks that the actuators follow: it polls their status in the slots a tick
+leaves free (or reads the feedback replies) and reads each position at the end.  An
+actuator asked to move more than 10 units that never moved more than 10 units from
+where it started is reported ("did not follow") and makes the exit code 1; once a
+status read 0.5 s after it was asked to move shows that, the stream stops there (the
+others would go on without it).
+
+At the end (the last row, or a failure) the actuators are paused.  If the port is lost
+and comes back, the stream reads each position and ramps back to the trajectory at
+500 units/s, and the gap is reported.
 
 Without --feedback the targets go out as 0xF3 broadcasts, one frame a tick; with
 it, each actuator gets a 0x20 frame and answers with its status.  Live statistics
@@ -58,12 +72,25 @@ from motorbus.cli.common import (
     plural,
     print_json,
 )
-from motorbus.cli.main import CommandFailed
-from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.errors import (
+    CommandFailed,
+    LocalProtocolError,
+    MotorbusError,
+    ReplyTimeoutError,
+    StreamEnded,
+)
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 
-__all__ = ["Trajectory", "ramp_rows", "read_trajectory", "register", "run"]
+__all__ = [
+    "FollowCheck",
+    "Trajectory",
+    "check_actuators",
+    "ramp_rows",
+    "read_trajectory",
+    "register",
+    "run",
+]
 
 #: The time column may differ from ``k * period`` steps by this share of the period.
 TIME_TOLERANCE = 0.01
@@ -80,6 +107,12 @@ CHECK_TIMEOUT_S = 0.1
 DEFAULT_RAMP_S = 1.0
 #: Longest ``--ramp`` (seconds).
 MAX_RAMP_S = 60.0
+#: An actuator asked to move farther than this (position units) must move farther than
+#: this from where it started, or it did not follow.
+FOLLOW_TOLERANCE = 10
+#: An actuator whose status this long after it was asked to move shows it has not stops
+#: the stream (seconds): the LA follows a target within a tick or two.
+FOLLOW_GRACE_S = 0.5
 
 
 def register(subparsers: Any) -> None:
@@ -94,6 +127,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--ids", help="actuator of each position column, e.g. 1,2,3")
     p.add_argument("--period", type=float, default=0.01, help="seconds per row, 0.01..0.05")
     p.add_argument("--feedback", action="store_true", help="0x20 with status replies per id")
+    p.add_argument(
+        "--no-enable",
+        action="store_true",
+        help='do not send "work" first (a paused or e-stopped actuator will not follow)',
+    )
     p.add_argument("--loop", type=int, default=1, help="play the rows N times (default 1)")
     p.add_argument(
         "--ramp",
@@ -200,7 +238,8 @@ def read_trajectory(path: Path, ids: list[int] | None, period: float) -> Traject
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``motorbus stream``; return 0 if every tick went out, 1 if some were skipped.
+    """Run ``motorbus stream``; return 0 if every tick went out and every actuator
+    followed, 1 if some ticks were skipped or some actuator did not follow.
 
     Raises:
         LocalProtocolError: a bad file, ``--ids``, ``--period`` or ``--loop``.
@@ -233,13 +272,14 @@ def ramp_rows(start: tuple[int, ...], end: tuple[int, ...], ticks: int) -> list[
     ]
 
 
-async def _positions(bus: Bus, ids: list[int], baud: int) -> tuple[int, ...]:
-    """Every actuator's reported position; refuses to go on if one does not answer.
+async def check_actuators(bus: Bus, ids: list[int], baud: int) -> list[la.Status]:
+    """Every actuator's status; refuses to go on if one does not answer or is faulted.
 
     Raises:
-        CommandFailed: some actuator did not answer (nothing was streamed).
+        CommandFailed: some actuator did not answer, or reports a fault (nothing was
+            streamed).
     """
-    positions: list[int] = []
+    statuses: list[la.Status] = []
     silent: list[int] = []
     for ident in ids:
         try:
@@ -249,29 +289,142 @@ async def _positions(bus: Bus, ids: list[int], baud: int) -> tuple[int, ...]:
         except ReplyTimeoutError:
             silent.append(ident)
             continue
-        positions.append(min(max(status.position, 0), la.POSITION_MAX))
+        statuses.append(status)
     if silent:
         raise CommandFailed(
             f"{plural(len(silent), 'actuator')} of {len(ids)} did not answer a status query "
             f"({', '.join(f'la:{i}' for i in silent)}): nothing streamed; check --ids "
             f"(motorbus scan lists the IDs that answer) and --baud {baud}"
         )
-    return tuple(positions)
+    faulted = [s for s in statuses if s.fault]
+    if faulted:
+        names = "; ".join(f"la:{s.id} {_fault_names(s)}" for s in faulted)
+        raise CommandFailed(
+            f"{plural(len(faulted), 'actuator')} of {len(ids)} report a fault ({names}): "
+            f"nothing streamed; a faulted actuator does not move (motorbus la clear "
+            f"{','.join(str(s.id) for s in faulted)} clears stall, over-current and "
+            "motor-abnormal faults)"
+        )
+    return statuses
+
+
+def _fault_names(status: la.Status) -> str:
+    """``stall``, ``over-current|stall``...: the defined fault bits a status reports."""
+    faults = status.errors & la.KNOWN_ERROR_BITS
+    return " and ".join(
+        flag.name.lower().replace("_", "-")
+        for flag in la.ErrorFlags
+        if flag & faults and flag.name is not None
+    )
+
+
+async def _enable(bus: Bus, ids: list[int]) -> None:
+    """Send "work" to every actuator (an e-stopped LA ignores targets until then)."""
+    for ident in ids:
+        await bus.request(
+            la.Control(ident, la.ControlAction.WORK), timeout=CHECK_TIMEOUT_S, retries=1
+        )
+
+
+async def _final_positions(bus: Bus, ids: list[int]) -> dict[int, int]:
+    """Each actuator's position after the stream (those that answer)."""
+    found: dict[int, int] = {}
+    for ident in ids:
+        try:
+            status = await bus.request(
+                la.Control(ident, la.ControlAction.QUERY_STATUS), timeout=CHECK_TIMEOUT_S
+            )
+        except MotorbusError:
+            continue
+        found[ident] = status.position
+    return found
+
+
+class FollowCheck:
+    """Whether each actuator moved when the targets asked it to.
+
+    ``source`` is the stream's target function: it plays ``rows`` and records how far
+    each actuator's reported position (polls or feedback) got from where it started.
+    An actuator asked to move beyond ``FOLLOW_TOLERANCE`` whose status, first read
+    ``FOLLOW_GRACE_S`` or more after that, shows it has not ends the stream there
+    (``CommandFailed``; ``stopped_at`` is the tick): the others would go on without it.
+    """
+
+    def __init__(self, ids: list[int], start: tuple[int, ...], rows: list[tuple[int, ...]]):
+        self.ids = ids
+        self.start = dict(zip(ids, start, strict=True))
+        #: How far the targets sent so far asked each actuator to move.
+        self.asked = dict.fromkeys(ids, 0)
+        self.moved = dict.fromkeys(ids, 0)
+        self.rows = rows
+        self.stopped_at: int | None = None
+
+    def source(self, period: float) -> Any:
+        rows, start, moved, asked, ids = self.rows, self.start, self.moved, self.asked, self.ids
+        grace = max(1, round(FOLLOW_GRACE_S / period))
+        asked_at: dict[int, int] = {}  # the first tick whose target is beyond tolerance
+        fresh: dict[int, tuple[la.Status, int]] = {}  # the last status, and its first tick
+
+        def targets(t: float, statuses: dict[int, la.Status]) -> tuple[int, ...] | None:
+            k = round(t / period)
+            for ident, status in statuses.items():
+                seen = fresh.get(ident)
+                if seen is None or seen[0] is not status:
+                    fresh[ident] = (status, k)
+                    moved[ident] = max(moved[ident], abs(status.position - start[ident]))
+            stuck = [
+                i
+                for i, since in asked_at.items()
+                if moved[i] <= FOLLOW_TOLERANCE and i in fresh and fresh[i][1] >= since + grace
+            ]
+            if stuck:
+                self.stopped_at = k
+                raise CommandFailed(
+                    f"{', '.join(f'la:{i}' for i in stuck)} did not move "
+                    f"{FOLLOW_GRACE_S:g} s after being asked to: stream stopped"
+                )
+            if k >= len(rows):
+                return None
+            row = rows[k]
+            for n, ident in enumerate(ids):
+                distance = abs(row[n] - start[ident])
+                if distance > asked[ident]:
+                    asked[ident] = distance
+                    if distance > FOLLOW_TOLERANCE and ident not in asked_at:
+                        asked_at[ident] = k
+            return row
+
+        return targets
+
+    def not_following(self, final: dict[int, int]) -> list[int]:
+        """The actuators asked to move beyond ``FOLLOW_TOLERANCE`` that never did."""
+        for ident, position in final.items():
+            self.moved[ident] = max(self.moved[ident], abs(position - self.start[ident]))
+        return [
+            i
+            for i in self.ids
+            if self.asked[i] > FOLLOW_TOLERANCE and self.moved[i] <= FOLLOW_TOLERANCE
+        ]
 
 
 async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
     rows = trajectory.rows * args.loop
     async with open_bus(args, [Family.LA], host_margin=STREAM_HOST_MARGIN_S) as bus:
-        current = await _positions(bus, trajectory.ids, args.baud)
+        statuses = await check_actuators(bus, trajectory.ids, args.baud)
+        current = tuple(min(max(s.position, 0), la.POSITION_MAX) for s in statuses)
+        if not args.no_enable:
+            await _enable(bus, trajectory.ids)
         ramp = ramp_rows(current, rows[0], round(args.ramp / args.period)) if args.ramp else []
         rows = ramp + rows
+        check = FollowCheck(trajectory.ids, current, rows)
         streamer = Streamer(bus)
         actuators = [InspireLA(bus, i) for i in trajectory.ids]
         stream = streamer.follow(
             actuators,
-            rows,
+            check.source(args.period),
             period=args.period,
             feedback=args.feedback,
+            poll_status=not args.feedback,
             safe_action=SafeAction.PAUSE,
         )
         try:
@@ -287,18 +440,28 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
                         flush=True,
                     )
             await stream.wait()  # raises StreamEnded if the stream failed
+        except StreamEnded as err:
+            if not isinstance(err.__cause__, CommandFailed):
+                await stream.stop()
+                raise
+            # The follow check stopped the stream (with its pause): reported below.
         except BaseException:
             # Ctrl-C (cancellation) or a failure: pause the actuators before the port closes.
-            await stream.stop(safe=True)
+            await stream.stop()
             raise
         finally:
-            await streamer.close(safe=False)
+            await streamer.close()
+        # The stream ended with its safe action (a pause): where did each actuator get?
+        final = await _final_positions(bus, trajectory.ids)
+    lagging = check.not_following(final)
     summary: dict[str, Any] = {
         "ids": trajectory.ids,
         "rows": len(rows) - len(ramp),
         "ramp_ticks": len(ramp),
         "ramp_from": list(current),
         "period_s": args.period,
+        "enabled": not args.no_enable,
+        "not_following": lagging,
         **stream.stats.as_dict(),
     }
     if args.json:
@@ -311,11 +474,39 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             f"{summary['late']} late, {summary['skipped']} skipped, "
             f"jitter p50 {summary['jitter_p50_us']:.0f} us, p99 {summary['jitter_p99_us']:.0f} us"
         )
+    failed = False
+    if lagging:
+        hint = (
+            "--no-enable was given: are they paused or e-stopped (motorbus la enable)?"
+            if args.no_enable
+            else "faulted, blocked, or not powered?"
+        )
+        moved = ", ".join(
+            f"la:{i} asked to move {check.asked[i]}, moved {check.moved[i]}" for i in lagging
+        )
+        stopped = (
+            f"; stopped at tick {check.stopped_at} of {len(rows)}"
+            if check.stopped_at is not None
+            else ""
+        )
+        print(
+            f"motorbus stream: failed: {plural(len(lagging), 'actuator')} of "
+            f"{len(trajectory.ids)} did not follow ({moved}; tolerance {FOLLOW_TOLERANCE}"
+            f"{stopped}): {hint}",
+            file=sys.stderr,
+        )
+        failed = True
+    if summary["gaps"]:
+        print(
+            f"motorbus stream: warning: {plural(summary['gaps'], 'gap')} (the port was lost, "
+            "or the host stalled): the stream read the positions and ramped back",
+            file=sys.stderr,
+        )
     missing = plural(summary["feedback_timeouts"], "feedback reply", "feedback replies")
     if summary["skipped"]:
         cause = (
             f"the actuators answered late ({missing} missing)"
-            if summary["feedback_timeouts"]
+            if summary["feedback_timeouts"] and args.feedback
             else "the host or the port could not keep up (a loaded machine, a slow adapter)"
         )
         print(
@@ -325,6 +516,6 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             file=sys.stderr,
         )
         return 1
-    if summary["feedback_timeouts"]:
+    if summary["feedback_timeouts"] and args.feedback and not failed:
         print(f"motorbus stream: warning: {missing} missing (late or lost)", file=sys.stderr)
-    return 0
+    return 1 if failed else 0

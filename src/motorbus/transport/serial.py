@@ -251,6 +251,26 @@ class _Adapter(asyncio.Protocol):
             self.owner._connection_lost(exc)
 
 
+def _report_write_errors_as_losses(transport: asyncio.Transport, url: str) -> None:
+    """Keep a failed write (the port vanished) from printing an asyncio traceback.
+
+    The pyserial-family backends hand a failed write to the event loop's exception
+    handler ("Fatal write error on serial transport", a traceback on stderr), then
+    abort, which reports the loss through ``connection_lost``: our ``on_lost``, which
+    the bus logs as one line ("bus ... lost its port (...: write failed ...)") before
+    reconnecting.  The report is all that is replaced; the abort still runs.
+    """
+    abort = getattr(transport, "_abort", None)
+    if abort is None or not hasattr(transport, "_fatal_error"):
+        return  # a backend without that path (serialx) reports losses itself
+
+    def fatal_error(exc: BaseException, message: str = "fatal error") -> None:
+        _log.debug("%s: %s: %r", url, message, exc)
+        abort(exc)
+
+    transport._fatal_error = fatal_error
+
+
 class SerialTransport(CountingTransport):
     """A serial port (or serial-over-TCP URL) through an asyncio serial backend.
 
@@ -345,6 +365,7 @@ class SerialTransport(CountingTransport):
         except Exception as err:
             raise OSError(f"cannot open {self.url} with backend {self.backend!r}: {err}") from err
         self._transport = cast(asyncio.Transport, transport)
+        _report_write_errors_as_losses(self._transport, self.url)
         self._adapter = adapter
         self._on_data = on_data
         self._on_lost = on_lost

@@ -1,0 +1,17 @@
+"""The parts of follow-mode streams that are not the tick loop.
+
+Pure (no asyncio, no clock, no I/O; ``tests/test_layering.py`` checks it):
+
+* :mod:`motorbus.streaming.targets`: turning what a target source yields into
+  ``{id: position}`` for a stream's actuators, and the ramp after a gap;
+* :mod:`motorbus.streaming.budget`: the time budget one bus's streams share (the
+  ``StreamBudget`` each bus holds as ``bus.stream_budget``), on ``bus.occupancy``;
+* :mod:`motorbus.streaming.model`: limits, safe actions, gap policies, statistics and
+  the checks of ``Streamer.follow``'s options.
+
+And :mod:`motorbus.streaming.stream`, the ``Stream`` handle a program keeps (stop,
+wait, pause, gaps) and what ending one means.  ``motorbus.streams`` is the
+``Streamer``: the one task per bus that serves every stream on absolute deadlines.
+"""
+
+from __future__ import annotations

@@ -1,0 +1,288 @@
+"""One running follow-mode stream: its targets, its state, and how it ends.
+
+A :class:`Stream` is created by ``motorbus.streams.Streamer.follow`` and served by that
+streamer's tick loop; this module holds the handle the program keeps (``stop``,
+``wait``, ``pause``, ``set_targets``, ``gaps``) and what ending means: however it ends,
+its safe action goes to its actuators once, unless it is ended with ``hold``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import inspect
+import itertools
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, Protocol
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.events import BusEvent, Subscription
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LeaseConflictError, MotorbusError, StreamEnded
+from motorbus.protocol import la
+from motorbus.shutdown import deferred_interrupts
+from motorbus.streaming.model import (
+    DEFAULT_MAX_SPEED,
+    GapPolicy,
+    SafeAction,
+    StreamStats,
+    hold_flag,
+)
+from motorbus.streaming.targets import EXHAUSTED, TargetAdapter, Targets, TargetSource
+
+__all__ = ["Stream", "StreamGap", "StreamOwner"]
+
+log = logging.getLogger("motorbus.streams")
+
+
+class StreamOwner(Protocol):
+    """What a stream needs of the streamer that serves it."""
+
+    @property
+    def bus(self) -> Bus: ...
+
+    def discard(self, stream: Stream) -> None:
+        """Forget ``stream``: it has ended."""
+
+
+@dataclass(frozen=True, slots=True)
+class StreamGap(BusEvent):
+    """A stream had a gap: its targets stopped reaching its actuators for a while.
+
+    Attributes:
+        stream: the stream's ``number`` (``Stream.number``).
+        ids: the stream's actuators.
+        cause: ``"outage"`` (the bus lost its port and came back) or ``"behind"`` (the
+            stream fell ``GAP_TICKS`` or more ticks behind).
+        missed: ticks not sent since the last tick that was.
+        positions: where the ramp starts (``"ramp"``): each actuator's reported
+            position after an outage; after falling behind, the last target it was sent
+            (read only if it had none).
+        action: ``"ramp"`` (ramping from ``positions``) or ``"stop"`` (safe action
+            applied, stream ended; also when a position could not be read).
+    """
+
+    stream: int
+    ids: tuple[int, ...]
+    cause: str
+    missed: int
+    positions: Mapping[int, int]
+    action: str
+
+
+class Stream:
+    """A running (or finished) follow-mode stream; create it with ``Streamer.follow``.
+
+    Targets, per tick ``k`` at time ``t = k * period`` since the stream started, come
+    from ``source``, one of:
+
+    * a sequence (list, tuple, array): item ``k`` each tick; the stream ends after the
+      last item;
+    * an iterator or generator: the next item each tick, ending with it;
+    * an async iterator: awaited each tick;
+    * a callable ``f(t, statuses)``, where ``statuses`` maps ID to the latest
+      ``la.Status`` (feedback replies and polls): its return value each tick; return
+      ``None`` to end the stream.
+
+    An item is a position 0..2000 for a single actuator, a sequence with one position
+    per actuator (in the order given), or a mapping ``{id: position}``.
+
+    However the stream ends, its ``safe_action`` goes to its actuators once, unless it
+    is ended with ``stop(hold=True)``.  ``gaps`` queues its ``StreamGap`` events
+    (``await stream.gaps.next(timeout)``); it closes when the stream ends.
+    """
+
+    _numbers = itertools.count(1)
+
+    def __init__(
+        self,
+        streamer: StreamOwner,
+        actuators: Sequence[InspireLA],
+        source: TargetSource,
+        *,
+        period: float,
+        feedback: bool,
+        poll_status: bool,
+        safe_action: SafeAction,
+        on_gap: GapPolicy = GapPolicy.RAMP,
+        max_speed: float = DEFAULT_MAX_SPEED,
+    ) -> None:
+        self.streamer = streamer
+        self.actuators = tuple(actuators)
+        self.ids = tuple(a.id for a in self.actuators)
+        self.number = next(Stream._numbers)
+        self.period = period
+        self.feedback = feedback
+        self.poll_status = poll_status
+        self.safe_action = safe_action
+        self.on_gap = on_gap
+        self.max_speed = max_speed
+        #: True once the safe action was sent: no later end sends it again.
+        self.safe_applied = False
+        self.gaps: Subscription[StreamGap] = streamer.bus.events.subscribe(
+            StreamGap, lambda e: e.stream == self.number
+        )
+        #: While ramping after a gap: the position each ramping actuator was last sent.
+        self.ramp: dict[int, float] | None = None
+        #: The bus's disconnect count when this stream last had it up (an outage since?).
+        self.disconnects_seen = streamer.bus.stats.disconnects
+        #: ``stats.skipped`` when the last tick went out (the ticks a gap missed).
+        self.skipped_mark = 0
+        self.stats = StreamStats()
+        self.statuses: dict[int, la.Status] = {}
+        self.last_targets: dict[int, int] = {}
+        self.error: BaseException | None = None
+        self.origin = 0.0
+        self.next_tick = 0
+        self.paused = False
+        #: True from the moment the stream starts to stop: nothing more of it is written.
+        self.stopping = False
+        self.done = False
+        #: The target source, adapted to this stream's actuators (``streaming.targets``).
+        self.source = TargetAdapter(self.ids, source)
+        self._finished = asyncio.get_running_loop().create_future()
+        self._poll_cursor = 0
+
+    # -- control ----------------------------------------------------------------
+
+    def set_targets(self, source: TargetSource) -> None:
+        """Replace the target source on the fly; it starts at its own index 0 next tick."""
+        self.source.bind(source)
+        self._index_base = self.next_tick
+
+    _index_base = 0
+
+    def pause(self) -> None:
+        """Stop sending targets (the tick grid keeps running, so resume is on the grid)."""
+        self.paused = True
+
+    def resume(self) -> None:
+        """Send targets again from the next tick."""
+        self.paused = False
+
+    @property
+    def sending(self) -> bool:
+        """True while the stream may still write targets (not paused, stopping or done)."""
+        return not (self.paused or self.stopping or self.done)
+
+    async def stop(self, *, hold: bool = False, safe: bool | None = None) -> None:
+        """End the stream and apply its safe action; with ``hold``, send none.  Idempotent.
+
+        From the moment this is called, nothing more of the stream is written: a tick
+        being built or queued is dropped, so the safe action is the last word.  A stream
+        that already ended (its targets ran out, an error) applied its safe action then;
+        one ended with ``hold`` gets it now.  ``hold=True`` leaves the actuators holding
+        their last target: say so where you rely on it.  ``safe=False`` is the older
+        spelling of ``hold=True`` (``safe=True`` is the default).
+        """
+        hold = hold_flag(hold, safe)
+        self.stopping = True
+        try:
+            if not hold:
+                with deferred_interrupts():
+                    await self.apply_safe_action()
+            else:
+                # Held on purpose: the bus's closing must not stop them either (the
+                # stream's frames are owned by the bus's implicit lease; an explicit
+                # lease of the program's own decides for itself).
+                with contextlib.suppress(LeaseConflictError):
+                    await self.streamer.bus.release([f"la:{i}" for i in self.ids], hold=True)
+        finally:
+            self._finish(None)
+
+    async def wait(self) -> None:
+        """Wait until the stream ends; raises ``StreamEnded`` if it ended on an error."""
+        await asyncio.shield(self._finished)
+        if self.error is not None:
+            raise StreamEnded(f"stream to {list(self.ids)} ended: {self.error}") from self.error
+
+    async def apply_safe_action(self) -> None:
+        """Bring every actuator of the stream to the configured safe state, once.
+
+        The stream stops sending first (``stopping``), so no target follows the stop.
+        """
+        self.stopping = True
+        if self.safe_applied:
+            return
+        self.safe_applied = True
+        if self.safe_action is SafeAction.HOLD:
+            return
+        action = (
+            la.ControlAction.ESTOP
+            if self.safe_action is SafeAction.ESTOP
+            else la.ControlAction.PAUSE
+        )
+        for ident in self.ids:
+            try:
+                await self.streamer.bus.request(
+                    la.Control(ident, action), priority=Priority.EMERGENCY
+                )
+            except MotorbusError as err:
+                log.warning("safe action %s on la:%d failed: %s", action.name, ident, err)
+
+    async def end(self, error: BaseException | None = None) -> None:
+        """End with the safe action, then mark done with ``error`` (the tick loop's end:
+        the targets ran out, the source failed, a gap with ``on_gap="stop"``)."""
+        self.stopping = True
+        try:
+            with deferred_interrupts():
+                await self.apply_safe_action()
+        finally:
+            self._finish(error)
+
+    def _finish(self, error: BaseException | None) -> None:
+        if self.done:
+            return
+        self.stopping = True
+        self.done = True
+        self.error = error
+        self.gaps.close()
+        if not self._finished.done():
+            self._finished.set_result(None)
+        self.streamer.discard(self)
+
+    async def __aenter__(self) -> Stream:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        # However the block is left, the safe action goes out (a ``stop(hold=True)``
+        # inside the block is the way to leave the actuators holding).
+        await self.stop()
+
+    # -- targets ------------------------------------------------------------------
+
+    async def next_targets(self, k: int) -> Targets | None:
+        """The targets of tick ``k`` (time ``k * period`` since start), or None at the end."""
+        source = self.source
+        item: Any
+        if source.aiterator is not None:
+            try:
+                item = await source.aiterator.__anext__()
+            except StopAsyncIteration:
+                return None
+        elif source.function is not None:
+            item = source.function(k * self.period, self.statuses)
+            if inspect.isawaitable(item):
+                item = await item
+        else:
+            item = source.next_item(k - self._index_base)
+        if item is None or item is EXHAUSTED:
+            return None
+        return source.normalise(item)
+
+    @property
+    def poll_id(self) -> int:
+        """The actuator whose status the round robin polls next."""
+        return self.ids[self._poll_cursor % len(self.ids)]
+
+    def poll_done(self) -> None:
+        """Move the round robin on (the poll was answered, or failed on the line)."""
+        self._poll_cursor += 1

@@ -1,0 +1,158 @@
+"""Target sources: what a stream's source yields, made into ``{id: position}``.
+
+Pure (no asyncio, no clock): the stream's tick loop fetches an item from the source
+(awaiting it if need be) and hands it here.  Also the ramp that brings a stream back
+to its trajectory after a gap.
+"""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
+from typing import Any, TypeAlias
+
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol import la
+from motorbus.validation import is_scalar, target_id, target_position
+
+__all__ = ["EXHAUSTED", "TargetAdapter", "TargetSource", "Targets", "ramp_step"]
+
+Targets: TypeAlias = Mapping[int, int]
+TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
+
+#: What ``TargetAdapter.next_item`` returns when a sequence or iterator has run out.
+EXHAUSTED: Any = object()
+_PLAIN_NUMBERS = (int, float)
+
+
+class TargetAdapter:
+    """One stream's target source and the actuators it drives (``ids``, in order).
+
+    Exactly one of ``sequence``, ``iterator``, ``aiterator`` and ``function`` is set,
+    by the kind of source (see ``motorbus.streams.Stream``).
+    """
+
+    def __init__(self, ids: Sequence[int], source: TargetSource) -> None:
+        self.ids = tuple(ids)
+        self.sequence: Sequence[Any] | None = None
+        self.iterator: Iterator[Any] | None = None
+        self.aiterator: AsyncIterator[Any] | None = None
+        self.function: Callable[..., Any] | None = None
+        self.bind(source)
+
+    def bind(self, source: TargetSource) -> None:
+        """Take a new source; raises ``LocalProtocolError`` for one of no known kind."""
+        if isinstance(source, (str, bytes, bytearray)):
+            # Strings are sequences: "1500" would stream the targets 1, 5, 0, 0.
+            raise LocalProtocolError(
+                f"targets must be positions, not text: got {source!r}", field="targets"
+            )
+        sequence = iterator = aiterator = function = None
+        if isinstance(source, Sequence):
+            sequence = source
+        elif hasattr(source, "__len__") and hasattr(source, "__getitem__"):
+            sequence = source  # numpy arrays and the like
+        elif hasattr(source, "__anext__"):
+            aiterator = source
+        elif hasattr(source, "__next__") or (hasattr(source, "__iter__") and not callable(source)):
+            iterator = iter(source)
+        elif callable(source):
+            function = source
+        else:
+            raise LocalProtocolError(
+                f"targets must be a sequence, an iterator, an async iterator or a callable "
+                f"f(t, statuses); got {type(source).__name__}",
+                field="targets",
+            )
+        self.sequence, self.iterator, self.aiterator, self.function = (
+            sequence,
+            iterator,
+            aiterator,
+            function,
+        )
+
+    def next_item(self, index: int) -> Any:
+        """Item ``index`` of a sequence, or the next of an iterator; ``EXHAUSTED`` at
+        the end.  (Async iterators and functions are called by the tick loop.)"""
+        if self.sequence is not None:
+            return self.sequence[index] if index < len(self.sequence) else EXHAUSTED
+        assert self.iterator is not None
+        return next(self.iterator, EXHAUSTED)
+
+    def normalise(self, item: Any) -> Targets:
+        """``item`` as ``{id: position}``: a position for a single actuator, one per
+        actuator in ``ids`` order, or a mapping naming some of them."""
+        kind = type(item)
+        if kind is list or kind is tuple:  # the common case first: no ABC checks
+            return self._values(item)
+        if kind is float or kind is int:
+            return self._scalar(item)
+        if isinstance(item, Mapping):
+            targets = {target_id(i): target_position(v, f"targets[{i}]") for i, v in item.items()}
+            unknown = set(targets) - set(self.ids)
+            if unknown:
+                raise LocalProtocolError(
+                    f"targets name ids {sorted(unknown)} that this stream does not drive "
+                    f"(it drives {list(self.ids)})",
+                    field="targets",
+                )
+            return targets
+        if isinstance(item, (int, float)) or is_scalar(item):
+            return self._scalar(item)
+        if isinstance(item, str | bytes):  # a sequence, but of characters
+            raise LocalProtocolError(
+                f"targets must be positions, not text: got {item!r}", field="targets"
+            )
+        # A numpy row (a 1-D array, or a row of a 2-D array of ticks x actuators):
+        # tolist() gives plain floats/ints, which take the fast path below.
+        tolist = getattr(item, "tolist", None)
+        values = tolist() if callable(tolist) else list(item)
+        return self._values(values)
+
+    def _scalar(self, item: Any) -> Targets:
+        if len(self.ids) != 1:
+            raise LocalProtocolError(
+                f"a single target was given for {len(self.ids)} actuators; give one "
+                "per actuator or a mapping {id: position}",
+                field="targets",
+            )
+        return {self.ids[0]: target_position(item, "target")}
+
+    def _values(self, values: Sequence[Any]) -> Targets:
+        if len(values) != len(self.ids):
+            raise LocalProtocolError(
+                f"targets has {len(values)} values for {len(self.ids)} actuators",
+                field="targets",
+            )
+        # The common case, once a tick per bus: plain numbers all in range.  Anything
+        # else (a bool, NaN, a string, out of range) takes the checking path below,
+        # which names the offending value.
+        if all(type(v) in _PLAIN_NUMBERS for v in values):
+            try:
+                if min(values) >= la.POSITION_MIN and max(values) <= la.POSITION_MAX:
+                    return dict(zip(self.ids, map(round, values), strict=True))
+            except (ValueError, OverflowError):  # NaN or infinity: round() refuses them
+                pass
+        return {
+            i: target_position(v, f"targets[{i}]") for i, v in zip(self.ids, values, strict=True)
+        }
+
+
+def ramp_step(ramp: dict[int, float], targets: Targets, step: float) -> dict[int, int]:
+    """One tick of the ramp after a gap: move each ramping actuator at most ``step``
+    from where it was last sent (``ramp``) toward its target.
+
+    ``ramp`` is updated in place; an actuator that reaches its target leaves it (from
+    then on it follows the targets as they come).  Actuators not ramping pass through.
+    """
+    out = dict(targets)
+    for ident, goal in targets.items():
+        at = ramp.get(ident)
+        if at is None:
+            continue
+        if abs(goal - at) <= step:
+            del ramp[ident]
+            continue
+        at += step if goal > at else -step
+        ramp[ident] = at
+        out[ident] = round(at)
+    return out
