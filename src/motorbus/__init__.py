@@ -29,6 +29,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
+        "ProjectInvalidError",
         "ProjectStopped",
         "ProjectVerifyError",
         "RemoteProtocolError",
@@ -63,6 +64,7 @@ if TYPE_CHECKING:
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError
+    from motorbus.errors import ProjectInvalidError as ProjectInvalidError
     from motorbus.errors import ProjectStopped as ProjectStopped
     from motorbus.errors import ProjectVerifyError as ProjectVerifyError
     from motorbus.errors import RemoteProtocolError as RemoteProtocolError

@@ -14,6 +14,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
+         +-- ProjectInvalidError                the controller holds no valid project N
          +-- UsageError                         CLI: bad command-line input (exit code 2)
          +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
 
@@ -47,6 +48,7 @@ __all__ = [
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
+    "ProjectInvalidError",
     "ProjectStopped",
     "ProjectVerifyError",
     "RemoteProtocolError",
@@ -133,6 +135,11 @@ class ProjectStopped(MotorbusError):
 
 class ProjectVerifyError(MotorbusError):
     """The project read back through 0x3E differs from the one uploaded."""
+
+
+class ProjectInvalidError(MotorbusError):
+    """The controller holds no valid project of that number (cleared, never uploaded, or
+    an upload that ended part way); ``check_project`` and ``motorbus project run`` refuse it."""
 
 
 class UsageError(MotorbusError):
