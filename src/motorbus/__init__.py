@@ -26,6 +26,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.devices.quad_stepper": ("QuadStepper",),
     "motorbus.errors": (
         "BusClosedError",
+        "GuardError",
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
@@ -61,6 +62,7 @@ if TYPE_CHECKING:
     from motorbus.devices.project_stepper import ProjectStepper as ProjectStepper
     from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
     from motorbus.errors import BusClosedError as BusClosedError
+    from motorbus.errors import GuardError as GuardError
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError

@@ -15,6 +15,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
          +-- ProjectInvalidError                the controller holds no valid project N
+         +-- GuardError                         the guard process cannot start (no pidfds)
          +-- UsageError                         CLI: bad command-line input (exit code 2)
          +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
 
@@ -44,6 +45,7 @@ import warnings
 __all__ = [
     "BusClosedError",
     "CommandFailed",
+    "GuardError",
     "IdListError",
     "LocalProtocolError",
     "MotorbusError",
@@ -140,6 +142,11 @@ class ProjectVerifyError(MotorbusError):
 class ProjectInvalidError(MotorbusError):
     """The controller holds no valid project of that number (cleared, never uploaded, or
     an upload that ended part way); ``check_project`` and ``motorbus project run`` refuse it."""
+
+
+class GuardError(MotorbusError):
+    """The guard process (``motorbus.guard``) cannot watch this program: no pidfds on
+    this system (not Linux 5.3+), or the process did not start."""
 
 
 class UsageError(MotorbusError):

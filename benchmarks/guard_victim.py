@@ -1,0 +1,84 @@
+"""A program to kill: streams follow targets to LA actuators until it is killed.
+
+Used by ``bench_guard.py`` and ``tests/test_guard.py``::
+
+    python benchmarks/guard_victim.py --port /dev/pts/5 --port /dev/pts/6 --ids 1-3 --guard
+
+It enables the actuators, streams a slow ramp to each at 100 Hz with
+``safe_action="pause"``, and prints ``streaming`` once every bus has sent targets; then
+it streams on until it is killed.  With ``--guard`` it runs under
+``motorbus.run(..., guard=True)``.  With ``--feed`` it also tells the guard each bus's
+devices and safe frames itself (for buses without leases).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+
+import motorbus
+from motorbus import guard as guard_process
+from motorbus.protocol import la
+from motorbus.protocol.ids import parse_id_list
+
+BAUD = 921600
+PERIOD_S = 0.01
+
+
+def feed_guard(bus: motorbus.Bus, port: str, ids: list[int]) -> None:
+    """Tell the guard what this bus moves and how to stop it (the leases' job)."""
+    guard = guard_process.active_guard()
+    if guard is None:
+        return
+    devices = tuple(
+        guard_process.GuardDevice(
+            f"la:{i}", "victim", (la.Control(i, la.ControlAction.PAUSE).encode(),)
+        )
+        for i in ids
+    )
+    guard.set_port(f"victim:{port}", guard_process.GuardPort(port, bus.baudrate, {}, devices))
+
+
+async def one_bus(port: str, ids: list[int], feed: bool, started: asyncio.Event) -> None:
+    transport = motorbus.open_transport(port, baudrate=BAUD)
+    async with motorbus.Bus(transport, families=[motorbus.Family.LA]) as bus:
+        actuators = [motorbus.InspireLA(bus, i) for i in ids]
+        for a in actuators:
+            await a.enable()
+        if feed:
+            feed_guard(bus, port, ids)
+
+        def targets(t: float, statuses: dict[int, la.Status]) -> list[float]:
+            if t > 0.05:
+                started.set()
+            return [100 + (50 * t + 10 * n) % 1500 for n in range(len(ids))]
+
+        streamer = motorbus.Streamer(bus)
+        async with streamer.follow(
+            actuators, targets, period=PERIOD_S, safe_action="pause"
+        ) as stream:
+            await stream.wait()
+
+
+async def main(ports: list[str], ids: list[int], feed: bool) -> None:
+    events = [asyncio.Event() for _ in ports]
+    tasks = [
+        asyncio.create_task(one_bus(p, ids, feed, e)) for p, e in zip(ports, events, strict=True)
+    ]
+    for e in events:
+        await e.wait()
+    print("streaming", flush=True)
+    await asyncio.gather(*tasks)
+
+
+if __name__ == "__main__":
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--port", action="append", required=True)
+    p.add_argument("--ids", default="1-3")
+    p.add_argument("--guard", action="store_true")
+    p.add_argument("--feed", action="store_true")
+    args = p.parse_args()
+    id_list = list(parse_id_list(args.ids))
+    motorbus.run(main(args.port, id_list, args.feed), guard=args.guard)
+    sys.exit(0)

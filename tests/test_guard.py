@@ -1,0 +1,209 @@
+"""The guard process (issue 19 case 3): a killed program's devices get their safe action."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motorbus import guard as guard_process
+from motorbus.errors import GuardError, LocalProtocolError
+from motorbus.guard import GuardDevice, GuardPort, GuardState, port_message, send_safe_frames
+from motorbus.protocol import la
+from motorbus.sim.process import SimProcess
+
+ROOT = Path(__file__).resolve().parents[1]
+VICTIM = ROOT / "benchmarks" / "guard_victim.py"
+START_TIMEOUT_S = 60.0
+IDS = (1, 2, 3)
+PAUSES = [la.Control(i, la.ControlAction.PAUSE).encode().hex(" ").upper() for i in IDS]
+
+
+def is_motion(hex_: str) -> bool:
+    """An LA follow-mode target broadcast (0xF3) or single-ID position command."""
+    return hex_.startswith("55 AA") and hex_.split()[4] in ("F3", "F2", "21")
+
+
+# -- the pure part --------------------------------------------------------------------------
+
+
+def test_state_follows_port_and_closed_messages() -> None:
+    state = GuardState()
+    port = GuardPort("/dev/ttyX", 921600, {"rs485": False}, (GuardDevice("la:1", "s", (b"\x01",)),))
+    state.apply(port_message("a", port))
+    state.apply(port_message("b", GuardPort("/dev/ttyY", 9600)))  # nothing leased
+    assert state.plan() == [port]
+    state.apply({"op": "closed", "bus": "a"})
+    assert state.plan() == []
+    assert not state.clean_exit
+    state.apply({"op": "clean_exit"})
+    assert state.clean_exit
+
+
+def port_msg(**changes: Any) -> dict[str, Any]:
+    message = {"op": "port", "bus": "a", "url": "/x", "baud": 9600, "options": {}, "devices": []}
+    return {**message, **changes}
+
+
+@pytest.mark.parametrize(
+    ("message", "field"),
+    [
+        ({"op": "explode"}, "op"),
+        (port_msg(url=""), "url"),
+        (port_msg(url="/x\0"), "url"),
+        (port_msg(baud=True), "baud"),
+        (port_msg(baud=0), "baud"),
+        (port_msg(devices=[{"key": "k", "owner": "o", "safe": ["zz"]}]), "safe"),
+    ],
+)
+def test_bad_messages_are_refused_naming_the_field(message: dict[str, Any], field: str) -> None:
+    state = GuardState()
+    with pytest.raises(LocalProtocolError) as info:
+        state.apply(message)
+    assert info.value.field == field
+    assert state.ports == {}
+
+
+class FakePort:
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, bytes]] = []
+
+    def write(self, data: bytes) -> None:
+        self.calls.append(("write", data))
+
+    def flush(self) -> None:
+        self.calls.append(("flush", b""))
+
+    def close(self) -> None:
+        self.calls.append(("close", b""))
+
+
+def test_safe_frames_go_out_device_by_device_each_drained_before_the_next() -> None:
+    fake = FakePort()
+    port = GuardPort(
+        "/dev/ttyX",
+        9600,
+        {},
+        (GuardDevice("p", "o", (b"\x05\x0e", b"\x03\x0d")), GuardDevice("q", "o", (b"\x07",))),
+    )
+    result = send_safe_frames(port, spacing=0, opener=lambda p: fake)
+    assert fake.calls == [
+        ("write", b"\x05\x0e"), ("flush", b""),
+        ("write", b"\x03\x0d"), ("flush", b""),
+        ("write", b"\x07"), ("flush", b""),
+        ("close", b""),
+    ]  # fmt: skip
+    assert (result.frames, result.devices, result.error) == (3, 2, None)
+
+
+def test_a_port_that_does_not_open_is_reported() -> None:
+    port = GuardPort("/dev/motorbus-no-such-port", 9600, {}, (GuardDevice("p", "o", (b"\x01",)),))
+    result = send_safe_frames(port)
+    assert result.frames == 0
+    assert result.error is not None and "cannot open /dev/motorbus-no-such-port" in result.error
+
+
+def test_no_pidfd_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delattr(os, "pidfd_open")
+    with pytest.raises(GuardError, match=r"needs Linux pidfds \(os.pidfd_open\)"):
+        guard_process.Guard.start()
+
+
+# -- over ptys: kill the program --------------------------------------------------------------
+
+
+@pytest.fixture
+def la_sims(tmp_path: Path) -> Iterator[list[SimProcess]]:
+    sims = [
+        SimProcess(["la:1-3"], baud=921600, log_file=tmp_path / f"bus{n}.jsonl").start()
+        for n in range(2)
+    ]
+    try:
+        yield sims
+    finally:
+        for sim in sims:
+            sim.stop()
+
+
+def requests(sim: SimProcess) -> list[str]:
+    return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
+
+
+def kill_while_streaming(sims: list[SimProcess], *extra: str) -> str:
+    """Start the victim on ``sims``, SIGKILL it mid-stream; return its stderr."""
+    ports = [a for sim in sims for a in ("--port", sim.path)]
+    proc = subprocess.Popen(
+        [sys.executable, str(VICTIM), *ports, "--ids", "1-3", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # "streaming" once every bus sends targets
+        assert line == "streaming\n", proc.communicate(timeout=START_TIMEOUT_S)
+        time.sleep(0.2)  # let the stream run; any moment would do
+        proc.send_signal(signal.SIGKILL)
+        _, err = proc.communicate(timeout=START_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    return err
+
+
+def wait_for_frames(sims: list[SimProcess], wanted: set[str]) -> None:
+    deadline = time.monotonic() + START_TIMEOUT_S
+    while not all(wanted <= set(requests(sim)) for sim in sims):
+        assert time.monotonic() < deadline, [requests(sim)[-5:] for sim in sims]
+        time.sleep(0.02)  # polling the simulators' logs
+
+
+def test_sigkill_with_the_guard_pauses_every_device_after_the_last_motion(
+    la_sims: list[SimProcess],
+) -> None:
+    err = kill_while_streaming(la_sims, "--guard", "--feed")
+    wait_for_frames(la_sims, set(PAUSES))
+    for sim in la_sims:
+        sent = requests(sim)
+        last_motion = max(n for n, h in enumerate(sent) if is_motion(h))
+        assert sorted(sent[last_motion + 1 :]) == sorted(PAUSES), sent[-6:]
+        assert "motorbus guard: program " in err and f"on {sim.path} (3 frames" in err
+
+
+def test_sigkill_without_the_guard_leaves_motion_as_the_last_frame(
+    la_sims: list[SimProcess],
+) -> None:
+    """The limit the guard exists for: nothing runs in a killed program."""
+    kill_while_streaming(la_sims)
+    time.sleep(0.5)  # nothing is coming; give a wrong sender time to show
+    for sim in la_sims:
+        sent = requests(sim)
+        assert is_motion(sent[-1]), sent[-3:]
+        assert not set(PAUSES) & set(sent)
+
+
+def test_a_clean_end_lets_the_guard_go_without_sending_anything(tmp_path: Path) -> None:
+    code = (
+        "import motorbus, motorbus.guard as g\n"
+        "async def main():\n"
+        "    guard = g.active_guard()\n"
+        "    print(guard.proc.pid, flush=True)\n"
+        "    guard.set_port('b', g.GuardPort('/dev/motorbus-nowhere', 9600))\n"
+        "motorbus.run(main(), guard=True)\n"
+    )
+    r = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=START_TIMEOUT_S
+    )
+    assert r.returncode == 0, r.stderr
+    guard_pid = int(r.stdout.split()[0])
+    with pytest.raises(ProcessLookupError):
+        os.kill(guard_pid, 0)  # exited (and reaped) before the program did
+    assert "motorbus guard" not in r.stderr
