@@ -24,6 +24,7 @@ from motorbus.protocol.ids import parse_id_list
 
 BAUD = 921600
 PERIOD_S = 0.01
+HOST_MARGIN_S = 0.05
 
 
 def feed_guard(bus: motorbus.Bus, port: str, ids: list[int]) -> None:
@@ -42,7 +43,11 @@ def feed_guard(bus: motorbus.Bus, port: str, ids: list[int]) -> None:
 
 async def one_bus(port: str, ids: list[int], feed: bool, started: asyncio.Event) -> None:
     transport = motorbus.open_transport(port, baudrate=BAUD)
-    async with motorbus.Bus(transport, families=[motorbus.Family.LA]) as bus:
+    # A generous reply margin: this machine may be loaded, and a timed-out "work" would
+    # end the program before there is anything to kill.
+    async with motorbus.Bus(
+        transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S
+    ) as bus:
         actuators = [motorbus.InspireLA(bus, i) for i in ids]
         for a in actuators:
             await a.enable()
@@ -66,8 +71,13 @@ async def main(ports: list[str], ids: list[int], feed: bool) -> None:
     tasks = [
         asyncio.create_task(one_bus(p, ids, feed, e)) for p, e in zip(ports, events, strict=True)
     ]
-    for e in events:
-        await e.wait()
+    waits = [asyncio.create_task(e.wait()) for e in events]
+    pending: set[asyncio.Task[object]] = {*tasks, *waits}
+    while not all(e.is_set() for e in events):
+        done, pending = await asyncio.wait(pending, return_when=asyncio.FIRST_COMPLETED)
+        for task in done & set(tasks):
+            task.result()  # a bus that failed (a silent actuator...) ends the program
+            raise RuntimeError("a stream ended before it was killed")
     print("streaming", flush=True)
     await asyncio.gather(*tasks)
 

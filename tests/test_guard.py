@@ -207,3 +207,38 @@ def test_a_clean_end_lets_the_guard_go_without_sending_anything(tmp_path: Path) 
     with pytest.raises(ProcessLookupError):
         os.kill(guard_pid, 0)  # exited (and reaped) before the program did
     assert "motorbus guard" not in r.stderr
+
+
+def test_cli_guard_option_starts_the_guard_and_lets_it_go_at_a_clean_end(
+    la_sims: list[SimProcess],
+) -> None:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MOTORBUS_")}
+    env["XDG_CONFIG_HOME"] = "/nonexistent/motorbus-test-config"
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "motorbus",
+            "la",
+            "move",
+            "1",
+            "500",
+            "--guard",
+            "--port",
+            la_sims[0].path,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=START_TIMEOUT_S,
+        env=env,
+    )
+    assert r.returncode == 0, r.stderr
+    assert "motorbus guard" not in r.stderr
+    r = subprocess.run(
+        [sys.executable, "-m", "motorbus", "la", "status", "1", "--guard"],
+        capture_output=True,
+        text=True,
+        timeout=START_TIMEOUT_S,
+        env=env,
+    )
+    assert r.returncode == 2 and "unrecognized arguments: --guard" in r.stderr  # moves nothing

@@ -58,6 +58,7 @@ from motorbus.cli.common import (
     LA_BAUD,
     STEPPER_BAUD,
     add_bus_options,
+    add_guard_option,
     add_json_option,
     check_seconds,
     open_port,
@@ -118,6 +119,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("file", metavar="FILE.jsonl")
     p.add_argument("--to", metavar="URL", help="send the recorded requests to this port")
+    add_guard_option(p)
     p.add_argument("--baud", type=int, help="bit/s for --to (default: by the recorded family)")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND, help="for --to")
     p.add_argument(

@@ -43,6 +43,7 @@ __all__ = [
     "STEPPER_BAUD",
     "LiveText",
     "add_bus_options",
+    "add_guard_option",
     "add_ids_argument",
     "add_json_option",
     "check_seconds",
@@ -87,6 +88,18 @@ MAX_SECONDS = 86400.0
 def add_json_option(parser: argparse.ArgumentParser) -> None:
     """Add ``--json`` (print JSON instead of text) to ``parser``."""
     parser.add_argument("--json", action="store_true", help="print JSON instead of text")
+
+
+GUARD_HELP = (
+    "start a guard process (Linux) that sends the safe action to every device this "
+    "command moves if the command is killed outright (SIGKILL, the OOM killer); "
+    "see motorbus.guard"
+)
+
+
+def add_guard_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--guard`` to a command that moves things (``main`` starts the guard)."""
+    parser.add_argument("--guard", action="store_true", help=GUARD_HELP)
 
 
 def add_bus_options(

@@ -29,6 +29,7 @@ from motorbus import Bus, InspireLA
 from motorbus.cli.common import (
     LA_BAUD,
     add_bus_options,
+    add_guard_option,
     add_ids_argument,
     check_ids,
     open_bus,
@@ -88,6 +89,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("id", metavar="ID", type=int, help="actuator ID 1..254")
     p.add_argument("position", metavar="POS", type=int, help="target position 0..2000")
     p.add_argument("--no-reply", action="store_true", help="send 0x03 (no status reply)")
+    add_guard_option(p)
     _common(p)
     p = sub.add_parser("get", help="read a control-table register")
     p.add_argument("id", metavar="ID", type=int, help="actuator ID 1..254")

@@ -62,6 +62,7 @@ from motorbus.cli.common import (
     STEP_ANGLE_SCALE,
     STEPPER_BAUD,
     add_bus_options,
+    add_guard_option,
     check_seconds,
     open_bus,
     print_json,
@@ -129,6 +130,7 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="on timeout leave the project running instead of stopping it",
     )
+    add_guard_option(p)
     _common(p)
     for name, text in (
         ("read", "print project N in the TOML form upload takes"),
