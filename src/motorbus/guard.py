@@ -70,6 +70,9 @@ EXIT_TIMEOUT_S = 2.0
 READY_LINE = "motorbus-guard ready"
 #: Longest a JSON line on the pipe may be (a bus with 254 leased devices fits easily).
 MAX_LINE = 1 << 20
+#: Environment variable: a file the guard writes what it did to, as JSON (diagnostics;
+#: times are ``time.monotonic()``, comparable between processes on Linux).
+REPORT_ENV = "MOTORBUS_GUARD_REPORT"
 #: How long the guard waits for a port to accept a write before giving up on it.
 WRITE_TIMEOUT_S = 1.0
 
@@ -515,7 +518,7 @@ def start_guard(*, report: str | None = None) -> Guard:
     """
     global _active
     if _active is None or not _active.alive:
-        _active = Guard.start(report=report)
+        _active = Guard.start(report=report or os.environ.get(REPORT_ENV) or None)
     return _active
 
 
