@@ -27,6 +27,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.errors": (
         "BusClosedError",
         "GuardError",
+        "LeaseConflictError",
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
@@ -36,6 +37,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
         "RemoteProtocolError",
         "ReplyTimeoutError",
         "StreamEnded",
+        "WrongLoopError",
     ),
     "motorbus.manager": ("BusManager", "DeviceStop", "StopReport", "default_bus_file"),
     "motorbus.protocol.base": ("Family",),
@@ -63,6 +65,7 @@ if TYPE_CHECKING:
     from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
     from motorbus.errors import BusClosedError as BusClosedError
     from motorbus.errors import GuardError as GuardError
+    from motorbus.errors import LeaseConflictError as LeaseConflictError
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError
@@ -72,6 +75,7 @@ if TYPE_CHECKING:
     from motorbus.errors import RemoteProtocolError as RemoteProtocolError
     from motorbus.errors import ReplyTimeoutError as ReplyTimeoutError
     from motorbus.errors import StreamEnded as StreamEnded
+    from motorbus.errors import WrongLoopError as WrongLoopError
     from motorbus.manager import BusManager as BusManager
     from motorbus.manager import DeviceStop as DeviceStop
     from motorbus.manager import StopReport as StopReport

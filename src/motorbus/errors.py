@@ -11,6 +11,8 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- NotSentError                       dropped before sending (``start_by`` passed)
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
+         +-- LeaseConflictError                 another owner holds the device (nothing sent)
+         +-- WrongLoopError [RuntimeError]      a bus used from another event loop than its own
          +-- StreamEnded                        ``Stream.wait``: the stream ended on an error
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
@@ -47,6 +49,7 @@ __all__ = [
     "CommandFailed",
     "GuardError",
     "IdListError",
+    "LeaseConflictError",
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
@@ -57,6 +60,7 @@ __all__ = [
     "ReplyTimeoutError",
     "StreamEnded",
     "UsageError",
+    "WrongLoopError",
 ]
 
 
@@ -125,6 +129,30 @@ class NotSentError(MotorbusError):
 
 class BusClosedError(MotorbusError, ConnectionError):
     """The bus (or its port) is closed or was lost while a request was pending."""
+
+
+class LeaseConflictError(MotorbusError):
+    """A motion command or a lease names a device that another owner holds.
+
+    Nothing was sent.  Attributes: ``key`` (the device, ``"la:3"``), ``owner`` (who
+    holds it) and ``refused`` (who asked).
+    """
+
+    def __init__(self, key: str, owner: str, refused: str) -> None:
+        super().__init__(
+            f"{key} is leased by {owner!r}, so {refused!r} may not move it (nothing "
+            f"sent): one owner per device; end the lease of {owner!r} first"
+        )
+        self.key = key
+        self.owner = owner
+        self.refused = refused
+
+
+class WrongLoopError(MotorbusError, RuntimeError):
+    """A bus (or a device on it) was used from another event loop than the one it was
+    opened on; nothing was sent.  A bus belongs to one loop (one thread): open a bus of
+    its own in the other loop, or hand the work to the bus's loop
+    (``asyncio.run_coroutine_threadsafe``)."""
 
 
 class StreamEnded(MotorbusError):

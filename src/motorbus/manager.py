@@ -531,6 +531,8 @@ class BusManager:
                     min_spacing=spec.min_spacing_ms / 1e3,
                     host_margin=spec.host_margin_ms / 1e3,
                     retries=spec.retries,
+                    # Devices moved outside any lease end like the configured ones.
+                    safe_action=spec.la_safe_action,
                 )
                 self.buses[name] = bus
                 phase = (i % PHASE_GROUPS) * PHASE_SPAN_S / PHASE_GROUPS

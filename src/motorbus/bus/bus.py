@@ -53,6 +53,7 @@ from types import TracebackType
 from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
+from motorbus.bus import leases as _leases
 from motorbus.bus.events import (
     BusStateChanged,
     EventHub,
@@ -60,17 +61,20 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
+from motorbus.bus.leases import Lease, LeaseInfo, LeaseTable
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.errors import (
     BusClosedError,
     LocalProtocolError,
+    MotorbusError,
     NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
+    WrongLoopError,
 )
-from motorbus.protocol import families
+from motorbus.protocol import families, safety
 from motorbus.protocol.base import (
     Command,
     Family,
@@ -138,6 +142,9 @@ HOST_STALL_S = 1e-3
 WRITE_COST_DECAY = 0.99
 WRITE_COST_MIN_S = 50e-6
 WRITE_COST_MAX_S = 500e-6
+#: Retries of each safe-action command a lease's end sends (pause, e-stop, stop project,
+#: stop all are idempotent: sending one twice is harmless, missing one is not).
+SAFE_STOP_RETRIES = 2
 #: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
@@ -218,6 +225,7 @@ class _DoneWatch:
     shapes: tuple[FrameShape, ...]
     kind: str
     led: int | None
+    cmd: Command[object]
 
 
 @dataclass(slots=True)
@@ -250,6 +258,17 @@ class Bus:
         wire_floor: also refuse (and count as ``early_replies``) a reply that completed
             sooner than the wire at the bus's baud allows; only for a link that provably
             paces bytes (a real UART).  Off by default: a reply is accepted by causality.
+        safe_action: the safe action of motion sent outside any lease (the implicit
+            lease, owner ``"program"``), applied when the bus closes: ``"pause"``
+            (default), ``"estop"`` or ``"hold"`` (nothing).
+
+    Every command that starts motion is owned (``motorbus.bus.leases``): by the explicit
+    lease (``bus.lease(...)``) of the task that sends it, or else by the bus's implicit
+    lease.  A device another explicit lease holds is refused with
+    ``LeaseConflictError``, nothing sent.  When a lease ends - ``release()``, the end of
+    its ``async with``, or the bus closing (after its streams stopped, before the port
+    closes) - each of its devices gets its safe action, unless released with
+    ``hold=True`` or already brought to it since its last motion.
     """
 
     def __init__(
@@ -266,6 +285,7 @@ class Bus:
         reconnect: bool = True,
         timer: Timer | None = None,
         wire_floor: bool = False,
+        safe_action: str = "pause",
     ) -> None:
         # Every option checked (type, finiteness, range) before anything is built.
         name = check_name("name", name, optional=True)
@@ -277,6 +297,7 @@ class Bus:
         late_guard = check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s")
         reconnect = check_flag("reconnect", reconnect)
         wire_floor = check_flag("wire_floor", wire_floor)
+        self.safe_action = safety.check_safe_action(safe_action)
         self.transport = transport
         self.name = name or transport.url
         self.families = frozenset(families)
@@ -313,6 +334,11 @@ class Bus:
         self._done_watches: list[_DoneWatch] = []
         self._last_errors: dict[int, int] = {}
         self._closing = False
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._leases = LeaseTable()
+        self._safe_for: dict[str, _leases.SafeCommandsForKey] = {
+            action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
+        }
 
     # -- life cycle --------------------------------------------------------------
 
@@ -338,6 +364,7 @@ class Bus:
         if self.state is BusState.OPEN:
             return
         self._closing = False
+        self._loop = asyncio.get_running_loop()
         self._new_reassembler()
         realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
         await self.transport.open(self._on_data, self._on_lost)
@@ -404,6 +431,9 @@ class Bus:
                         await hook()
                     except Exception as err:
                         log.error("bus %s: a close hook failed: %s", self.name, err)
+            # The one place every lease still held ends: after the streams stopped (a
+            # target after a pause would resume an LA), before the port closes.
+            await self._end_leases()
         self._closing = True
         task = self._reconnect_task
         if task is not None and not task.done():
@@ -501,6 +531,7 @@ class Bus:
         start_by: float | None = None,
         reserved: bool = False,
         refresh: Refresh | None = None,
+        lease: Lease | None = None,
     ) -> asyncio.Future[R]:
         """Queue ``cmd`` without waiting; an idle bus transmits it before this returns.
 
@@ -519,6 +550,12 @@ class Bus:
                 to write now (rebuilt from what is still wanted) or None to drop it
                 unsent (the future then resolves to None).  A stream uses it so that a
                 frame queued before the stream stopped is never written after.
+            lease: the lease a motion command belongs to (default: the running task's
+                explicit lease on this bus, else the implicit one).
+
+        Raises (besides ``request``'s):
+            LeaseConflictError: ``cmd`` starts motion of a device another owner holds.
+            WrongLoopError: called from another event loop than the bus was opened on.
         """
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
@@ -539,6 +576,17 @@ class Bus:
             )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        loop = asyncio.get_running_loop()
+        if loop is not self._loop:
+            raise WrongLoopError(
+                f"bus {self.name} was opened on another event loop (thread) than the one "
+                f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
+                "in this loop, or run the call on the bus's loop "
+                "(asyncio.run_coroutine_threadsafe)"
+            )
+        self._leases.note(cmd.device_key)
+        if cmd.starts_motion:
+            self._claim(cmd, lease)
         raw = cmd.encode()
         occ = self.occupancy(cmd, len(raw))
         budget = occ.budget if timeout is None else float(timeout)
@@ -548,7 +596,7 @@ class Bus:
         job = _Job(
             cmd=cmd,
             raw=raw,
-            future=asyncio.get_running_loop().create_future(),
+            future=loop.create_future(),
             priority=int(priority),
             seq=next(self._seq),
             timeout=budget,
@@ -570,6 +618,141 @@ class Bus:
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
         await self.request(cmd, priority=priority)
+
+    # -- leases: one owner per moving device, a safe end for every motion --------------
+
+    def lease(self, keys: Iterable[str] | str, *, owner: str, safe_action: str = "pause") -> Lease:
+        """Hold ``keys`` (``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``) for
+        ``owner`` from now on; nothing is sent.
+
+        Motion submitted from this task (and from tasks it starts afterwards) belongs to
+        the lease; motion of these devices from anyone else is refused.  End it with
+        ``await lease.release()`` (the safe action for each device) or
+        ``await lease.release(hold=True)`` (nothing sent: the devices keep their last
+        command), or use ``async with bus.lease(...) as lease:``, which releases it
+        with the safe action however the block is left.  The bus closing ends it too.
+
+        Args:
+            keys: the devices; ``"la:255"`` stands for every LA the bus has addressed.
+            owner: a name for errors, logs and ``bus.leases`` (not ``"program"``).
+            safe_action: ``"pause"``, ``"estop"`` or ``"hold"`` (steppers: any but hold
+                sends their stop).
+
+        Raises:
+            LeaseConflictError: another owner's lease holds one of the devices (devices
+                moved outside any lease are taken over).
+            LocalProtocolError: a bad key, owner or action, or a family the bus does
+                not carry.
+        """
+        action = safety.check_safe_action(safe_action)
+        if isinstance(keys, str):
+            keys = (keys,)
+        keys = tuple(keys)
+        for key in keys:
+            family = safety.family_of_key(safety.check_key(key))
+            if family not in self.families:
+                raise LocalProtocolError(
+                    f"key {key!r} is a {family.value} device; bus {self.name} carries "
+                    f"{', '.join(sorted(f.value for f in self.families))}",
+                    field="keys",
+                    value=key,
+                )
+        lease = self._leases.acquire(owner, keys, self._safe_for[action], safe_action=action)
+        lease.releaser = self._release_lease
+        _leases.bind(lease)
+        return lease
+
+    @property
+    def leases(self) -> tuple[LeaseInfo, ...]:
+        """Every leased device now: key, owner and the frames of its safe action."""
+        return self._leases.snapshot()
+
+    def add_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Call ``fn(bus.leases)`` after every change of the leases (a guard process
+        mirrors them).  ``fn`` runs synchronously inside the change: keep it short."""
+        self._leases.add_listener(fn)
+
+    def remove_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Forget a listener added with ``add_lease_listener``; unknown ones are ignored."""
+        self._leases.remove_listener(fn)
+
+    async def release(self, keys: Iterable[str] | None = None, *, hold: bool = False) -> None:
+        """End the implicit lease (motion sent outside any lease) on ``keys`` (default:
+        every device it holds): each gets its safe action now, unless ``hold=True``,
+        which ends it on purpose and sends nothing (the devices keep their last command,
+        and the bus's close will not stop them).
+
+        Raises:
+            LeaseConflictError: an explicit lease holds one of the devices: release
+                that lease instead.
+        """
+        check_flag("hold", hold)
+        table = self._leases
+        if keys is None:
+            program = table.program
+            keys = program.keys if program is not None else ()
+        elif isinstance(keys, str):
+            keys = (keys,)
+        await self._send_safe(table.release_keys(keys, hold=hold))
+
+    def _claim(self, cmd: Command[object], lease: Lease | None) -> None:
+        """The lease rule of a motion command (raises ``LeaseConflictError``)."""
+        table = self._leases
+        keys = safety.motion_keys(cmd)
+        table.note_all(keys)
+        if lease is None or lease.table is not table or not lease.active:
+            lease = _leases.lease_for(table)
+        if lease is None:
+            lease = table.implicit(self._safe_for[self.safe_action], self.safe_action)
+        table.claim(keys, lease)
+        motor = getattr(cmd, "motor", None)
+        if motor is not None and cmd.family is Family.PROJECT_STEPPER:
+            key = cmd.device_key
+            table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
+
+    async def _release_lease(self, lease: Lease, hold: bool) -> None:
+        await self._send_safe(self._leases.release(lease, hold=check_flag("hold", hold)))
+
+    async def _end_leases(self) -> None:
+        """End every lease still held, with its safe action (the bus is closing)."""
+        table = self._leases
+        commands: list[Command[object]] = []
+        for lease in table.leases():
+            commands.extend(table.release(lease, hold=False))
+        await self._send_safe(commands)
+
+    async def _send_safe(self, commands: list[Command[object]]) -> None:
+        """Send safe-action commands, each retried, one failure not stopping the rest.
+
+        Runs to its end even if the caller is cancelled meanwhile (the cancellation
+        is delivered after), and Ctrl-C waits for it: a safe stop is never cut half way.
+        """
+        if not commands:
+            return
+        if self.state is not BusState.OPEN:
+            log.warning(
+                "bus %s is %s: could not send the safe action to %s",
+                self.name,
+                self.state.value,
+                ", ".join(dict.fromkeys(c.device_key for c in commands)),
+            )
+            return
+
+        async def send_all() -> None:
+            for cmd in commands:
+                try:
+                    await self.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
+                except (MotorbusError, OSError) as err:
+                    log.warning(
+                        "bus %s: safe action %s to %s failed: %s",
+                        self.name,
+                        type(cmd).__name__,
+                        cmd.device_key,
+                        err,
+                    )
+
+        with shutdown.deferred_interrupts():
+            await asyncio.shield(asyncio.ensure_future(send_all()))
 
     # -- reservations --------------------------------------------------------------
 
@@ -728,6 +911,10 @@ class Bus:
             WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
         )
         job.tx_time = after
+        if cmd.starts_motion:
+            self._leases.moved(cmd)
+        elif not expects:
+            self._leases.sent(cmd)
         if expects:
             if self.config.wire_floor:
                 baud = self.baudrate
@@ -856,6 +1043,7 @@ class Bus:
                 stats.resyncs += 1
                 log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
             elif type(item) is ProjectFinishedMarker:
+                self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
                 self._publish(ProjectFinished(self.name, now))
 
     def _on_frame(self, frame: Frame, start: int, now: float) -> None:
@@ -901,6 +1089,8 @@ class Bus:
         except RemoteProtocolError as err:
             self._finish(job, err)
             return
+        if not job.cmd.starts_motion:
+            self._leases.sent(job.cmd)  # a safe action answered: no longer owed
         if job.cmd.done_shapes():
             self._watch_done(_done_watch(job.cmd))
         self._observe(job.cmd.fault_state(value), value, now)
@@ -924,6 +1114,9 @@ class Bus:
             if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
                 del self._done_watches[i]
                 self._expect_shapes()
+                rest = safety.at_rest_after_done(watch.cmd)
+                if rest is not None:
+                    self._leases.sent(rest)  # the run is over: its stop is not owed
                 self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
                 return True
         return False
@@ -1057,6 +1250,15 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
         )
 
 
+def _safe_commands_for(action: str) -> _leases.SafeCommandsForKey:
+    """Key -> the commands of ``action`` for it (``safety.safe_stop_commands``)."""
+
+    def safe_for(key: str) -> tuple[Command[object], ...]:
+        return safety.safe_stop_commands(key, action)
+
+    return safe_for
+
+
 def _done_watch(cmd: Command[object]) -> _DoneWatch:
     led = getattr(cmd, "led", None)
-    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led)
+    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led, cmd)

@@ -182,7 +182,10 @@ async def _run(args: argparse.Namespace) -> int:
         if action in _CONTROLS:
             return await _run_control(args, bus)
         if action == "move":
-            status = await InspireLA(bus, args.id).move_to(args.position, reply=not args.no_reply)
+            actuator = InspireLA(bus, args.id)
+            status = await actuator.move_to(args.position, reply=not args.no_reply)
+            # A one-shot move ends on purpose: the actuator keeps its target after exit.
+            await actuator.release(hold=True)
             if status is None:
                 say(args, {"id": args.id, "target": args.position, "reply": False}, "sent")
             else:
@@ -200,7 +203,9 @@ async def _run(args: argparse.Namespace) -> int:
                 print(f"la:{args.id} {reg.name.lower()} = {format_value(reg, value)}")
         elif action == "set":
             reg = la.Register.by_name(args.register)
-            await InspireLA(bus, args.id).write(reg, args.value)
+            actuator = InspireLA(bus, args.id)
+            await actuator.write(reg, args.value)
+            await actuator.release(hold=True)  # a target written is a move kept on purpose
             say(
                 args,
                 {"id": args.id, "register": reg.name.lower(), "value": args.value},

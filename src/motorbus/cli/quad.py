@@ -149,6 +149,8 @@ async def _run(args: argparse.Namespace) -> int:
                 timeout=args.timeout,
                 keep_running=args.keep_running,
             )
+            if args.no_wait:
+                await quad.release(hold=True)  # asked to start it and leave it running
             what = "started" if args.no_wait else "done"
             say(args, {"motor": args.motor, "result": what}, f"motor {args.motor} {what}")
         elif action == "stop":
@@ -160,6 +162,7 @@ async def _run(args: argparse.Namespace) -> int:
             say(args, {"motor": args.motor, "stopped": True}, f"{what} stopped")
         elif action == "home":
             await quad.home(args.motor, args.input)
+            await quad.release(hold=True)  # homing runs on until its input, as asked
             say(
                 args,
                 {"motor": args.motor, "input": args.input, "homing": True},

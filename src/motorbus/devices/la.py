@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 from motorbus.bus.bus import REQUEST_TIMEOUT_MAX_S, Bus, Priority
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
-from motorbus.protocol import la
+from motorbus.protocol import la, safety
 from motorbus.protocol.base import check_choice, check_int, check_timeout
 
 __all__ = ["InspireLA", "ScanPass", "ScanReport", "scan"]
@@ -40,15 +40,27 @@ class InspireLA:
         ``action`` is "pause" (power stage off; the next target resumes), "estop"
         (power stage off until "work") or "hold" (nothing: it keeps its last target).
         """
-        name = getattr(action, "value", action)
-        if name == "hold":
-            return []
-        if name not in ("pause", "estop"):
-            raise LocalProtocolError(
-                f"action={action!r} is not allowed: choose pause, estop or hold", field="action"
-            )
-        sub = la.ControlAction.ESTOP if name == "estop" else la.ControlAction.PAUSE
-        return [la.Control(self.id, sub)]
+        commands = safety.safe_stop_commands(self.key, action)
+        return [cmd for cmd in commands if isinstance(cmd, la.Control)]
+
+    @property
+    def key(self) -> str:
+        """This actuator's device key, ``"la:ID"`` (stats, leases)."""
+        return f"la:{self.id}"
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the program's hold on this actuator (moved outside any lease).
+
+        Every move (``move_to``, ``follow``, a target write) sent outside an explicit
+        lease (``bus.lease``) is owned by the bus's implicit lease, and the bus applies
+        its safe action (pause, by default) when it closes.  ``release()`` applies it
+        now; ``release(hold=True)`` ends the ownership on purpose and sends nothing: the
+        actuator keeps its target, also after the bus closes.
+
+        Raises:
+            LeaseConflictError: an explicit lease holds the actuator (release that).
+        """
+        await self.bus.release([self.key], hold=hold)
 
     async def _control(self, action: la.ControlAction, priority: Priority) -> la.Status:
         status = await self.bus.request(la.Control(self.id, action), priority=priority)
@@ -65,6 +77,14 @@ class InspireLA:
 
         With ``reply`` (0x21) returns the status; without (0x03) returns ``None`` as
         soon as the frame is sent.
+
+        The move is owned (``motorbus.bus.leases``): by the running task's lease, else
+        by the bus's implicit lease, and the actuator gets its safe action (pause) when
+        the bus closes, unless released first with ``await la.release(hold=True)``.
+
+        Raises:
+            LeaseConflictError: another owner (a stream, another lease) holds the
+                actuator; nothing was sent.
         """
         result: la.Status | None = await self.bus.request(la.MoveTo(self.id, position, reply))
         return result

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
 from motorbus.errors import (
+    LeaseConflictError,
     LocalProtocolError,
     MotorbusError,
     ProjectInvalidError,
@@ -18,6 +20,7 @@ from motorbus.errors import (
     ReplyTimeoutError,
 )
 from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
 from motorbus.shutdown import deferred_interrupts
 
@@ -31,6 +34,8 @@ DEFAULT_RUN_TIMEOUT_S = 600.0
 #: After a stop, how long a new run waits before it starts: a controller may answer the
 #: stop with a late EE DD (A0-06 leaves it open), which must not end the next run's wait.
 STOP_SETTLE_S = 0.5
+#: The controller's device key (one per bus).
+KEY = ps.StartProject.family.value
 #: What to tell a user who let a timed-out project keep running.
 STOP_HINT = "`motorbus project stop` ends it"
 
@@ -56,7 +61,22 @@ class ProjectStepper:
     def safe_stop_commands(self) -> list[ps.ProjectStepperCommand[object]]:
         """The commands that stop everything this controller may be doing, as values:
         stop the running project (0x5E), then stop manual motion of its motor (0x0D)."""
-        return [ps.StopProject(), ps.ManualStop(motor=self.motor)]
+        commands = safety.safe_stop_commands(KEY, "pause", motor=self.motor)
+        return [cmd for cmd in commands if isinstance(cmd, ps.ProjectStepperCommand)]
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the program's hold on this controller (motion started outside any lease).
+
+        A project run, a jog, a single run or homing started outside an explicit lease
+        (``bus.lease``) is owned by the bus's implicit lease, and the bus stops the
+        controller (``safe_stop_commands``) when it closes.  ``release()`` stops it
+        now; ``release(hold=True)`` ends the ownership on purpose and sends nothing:
+        what runs keeps running, also after the bus closes.
+
+        Raises:
+            LeaseConflictError: an explicit lease holds the controller (release that).
+        """
+        await self.bus.release([KEY], hold=hold)
 
     async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
         for cmd in commands:
@@ -220,7 +240,8 @@ class ProjectStepper:
         Args:
             number: the project, 1..4.
             timeout: seconds to wait for ``EE DD`` (default 600).
-            keep_running: on timeout, leave the project running instead of stopping it.
+            keep_running: on timeout, leave the project running instead of stopping it
+                (also after the bus closes: it ends the program's hold with ``hold``).
 
         Raises:
             ReplyTimeoutError: no ``EE DD`` within ``timeout``; the message says whether
@@ -258,6 +279,7 @@ class ProjectStepper:
                 except ReplyTimeoutError:
                     waited = f"project {number} did not finish (no EE DD) within {limit:g} s"
                     if keep_running:
+                        await self._keep_running()
                         raise ReplyTimeoutError(f"{waited}: still running; {STOP_HINT}") from None
                     raise ReplyTimeoutError(f"{waited}: {await self._stop_after(number)}") from None
             except asyncio.CancelledError:
@@ -265,6 +287,12 @@ class ProjectStepper:
                 raise
             finally:
                 self._run_sub = None
+
+    async def _keep_running(self) -> None:
+        """The caller chose to leave the motion running: end the implicit lease with
+        hold (an explicit lease is its owner's to end)."""
+        with contextlib.suppress(LeaseConflictError):
+            await self.release(hold=True)
 
     async def _stop_after(self, number: int) -> str:
         """Send stop project after a run ended without ``EE DD``; say what happened."""

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
-from motorbus.errors import MotorbusError, ReplyTimeoutError
+from motorbus.errors import LeaseConflictError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
+from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
 
 __all__ = ["QuadStepper"]
@@ -19,6 +21,8 @@ log = logging.getLogger("motorbus.quad_stepper")
 #: the manual documents no duration (A1-09), and a long move at low speed can take
 #: minutes, so the default is generous; pass ``timeout`` for anything tighter.
 DEFAULT_DONE_TIMEOUT_S = 600.0
+#: The controller's device key (one per bus).
+KEY = q.StopAll.family.value
 
 
 class QuadStepper:
@@ -40,7 +44,21 @@ class QuadStepper:
 
     def safe_stop_commands(self) -> list[q.QuadCommand]:
         """The commands that stop every motor of this controller, as values (stop all)."""
-        return [q.StopAll()]
+        return [cmd for cmd in safety.safe_stop_commands(KEY) if isinstance(cmd, q.QuadCommand)]
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the program's hold on this controller (motion started outside any lease).
+
+        A run, a run of all motors or homing started outside an explicit lease
+        (``bus.lease``) is owned by the bus's implicit lease, and the bus sends stop all
+        when it closes.  ``release()`` sends it now; ``release(hold=True)`` ends the
+        ownership on purpose and sends nothing: what runs keeps running, also after the
+        bus closes.
+
+        Raises:
+            LeaseConflictError: an explicit lease holds the controller (release that).
+        """
+        await self.bus.release([KEY], hold=hold)
 
     async def configure(
         self,
@@ -89,7 +107,8 @@ class QuadStepper:
         """Start a motor's configured run; with ``wait``, return when it reports done.
 
         A run whose done reply does not come in time is stopped (stop that motor; if
-        that is not acknowledged, stop all) unless ``keep_running``.  A cancelled call
+        that is not acknowledged, stop all) unless ``keep_running`` (then it runs on,
+        also after the bus closes: the program's hold on it ends with ``hold``).  A cancelled call
         (Ctrl-C, an enclosing timeout) always sends the stop before the cancellation
         goes on.
 
@@ -114,6 +133,7 @@ class QuadStepper:
                     except ReplyTimeoutError:
                         waited = f"motor {motor} did not report done within {limit:g} s"
                         if keep_running:
+                            await self._keep_running()
                             raise ReplyTimeoutError(
                                 f"{waited}: still running; `motorbus quad stop {motor}` ends it"
                             ) from None
@@ -122,6 +142,12 @@ class QuadStepper:
         except asyncio.CancelledError:
             await self._stop_after(motor)
             raise
+
+    async def _keep_running(self) -> None:
+        """The caller chose to leave the motion running: end the implicit lease with
+        hold (an explicit lease is its owner's to end)."""
+        with contextlib.suppress(LeaseConflictError):
+            await self.release(hold=True)
 
     async def _stop_after(self, motor: int) -> str:
         """Stop ``motor`` after a run was abandoned (stop all if that fails); say what was done."""

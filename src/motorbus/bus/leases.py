@@ -1,0 +1,457 @@
+"""Leases: one owner per moving device, and a safe end for every motion.
+
+Pure (no asyncio, no clock): the table below is what ``Bus`` consults in one place, the
+submit of a command that ``starts_motion``, and what it applies in one place, its close.
+
+* Whoever moves a device holds a **lease** on it: an explicit one (``bus.lease(keys,
+  owner=...)``: a stream, a rig, a CLI command) or, for motion sent outside any lease
+  (a plain ``move_to``), the bus's **implicit** lease, owner ``"program"``.
+* A motion command for a device that another explicit lease holds is refused with
+  ``LeaseConflictError`` before anything is sent.  An explicit lease takes devices over
+  from the implicit one (the same program moved them before, e.g. a ``move_to`` to the
+  start of a stream); never from another explicit lease.
+* Every leased device has a **safe action** (``motorbus.protocol.safety``: an LA pause or
+  e-stop, a stepper stop) and a record of what of it is still owed: all of it from an
+  explicit lease's start; after every motion frame written, what ends that motion (an
+  LA's pause, the stop project after a project start, a quad motor's stop after its
+  run).  A command that covers it (``safety.covers``), written and answered if it
+  expects a reply, pays it: the owner's own stop, a stream's safe action, a
+  ``BusManager``'s stop, or the device's report that the motion ended (``EE DD``, a quad
+  run's done reply).
+* A lease ends by ``release(hold=False)``: the safe actions still owed are returned for
+  the bus to send; with ``hold=True`` nothing is (the owner ends on purpose and the
+  devices keep their last command).  The bus ends every lease still held when it closes,
+  after its streams stopped and before the port closes.
+
+Device keys are ``Command.device_key`` strings: ``"la:3"``, ``"project_stepper"``,
+``"quad_stepper"``.  ``"la:255"`` (an LA command to every actuator) stands for every LA
+the bus has addressed so far (itself if it addressed none yet: its safe action is then
+a pause to ID 255).
+"""
+
+from __future__ import annotations
+
+import contextvars
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, TypeAlias
+
+from motorbus.errors import LeaseConflictError, LocalProtocolError
+from motorbus.protocol import safety
+from motorbus.protocol.base import Command
+from motorbus.protocol.families import FAMILIES
+
+__all__ = [
+    "PROGRAM",
+    "DeviceKey",
+    "Lease",
+    "LeaseConflictError",
+    "LeaseInfo",
+    "LeaseTable",
+    "SafeCommandsForKey",
+    "bind",
+    "current_leases",
+    "lease_for",
+]
+
+#: A device on a bus, as ``Command.device_key`` names it.
+DeviceKey: TypeAlias = str
+#: The owner of the implicit lease: motion sent outside any explicit lease.
+PROGRAM = "program"
+#: Given a key, the commands of its safe action (``safety.safe_stop_commands``).
+SafeCommandsForKey: TypeAlias = Callable[[DeviceKey], "tuple[Command[object], ...]"]
+#: Longest owner name (it appears in errors, logs and the guard's records).
+OWNER_MAX = 200
+
+#: Keys that stand for every device of a family the bus has addressed ("la:255").
+_WILDCARDS = {
+    f"{info.key}:{info.broadcast_id}": f"{info.key}:"
+    for info in FAMILIES.values()
+    if info.broadcast_id is not None
+}
+
+#: The explicit leases a task holds (acquired in it, or in the task that started it).
+_current: contextvars.ContextVar[tuple[Lease, ...]] = contextvars.ContextVar(
+    "motorbus_leases", default=()
+)
+
+
+def current_leases() -> tuple[Lease, ...]:
+    """The explicit leases the running task holds (most recent last)."""
+    return _current.get()
+
+
+@dataclass(frozen=True, slots=True)
+class LeaseInfo:
+    """One leased device, as ``bus.leases`` and lease listeners see it.
+
+    Attributes:
+        key: the device (``"la:3"``).
+        owner: who holds it (``"program"`` for the implicit lease).
+        safe_frames: the encoded frames of its safe action, in order (empty for hold);
+            what a guard process sends if the program dies holding the lease.
+    """
+
+    key: DeviceKey
+    owner: str
+    safe_frames: tuple[bytes, ...]
+
+
+class Lease:
+    """A claim on devices: while it is held, nobody else moves them.
+
+    Made by ``bus.lease(keys, owner=..., safe_action=...)``; motion submitted from the
+    task that acquired it (and from tasks that task starts afterwards) belongs to it.
+    Use it as ``async with bus.lease(...) as lease:``: leaving the block, however it is
+    left (normally, by an exception, by cancellation), releases it with its safe action.
+
+    Attributes:
+        owner: the name given at acquisition.
+        safe_action: ``"pause"``, ``"estop"`` or ``"hold"``.
+        implicit: True for the bus's own lease (owner ``"program"``).
+    """
+
+    def __init__(
+        self,
+        table: LeaseTable,
+        owner: str,
+        safe_for: SafeCommandsForKey,
+        *,
+        safe_action: str = "pause",
+        implicit: bool = False,
+    ) -> None:
+        self.table = table
+        self.owner = owner
+        self.safe_action = safe_action
+        self.implicit = implicit
+        self.safe_for = safe_for
+        self.active = True
+        #: Set by the bus: sends what ``LeaseTable.release`` returns.
+        self.releaser: Callable[[Lease, bool], Any] | None = None
+
+    def __repr__(self) -> str:
+        state = "held" if self.active else "released"
+        return f"Lease(owner={self.owner!r}, keys={sorted(self.keys)}, {state})"
+
+    @property
+    def keys(self) -> frozenset[DeviceKey]:
+        """The devices this lease holds now (it grows when it moves a free device)."""
+        return self.table.keys_of(self)
+
+    async def release(self, *, hold: bool = False) -> None:
+        """End the lease.  Without ``hold``, every device it holds gets its safe action
+        (the ones not already brought to it since their last motion); with
+        ``hold=True`` nothing is sent and each device keeps its last command: the owner
+        ends on purpose.  Idempotent."""
+        if not self.active:
+            return
+        if self.releaser is not None:
+            await self.releaser(self, hold)
+        else:
+            self.table.release(self, hold=hold)
+
+    async def __aenter__(self) -> Lease:
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.release(hold=False)
+
+
+@dataclass(slots=True)
+class _Entry:
+    lease: Lease
+    safe: tuple[Command[object], ...]
+    #: Safe commands not written (and answered) since the device last moved.
+    owed: tuple[Command[object], ...]
+
+
+class LeaseTable:
+    """Who holds which device, and which safe actions are still owed.
+
+    Pure bookkeeping; the bus sends what ``release`` returns.  Every change calls the
+    listeners with the new ``snapshot()``.
+    """
+
+    def __init__(self) -> None:
+        self._entries: dict[DeviceKey, _Entry] = {}
+        self._seen: set[DeviceKey] = set()
+        self._program: Lease | None = None
+        self._listeners: list[Callable[[tuple[LeaseInfo, ...]], None]] = []
+
+    # -- reading ---------------------------------------------------------------------
+
+    def owner_of(self, key: DeviceKey) -> str | None:
+        """Who holds ``key`` (``"program"`` for the implicit lease), or None."""
+        entry = self._entries.get(key)
+        return None if entry is None else entry.lease.owner
+
+    def keys_of(self, lease: Lease) -> frozenset[DeviceKey]:
+        """The keys ``lease`` holds."""
+        return frozenset(k for k, e in self._entries.items() if e.lease is lease)
+
+    def leases(self) -> list[Lease]:
+        """Every lease that holds a device, in acquisition order of their first key."""
+        return list(dict.fromkeys(e.lease for e in self._entries.values()))
+
+    def owed(self, key: DeviceKey) -> tuple[Command[object], ...]:
+        """The safe commands ``key`` still needs (empty: it is at rest, or not leased)."""
+        entry = self._entries.get(key)
+        return () if entry is None else entry.owed
+
+    def snapshot(self) -> tuple[LeaseInfo, ...]:
+        """Every leased device with its owner and safe frames, sorted by key."""
+        return tuple(
+            LeaseInfo(k, e.lease.owner, tuple(c.encode() for c in e.safe))
+            for k, e in sorted(self._entries.items())
+        )
+
+    @property
+    def program(self) -> Lease | None:
+        """The implicit lease, if motion was sent outside any explicit lease."""
+        return self._program
+
+    # -- listeners -------------------------------------------------------------------
+
+    def add_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Call ``fn(snapshot)`` after every change."""
+        self._listeners.append(fn)
+
+    def remove_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
+        """Forget ``fn``; unknown ones are ignored."""
+        if fn in self._listeners:
+            self._listeners.remove(fn)
+
+    def _changed(self) -> None:
+        if self._listeners:
+            snap = self.snapshot()
+            for fn in list(self._listeners):
+                fn(snap)
+
+    # -- keys ------------------------------------------------------------------------
+
+    def note(self, key: DeviceKey) -> None:
+        """Remember that the bus addressed ``key`` (what ``"la:255"`` stands for)."""
+        self._seen.add(key)
+
+    def note_all(self, keys: Iterable[DeviceKey]) -> None:
+        """``note`` each of ``keys``."""
+        self._seen.update(keys)
+
+    def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:
+        """``keys`` with each wildcard (``"la:255"``) replaced by the family's devices
+        the bus has addressed or leased (the wildcard itself if there are none)."""
+        out: list[DeviceKey] = []
+        for key in keys:
+            prefix = _WILDCARDS.get(key)
+            if prefix is None:
+                out.append(key)
+                continue
+            known = sorted(
+                (k for k in self._seen | set(self._entries) if k.startswith(prefix)),
+                key=lambda k: (len(k), k),
+            )
+            out.extend([k for k in known if k not in _WILDCARDS] or [key])
+        return tuple(dict.fromkeys(out))
+
+    # -- acquiring -------------------------------------------------------------------
+
+    def acquire(
+        self,
+        owner: str,
+        keys: Iterable[DeviceKey],
+        safe_commands_for_key: SafeCommandsForKey,
+        *,
+        safe_action: str = "pause",
+    ) -> Lease:
+        """A new explicit lease of ``owner`` on ``keys``.
+
+        Raises:
+            LeaseConflictError: another explicit lease holds one of the keys (nothing
+                changes).  Keys of the implicit lease are taken over.
+            LocalProtocolError: a bad owner or key, or no key at all.
+        """
+        owner = _check_owner(owner)
+        if isinstance(keys, str):
+            keys = (keys,)
+        wanted = self.expand(safety.check_key(k) for k in keys)
+        if not wanted:
+            raise LocalProtocolError("a lease needs at least one device key", field="keys")
+        for key in wanted:
+            entry = self._entries.get(key)
+            if entry is not None and not entry.lease.implicit:
+                raise LeaseConflictError(key, entry.lease.owner, owner)
+        lease = Lease(self, owner, safe_commands_for_key, safe_action=safe_action)
+        for key in wanted:
+            safe = lease.safe_for(key)
+            self._entries[key] = _Entry(lease, safe, safe)  # all of it owed from the start
+        self._changed()
+        return lease
+
+    def implicit(self, safe_commands_for_key: SafeCommandsForKey, safe_action: str) -> Lease:
+        """The implicit lease (made on first use)."""
+        if self._program is None or not self._program.active:
+            self._program = Lease(
+                self, PROGRAM, safe_commands_for_key, safe_action=safe_action, implicit=True
+            )
+        return self._program
+
+    def claim(self, keys: Iterable[DeviceKey], lease: Lease) -> bool:
+        """Motion of ``lease`` (explicit, or the implicit one) for ``keys``: check and hold.
+
+        Free keys join ``lease``; keys of the implicit lease move to an explicit one.
+        Returns True if the table changed.
+
+        Raises:
+            LeaseConflictError: another explicit lease holds one of the keys (nothing
+                changes).
+        """
+        entries = self._entries
+        for key in keys:  # the hot path (every stream tick): all held already
+            entry = entries.get(key)
+            if entry is None or entry.lease is not lease or key in _WILDCARDS:
+                break
+        else:
+            return False
+        changed = False
+        keys = self.expand(keys)
+        for key in keys:
+            entry = entries.get(key)
+            if entry is not None and entry.lease is not lease and not entry.lease.implicit:
+                raise LeaseConflictError(key, entry.lease.owner, lease.owner)
+        for key in keys:
+            entry = entries.get(key)
+            if entry is None or entry.lease is not lease:
+                # Owed: what the implicit lease owed; the motion adds its own (``moved``).
+                owed = () if entry is None else entry.owed
+                entries[key] = _Entry(lease, lease.safe_for(key), owed)
+                changed = True
+        if changed:
+            self._changed()
+        return changed
+
+    def set_safe(self, key: DeviceKey, commands: tuple[Command[object], ...]) -> None:
+        """Replace ``key``'s safe commands (a project stepper's motor byte, learnt from
+        its motion)."""
+        entry = self._entries.get(key)
+        if entry is None or entry.safe == commands:
+            return
+        entry.safe = commands
+        self._changed()
+
+    # -- what the bus wrote ------------------------------------------------------------
+
+    def moved(self, cmd: Command[object]) -> None:
+        """The motion frame ``cmd`` was written: what ends its motion is owed, on each
+        device it moves, besides what was owed already (``safety.motion_stops``; the
+        device's whole safe action where the motion names no smaller stop)."""
+        keys = safety.motion_keys(cmd)
+        if any(key in _WILDCARDS for key in keys):
+            keys = self.expand(keys)
+        stops = safety.motion_stops(cmd)
+        entries = self._entries
+        for key in keys:
+            entry = entries.get(key)
+            if entry is None:
+                continue
+            # A "hold" lease's devices have no safe action, so they owe nothing.
+            owes = entry.safe if stops is None or not entry.safe else stops
+            owed = entry.owed
+            if owed is owes or not owes:
+                continue  # the hot path: a streamed actuator owes its pause already
+            if not owed:
+                entry.owed = owes
+            elif owed != owes:
+                entry.owed = tuple(dict.fromkeys((*owed, *owes)))
+
+    def sent(self, cmd: Command[object]) -> None:
+        """``cmd`` was written (and answered, if it expects a reply): what it covers of
+        the safe actions owed is paid."""
+        key = cmd.device_key
+        if key in _WILDCARDS:
+            prefix = _WILDCARDS[key]
+            entries = [e for k, e in self._entries.items() if k.startswith(prefix)]
+        else:
+            entry = self._entries.get(key)
+            if entry is None:
+                return
+            entries = [entry]
+        for entry in entries:
+            if entry.owed:
+                entry.owed = safety.pending_after(cmd, entry.owed)
+
+    # -- releasing -------------------------------------------------------------------
+
+    def release(self, lease: Lease, *, hold: bool) -> list[Command[object]]:
+        """End ``lease``: its devices are free.  Returns the safe commands still owed,
+        device by device (nothing with ``hold``), for the bus to send."""
+        commands: list[Command[object]] = []
+        for key in sorted(self.keys_of(lease), key=lambda k: (len(k), k)):
+            entry = self._entries.pop(key)
+            if not hold:
+                commands.extend(entry.owed)
+        lease.active = False
+        if lease is self._program:
+            self._program = None
+        self._changed()
+        return commands
+
+    def release_keys(self, keys: Iterable[DeviceKey], *, hold: bool) -> list[Command[object]]:
+        """End the implicit lease on ``keys`` (the others it holds stay).  Returns the
+        safe commands owed (nothing with ``hold``).
+
+        Raises:
+            LeaseConflictError: an explicit lease holds one of the keys; release that
+                lease instead (nothing changes).
+        """
+        wanted = self.expand(keys)
+        for key in wanted:
+            entry = self._entries.get(key)
+            if entry is not None and not entry.lease.implicit:
+                raise LeaseConflictError(key, entry.lease.owner, PROGRAM)
+        commands: list[Command[object]] = []
+        changed = False
+        for key in wanted:
+            entry = self._entries.pop(key, None)
+            if entry is None:
+                continue
+            changed = True
+            if not hold:
+                commands.extend(entry.owed)
+        if changed:
+            self._changed()
+        return commands
+
+
+def bind(lease: Lease) -> None:
+    """Make ``lease`` the running task's (and its future child tasks')."""
+    _current.set((*(held for held in _current.get() if held.active), lease))
+
+
+def lease_for(table: LeaseTable) -> Lease | None:
+    """The most recent active explicit lease of ``table`` the running task holds."""
+    for lease in reversed(_current.get()):
+        if lease.table is table and lease.active:
+            return lease
+    return None
+
+
+def _check_owner(owner: object) -> str:
+    if not isinstance(owner, str) or not owner.strip() or len(owner) > OWNER_MAX:
+        raise LocalProtocolError(
+            f"owner={owner!r} is not allowed: a non-empty name of at most {OWNER_MAX} characters",
+            field="owner",
+            value=owner,
+        )
+    if owner == PROGRAM:
+        raise LocalProtocolError(
+            f"owner={owner!r} is reserved for motion sent outside any lease: pick another",
+            field="owner",
+            value=owner,
+        )
+    return owner

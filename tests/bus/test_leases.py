@@ -1,0 +1,256 @@
+"""The lease table, without an event loop: owners, take-overs, what is owed, what a
+release returns (``motorbus.bus.leases``, ``motorbus.protocol.safety``)."""
+
+from __future__ import annotations
+
+import pytest
+
+from motorbus.bus.leases import PROGRAM, LeaseInfo, LeaseTable
+from motorbus.errors import LeaseConflictError, LocalProtocolError
+from motorbus.protocol import la, safety
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
+from motorbus.protocol.base import Command
+
+
+def pause_for(key: str) -> tuple[Command[object], ...]:
+    return safety.safe_stop_commands(key, "pause")
+
+
+def estop_for(key: str) -> tuple[Command[object], ...]:
+    return safety.safe_stop_commands(key, "estop")
+
+
+def program(table: LeaseTable) -> object:
+    return table.implicit(pause_for, "pause")
+
+
+def test_a_second_owner_is_refused_and_nothing_changes() -> None:
+    table = LeaseTable()
+    first = table.acquire("stream", ["la:1", "la:2"], pause_for)
+    with pytest.raises(LeaseConflictError) as info:
+        table.acquire("rig", ["la:3", "la:2"], pause_for)
+    err = info.value
+    assert (err.key, err.owner, err.refused) == ("la:2", "stream", "rig")
+    assert "la:2" in str(err) and "'stream'" in str(err) and "'rig'" in str(err)
+    assert table.owner_of("la:3") is None  # the refused lease took nothing
+    assert first.keys == {"la:1", "la:2"}
+
+
+def test_motion_outside_any_lease_is_refused_on_a_leased_device() -> None:
+    table = LeaseTable()
+    table.acquire("stream", ["la:1"], pause_for)
+    implicit = table.implicit(pause_for, "pause")
+    with pytest.raises(LeaseConflictError) as info:
+        table.claim(["la:4", "la:1"], implicit)
+    assert (info.value.owner, info.value.refused) == ("stream", PROGRAM)
+    assert table.owner_of("la:4") is None
+
+
+def test_motion_outside_any_lease_gets_the_implicit_lease() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    assert table.claim(["la:3"], implicit) is True
+    assert table.claim(["la:3"], implicit) is False  # already held: no change
+    assert table.owner_of("la:3") == PROGRAM
+    assert table.snapshot() == (
+        LeaseInfo("la:3", PROGRAM, (la.Control(3, la.ControlAction.PAUSE).encode(),)),
+    )
+
+
+def test_an_explicit_lease_takes_devices_over_from_the_implicit_one() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["la:1", "la:2"], implicit)
+    lease = table.acquire("stream", ["la:1"], estop_for, safe_action="estop")
+    assert table.owner_of("la:1") == "stream"
+    assert table.owner_of("la:2") == PROGRAM
+    # Still owed (it moved), now with the new owner's action.
+    assert table.owed("la:1") == (la.Control(1, la.ControlAction.ESTOP),)
+    assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.ESTOP)]
+    assert table.owner_of("la:1") is None
+
+
+def test_release_with_hold_returns_nothing_and_frees_the_devices() -> None:
+    table = LeaseTable()
+    lease = table.acquire("rig", ["la:1", "quad_stepper"], pause_for)
+    assert table.release(lease, hold=True) == []
+    assert not lease.active
+    assert table.snapshot() == ()
+    again = table.acquire("other", ["la:1"], pause_for)  # free for the next owner
+    assert again.keys == {"la:1"}
+
+
+def test_a_safe_action_sent_since_the_last_motion_is_not_owed_again() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["la:1", "la:2"], implicit)
+    table.moved(la.Broadcast(la.BroadcastMode.POSITION, ((1, 500), (2, 600))))
+    table.sent(la.Control(1, la.ControlAction.PAUSE))
+    assert table.owed("la:1") == ()
+    table.sent(la.Control(2, la.ControlAction.QUERY_STATUS))  # not a stop
+    assert table.owed("la:2") == (la.Control(2, la.ControlAction.PAUSE),)
+    assert table.release(implicit, hold=False) == [la.Control(2, la.ControlAction.PAUSE)]
+
+
+def test_motion_after_the_safe_action_owes_it_again() -> None:
+    table = LeaseTable()
+    lease = table.acquire("rig", ["la:1"], pause_for)
+    table.sent(la.Control(1, la.ControlAction.PAUSE))
+    table.moved(la.MoveTo(1, 500))
+    assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.PAUSE)]
+
+
+def test_an_estop_covers_a_pause_but_a_pause_never_covers_an_estop() -> None:
+    table = LeaseTable()
+    paused = table.acquire("a", ["la:1"], pause_for)
+    stopped = table.acquire("b", ["la:2"], estop_for, safe_action="estop")
+    table.sent(la.Control(1, la.ControlAction.ESTOP))
+    table.sent(la.Control(2, la.ControlAction.PAUSE))
+    assert table.release(paused, hold=False) == []
+    assert table.release(stopped, hold=False) == [la.Control(2, la.ControlAction.ESTOP)]
+
+
+def test_a_control_frame_to_every_actuator_covers_each() -> None:
+    table = LeaseTable()
+    lease = table.acquire("a", ["la:1", "la:2"], pause_for)
+    table.sent(la.Control(la.BROADCAST_ID, la.ControlAction.PAUSE))
+    assert table.release(lease, hold=False) == []
+
+
+def test_steppers_owe_every_stop_command_until_each_was_sent() -> None:
+    table = LeaseTable()
+    lease = table.acquire("rig", ["project_stepper", "quad_stepper"], pause_for)
+    table.sent(ps.StopProject())
+    table.sent(q.Stop(1))  # one motor: not stop all
+    assert table.release(lease, hold=False) == [
+        q.StopAll(),  # device by device, shorter keys first (la:2 before la:10)
+        ps.ManualStop(motor=ps.DEFAULT_MOTOR),
+    ]
+
+
+def test_broadcast_motion_names_each_actuator() -> None:
+    frame = la.Broadcast(la.BroadcastMode.FOLLOW, ((4, 100), (7, 200)))
+    assert safety.motion_keys(frame) == ("la:4", "la:7")
+    table = LeaseTable()
+    table.acquire("stream", ["la:7"], pause_for)
+    with pytest.raises(LeaseConflictError) as info:
+        table.claim(safety.motion_keys(frame), program(table))  # type: ignore[arg-type]
+    assert info.value.key == "la:7"
+
+
+def test_id_255_stands_for_every_actuator_the_bus_addressed() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    assert table.expand(["la:255"]) == ("la:255",)  # none addressed yet: itself
+    table.claim(safety.motion_keys(la.MoveTo(255, 500, False)), implicit)
+    table.moved(la.MoveTo(255, 500, False))
+    assert table.release(implicit, hold=False) == [la.Control(255, la.ControlAction.PAUSE)]
+    for key in ("la:2", "la:10", "la:1"):
+        table.note(key)
+    assert table.expand(["la:255"]) == ("la:1", "la:2", "la:10")
+    table.acquire("stream", ["la:10"], pause_for)
+    with pytest.raises(LeaseConflictError):
+        table.claim(["la:255"], table.implicit(pause_for, "pause"))
+
+
+def test_release_keys_ends_the_implicit_lease_on_those_keys_only() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["la:1", "la:2"], implicit)
+    assert table.release_keys(["la:1"], hold=True) == []
+    assert table.owner_of("la:1") is None and table.owner_of("la:2") == PROGRAM
+    table.acquire("stream", ["la:3"], pause_for)
+    with pytest.raises(LeaseConflictError):
+        table.release_keys(["la:3"], hold=False)
+
+
+def test_listeners_see_every_change_and_no_non_change() -> None:
+    table = LeaseTable()
+    seen: list[tuple[LeaseInfo, ...]] = []
+    table.add_listener(seen.append)
+    lease = table.acquire("rig", ["quad_stepper"], pause_for)
+    table.claim(["quad_stepper"], lease)  # already its own: nothing new
+    table.release(lease, hold=False)
+    assert seen == [
+        (LeaseInfo("quad_stepper", "rig", (q.StopAll().encode(),)),),
+        (),
+    ]
+    table.remove_listener(seen.append)
+    table.acquire("rig", ["quad_stepper"], pause_for)
+    assert len(seen) == 2
+
+
+def test_the_project_steppers_motor_comes_from_its_motion() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["project_stepper"], implicit)
+    table.moved(ps.JogForward(motor=5))
+    table.set_safe("project_stepper", safety.safe_stop_commands("project_stepper", motor=5))
+    assert table.snapshot()[0].safe_frames == (
+        ps.StopProject().encode(),
+        ps.ManualStop(motor=5).encode(),
+    )
+    assert table.release(implicit, hold=False) == [ps.ManualStop(motor=5)]
+
+
+def test_motion_outside_a_lease_owes_what_ends_that_motion_only() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["la:1"], implicit)
+    assert table.owed("la:1") == ()  # claimed, not yet written: nothing moved
+    table.claim(["project_stepper", "quad_stepper"], implicit)
+    table.moved(ps.StartProject(1))
+    table.moved(q.Run(2))
+    table.moved(q.Run(3))
+    assert table.owed("project_stepper") == (ps.StopProject(),)
+    assert table.owed("quad_stepper") == (q.Stop(2), q.Stop(3))
+    table.sent(q.Stop(2))
+    assert table.owed("quad_stepper") == (q.Stop(3),)
+    table.sent(q.StopAll())  # covers every motor's stop
+    table.sent(safety.AT_REST_AFTER_PROJECT_END)  # the project's EE DD
+    assert table.release(implicit, hold=False) == []
+
+
+def test_a_quad_runs_done_reply_pays_its_stop() -> None:
+    table = LeaseTable()
+    implicit = table.implicit(pause_for, "pause")
+    table.claim(["quad_stepper"], implicit)
+    table.moved(q.Run(1))
+    rest = safety.at_rest_after_done(q.Run(1))
+    assert rest == q.Stop(1)
+    table.sent(rest)
+    assert table.release(implicit, hold=False) == []
+    assert safety.at_rest_after_done(q.RunAll()) is None
+
+
+@pytest.mark.parametrize(
+    ("owner", "keys", "field"),
+    [
+        ("", ["la:1"], "owner"),
+        (PROGRAM, ["la:1"], "owner"),
+        (3, ["la:1"], "owner"),
+        ("rig", [], "keys"),
+        ("rig", ["la:0"], "key"),
+        ("rig", ["la:256"], "key"),
+        ("rig", ["la:x"], "key"),
+        ("rig", ["stepper"], "key"),
+        ("rig", [3], "key"),
+    ],
+)
+def test_bad_owners_and_keys_are_refused_by_name(
+    owner: object, keys: list[object], field: str
+) -> None:
+    table = LeaseTable()
+    with pytest.raises(LocalProtocolError) as info:
+        table.acquire(owner, keys, pause_for)  # type: ignore[arg-type]
+    assert info.value.field == field
+    assert table.snapshot() == ()
+
+
+def test_safe_actions_are_checked_by_name() -> None:
+    with pytest.raises(LocalProtocolError, match="choose pause, estop, hold") as info:
+        safety.safe_stop_commands("la:1", "stop")
+    assert info.value.field == "action"
+    assert safety.safe_stop_commands("la:1", "hold") == ()
+    assert safety.safe_stop_commands("quad_stepper", "estop") == (q.StopAll(),)
