@@ -98,7 +98,7 @@ def one_run(
         cmd = [sys.executable, str(VICTIM), "--ids", "1-3"]
         cmd += [a for s in sims for a in ("--port", s.path)]
         if guard:
-            cmd += ["--guard", "--feed"]
+            cmd += ["--guard"]
         report = tmp / f"guard-{time.monotonic_ns()}.json"
         env = {**os.environ, REPORT_ENV: str(report)}
         proc = subprocess.Popen(

@@ -7,8 +7,7 @@ Used by ``bench_guard.py`` and ``tests/test_guard.py``::
 It enables the actuators, streams a slow ramp to each at 100 Hz with
 ``safe_action="pause"``, and prints ``streaming`` once every bus has sent targets; then
 it streams on until it is killed.  With ``--guard`` it runs under
-``motorbus.run(..., guard=True)``.  With ``--feed`` it also tells the guard each bus's
-devices and safe frames itself (for buses without leases).
+``motorbus.run(..., guard=True)``: the stream's lease tells the guard what to pause.
 """
 
 from __future__ import annotations
@@ -18,7 +17,6 @@ import asyncio
 import sys
 
 import motorbus
-from motorbus import guard as guard_process
 from motorbus.protocol import la
 from motorbus.protocol.ids import parse_id_list
 
@@ -27,21 +25,7 @@ PERIOD_S = 0.01
 HOST_MARGIN_S = 0.05
 
 
-def feed_guard(bus: motorbus.Bus, port: str, ids: list[int]) -> None:
-    """Tell the guard what this bus moves and how to stop it (the leases' job)."""
-    guard = guard_process.active_guard()
-    if guard is None:
-        return
-    devices = tuple(
-        guard_process.GuardDevice(
-            f"la:{i}", "victim", (la.Control(i, la.ControlAction.PAUSE).encode(),)
-        )
-        for i in ids
-    )
-    guard.set_port(f"victim:{port}", guard_process.GuardPort(port, bus.baudrate, {}, devices))
-
-
-async def one_bus(port: str, ids: list[int], feed: bool, started: asyncio.Event) -> None:
+async def one_bus(port: str, ids: list[int], started: asyncio.Event) -> None:
     transport = motorbus.open_transport(port, baudrate=BAUD)
     # A generous reply margin: this machine may be loaded, and a timed-out "work" would
     # end the program before there is anything to kill.
@@ -51,8 +35,6 @@ async def one_bus(port: str, ids: list[int], feed: bool, started: asyncio.Event)
         actuators = [motorbus.InspireLA(bus, i) for i in ids]
         for a in actuators:
             await a.enable()
-        if feed:
-            feed_guard(bus, port, ids)
 
         def targets(t: float, statuses: dict[int, la.Status]) -> list[float]:
             if t > 0.05:
@@ -66,11 +48,9 @@ async def one_bus(port: str, ids: list[int], feed: bool, started: asyncio.Event)
             await stream.wait()
 
 
-async def main(ports: list[str], ids: list[int], feed: bool) -> None:
+async def main(ports: list[str], ids: list[int]) -> None:
     events = [asyncio.Event() for _ in ports]
-    tasks = [
-        asyncio.create_task(one_bus(p, ids, feed, e)) for p, e in zip(ports, events, strict=True)
-    ]
+    tasks = [asyncio.create_task(one_bus(p, ids, e)) for p, e in zip(ports, events, strict=True)]
     waits = [asyncio.create_task(e.wait()) for e in events]
     pending: set[asyncio.Task[object]] = {*tasks, *waits}
     while not all(e.is_set() for e in events):
@@ -87,8 +67,7 @@ if __name__ == "__main__":
     p.add_argument("--port", action="append", required=True)
     p.add_argument("--ids", default="1-3")
     p.add_argument("--guard", action="store_true")
-    p.add_argument("--feed", action="store_true")
     args = p.parse_args()
     id_list = list(parse_id_list(args.ids))
-    motorbus.run(main(args.port, id_list, args.feed), guard=args.guard)
+    motorbus.run(main(args.port, id_list), guard=args.guard)
     sys.exit(0)

@@ -169,7 +169,7 @@ def wait_for_frames(sims: list[SimProcess], wanted: set[str]) -> None:
 def test_sigkill_with_the_guard_pauses_every_device_after_the_last_motion(
     la_sims: list[SimProcess],
 ) -> None:
-    err = kill_while_streaming(la_sims, "--guard", "--feed")
+    err = kill_while_streaming(la_sims, "--guard")
     wait_for_frames(la_sims, set(PAUSES))
     for sim in la_sims:
         sent = requests(sim)
@@ -242,3 +242,90 @@ def test_cli_guard_option_starts_the_guard_and_lets_it_go_at_a_clean_end(
         env=env,
     )
     assert r.returncode == 2 and "unrecognized arguments: --guard" in r.stderr  # moves nothing
+
+
+# -- the CLI under --guard, killed ------------------------------------------------------------
+
+
+def cli_env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MOTORBUS_")}
+    env["XDG_CONFIG_HOME"] = "/nonexistent/motorbus-test-config"
+    return env
+
+
+def kill_cli_once(sim: SimProcess, args: list[str], prefix: str) -> str:
+    """Run ``motorbus ARGS``; SIGKILL it soon after ``sim`` got a ``prefix`` frame; return
+    its stderr (the guard's report lands there)."""
+    before = len(requests(sim))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "motorbus", *args, "--port", sim.path],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=cli_env(),
+    )
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not any(h.startswith(prefix) for h in requests(sim)[before:]):
+            assert proc.poll() is None, proc.communicate()
+            assert time.monotonic() < deadline, f"no {prefix} frame was sent"
+            time.sleep(0.02)  # polling the simulator's log
+        time.sleep(0.1)
+        proc.send_signal(signal.SIGKILL)
+        _, err = proc.communicate(timeout=START_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return err
+
+
+@pytest.fixture
+def project_sim(tmp_path: Path) -> Iterator[SimProcess]:
+    """A project stepper whose project 1 repeats forever (a run never ends by itself)."""
+    with SimProcess(["project-stepper"], baud=9600, log_file=tmp_path / "p.jsonl") as sim:
+        text = (ROOT / "examples" / "project.toml").read_text(encoding="utf-8")
+        forever = tmp_path / "forever.toml"
+        forever.write_text(text.replace("repeat = 0", 'repeat = "forever"'), encoding="utf-8")
+        upload = ["project", "upload", str(forever), "--no-save", "--port", sim.path]
+        r = subprocess.run(
+            [sys.executable, "-m", "motorbus", *upload],
+            capture_output=True,
+            text=True,
+            timeout=START_TIMEOUT_S,
+            env=cli_env(),
+        )
+        assert r.returncode == 0, r.stderr
+        yield sim
+
+
+START_PROJECT_1 = "FF AA 4E 01"
+STOP_PROJECT = "FF AA 5E 00 00 00 00 00 00 00 07"
+MANUAL_STOP_3 = "FF AA 03 0D 00 00 00 00 00 00 B9"
+
+
+def test_sigkill_of_project_run_with_guard_stops_the_project(project_sim: SimProcess) -> None:
+    kill_cli_once(project_sim, ["project", "run", "1", "--timeout", "60", "--guard"], "FF AA 4E")
+    wait_for_frames([project_sim], {STOP_PROJECT})
+    sent = requests(project_sim)
+    last_run = max(n for n, h in enumerate(sent) if h.startswith(START_PROJECT_1))
+    assert sent[last_run + 1 :] == [STOP_PROJECT, MANUAL_STOP_3]
+
+
+def test_sigkill_of_project_run_without_guard_leaves_it_running(project_sim: SimProcess) -> None:
+    kill_cli_once(project_sim, ["project", "run", "1", "--timeout", "60"], "FF AA 4E")
+    time.sleep(0.5)  # nothing is coming
+    assert requests(project_sim)[-1].startswith(START_PROJECT_1)
+
+
+def test_sigkill_of_motorbus_stream_with_guard_pauses_every_actuator(
+    la_sims: list[SimProcess], tmp_path: Path
+) -> None:
+    csv = tmp_path / "slow.csv"
+    rows = [f"{n * 0.01:.2f},{500 + n % 100},{600 + n % 100},{700 + n % 100}" for n in range(3000)]
+    csv.write_text("t,1,2,3\n" + "\n".join(rows) + "\n", encoding="utf-8")
+    sim = la_sims[0]
+    kill_cli_once(sim, ["stream", str(csv), "--ramp", "0", "--guard"], "55 AA 0A FF F3")
+    wait_for_frames([sim], set(PAUSES))
+    sent = requests(sim)
+    last_motion = max(n for n, h in enumerate(sent) if is_motion(h))
+    assert sorted(sent[last_motion + 1 :]) == sorted(PAUSES), sent[-6:]
