@@ -50,6 +50,7 @@ BAD: dict[str, list[tuple[Any, str | None]]] = {
     ],
     "backend": [("turbo", None), ("", None), ("FAST", None), (1, None), (True, None)],
     "rs485": [("false", None), ("true", None), (0, None), (1, None), ("no", None)],
+    "guard": [("true", None), (1, None), ("yes", None)],
     "remove_echo": [("no", None), ("yes", None), (1, None), (0.0, None)],
     "low_latency": [("off", None), ("false", None), (0, None), (1, None)],
     "min_spacing_ms": [
@@ -210,6 +211,7 @@ def test_the_brief_examples_are_refused_with_their_key_and_bus() -> None:
         ("retries", 0, 0),
         ("retries", 10, 10),
         ("rs485", True, True),
+        ("guard", True, True),
         ("remove_echo", True, True),
         ("low_latency", False, False),
         ("backend", "pyserial-asyncio", "pyserial-asyncio"),

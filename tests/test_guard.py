@@ -329,3 +329,68 @@ def test_sigkill_of_motorbus_stream_with_guard_pauses_every_actuator(
     sent = requests(sim)
     last_motion = max(n for n, h in enumerate(sent) if is_motion(h))
     assert sorted(sent[last_motion + 1 :]) == sorted(PAUSES), sent[-6:]
+
+
+# -- guard = true in a bus file -----------------------------------------------------------------
+
+BUS_FILE_PROGRAM = """
+import sys, motorbus
+async def main():
+    async with motorbus.BusManager.from_toml(sys.argv[1]) as mgr:
+        acts = [mgr.la("arm", i) for i in (1, 2, 3)]
+        for a in acts:
+            await a.enable()
+        stream = mgr.streamer("arm").follow(
+            acts, lambda t, s: [500 + 10 * t, 600, 700], period=0.01, safe_action="pause"
+        )
+        print("streaming", flush=True)
+        await stream.wait()
+motorbus.run(main())
+"""
+
+
+def test_guard_true_in_a_bus_file_guards_a_plain_program(
+    la_sims: list[SimProcess], tmp_path: Path
+) -> None:
+    sim = la_sims[0]
+    bus_file = tmp_path / "buses.toml"
+    bus_file.write_text(
+        f'[[bus]]\nname = "arm"\nurl = "{sim.path}"\nbaud = 921600\nhost_margin_ms = 50\n'
+        'devices = ["la:1-3"]\nguard = true\n',
+        encoding="utf-8",
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", BUS_FILE_PROGRAM, str(bus_file)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=cli_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline() == "streaming\n", proc.communicate(timeout=60)
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not any(is_motion(h) for h in requests(sim)):
+            assert time.monotonic() < deadline
+            time.sleep(0.02)  # polling the simulator's log
+        proc.send_signal(signal.SIGKILL)
+        proc.communicate(timeout=START_TIMEOUT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    wait_for_frames([sim], set(PAUSES))
+    sent = requests(sim)
+    last_motion = max(n for n, h in enumerate(sent) if is_motion(h))
+    assert sorted(sent[last_motion + 1 :]) == sorted(PAUSES), sent[-6:]
+
+
+def test_a_bus_file_guard_that_is_no_bool_is_refused_by_name(tmp_path: Path) -> None:
+    from motorbus.manager import BusManager
+
+    bus_file = tmp_path / "buses.toml"
+    bus_file.write_text('[[bus]]\nurl = "/dev/x"\nbaud = 9600\nguard = "yes"\n', encoding="utf-8")
+    with pytest.raises(
+        LocalProtocolError, match=r"bus #1: guard must be True or False, got 'yes'"
+    ) as info:
+        BusManager.from_toml(bus_file)
+    assert info.value.field == "guard"

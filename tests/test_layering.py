@@ -76,7 +76,7 @@ ALLOWED: dict[str, set[str]] = {
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices"},
-    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams", "guard"},
     "sim": {"errors", "protocol", "transport"},
 }
 #: Re-exports kept so that old import paths work; nothing else may point upwards.

@@ -40,6 +40,9 @@ min_spacing_ms      finite number 0..100 (default 1; the LA manual asks >= 1 ms)
 host_margin_ms      finite number 0..10000 (default 2, 20 for socket:// and rfc2217://)
 retries             integer 0..10 (default 1)
 la_safe_action      pause | estop | hold (default pause)
+guard               true | false (default false): a guard process (``motorbus.guard``,
+                    Linux) sends the leased devices' safe action if the program is
+                    killed outright; one guard serves every bus of the program
 devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, ranges
                     low-high), ``project-stepper[:motor=N]`` (N a valid motor byte,
                     see ``protocol.project_stepper.check_motor``), ``quad-stepper``
@@ -60,6 +63,7 @@ from typing import Any
 
 import anyio
 
+from motorbus import guard as guard_process
 from motorbus import realtime, shutdown
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S, Bus, Priority
 from motorbus.devices.la import InspireLA
@@ -126,6 +130,7 @@ _BUS_KEYS = {
     "host_margin_ms",
     "retries",
     "la_safe_action",
+    "guard",
     "devices",
 }
 
@@ -262,6 +267,7 @@ def _check_fields(values: Mapping[str, Any]) -> dict[str, Any]:
         "baud": lambda v: check_baud("baud", v),
         "backend": lambda v: _check_choice("backend", v, BACKENDS),
         "rs485": lambda v: check_flag("rs485", v),
+        "guard": lambda v: check_flag("guard", v),
         "remove_echo": lambda v: check_flag("remove_echo", v),
         "low_latency": lambda v: check_flag("low_latency", v),
         "min_spacing_ms": lambda v: check_number(
@@ -305,6 +311,7 @@ class BusSpec:
     host_margin_ms: float = DEFAULT_HOST_MARGIN_S * 1e3
     retries: int = 1
     la_safe_action: str = "pause"
+    guard: bool = False
 
     def __post_init__(self) -> None:
         values = {key: getattr(self, key) for key in _BUS_KEYS if key != "devices"}
@@ -513,6 +520,8 @@ class BusManager:
         attached as further notes and kept in :attr:`open_errors` (bus name -> error).
         """
         realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
+        if any(spec.guard for spec in self.specs.values()):
+            guard_process.start_guard()  # before the buses open: it follows each one
         self.open_errors = {}
         try:
             for i, (name, spec) in enumerate(self.specs.items()):
