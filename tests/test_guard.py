@@ -150,6 +150,11 @@ def kill_while_streaming(sims: list[SimProcess], *extra: str) -> str:
         line = proc.stdout.readline()  # "streaming" once every bus sends targets
         assert line == "streaming\n", proc.communicate(timeout=START_TIMEOUT_S)
         time.sleep(0.2)  # let the stream run; any moment would do
+        children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+        for child in children:  # the guard, if any: what is meant for the program
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # must not end it
+                os.kill(int(child), sig)
+        assert len(children) == ("--guard" in extra)
         proc.send_signal(signal.SIGKILL)
         _, err = proc.communicate(timeout=START_TIMEOUT_S)
     finally:

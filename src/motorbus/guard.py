@@ -18,7 +18,8 @@ on the CLI commands that move things, ``guard = true`` in a bus file) that:
   exits without touching anything.
 
 It runs in its own session, so a Ctrl-C to the terminal's process group does not
-reach it, and it ignores SIGINT and SIGHUP.  What no software can cover: a host crash
+reach it, and it ignores SIGINT, SIGHUP and SIGTERM (it exits by itself once the
+program has ended; SIGKILL ends it).  What no software can cover: a host crash
 or kernel panic, a power cut to the host, a cut cable or a dead USB adapter - the
 guard dies with the host or cannot reach the device.  Use the hardware e-stop for
 those.
@@ -281,7 +282,9 @@ def _read_lines(fd: int, buf: bytearray, state: GuardState, *, until_eof: bool) 
 
 def serve(pidfd: int, pid: int, *, report: str | None = None, stdin: int = 0) -> int:
     """Watch ``pidfd``; act if the program dies with leases held.  Returns the exit code."""
-    for sig in (signal.SIGINT, signal.SIGHUP):
+    # It ends by itself once the program has ended; a signal meant for the program
+    # (a terminal's Ctrl-C, systemd's SIGTERM to the whole unit) must not end it first.
+    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
         signal.signal(sig, signal.SIG_IGN)
     os.set_blocking(stdin, False)
     with contextlib.suppress(ImportError):
