@@ -462,7 +462,11 @@ class Guard:
         url, baud, options = where
 
         def on_change(snapshot: Sequence[Any]) -> None:
-            self.set_port(bus_id, GuardPort(url, baud, options, _devices(snapshot)))
+            # Runs inside the bus's lease change: it must never break the motion.
+            try:
+                self.set_port(bus_id, GuardPort(url, baud, options, _devices(snapshot)))
+            except Exception as err:
+                log.error("bus %s: the guard could not be told of a lease change: %s", bus_id, err)
 
         add = getattr(bus, "add_lease_listener", None)
         if add is None:

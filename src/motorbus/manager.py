@@ -521,7 +521,8 @@ class BusManager:
         """
         realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
         if any(spec.guard for spec in self.specs.values()):
-            guard_process.start_guard()  # before the buses open: it follows each one
+            # Before the buses open (it follows each one); a Python start-up, off the loop.
+            await anyio.to_thread.run_sync(guard_process.start_guard)
         self.open_errors = {}
         try:
             for i, (name, spec) in enumerate(self.specs.items()):
