@@ -399,3 +399,26 @@ def test_a_bus_file_guard_that_is_no_bool_is_refused_by_name(tmp_path: Path) -> 
     ) as info:
         BusManager.from_toml(bus_file)
     assert info.value.field == "guard"
+
+
+def test_sigkill_of_quad_run_with_guard_stops_all_motors(tmp_path: Path) -> None:
+    from motorbus.protocol import safety
+
+    stop_all = [c.encode().hex(" ").upper() for c in safety.safe_stop_commands("quad_stepper")]
+    assert stop_all == ["FF AA 09 06 00 00 00 00 B8"]  # stop all (B.1)
+    with SimProcess(["quad-stepper"], baud=9600, log_file=tmp_path / "q.jsonl") as sim:
+        config = ["quad", "config", "3", "--subdivision", "8", "--pulses", "16777215"]
+        config += ["--start-hz", "10", "--accel", "0", "--rpm", "1", "--port", sim.path]
+        r = subprocess.run(
+            [sys.executable, "-m", "motorbus", *config],
+            capture_output=True,
+            text=True,
+            timeout=START_TIMEOUT_S,
+            env=cli_env(),
+        )
+        assert r.returncode == 0, r.stderr
+        kill_cli_once(sim, ["quad", "run", "3", "--timeout", "60", "--guard"], "FF AA 03 09")
+        wait_for_frames([sim], set(stop_all))
+        sent = requests(sim)
+        last_run = max(n for n, h in enumerate(sent) if h.startswith("FF AA 03 09"))
+        assert sent[last_run + 1 :] == stop_all
