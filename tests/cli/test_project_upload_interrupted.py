@@ -107,3 +107,15 @@ async def test_cancelled_upload_raises_cancelled_error_naming_the_project_and_pr
         # Neither RAM nor flash keeps the half-written mix.
         assert model.stored_image(1) == model.stored_image(1, flash=True)
         assert (await stepper.read_project(1)).steps == ()
+
+
+async def test_an_upload_refused_before_any_frame_clears_nothing() -> None:
+    from motorbus.errors import LocalProtocolError
+    from motorbus.sim.la import LAModel
+
+    async with sim_bus([LAModel(1)], baud=115200) as (bus, _):  # no project family here
+        stepper = ProjectStepper(bus)
+        with pytest.raises(LocalProtocolError, match="project_stepper command") as info:
+            await stepper.upload(ten_step_project())
+        assert not getattr(info.value, "__notes__", None)  # no clear was attempted
+        assert bus.stats.requests == 0

@@ -147,6 +147,8 @@ class ProjectStepper:
             what = await self._invalidate(project.number, done, len(commands), "interrupted")
             raise asyncio.CancelledError(what) from err
         except (MotorbusError, OSError) as err:
+            if done == 0 and isinstance(err, LocalProtocolError):
+                raise  # refused before anything was sent: the project is untouched
             what = await self._invalidate(project.number, done, len(commands), "failed")
             err.add_note(what)
             raise
