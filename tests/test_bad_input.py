@@ -432,6 +432,7 @@ BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
     "late_guard": (NAN, INF, -0.001, 2.5, "0.02", None, True),
     "reconnect": ("yes", 1, 0, None),
     "wire_floor": ("yes", 1, 0, None),
+    "safe_action": ("stop", "", "PAUSE", 1, None, True),
 }
 
 

@@ -21,6 +21,7 @@ __version__ = "0.1.0"
 _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "Priority"),
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
+    "motorbus.bus.leases": ("Lease", "LeaseInfo"),
     "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
     "motorbus.devices.quad_stepper": ("QuadStepper",),
@@ -57,6 +58,8 @@ if TYPE_CHECKING:
     from motorbus.bus.events import FaultChanged as FaultChanged
     from motorbus.bus.events import ProjectFinished as ProjectFinished
     from motorbus.bus.events import QuadDone as QuadDone
+    from motorbus.bus.leases import Lease as Lease
+    from motorbus.bus.leases import LeaseInfo as LeaseInfo
     from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.la import InspireLA as InspireLA
     from motorbus.devices.la import ScanReport as ScanReport

@@ -4,7 +4,10 @@ However a program ends - it returns, raises, is cancelled, gets Ctrl-C once, twi
 three times, or SIGTERM (systemd, ``docker stop``, ``timeout``) or SIGHUP - every open
 bus is closed the same way: the streams on it stop first, applying their safe action
 (pause or e-stop: nothing of a stream is written after that), a ``BusManager`` brings
-every configured device to its safe state, and only then do the ports close.
+every configured device to its safe state, every device still leased (anything that
+was moved, ``motorbus.bus.leases``) gets its safe action unless its owner let it go with
+``hold``, and only then do the ports close.  A program killed outright (SIGKILL) runs
+none of this.
 
 * ``motorbus.run(main())`` is the one-line way in: ``asyncio.run`` with handlers for
   SIGINT, SIGTERM and SIGHUP.  The first signal cancels ``main`` (its ``async with``

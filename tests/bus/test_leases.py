@@ -254,3 +254,24 @@ def test_safe_actions_are_checked_by_name() -> None:
     assert info.value.field == "action"
     assert safety.safe_stop_commands("la:1", "hold") == ()
     assert safety.safe_stop_commands("quad_stepper", "estop") == (q.StopAll(),)
+
+
+def test_a_lease_grows_and_lets_devices_go_one_group_at_a_time() -> None:
+    # A streamer's one lease: each new stream adds its actuators, each ended stream
+    # lets its own go, with its safe action or with hold.
+    table = LeaseTable()
+    lease = table.acquire("streams", ["la:1"], pause_for)
+    table.add(lease, ["la:2", "la:3"])
+    table.acquire("rig", ["la:9"], pause_for)
+    with pytest.raises(LeaseConflictError):
+        table.add(lease, ["la:4", "la:9"])
+    assert table.owner_of("la:4") is None
+    assert table.release(lease, hold=False, keys=["la:2"]) == [
+        la.Control(2, la.ControlAction.PAUSE)
+    ]
+    assert table.release(lease, hold=True, keys=["la:3"]) == []
+    assert lease.active and lease.keys == {"la:1"}
+    assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.PAUSE)]
+    assert not lease.active
+    with pytest.raises(LocalProtocolError):
+        table.add(lease, ["la:5"])

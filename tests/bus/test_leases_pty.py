@@ -9,6 +9,7 @@ owner is refused with nothing written; a bus used from another event loop raises
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import contextvars
 import threading
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Sequence
@@ -21,7 +22,7 @@ from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
-from motorbus.errors import LeaseConflictError, WrongLoopError
+from motorbus.errors import LeaseConflictError, ReplyTimeoutError, WrongLoopError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
@@ -287,3 +288,27 @@ async def test_a_stream_that_ends_normally_ends_with_the_pause_at_close(pacing: 
     assert any(f[3] == la.BROADCAST_ID and f[4] == la.CMD_BROADCAST_FOLLOW for f in frames)
     last_broadcast = max(i for i, f in enumerate(frames) if f[3] == la.BROADCAST_ID)
     assert sorted(frames[last_broadcast + 1 :]) == sorted([PAUSE_1, PAUSE_2])
+
+
+async def test_an_unbound_lease_owns_only_what_is_submitted_with_it() -> None:
+    # A streamer's lease: its frames name it; the program's own task is another owner.
+    async with la_bus("prompt") as (bus, recorder):
+        lease = bus.lease(["la:1"], owner="streams", bind=False)
+        with pytest.raises(LeaseConflictError):
+            await InspireLA(bus, 1).move_to(100)
+        await bus.submit(la.MoveTo(1, 300), lease=lease)
+        assert [(i.key, i.owner) for i in bus.leases] == [("la:1", "streams")]
+    assert to_la(1, recorder.frames) == [la.MoveTo(1, 300).encode(), PAUSE_1]
+
+
+async def test_a_move_to_every_actuator_pauses_those_that_answered() -> None:
+    # ID 255 names every LA that answered, not every ID that was asked (a scan asks 254).
+    async with la_bus("prompt") as (bus, recorder):
+        for ident in (1, 2, 7):
+            with contextlib.suppress(ReplyTimeoutError):
+                await bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS), timeout=0.05)
+        await bus.send(la.MoveTo(la.BROADCAST_ID, 1000, False))
+        assert [i.key for i in bus.leases] == ["la:1", "la:2"]
+    frames = recorder.frames
+    after = frames[frames.index(la.MoveTo(la.BROADCAST_ID, 1000, False).encode()) + 1 :]
+    assert sorted(after) == sorted([PAUSE_1, PAUSE_2])

@@ -53,7 +53,6 @@ from types import TracebackType
 from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
-from motorbus.bus import leases as _leases
 from motorbus.bus.events import (
     BusStateChanged,
     EventHub,
@@ -61,14 +60,14 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
-from motorbus.bus.leases import Lease, LeaseInfo, LeaseTable
+from motorbus.bus.lease_shell import LeaseKeeper
+from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.errors import (
     BusClosedError,
     LocalProtocolError,
-    MotorbusError,
     NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
@@ -335,10 +334,14 @@ class Bus:
         self._last_errors: dict[int, int] = {}
         self._closing = False
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._leases = LeaseTable()
-        self._safe_for: dict[str, _leases.SafeCommandsForKey] = {
-            action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
-        }
+        self._lease_keeper = LeaseKeeper(
+            self.name,
+            self.families,
+            self.safe_action,
+            lambda cmd: self.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES),
+            lambda: self.state.value,
+        )
+        self._leases = self._lease_keeper.table  # the hot paths' direct reference
 
     # -- life cycle --------------------------------------------------------------
 
@@ -433,7 +436,7 @@ class Bus:
                         log.error("bus %s: a close hook failed: %s", self.name, err)
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
-            await self._end_leases()
+            await self._lease_keeper.end_all()
         self._closing = True
         task = self._reconnect_task
         if task is not None and not task.done():
@@ -584,9 +587,8 @@ class Bus:
                 "in this loop, or run the call on the bus's loop "
                 "(asyncio.run_coroutine_threadsafe)"
             )
-        self._leases.note(cmd.device_key)
         if cmd.starts_motion:
-            self._claim(cmd, lease)
+            self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
         occ = self.occupancy(cmd, len(raw))
         budget = occ.budget if timeout is None else float(timeout)
@@ -621,7 +623,14 @@ class Bus:
 
     # -- leases: one owner per moving device, a safe end for every motion --------------
 
-    def lease(self, keys: Iterable[str] | str, *, owner: str, safe_action: str = "pause") -> Lease:
+    def lease(
+        self,
+        keys: Iterable[str] | str,
+        *,
+        owner: str,
+        safe_action: str = "pause",
+        bind: bool = True,
+    ) -> Lease:
         """Hold ``keys`` (``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``) for
         ``owner`` from now on; nothing is sent.
 
@@ -633,10 +642,13 @@ class Bus:
         with the safe action however the block is left.  The bus closing ends it too.
 
         Args:
-            keys: the devices; ``"la:255"`` stands for every LA the bus has addressed.
+            keys: the devices; ``"la:255"`` stands for every LA that answered or was moved by ID.
             owner: a name for errors, logs and ``bus.leases`` (not ``"program"``).
             safe_action: ``"pause"``, ``"estop"`` or ``"hold"`` (steppers: any but hold
                 sends their stop).
+            bind: make it the running task's lease (default).  ``False`` for an owner
+                that sends from elsewhere (a streamer's tick loop) and passes the lease
+                to ``submit(..., lease=...)``: the caller's own motion stays apart.
 
         Raises:
             LeaseConflictError: another owner's lease holds one of the devices (devices
@@ -644,23 +656,7 @@ class Bus:
             LocalProtocolError: a bad key, owner or action, or a family the bus does
                 not carry.
         """
-        action = safety.check_safe_action(safe_action)
-        if isinstance(keys, str):
-            keys = (keys,)
-        keys = tuple(keys)
-        for key in keys:
-            family = safety.family_of_key(safety.check_key(key))
-            if family not in self.families:
-                raise LocalProtocolError(
-                    f"key {key!r} is a {family.value} device; bus {self.name} carries "
-                    f"{', '.join(sorted(f.value for f in self.families))}",
-                    field="keys",
-                    value=key,
-                )
-        lease = self._leases.acquire(owner, keys, self._safe_for[action], safe_action=action)
-        lease.releaser = self._release_lease
-        _leases.bind(lease)
-        return lease
+        return self._lease_keeper.lease(keys, owner, safe_action, bind=check_flag("bind", bind))
 
     @property
     def leases(self) -> tuple[LeaseInfo, ...]:
@@ -686,73 +682,7 @@ class Bus:
             LeaseConflictError: an explicit lease holds one of the devices: release
                 that lease instead.
         """
-        check_flag("hold", hold)
-        table = self._leases
-        if keys is None:
-            program = table.program
-            keys = program.keys if program is not None else ()
-        elif isinstance(keys, str):
-            keys = (keys,)
-        await self._send_safe(table.release_keys(keys, hold=hold))
-
-    def _claim(self, cmd: Command[object], lease: Lease | None) -> None:
-        """The lease rule of a motion command (raises ``LeaseConflictError``)."""
-        table = self._leases
-        keys = safety.motion_keys(cmd)
-        table.note_all(keys)
-        if lease is None or lease.table is not table or not lease.active:
-            lease = _leases.lease_for(table)
-        if lease is None:
-            lease = table.implicit(self._safe_for[self.safe_action], self.safe_action)
-        table.claim(keys, lease)
-        motor = getattr(cmd, "motor", None)
-        if motor is not None and cmd.family is Family.PROJECT_STEPPER:
-            key = cmd.device_key
-            table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
-
-    async def _release_lease(self, lease: Lease, hold: bool) -> None:
-        await self._send_safe(self._leases.release(lease, hold=check_flag("hold", hold)))
-
-    async def _end_leases(self) -> None:
-        """End every lease still held, with its safe action (the bus is closing)."""
-        table = self._leases
-        commands: list[Command[object]] = []
-        for lease in table.leases():
-            commands.extend(table.release(lease, hold=False))
-        await self._send_safe(commands)
-
-    async def _send_safe(self, commands: list[Command[object]]) -> None:
-        """Send safe-action commands, each retried, one failure not stopping the rest.
-
-        Runs to its end even if the caller is cancelled meanwhile (the cancellation
-        is delivered after), and Ctrl-C waits for it: a safe stop is never cut half way.
-        """
-        if not commands:
-            return
-        if self.state is not BusState.OPEN:
-            log.warning(
-                "bus %s is %s: could not send the safe action to %s",
-                self.name,
-                self.state.value,
-                ", ".join(dict.fromkeys(c.device_key for c in commands)),
-            )
-            return
-
-        async def send_all() -> None:
-            for cmd in commands:
-                try:
-                    await self.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
-                except (MotorbusError, OSError) as err:
-                    log.warning(
-                        "bus %s: safe action %s to %s failed: %s",
-                        self.name,
-                        type(cmd).__name__,
-                        cmd.device_key,
-                        err,
-                    )
-
-        with shutdown.deferred_interrupts():
-            await asyncio.shield(asyncio.ensure_future(send_all()))
+        await self._lease_keeper.release_implicit(keys, hold)
 
     # -- reservations --------------------------------------------------------------
 
@@ -1089,6 +1019,7 @@ class Bus:
         except RemoteProtocolError as err:
             self._finish(job, err)
             return
+        self._leases.note(job.key)  # it answered: "la:255" stands for it too
         if not job.cmd.starts_motion:
             self._leases.sent(job.cmd)  # a safe action answered: no longer owed
         if job.cmd.done_shapes():
@@ -1248,15 +1179,6 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
             field="priority",
             value=priority,
         )
-
-
-def _safe_commands_for(action: str) -> _leases.SafeCommandsForKey:
-    """Key -> the commands of ``action`` for it (``safety.safe_stop_commands``)."""
-
-    def safe_for(key: str) -> tuple[Command[object], ...]:
-        return safety.safe_stop_commands(key, action)
-
-    return safe_for
 
 
 def _done_watch(cmd: Command[object]) -> _DoneWatch:

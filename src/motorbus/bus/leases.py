@@ -25,8 +25,8 @@ submit of a command that ``starts_motion``, and what it applies in one place, it
 
 Device keys are ``Command.device_key`` strings: ``"la:3"``, ``"project_stepper"``,
 ``"quad_stepper"``.  ``"la:255"`` (an LA command to every actuator) stands for every LA
-the bus has addressed so far (itself if it addressed none yet: its safe action is then
-a pause to ID 255).
+that answered on the bus or was moved by its ID so far (itself if there is none yet: its
+safe action is then a pause to ID 255).
 """
 
 from __future__ import annotations
@@ -64,7 +64,7 @@ SafeCommandsForKey: TypeAlias = Callable[[DeviceKey], "tuple[Command[object], ..
 #: Longest owner name (it appears in errors, logs and the guard's records).
 OWNER_MAX = 200
 
-#: Keys that stand for every device of a family the bus has addressed ("la:255").
+#: Keys that stand for every device of a family that answered or was moved ("la:255").
 _WILDCARDS = {
     f"{info.key}:{info.broadcast_id}": f"{info.key}:"
     for info in FAMILIES.values()
@@ -128,7 +128,7 @@ class Lease:
         self.safe_for = safe_for
         self.active = True
         #: Set by the bus: sends what ``LeaseTable.release`` returns.
-        self.releaser: Callable[[Lease, bool], Any] | None = None
+        self.releaser: Callable[[Lease, bool, frozenset[DeviceKey] | None], Any] | None = None
 
     def __repr__(self) -> str:
         state = "held" if self.active else "released"
@@ -139,17 +139,31 @@ class Lease:
         """The devices this lease holds now (it grows when it moves a free device)."""
         return self.table.keys_of(self)
 
-    async def release(self, *, hold: bool = False) -> None:
+    def add(self, keys: Iterable[DeviceKey] | DeviceKey) -> None:
+        """Hold more devices (a streamer whose next stream names new actuators).
+
+        Raises:
+            LeaseConflictError: another explicit lease holds one of them (nothing
+                changes).
+        """
+        self.table.add(self, keys)
+
+    async def release(self, *, hold: bool = False, keys: Iterable[DeviceKey] | None = None) -> None:
         """End the lease.  Without ``hold``, every device it holds gets its safe action
         (the ones not already brought to it since their last motion); with
         ``hold=True`` nothing is sent and each device keeps its last command: the owner
-        ends on purpose.  Idempotent."""
+        ends on purpose.  Idempotent.
+
+        With ``keys``, only those devices are let go (e.g. the actuators of one of a
+        streamer's streams); the lease stays held for the others.
+        """
         if not self.active:
             return
+        wanted = None if keys is None else frozenset(self.table.expand(_as_keys(keys)))
         if self.releaser is not None:
-            await self.releaser(self, hold)
+            await self.releaser(self, hold, wanted)
         else:
-            self.table.release(self, hold=hold)
+            self.table.release(self, hold=hold, keys=wanted)
 
     async def __aenter__(self) -> Lease:
         return self
@@ -236,7 +250,8 @@ class LeaseTable:
     # -- keys ------------------------------------------------------------------------
 
     def note(self, key: DeviceKey) -> None:
-        """Remember that the bus addressed ``key`` (what ``"la:255"`` stands for)."""
+        """Remember that ``key`` answered on the bus, or was moved by name (what
+        ``"la:255"`` stands for: not every ID a scan asked)."""
         self._seen.add(key)
 
     def note_all(self, keys: Iterable[DeviceKey]) -> None:
@@ -245,7 +260,7 @@ class LeaseTable:
 
     def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:
         """``keys`` with each wildcard (``"la:255"``) replaced by the family's devices
-        the bus has addressed or leased (the wildcard itself if there are none)."""
+        that answered, were moved by ID or are leased (the wildcard itself if there are none)."""
         out: list[DeviceKey] = []
         for key in keys:
             prefix = _WILDCARDS.get(key)
@@ -277,21 +292,50 @@ class LeaseTable:
             LocalProtocolError: a bad owner or key, or no key at all.
         """
         owner = _check_owner(owner)
-        if isinstance(keys, str):
-            keys = (keys,)
-        wanted = self.expand(safety.check_key(k) for k in keys)
+        wanted = self._wanted(keys)
         if not wanted:
             raise LocalProtocolError("a lease needs at least one device key", field="keys")
-        for key in wanted:
-            entry = self._entries.get(key)
-            if entry is not None and not entry.lease.implicit:
-                raise LeaseConflictError(key, entry.lease.owner, owner)
+        self._check_free(wanted, owner, None)
         lease = Lease(self, owner, safe_commands_for_key, safe_action=safe_action)
-        for key in wanted:
+        self._hold(lease, wanted)
+        return lease
+
+    def add(self, lease: Lease, keys: Iterable[DeviceKey] | DeviceKey) -> None:
+        """``lease`` holds ``keys`` too (all of their safe action owed from now).
+
+        Raises:
+            LeaseConflictError: another explicit lease holds one of them.
+            LocalProtocolError: a bad key, or ``lease`` was released.
+        """
+        if not lease.active or lease.implicit:
+            raise LocalProtocolError(
+                f"{lease!r} can take no more devices: it is released or implicit", field="lease"
+            )
+        wanted = self._wanted(keys)
+        self._check_free(wanted, lease.owner, lease)
+        self._hold(lease, [k for k in wanted if not self._is(k, lease)])
+
+    def _wanted(self, keys: Iterable[DeviceKey] | DeviceKey) -> tuple[DeviceKey, ...]:
+        return self.expand(safety.check_key(k) for k in _as_keys(keys))
+
+    def _is(self, key: DeviceKey, lease: Lease) -> bool:
+        entry = self._entries.get(key)
+        return entry is not None and entry.lease is lease
+
+    def _check_free(self, keys: Iterable[DeviceKey], owner: str, lease: Lease | None) -> None:
+        for key in keys:
+            entry = self._entries.get(key)
+            if entry is not None and not entry.lease.implicit and entry.lease is not lease:
+                raise LeaseConflictError(key, entry.lease.owner, owner)
+
+    def _hold(self, lease: Lease, keys: Iterable[DeviceKey]) -> None:
+        changed = False
+        for key in keys:
             safe = lease.safe_for(key)
             self._entries[key] = _Entry(lease, safe, safe)  # all of it owed from the start
-        self._changed()
-        return lease
+            changed = True
+        if changed:
+            self._changed()
 
     def implicit(self, safe_commands_for_key: SafeCommandsForKey, safe_action: str) -> Lease:
         """The implicit lease (made on first use)."""
@@ -387,17 +431,23 @@ class LeaseTable:
 
     # -- releasing -------------------------------------------------------------------
 
-    def release(self, lease: Lease, *, hold: bool) -> list[Command[object]]:
-        """End ``lease``: its devices are free.  Returns the safe commands still owed,
-        device by device (nothing with ``hold``), for the bus to send."""
+    def release(
+        self, lease: Lease, *, hold: bool, keys: Iterable[DeviceKey] | None = None
+    ) -> list[Command[object]]:
+        """End ``lease`` (only its ``keys`` if given: it stays held for the others): the
+        devices are free.  Returns the safe commands still owed, device by device
+        (nothing with ``hold``), for the bus to send."""
+        held = self.keys_of(lease)
+        ending = held if keys is None else held & frozenset(keys)
         commands: list[Command[object]] = []
-        for key in sorted(self.keys_of(lease), key=lambda k: (len(k), k)):
+        for key in sorted(ending, key=lambda k: (len(k), k)):
             entry = self._entries.pop(key)
             if not hold:
                 commands.extend(entry.owed)
-        lease.active = False
-        if lease is self._program:
-            self._program = None
+        if keys is None:
+            lease.active = False
+            if lease is self._program:
+                self._program = None
         self._changed()
         return commands
 
@@ -439,6 +489,12 @@ def lease_for(table: LeaseTable) -> Lease | None:
         if lease.table is table and lease.active:
             return lease
     return None
+
+
+def _as_keys(keys: Iterable[DeviceKey] | DeviceKey) -> tuple[DeviceKey, ...]:
+    if isinstance(keys, str):
+        return (keys,)
+    return tuple(keys)
 
 
 def _check_owner(owner: object) -> str:

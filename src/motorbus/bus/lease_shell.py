@@ -1,0 +1,156 @@
+"""The bus's side of the leases: acquiring for an owner, the rule at submit, and sending
+the safe actions when leases end (``motorbus.bus.leases`` is the pure table).
+
+``Bus`` holds one ``LeaseKeeper`` and calls it from two places: ``submit`` (``claim``,
+for every command that starts motion) and ``close`` (``end_all``, after the streams
+stopped and before the port closes).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Awaitable, Callable, Iterable
+
+from motorbus import shutdown
+from motorbus.bus import leases as _leases
+from motorbus.bus.leases import Lease, LeaseTable, SafeCommandsForKey
+from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.protocol import safety
+from motorbus.protocol.base import Command, Family, check_flag
+
+__all__ = ["LeaseKeeper"]
+
+log = logging.getLogger("motorbus.bus")
+
+
+class LeaseKeeper:
+    """The leases of one bus and the sending of their safe actions.
+
+    Args:
+        name: the bus's name, for messages.
+        families: the families the bus carries (a key of another family is refused).
+        safe_action: the safe action of the implicit lease (``Bus(safe_action=...)``).
+        send: sends one safe-action command (the bus: emergency priority, retried).
+        state: the bus's state now (``"open"``, ``"lost"``, ``"closed"``).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        families: frozenset[Family],
+        safe_action: str,
+        send: Callable[[Command[object]], Awaitable[object]],
+        state: Callable[[], str],
+    ) -> None:
+        self.name = name
+        self.families = families
+        self.safe_action = safe_action
+        self.table = LeaseTable()
+        self._send = send
+        self._state = state
+        self._safe_for: dict[str, SafeCommandsForKey] = {
+            action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
+        }
+
+    def lease(
+        self, keys: Iterable[str] | str, owner: str, safe_action: str, *, bind: bool = True
+    ) -> Lease:
+        """``Bus.lease``: check, acquire, bind to the running task."""
+        action = safety.check_safe_action(safe_action)
+        keys = (keys,) if isinstance(keys, str) else tuple(keys)
+        for key in keys:
+            family = safety.family_of_key(safety.check_key(key))
+            if family not in self.families:
+                raise LocalProtocolError(
+                    f"key {key!r} is a {family.value} device; bus {self.name} carries "
+                    f"{', '.join(sorted(f.value for f in self.families))}",
+                    field="keys",
+                    value=key,
+                )
+        lease = self.table.acquire(owner, keys, self._safe_for[action], safe_action=action)
+        lease.releaser = self._release
+        if bind:
+            _leases.bind(lease)
+        return lease
+
+    def claim(self, cmd: Command[object], lease: Lease | None) -> None:
+        """The lease rule of a motion command (raises ``LeaseConflictError``)."""
+        table = self.table
+        keys = safety.motion_keys(cmd)
+        table.note_all(keys)
+        if lease is None or lease.table is not table or not lease.active:
+            lease = _leases.lease_for(table)
+        if lease is None:
+            lease = table.implicit(self._safe_for[self.safe_action], self.safe_action)
+        table.claim(keys, lease)
+        motor = getattr(cmd, "motor", None)
+        if motor is not None and cmd.family is Family.PROJECT_STEPPER:
+            key = cmd.device_key
+            table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
+
+    async def release_implicit(self, keys: Iterable[str] | str | None, hold: bool) -> None:
+        """``Bus.release``: end the implicit lease on ``keys`` (all if None)."""
+        check_flag("hold", hold)
+        table = self.table
+        if keys is None:
+            program = table.program
+            keys = program.keys if program is not None else ()
+        elif isinstance(keys, str):
+            keys = (keys,)
+        await self.send_safe(table.release_keys(keys, hold=hold))
+
+    async def _release(self, lease: Lease, hold: bool, keys: frozenset[str] | None) -> None:
+        hold = check_flag("hold", hold)
+        await self.send_safe(self.table.release(lease, hold=hold, keys=keys))
+
+    async def end_all(self) -> None:
+        """End every lease still held, with its safe action (the bus is closing)."""
+        table = self.table
+        commands: list[Command[object]] = []
+        for lease in table.leases():
+            commands.extend(table.release(lease, hold=False))
+        await self.send_safe(commands)
+
+    async def send_safe(self, commands: list[Command[object]]) -> None:
+        """Send safe-action commands, one failure not stopping the rest.
+
+        Runs to its end even if the caller is cancelled meanwhile (the cancellation
+        is delivered after), and Ctrl-C waits for it: a safe stop is never cut half way.
+        """
+        if not commands:
+            return
+        state = self._state()
+        if state != "open":
+            log.warning(
+                "bus %s is %s: could not send the safe action to %s",
+                self.name,
+                state,
+                ", ".join(dict.fromkeys(c.device_key for c in commands)),
+            )
+            return
+
+        async def send_all() -> None:
+            for cmd in commands:
+                try:
+                    await self._send(cmd)
+                except (MotorbusError, OSError) as err:
+                    log.warning(
+                        "bus %s: safe action %s to %s failed: %s",
+                        self.name,
+                        type(cmd).__name__,
+                        cmd.device_key,
+                        err,
+                    )
+
+        with shutdown.deferred_interrupts():
+            await asyncio.shield(asyncio.ensure_future(send_all()))
+
+
+def _safe_commands_for(action: str) -> SafeCommandsForKey:
+    """Key -> the commands of ``action`` for it (``safety.safe_stop_commands``)."""
+
+    def safe_for(key: str) -> tuple[Command[object], ...]:
+        return safety.safe_stop_commands(key, action)
+
+    return safe_for
