@@ -6,8 +6,9 @@ bus is closed the same way: the streams on it stop first, applying their safe ac
 (pause or e-stop: nothing of a stream is written after that), a ``BusManager`` brings
 every configured device to its safe state, every device still leased (anything that
 was moved, ``motorbus.bus.leases``) gets its safe action unless its owner let it go with
-``hold``, and only then do the ports close.  A program killed outright (SIGKILL) runs
-none of this.
+``hold``, and only then do the ports close.  A program killed outright (SIGKILL, the
+OOM killer) runs none of this: ``motorbus.run(main(), guard=True)`` starts a guard
+process (``motorbus.guard``, Linux) that then sends the leased devices' safe action.
 
 * ``motorbus.run(main())`` is the one-line way in: ``asyncio.run`` with handlers for
   SIGINT, SIGTERM and SIGHUP.  The first signal cancels ``main`` (its ``async with``
