@@ -93,14 +93,16 @@ ALLOWED: dict[str, set[str]] = {
     "protocol": {"errors"},
     "validation": {"errors", "protocol"},
     "realtime": {"errors"},
-    "shutdown": {"errors"},
+    "shutdown": {"errors", "guard"},
+    "guard": {"errors"},
     "transport": {"errors", "protocol", "validation"},
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streaming": _LIBRARY_BASE | {"transport", "bus", "devices"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming"},
     "busfile": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
-    "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams", "busfile"},
+    "manager": _LIBRARY_BASE
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "guard"},
     # Tools built on the library (never imported by it): they use it, and nothing else.
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "doctor": _LIBRARY_BASE

@@ -36,8 +36,15 @@ def test_all_is_made_from_the_exports_and_every_name_loads() -> None:
 
 
 #: What the command line may import: the package itself, its public modules and,
-#: for the commands that run simulators, ``motorbus.sim``.
-PUBLIC = ("motorbus.errors", "motorbus.realtime", "motorbus.protocol", "motorbus.cli")
+#: for the commands that run simulators, ``motorbus.sim`` (``motorbus.guard`` is public:
+#: ``--guard`` starts it).
+PUBLIC = (
+    "motorbus.errors",
+    "motorbus.realtime",
+    "motorbus.protocol",
+    "motorbus.cli",
+    "motorbus.guard",
+)
 #: Tools built on the library, whose packages export their public names.
 TOOLS = ("motorbus.rig",)
 SIMULATOR_COMMANDS = {"sim.py", "demo.py"}

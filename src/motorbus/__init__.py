@@ -29,11 +29,13 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.errors": (
         "ArrivalTimeoutError",
         "BusClosedError",
+        "GuardError",
         "LeaseConflictError",
         "LocalProtocolError",
         "MotorbusError",
         "NotSentError",
         "PortInUseError",
+        "ProjectInvalidError",
         "ProjectStopped",
         "ProjectVerifyError",
         "RemoteProtocolError",
@@ -77,11 +79,13 @@ if TYPE_CHECKING:
     from motorbus.doctor import diagnose as diagnose
     from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
+    from motorbus.errors import GuardError as GuardError
     from motorbus.errors import LeaseConflictError as LeaseConflictError
     from motorbus.errors import LocalProtocolError as LocalProtocolError
     from motorbus.errors import MotorbusError as MotorbusError
     from motorbus.errors import NotSentError as NotSentError
     from motorbus.errors import PortInUseError as PortInUseError
+    from motorbus.errors import ProjectInvalidError as ProjectInvalidError
     from motorbus.errors import ProjectStopped as ProjectStopped
     from motorbus.errors import ProjectVerifyError as ProjectVerifyError
     from motorbus.errors import RemoteProtocolError as RemoteProtocolError

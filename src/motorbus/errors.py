@@ -19,6 +19,8 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ProjectStopped                     ``run_project`` ended by ``stop_project``
          +-- ProjectVerifyError                 a read-back project differs from the upload
          +-- RigAborted                         ``run_rig``: a ceiling tripped; all paused
+         +-- ProjectInvalidError                the controller holds no valid project N
+         +-- GuardError                         the guard process cannot start (no pidfds)
          +-- UsageError                         CLI: bad command-line input (exit code 2)
          +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
 
@@ -49,12 +51,14 @@ __all__ = [
     "ArrivalTimeoutError",
     "BusClosedError",
     "CommandFailed",
+    "GuardError",
     "IdListError",
     "LeaseConflictError",
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
     "PortInUseError",
+    "ProjectInvalidError",
     "ProjectStopped",
     "ProjectVerifyError",
     "RemoteProtocolError",
@@ -206,6 +210,16 @@ class ProjectVerifyError(MotorbusError):
 class RigAborted(MotorbusError):
     """A rig test stopped because a ceiling tripped or an actuator faulted; every
     actuator under test was paused.  The message says which and why."""
+
+
+class ProjectInvalidError(MotorbusError):
+    """The controller holds no valid project of that number (cleared, never uploaded, or
+    an upload that ended part way); ``check_project`` and ``motorbus project run`` refuse it."""
+
+
+class GuardError(MotorbusError):
+    """The guard process (``motorbus.guard``) cannot watch this program: no pidfds on
+    this system (not Linux 5.3+), or the process did not start."""
 
 
 class UsageError(MotorbusError):

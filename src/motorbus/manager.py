@@ -23,6 +23,7 @@ from typing import Any
 
 import anyio
 
+from motorbus import guard as guard_process
 from motorbus import realtime, shutdown
 from motorbus.bus.bus import Bus, Priority
 from motorbus.busfile import (
@@ -215,6 +216,9 @@ class BusManager:
         attached as further notes and kept in :attr:`open_errors` (bus name -> error).
         """
         realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
+        if any(spec.guard for spec in self.specs.values()):
+            # Before the buses open (it follows each one); a Python start-up, off the loop.
+            await anyio.to_thread.run_sync(guard_process.start_guard)
         self.open_errors = {}
         try:
             for i, (name, spec) in enumerate(self.specs.items()):

@@ -6,8 +6,9 @@ bus is closed the same way: the streams on it stop first, applying their safe ac
 (pause or e-stop: nothing of a stream is written after that), a ``BusManager`` brings
 every configured device to its safe state, every device still leased (anything that
 was moved, ``motorbus.bus.leases``) gets its safe action unless its owner let it go with
-``hold``, and only then do the ports close.  A program killed outright (SIGKILL) runs
-none of this.
+``hold``, and only then do the ports close.  A program killed outright (SIGKILL, the
+OOM killer) runs none of this: ``motorbus.run(main(), guard=True)`` starts a guard
+process (``motorbus.guard``, Linux) that then sends the leased devices' safe action.
 
 * ``motorbus.run(main())`` is the one-line way in: ``asyncio.run`` with handlers for
   SIGINT, SIGTERM and SIGHUP.  The first signal cancels ``main`` (its ``async with``
@@ -37,6 +38,8 @@ import threading
 import weakref
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from typing import Any, Protocol, TypeVar
+
+from motorbus import guard as guard_process
 
 __all__ = [
     "STOP_SIGNALS",
@@ -167,15 +170,17 @@ _guard = _AutoGuard()
 
 
 def register_bus(bus: Any) -> None:
-    """A bus opened: protect it (called by ``Bus.open``)."""
+    """A bus opened: protect it (called by ``Bus.open``); a running guard follows it."""
     _buses[bus] = asyncio.get_running_loop()
     _guard.bus_opened()
+    guard_process.bus_opened(bus)
 
 
 def unregister_bus(bus: Any) -> None:
-    """A bus closed (called by ``Bus.close``)."""
+    """A bus closed (called by ``Bus.close``): the guard forgets it."""
     if _buses.pop(bus, None) is not None:
         _guard.bus_closed()
+    guard_process.bus_closed(bus)
 
 
 def register_manager(manager: Any) -> None:
@@ -331,11 +336,20 @@ def _handing_to(
     return handler
 
 
-def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]]) -> T:
+def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: bool = False) -> T:
     """Run ``main`` like ``asyncio.run``, stopping every motion safely however it ends.
 
     See the module docstring.  After a signal, raises ``SystemExit(128 + signal)``
     once everything is stopped and closed.
+
+    A program that is killed outright (SIGKILL, the OOM killer, a crash) runs none of
+    this.  With ``guard=True`` a guard process (``motorbus.guard``, Linux) watches the
+    program and, if it dies with devices still leased, opens their ports and sends each
+    its safe action.  Nothing in software covers a host crash, a power cut or a cut
+    cable: keep the hardware e-stop.
+
+    Raises:
+        GuardError: ``guard=True`` and the guard cannot start (no pidfds: not Linux).
     """
     state: dict[str, SignalHandlers] = {}
 
@@ -349,10 +363,11 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]]) -> T:
                 await stop_everything()
             handlers.uninstall()
 
-    try:
-        return asyncio.run(runner())
-    except asyncio.CancelledError:
-        handlers = state.get("h")
-        if handlers is not None and handlers.first is not None:
-            raise SystemExit(128 + int(handlers.first)) from None
-        raise
+    with guard_process.guarded(guard):
+        try:
+            return asyncio.run(runner())
+        except asyncio.CancelledError:
+            handlers = state.get("h")
+            if handlers is not None and handlers.first is not None:
+                raise SystemExit(128 + int(handlers.first)) from None
+            raise

@@ -53,6 +53,7 @@ __all__ = [
     "PORT_ENV",
     "STEPPER_BAUD",
     "add_bus_options",
+    "add_guard_option",
     "available_ports",
     "bus_timing",
     "chosen_bus",
@@ -89,6 +90,18 @@ CLI_HOST_MARGIN_S = 0.050
 #: and the keys its table sets.
 _SPEC_ATTR = "bus_spec"
 _GIVEN_ATTR = "bus_keys"
+
+
+GUARD_HELP = (
+    "start a guard process (Linux) that sends the safe action to every device this "
+    "command moves if the command is killed outright (SIGKILL, the OOM killer); "
+    "see motorbus.guard"
+)
+
+
+def add_guard_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--guard`` to a command that moves things (``main`` starts the guard)."""
+    parser.add_argument("--guard", action="store_true", help=GUARD_HELP)
 
 
 def add_bus_options(

@@ -26,7 +26,7 @@ from collections.abc import Awaitable, Callable
 from typing import Any
 
 from motorbus import Bus, InspireLA
-from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, add_guard_option, open_bus
 from motorbus.cli.ids import add_ids_argument, check_ids, parse_id_args
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, UsageError
 from motorbus.cli.output import plural, print_json, say
@@ -80,6 +80,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("id", metavar="ID", type=int, help="actuator ID 1..254")
     p.add_argument("position", metavar="POS", type=int, help="target position 0..2000")
     p.add_argument("--no-reply", action="store_true", help="send 0x03 (no status reply)")
+    add_guard_option(p)
     _common(p)
     p = sub.add_parser("get", help="read a control-table register")
     p.add_argument("id", metavar="ID", type=int, help="actuator ID 1..254")

@@ -44,6 +44,7 @@ from motorbus.errors import (
     ReplyTimeoutError,
     UsageError,
 )
+from motorbus.guard import guarded
 
 __all__ = [
     "EXIT_FAILURE",
@@ -175,7 +176,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        code: int = func(args)
+        with guarded(getattr(args, "guard", False)):  # --guard: see motorbus.guard
+            code: int = func(args)
         sys.stdout.flush()  # a closed pipe shows here, inside the handler below
         return code
     except KeyboardInterrupt:

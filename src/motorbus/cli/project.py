@@ -36,7 +36,14 @@ the file, and the key as written in it (a TOML syntax error also names the line)
 "project run" waits for the end of the project (EE DD).  If it does not come within
 --timeout seconds the project is stopped (0x5E) and the exit code is 1; with
 --keep-running it is left running ("motorbus project stop" ends it).  Ctrl-C stops the
-project too, and exits with 130.
+project too, and exits with 130.  "project run" reads the project first and refuses
+(exit 1) one that is not valid: cleared, or left by an upload that ended part way.
+
+An upload interrupted part way (Ctrl-C) clears the project on the controller (0x1E,
+one frame more, with Ctrl-C deferred while it is sent), says how far it got
+("project 1: upload interrupted after 12 of 28 frames; the project on the device is
+invalid ...") and exits with 130; "project read" and "project run" then refuse it
+until it is uploaded again.
 """
 
 from __future__ import annotations
@@ -44,16 +51,17 @@ from __future__ import annotations
 import argparse
 import asyncio
 import enum
+import sys
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, TypeVar
 
 from motorbus import ProjectStepper
-from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, open_bus
+from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, add_guard_option, open_bus
 from motorbus.cli.output import print_json, say
 from motorbus.cli.values import STEP_ANGLE_SCALE, check_seconds, step_angle_x100
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Family, check_int
 
@@ -114,6 +122,7 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="on timeout leave the project running instead of stopping it",
     )
+    add_guard_option(p)
     _common(p)
     for name, text in (
         ("read", "print project N in the TOML form upload takes"),
@@ -360,7 +369,12 @@ async def _run(args: argparse.Namespace, project: ps.Project | None) -> int:
         stepper = ProjectStepper(bus)
         action: str = args.action
         if project is not None:
-            await stepper.upload(project, save=not args.no_save, verify=not args.no_verify)
+            try:
+                await stepper.upload(project, save=not args.no_save, verify=not args.no_verify)
+            except asyncio.CancelledError as err:
+                if err.args:  # "project 1: upload interrupted after 12 of 28 frames; ..."
+                    print(f"motorbus project: {err.args[0]}", file=sys.stderr)
+                raise
             done = ["uploaded"] + ([] if args.no_save else ["saved"])
             done += [] if args.no_verify else ["verified"]
             say(
@@ -369,6 +383,8 @@ async def _run(args: argparse.Namespace, project: ps.Project | None) -> int:
                 f"project {project.number} ({len(project.steps)} steps) {', '.join(done)}",
             )
         elif action == "run":
+            # A cleared or half-uploaded project is refused before anything moves.
+            await stepper.check_project(args.number)
             # On timeout run_project stops the project (unless --keep-running) and says
             # so; on Ctrl-C (cancellation) it stops it before the port closes.
             await stepper.run_project(
@@ -376,14 +392,7 @@ async def _run(args: argparse.Namespace, project: ps.Project | None) -> int:
             )
             say(args, {"project": args.number, "finished": True}, f"project {args.number} done")
         elif action == "read":
-            dump = await stepper.read_project(args.number)
-            try:
-                stored = dump.to_project()
-            except LocalProtocolError as err:
-                raise MotorbusError(
-                    f"project {args.number} on the controller is not a valid project "
-                    f"(cleared?): {err}"
-                ) from err
+            stored = await stepper.check_project(args.number)
             if args.json:
                 print_json(project_to_dict(stored))
             else:

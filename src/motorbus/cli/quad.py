@@ -23,7 +23,7 @@ import asyncio
 from typing import Any
 
 from motorbus import QuadStepper
-from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, open_bus
+from motorbus.cli.bus_options import STEPPER_BAUD, add_bus_options, add_guard_option, open_bus
 from motorbus.cli.output import say
 from motorbus.cli.values import check_seconds, step_angle_x100
 from motorbus.errors import LocalProtocolError
@@ -59,6 +59,7 @@ def register(subparsers: Any) -> None:
         action="store_true",
         help="on timeout leave the motor running instead of stopping it",
     )
+    add_guard_option(p)
     _common(p)
     p = sub.add_parser("stop", help="stop motor M, or all")
     p.add_argument("motor", metavar="M|all", help="motor 1..4 or 'all'")
@@ -66,6 +67,7 @@ def register(subparsers: Any) -> None:
     p = sub.add_parser("home", help="home motor M until input YL N")
     p.add_argument("motor", metavar="M", type=int, help="motor 1..4")
     p.add_argument("--input", type=int, required=True, help="stop input 1..13 (0: none)")
+    add_guard_option(p)
     _common(p)
     p = sub.add_parser("led", help="switch LED L on or off")
     p.add_argument("led", metavar="L", type=int, help="LED 1..4, 5 = all")

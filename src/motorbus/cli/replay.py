@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, Priority, Transport
-from motorbus.cli.bus_options import CLI_HOST_MARGIN_S, LA_BAUD, open_port
+from motorbus.cli.bus_options import CLI_HOST_MARGIN_S, LA_BAUD, add_guard_option, open_port
 from motorbus.cli.capture import FAMILY_BAUD
 from motorbus.cli.logformat import (
     LogWriter,
@@ -94,6 +94,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("file", metavar="FILE.jsonl")
     p.add_argument("--to", metavar="URL", help="send the recorded requests to this port")
+    add_guard_option(p)
     p.add_argument("--baud", type=int, help="bit/s for --to (default: by the recorded family)")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND, help="for --to")
     p.add_argument(

@@ -65,6 +65,7 @@ from motorbus import (
 from motorbus.cli.common import (
     LA_BAUD,
     add_bus_options,
+    add_guard_option,
     check_ids,
     check_seconds,
     open_bus,
@@ -142,6 +143,7 @@ def register(subparsers: Any) -> None:
         f"(default {DEFAULT_RAMP_S:g}; 0 = no ramp)",
     )
     add_bus_options(p, default_baud=LA_BAUD)
+    add_guard_option(p)
     p.set_defaults(func=run)
 
 

@@ -13,6 +13,7 @@ from motorbus.errors import (
     LeaseConflictError,
     LocalProtocolError,
     MotorbusError,
+    ProjectInvalidError,
     ProjectStopped,
     ProjectVerifyError,
     RemoteProtocolError,
@@ -21,8 +22,9 @@ from motorbus.errors import (
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
+from motorbus.shutdown import deferred_interrupts
 
-__all__ = ["ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
+__all__ = ["ProjectInvalidError", "ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 
 log = logging.getLogger("motorbus.project_stepper")
 
@@ -87,6 +89,16 @@ class ProjectStepper:
     ) -> ps.ProjectDump | None:
         """Program ``project`` with the exact command sequence of the manual (A.6).
 
+        An upload cannot half-happen silently.  If it ends part way (cancelled by
+        Ctrl-C or a timeout, or a frame failed), the project on the controller holds a
+        mix of the old and the new project, which would read back and run as if valid.
+        So the upload then clears it (0x1E, the manual's only way to mark a project
+        empty: RAM and flash), jumping the queue, with Ctrl-C deferred while that one
+        frame is on the wire: one request more, about 20 ms at 9600 baud, bounded by
+        the bus's reply timeout.  A cleared project has 0 steps: ``read_project(...)
+        .to_project()``, a verify and ``check_project`` refuse it, and ``motorbus
+        project read``/``run`` exit 1.  Upload it again to use it.
+
         Args:
             project: the project value (number 1..4, motor configuration, 1..10 steps).
             save: send 0x2E afterwards so the project survives a power cycle.
@@ -96,9 +108,16 @@ class ProjectStepper:
             The read-back dump when ``verify``, else ``None``.
 
         Raises:
+            asyncio.CancelledError: cancelled part way; its message names the project
+                and how far the upload got, e.g. "project 1: upload interrupted after
+                12 of 28 frames; the project on the device is invalid (cleared, 0x1E
+                sent): upload it again".  It stays a ``CancelledError`` so that
+                cancellation, ``asyncio.timeout`` and task groups work as usual.
             ProjectVerifyError: the read-back differs from ``project``.
             RemoteProtocolError: a 0x7E/0x8E reply names another project than the one
-                selected (A0-03).
+                selected (A0-03).  This and any other error part way carry a note
+                (``add_note``, also logged) saying how far it got and that the project
+                was cleared.
         """
         if not isinstance(project, ps.Project):
             raise LocalProtocolError(
@@ -107,19 +126,32 @@ class ProjectStepper:
         check_flag("save", save)
         check_flag("verify", verify)
         commands = ps.project_commands(project, self.motor)
-        for cmd in commands:
-            reply = await self.bus.request(cmd)
-            echoed = getattr(reply, "project", None)
-            if isinstance(cmd, (ps.StepLoop, ps.RepeatCount)) and echoed not in (
-                None,
-                project.number,
-            ):
-                raise RemoteProtocolError(
-                    f"{type(cmd).__name__} acted on project {echoed}, not {project.number} (A0-03)",
-                    raw=getattr(reply, "raw", b""),
-                )
         if save:
-            await self.bus.request(ps.SaveProject(project.number))
+            commands.append(ps.SaveProject(project.number))
+        done = 0
+        try:
+            for cmd in commands:
+                reply = await self.bus.request(cmd)
+                done += 1
+                echoed = getattr(reply, "project", None)
+                if isinstance(cmd, (ps.StepLoop, ps.RepeatCount)) and echoed not in (
+                    None,
+                    project.number,
+                ):
+                    raise RemoteProtocolError(
+                        f"{type(cmd).__name__} acted on project {echoed}, "
+                        f"not {project.number} (A0-03)",
+                        raw=getattr(reply, "raw", b""),
+                    )
+        except asyncio.CancelledError as err:
+            what = await self._invalidate(project.number, done, len(commands), "interrupted")
+            raise asyncio.CancelledError(what) from err
+        except (MotorbusError, OSError) as err:
+            if done == 0 and isinstance(err, LocalProtocolError):
+                raise  # refused before anything was sent: the project is untouched
+            what = await self._invalidate(project.number, done, len(commands), "failed")
+            err.add_note(what)
+            raise
         if not verify:
             return None
         dump = await self.read_project(project.number)
@@ -136,6 +168,47 @@ class ProjectStepper:
                 f"project {project.number} read back differs: sent {project}, read {read_back}"
             )
         return dump
+
+    async def _invalidate(self, number: int, done: int, total: int, how: str) -> str:
+        """Clear project ``number`` after an upload ended part way; say what happened."""
+        head = f"project {number}: upload {how} after {done} of {total} frames; "
+        with deferred_interrupts():
+            try:
+                await self.bus.request(ps.ClearProject(number), priority=Priority.EMERGENCY)
+            except (MotorbusError, OSError) as err:
+                what = (
+                    f"{head}clearing it (0x1E) failed ({err}): the project on the device may "
+                    "mix the old and the new project; do not run it, clear or upload it again"
+                )
+            except asyncio.CancelledError:
+                what = (
+                    f"{head}cancelled again while clearing it (0x1E): the project on the "
+                    "device may mix the old and the new project; do not run it, clear or "
+                    "upload it again"
+                )
+            else:
+                what = (
+                    f"{head}the project on the device is invalid (cleared, 0x1E sent): "
+                    "upload it again"
+                )
+        log.warning("%s", what)
+        return what
+
+    async def check_project(self, number: int) -> ps.Project:
+        """Read project ``number`` back and return it; refuse one that is not valid.
+
+        Raises:
+            ProjectInvalidError: the controller holds no valid project ``number``
+                (cleared, never uploaded, or an upload that ended part way).
+        """
+        dump = await self.read_project(number)
+        try:
+            return dump.to_project()
+        except LocalProtocolError as err:
+            raise ProjectInvalidError(
+                f"project {number} on the controller is not a valid project (cleared, or "
+                f"an upload ended part way): {err}; upload it again"
+            ) from err
 
     async def read_project(self, number: int) -> ps.ProjectDump:
         """Read project ``number`` (1..4) back: the 226-byte 0x3E dump, decoded."""
