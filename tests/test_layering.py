@@ -77,6 +77,7 @@ ALLOWED: dict[str, set[str]] = {
     "manager": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
     # Tools built on the library (never imported by it): they use it, and nothing else.
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
+    "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streams"},
     "sim": {"errors", "protocol", "transport"},
 }
 

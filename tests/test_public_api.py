@@ -39,7 +39,7 @@ def test_all_is_made_from_the_exports_and_every_name_loads() -> None:
 #: for the commands that run simulators, ``motorbus.sim``.
 PUBLIC = ("motorbus.errors", "motorbus.realtime", "motorbus.protocol", "motorbus.cli")
 #: Tools built on the library, whose packages export their public names.
-TOOLS = ("motorbus.rig",)
+TOOLS = ("motorbus.rig", "motorbus.dashboard")
 SIMULATOR_COMMANDS = {"sim.py", "demo.py"}
 
 

@@ -72,6 +72,7 @@ COMMAND_MODULES = (
     "quad",
     "capture",
     "rig",
+    "dashboard",
 )
 
 
