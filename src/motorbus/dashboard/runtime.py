@@ -135,6 +135,8 @@ class Dashboard:
         self.state.window = self.window
         self.recorder: Recorder | None = None
         self.moved: set[tuple[str, int]] = set()
+        #: Poll rounds completed per bus (every LA actuator read once a round).
+        self.rounds: dict[str, int] = dict.fromkeys(self.setups, 0)
         self._observers: dict[str, _Observer] = {}
         self._subs: list[Subscription[BusEvent]] = []
         self._tasks: list[asyncio.Task[None]] = []
@@ -247,6 +249,7 @@ class Dashboard:
                     log.debug("dashboard poll of la:%d on %s: %s", cmd.id, bus.name, err)
                     if bus.state is not BusState.OPEN:
                         await asyncio.sleep(self.period)
+            self.rounds[bus.name] += 1
             next_round += self.period
             now = loop.time()
             if next_round < now:
