@@ -159,10 +159,18 @@ async def _pusher(app: web.Application) -> AsyncIterator[None]:
     dash = app[DASHBOARD_KEY]
     period = 1.0 / app[_CONFIG]["push_hz"]
 
+    async def send(ws: web.WebSocketResponse, text: str) -> None:
+        with contextlib.suppress(ConnectionError, RuntimeError):
+            await ws.send_str(text)
+
     async def push() -> None:
+        loop = asyncio.get_running_loop()
         since = dash.state.seq
+        next_push = loop.time()
         while True:
-            await asyncio.sleep(period)
+            # Absolute deadlines: the push rate does not sag with the number of viewers.
+            next_push = max(next_push + period, loop.time())
+            await asyncio.sleep(next_push - loop.time())
             if dash.recorder is not None:
                 dash.recorder.flush()
             viewers = [ws for ws in app[_VIEWERS] if not ws.closed]
@@ -171,9 +179,7 @@ async def _pusher(app: web.Application) -> AsyncIterator[None]:
                 continue
             text = dash.message(since)
             since = dash.state.seq
-            for ws in viewers:
-                with contextlib.suppress(ConnectionError, RuntimeError):
-                    await ws.send_str(text)
+            await asyncio.gather(*(send(ws, text) for ws in viewers))
 
     task = asyncio.get_running_loop().create_task(push(), name="dashboard pusher")
     yield
