@@ -44,12 +44,12 @@ def _env() -> dict[str, str]:
 
 
 @asynccontextmanager
-async def dashboard(sim: SimProcess, *extra: str) -> AsyncIterator[str]:
-    """Run ``motorbus dashboard`` on the simulator's pty; yield the URL it printed.
-
-    On the way out it gets SIGTERM, and must end with status 0."""
+async def dashboard(sim: SimProcess | None, *extra: str) -> AsyncIterator[str]:
+    """Run ``motorbus dashboard`` (on the simulator's pty, if given); yield the URL it
+    printed.  On the way out it gets SIGTERM, and must end with status 0."""
+    port = ["--port", sim.path, "--ids", "1-3"] if sim is not None else []
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "motorbus", "dashboard", "--port", sim.path, "--ids", "1-3",
+        sys.executable, "-m", "motorbus", "dashboard", *port,
         "--listen", "127.0.0.1:0", "--interval", "0.05", *extra,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
     )  # fmt: skip
@@ -58,7 +58,7 @@ async def dashboard(sim: SimProcess, *extra: str) -> AsyncIterator[str]:
         line = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
         if not line:
             raise AssertionError((await proc.stderr.read()).decode())
-        assert re.fullmatch(r"http://127\.0\.0\.1:\d+/", line), line
+        assert re.fullmatch(r"http://[\d.]+:\d+/(\?token=[\w-]+)?", line), line
         yield line
     finally:
         if proc.returncode is None:
@@ -291,3 +291,62 @@ def test_without_aiohttp_it_says_which_extra_to_install(tmp_path: Path) -> None:
     assert r.stderr.strip() == (
         "motorbus dashboard needs the dashboard extra: pip install 'motorbus[dashboard]'"
     )
+
+
+def get_json(url: str, body: dict[str, Any] | None = None) -> Any:
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=WAIT_S) as r:
+        return json.load(r)
+
+
+async def test_every_bus_of_a_bus_file_with_its_keys(tmp_path: Path) -> None:
+    with (
+        SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "arm.jsonl") as arm,
+        SimProcess(["project-stepper", "quad-stepper"], baud=9600,
+                   log_file=tmp_path / "feeder.jsonl") as feeder,
+    ):  # fmt: skip
+        buses = tmp_path / "buses.toml"
+        buses.write_text(
+            f'[[bus]]\nname = "arm"\nurl = "{arm.path}"\nbaud = 921600\n'
+            'devices = ["la:1-2"]\nla_safe_action = "estop"\n'
+            f'[[bus]]\nname = "feeder"\nurl = "{feeder.path}"\nbaud = 9600\n'
+            'devices = ["project-stepper", "quad-stepper"]\n'
+        )
+        async with dashboard(None, "--bus-file", str(buses), "--control") as url:
+            async with asyncio.timeout(WAIT_S):
+                while True:
+                    state = await asyncio.to_thread(get_json, url + "api/state")
+                    a, f = state["buses"]
+                    if len(f["project"]["projects"]) == 4 and all(d["latest"] for d in a["la"]):
+                        break
+                    await asyncio.sleep(0.1)
+            assert (a["name"], f["name"]) == ("arm", "feeder")
+            assert [d["id"] for d in a["la"]] == [1, 2] and f["la"] == []
+            assert f["quad"] == {"axes": {}, "last_done": None}
+            move = {"bus": "arm", "id": 1, "position": 600, "confirm": True}
+            assert (await asyncio.to_thread(get_json, url + "api/move", move))["results"][0]["ok"]
+            stop = await asyncio.to_thread(get_json, url + "api/pause", {"bus": "feeder"})
+            assert [r["command"] for r in stop["results"]] == [
+                "StopProject", "ManualStop", "StopAll"
+            ]  # fmt: skip
+        arm_sent = [f["fields"] for f in sim_frames(arm, "request") if f["name"] == "Control"]
+        # The bus file's la_safe_action: the actuator the dashboard moved is e-stopped on
+        # the way out; the other one gets nothing.
+        assert arm_sent[-1] == {"id": 1, "action": "ESTOP"}
+        assert {"id": 2, "action": "ESTOP"} not in arm_sent
+        names = [f["name"] for f in sim_frames(feeder, "request")]
+        assert names.count("ReadProject") == 4
+        assert {"StopProject", "ManualStop", "StopAll"} <= set(names)
+
+
+async def test_listening_beyond_loopback_needs_the_printed_token(sim: SimProcess) -> None:
+    async with dashboard(sim, "--listen", "0.0.0.0:0") as url:
+        assert "?token=" in url
+        base, token = url.split("?token=")
+        local = base.replace("0.0.0.0", "127.0.0.1")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            await asyncio.to_thread(get_json, local + "api/state")
+        assert refused.value.code == 401
+        state = await asyncio.to_thread(get_json, f"{local}api/state?token={token}")
+        assert [d["id"] for d in state["buses"][0]["la"]] == [1, 2, 3]
