@@ -350,3 +350,22 @@ async def test_listening_beyond_loopback_needs_the_printed_token(sim: SimProcess
         assert refused.value.code == 401
         state = await asyncio.to_thread(get_json, f"{local}api/state?token={token}")
         assert [d["id"] for d in state["buses"][0]["la"]] == [1, 2, 3]
+
+
+async def test_record_writes_what_motorbus_replay_reads(sim: SimProcess, tmp_path: Path) -> None:
+    folder = tmp_path / "rec"
+    async with dashboard(sim, "--record", str(folder)) as url:
+        async with asyncio.timeout(WAIT_S):
+            while not (await asyncio.to_thread(get_json, url + "api/state"))["buses"][0]["la"][2][
+                "polls"
+            ]:
+                await asyncio.sleep(0.1)
+    (log,) = folder.glob("*-frames.jsonl")
+    shown = cli("replay", str(log))
+    assert shown.returncode == 0, shown.stderr
+    for i in (1, 2, 3):
+        assert f"la request Control id={i} action=QUERY_STATUS" in shown.stdout
+        assert f"la reply Status id={i} target=" in shown.stdout
+    rows = (folder / "plots.csv").read_text().splitlines()
+    assert rows[0] == "t_s,bus,id,position,target,current_ma,force_g,temperature_c,errors"
+    assert {r.split(",")[2] for r in rows[1:]} == {"1", "2", "3"}
