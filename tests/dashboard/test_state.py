@@ -83,6 +83,10 @@ def test_frames_per_second_and_the_smallest_write_gap(state: DashboardState) -> 
     assert bus["min_write_gap_ms"] == pytest.approx(50.0)
     state.on_write("arm", la.Control(2, QUERY), 10.0 + 29 * 0.05 + 0.0012)
     assert state.snapshot()["buses"][0]["min_write_gap_ms"] == pytest.approx(1.2)
+    state.advance(12.0)  # the bus went silent: the rate falls as its clock moves on
+    assert state.snapshot()["buses"][0]["frames_per_s"] == 11  # 11.0 .. 11.45 s
+    state.advance(13.0)
+    assert state.snapshot()["buses"][0]["frames_per_s"] == 0
 
 
 def test_reply_times_fall_in_their_buckets(state: DashboardState) -> None:

@@ -14,7 +14,6 @@ from motorbus.dashboard.runtime import BusSetup as BusSetup
 from motorbus.dashboard.runtime import ControlError as ControlError
 from motorbus.dashboard.runtime import Dashboard as Dashboard
 from motorbus.dashboard.state import DashboardState as DashboardState
-from motorbus.dashboard.state import StateObserver as StateObserver
 
 __all__ = [
     "BusSetup",
@@ -22,5 +21,4 @@ __all__ = [
     "Dashboard",
     "DashboardState",
     "Recorder",
-    "StateObserver",
 ]

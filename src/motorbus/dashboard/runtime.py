@@ -262,6 +262,7 @@ class Dashboard:
         """The state as one JSON text (``since``: only the samples after that ``seq``)."""
         for name, s in self.setups.items():
             self.state.set_stats(name, s.bus.stats.as_dict())
+            self.state.advance(s.bus.timer.now())
         return json.dumps(self.state.snapshot(since), separators=(",", ":"))
 
     # -- controls -----------------------------------------------------------------------

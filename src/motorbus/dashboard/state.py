@@ -43,7 +43,6 @@ __all__ = [
     "DashboardState",
     "Histogram",
     "LAView",
-    "StateObserver",
     "error_names",
 ]
 
@@ -184,6 +183,11 @@ class DashboardState:
         self.now = max(self.now, t)
         return t
 
+    def advance(self, now: float) -> None:
+        """The bus clock reads ``now``: rates and ages count up to it even when the bus
+        is silent (a lost port, nothing to poll)."""
+        self._clock(now)
+
     def _rel(self, t: float | None) -> float | None:
         if t is None or self.epoch is None:
             return None
@@ -315,7 +319,7 @@ class DashboardState:
     # -- reading ---------------------------------------------------------------------
 
     def frames_per_s(self, bus: str) -> float:
-        """Frames written in the last second (up to the latest observation)."""
+        """Frames written in the second before the latest observation or ``advance``."""
         writes = self.buses[bus].writes
         return float(sum(1 for t in writes if t >= self.now - RATE_WINDOW_S))
 
@@ -374,19 +378,3 @@ class DashboardState:
             "jitter_hist": dev.jitter.to_json(),
             "series": series,
         }
-
-
-class StateObserver:
-    """A ``Bus.add_observer`` observer that feeds one bus's observations to the state."""
-
-    def __init__(self, state: DashboardState, bus: str) -> None:
-        self.state = state
-        self.bus = bus
-
-    def on_write(self, cmd: Command[object], at: float) -> None:
-        self.state.on_write(self.bus, cmd, at)
-
-    def on_reply(
-        self, cmd: Command[object], value: Any, written_at: float, replied_at: float
-    ) -> None:
-        self.state.on_reply(self.bus, cmd, value, written_at, replied_at)
