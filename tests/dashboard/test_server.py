@@ -294,3 +294,27 @@ async def test_recording_writes_a_frame_log_and_the_plotted_values(tmp_path: Pat
     assert len(rows) >= 2 * len(IDS)  # at least two whole rounds
     assert {int(row["id"]) for row in rows} == set(IDS)
     assert all(row["position"] == "300" and row["bus"] == "arm" for row in rows)
+
+
+async def test_a_lost_port_shows_and_the_poller_carries_on_after_the_reconnect() -> None:
+    async with served(control=False) as rig, rig.client.ws_connect("/ws") as ws:
+        await ws.receive(timeout=WAIT_S)
+        link = rig.bus.transport
+        link.peer.unplug()  # type: ignore[attr-defined]
+        states: list[str] = []
+
+        async def state_until(wanted: str) -> dict[str, Any]:
+            async with asyncio.timeout(WAIT_S):
+                while True:
+                    bus = json.loads((await ws.receive()).data)["buses"][0]
+                    states.append(bus["state"])
+                    if bus["state"] == wanted:
+                        return dict(bus)
+
+        await state_until("reconnecting")
+        link.peer.plug()  # type: ignore[attr-defined]
+        bus = await state_until("open")
+        texts = [e["text"] for e in bus["events"]]
+        assert any(t.startswith("bus lost") for t in texts)
+        assert "bus open (reconnected)" in texts
+        await rig.rounds(2)  # polling again
