@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import csv
 import json
+import re
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import dataclass, field
@@ -24,6 +25,7 @@ from motorbus import Bus, Family
 from motorbus.bus.timer import default_timer
 from motorbus.dashboard import BusSetup, Dashboard
 from motorbus.dashboard.server import make_app
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
 from motorbus.protocol.base import format_hex
 from motorbus.sim.bus import LogRecord
@@ -318,3 +320,18 @@ async def test_a_lost_port_shows_and_the_poller_carries_on_after_the_reconnect()
         assert any(t.startswith("bus lost") for t in texts)
         assert "bus open (reconnected)" in texts
         await rig.rounds(2)  # polling again
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"period": 0.0}, "period=0.0 s is out of range: allowed 0.001..3600 s"),
+        ({"window": (-1, 100)}, "window low=-1 is out of range"),
+        ({"window": (900, 100)}, "window high=100 is out of range: allowed 900..2000"),
+    ],
+)
+def test_bad_settings_are_refused_when_the_dashboard_is_built(
+    options: dict[str, Any], message: str
+) -> None:
+    with pytest.raises(LocalProtocolError, match=re.escape(message)):
+        Dashboard([], **options)

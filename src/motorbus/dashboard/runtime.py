@@ -36,6 +36,7 @@ from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command, check_int
+from motorbus.validation import check_number
 
 __all__ = [
     "ACTIONS",
@@ -50,6 +51,9 @@ log = logging.getLogger("motorbus.dashboard")
 
 #: Project numbers of the project stepper (doc 000 A.4: projects 1..4).
 PROJECTS = (1, 2, 3, 4)
+#: Allowed poll round, seconds.
+PERIOD_MIN_S = 0.001
+PERIOD_MAX_S = 3600.0
 #: Longest the safe stop on the way out may take before the buses close anyway.
 STOP_TIMEOUT_S = 2.0
 #: Retries of each safe-stop command (pause and e-stop are idempotent).
@@ -125,7 +129,7 @@ class Dashboard:
         window: tuple[int, int] = (la.POSITION_MIN, la.POSITION_MAX),
     ) -> None:
         self.setups = {s.bus.name: s for s in setups}
-        self.period = period
+        self.period = check_number("period", period, PERIOD_MIN_S, PERIOD_MAX_S, "s")
         self.control = control
         lo, hi = window
         check_int("window low", lo, la.POSITION_MIN, la.POSITION_MAX)
@@ -326,8 +330,10 @@ class Dashboard:
         for name in {p[0] for p in plan}:
             now = self.setups[name].bus.timer.now()
             self.state.on_note(name, now, f"{action} {where} (from {source})", "control")
-        if action == "work":
-            self.moved.update((p[0], int(p[3][3:])) for p in plan if p[3].startswith("la:"))
+        if action == "work":  # the power stage on: the actuator may drive to its target
+            self.moved.update(
+                (name, cmd.id) for name, cmd, _, _ in plan if isinstance(cmd, la.Control)
+            )
         results = await asyncio.gather(*(self._send(*p) for p in plan))
         return list(results)
 
