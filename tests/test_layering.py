@@ -107,6 +107,7 @@ ALLOWED: dict[str, set[str]] = {
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "doctor": _LIBRARY_BASE
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
+    "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "sim": {"errors", "protocol", "transport"},
 }
 

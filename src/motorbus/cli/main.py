@@ -76,6 +76,7 @@ COMMAND_MODULES = (
     "capture",
     "replay",
     "rig",
+    "dashboard",
 )
 
 

@@ -71,7 +71,7 @@ _QUOTE_MAX = 40
 KIND_LINK = "link"
 KINDS = frozenset((KIND_FRAME, KIND_EVENT, KIND_GARBAGE, KIND_LINK))
 #: Who wrote a session.
-SOURCES = frozenset(("capture", "sim"))
+SOURCES = frozenset(("capture", "sim", "dashboard"))
 #: Keys every record has.
 REQUIRED_KEYS = ("t", "kind", "hex")
 #: Keys of the simulator's own log callback records (``SimBus(log=...)``), which the
@@ -94,7 +94,7 @@ def header(
     """Return the header line of a new session.
 
     Args:
-        source: ``"capture"`` or ``"sim"``.
+        source: ``"capture"``, ``"sim"`` or ``"dashboard"``.
         started_utc: wall-clock time of ``t = 0``, ISO 8601 in UTC (``...Z``).
         families: the device families on the bus.
         baud: the line rate in bit/s.

@@ -1,0 +1,153 @@
+"""Fan-out of ``motorbus dashboard``: the bus's frames/s with 1 and with 50 WebSocket viewers.
+
+The dashboard (one poller on the bus, the aiohttp server) runs here against
+``motorbus sim`` on a pty; the viewers run in a child process, as browsers would, each
+holding a WebSocket and reading every push.  The bus's frames/s (``bus.stats.requests``
+over a window) is measured with 1 viewer and with 50, alternately, several times: the
+poller sets the traffic, so the two should agree (issue 25 asks for 1 % or better).
+
+Prints a table and writes ``benchmarks/results/dashboard.json``.
+
+    python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+from aiohttp import web
+
+from motorbus import Bus, Family
+from motorbus.dashboard import BusSetup, Dashboard
+from motorbus.dashboard.server import make_app
+from motorbus.sim.process import SimProcess
+from motorbus.transport.serial import open_transport
+
+RESULTS = Path(__file__).resolve().parent / "results" / "dashboard.json"
+IDS = (1, 2, 3, 4, 5)
+PERIOD_S = 0.02
+
+
+async def viewers_only(url: str, count: int) -> None:
+    """Child process: hold ``count`` WebSockets, read every message, print counts at EOF."""
+    received = [0] * count
+
+    async def one(n: int, session: aiohttp.ClientSession) -> None:
+        async with session.ws_connect(url) as ws:
+            async for _ in ws:
+                received[n] += 1
+
+    async with aiohttp.ClientSession() as session:
+        tasks = [asyncio.create_task(one(n, session)) for n in range(count)]
+        await asyncio.sleep(0.5)
+        print("ready", flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.read)
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+    print(json.dumps(received), flush=True)
+
+
+async def window(bus: Bus, url: str, viewers: int, seconds: float) -> dict[str, Any]:
+    child = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--viewers-only", url, str(viewers),
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+    )  # fmt: skip
+    assert child.stdout is not None and child.stdin is not None
+    assert (await child.stdout.readline()).strip() == b"ready"
+    await asyncio.sleep(0.5)  # settle
+    n0, t0 = bus.stats.requests, time.monotonic()
+    await asyncio.sleep(seconds)
+    n1, t1 = bus.stats.requests, time.monotonic()
+    child.stdin.close()
+    out = (await child.communicate())[0].decode().splitlines()
+    counts = json.loads(out[-1])
+    return {
+        "viewers": viewers,
+        "frames_per_s": (n1 - n0) / (t1 - t0),
+        "messages_min": min(counts),
+        "messages_max": max(counts),
+    }
+
+
+async def measure(seconds: float, repeats: int, many: int) -> dict[str, Any]:
+    with SimProcess([f"la:{IDS[0]}-{IDS[-1]}"], baud=921600) as sim:
+        bus = Bus(open_transport(sim.path, baudrate=921600), name="arm", families=[Family.LA])
+        async with bus:
+            dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD_S)
+            runner = web.AppRunner(make_app(dash, push_hz=10.0), access_log=None)
+            await runner.setup()
+            site = web.TCPSite(runner, "127.0.0.1", 0)
+            await site.start()
+            port = runner.addresses[0][1]
+            await dash.start()
+            try:
+                rows = []
+                for _ in range(repeats):
+                    for viewers in (1, many):
+                        rows.append(
+                            await window(bus, f"ws://127.0.0.1:{port}/ws", viewers, seconds)
+                        )
+            finally:
+                await dash.stop()
+                await runner.cleanup()
+    one = [r["frames_per_s"] for r in rows if r["viewers"] == 1]
+    lots = [r["frames_per_s"] for r in rows if r["viewers"] == many]
+    mean1, mean_many = sum(one) / len(one), sum(lots) / len(lots)
+    return {
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": {
+            "platform": platform.platform(),
+            "python": platform.python_version(),
+            "cpus": os.cpu_count(),
+            "load_avg": list(os.getloadavg()),
+        },
+        "actuators": len(IDS),
+        "period_s": PERIOD_S,
+        "expected_frames_per_s": len(IDS) / PERIOD_S,
+        "seconds": seconds,
+        "windows": rows,
+        "frames_per_s_1_viewer": mean1,
+        f"frames_per_s_{many}_viewers": mean_many,
+        "difference_pct": 100 * (mean_many - mean1) / mean1,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--seconds", type=float, default=5.0)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--viewers", type=int, default=50)
+    parser.add_argument("--viewers-only", nargs=2, metavar=("URL", "N"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.viewers_only:
+        asyncio.run(viewers_only(args.viewers_only[0], int(args.viewers_only[1])))
+        return
+    report = asyncio.run(measure(args.seconds, args.repeats, args.viewers))
+    print(f"{'viewers':>8} {'frames/s':>9} {'msgs/viewer':>12}")
+    for r in report["windows"]:
+        msgs = f"{r['messages_min']}..{r['messages_max']}"
+        print(f"{r['viewers']:>8} {r['frames_per_s']:>9.2f} {msgs:>12}")
+    print(
+        f"mean: 1 viewer {report['frames_per_s_1_viewer']:.2f} frames/s, {args.viewers} viewers "
+        f"{report[f'frames_per_s_{args.viewers}_viewers']:.2f} frames/s "
+        f"({report['difference_pct']:+.2f} %); polls ask {report['expected_frames_per_s']:.0f}"
+    )
+    RESULTS.parent.mkdir(exist_ok=True)
+    RESULTS.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,260 @@
+"""``motorbus dashboard``: a live web page of every bus and device, with optional controls.
+
+Examples::
+
+    motorbus dashboard --port /dev/ttyUSB0 --ids 1-3
+    motorbus dashboard --bus-file buses.toml --control
+    motorbus dashboard --port /dev/ttyUSB0 --listen 0.0.0.0:8765   # prints a token URL
+
+Needs the dashboard extra: pip install 'motorbus[dashboard]'.  On start it prints the
+page's URL on a line of its own; open it in a browser (a phone works too).  One poller
+per bus reads every LA actuator's status in turn (--interval apart), whatever the
+number of viewers.  The page is read-only unless started with --control (e-stop, pause,
+work, clear fault, move-to inside --window).  It listens on 127.0.0.1 unless --listen
+says otherwise; then every request needs the random token printed in the URL.
+
+Without --bus-file it watches one port (--ids, else --devices la:1-3,quad-stepper...,
+else a scan); with --bus-file every bus of the file (or --bus NAME), every key honoured.
+--record DIR writes each bus's frame log (motorbus replay reads it) and plots.csv.
+Ctrl-C or SIGTERM ends it (exit code 0) after pausing what it moved.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import ipaddress
+import os
+import secrets
+import sys
+from pathlib import Path
+from typing import Any
+
+from motorbus import BusManager, Family, scan
+from motorbus import run as run_safely
+from motorbus.cli.common import (
+    BUS_FILE_ENV,
+    CLI_HOST_MARGIN_S,
+    LA_BAUD,
+    PORT_ENV,
+    add_bus_options,
+    check_seconds,
+    parse_ids,
+    resolve_port,
+)
+from motorbus.cli.scan import SCAN_TIMEOUT_S
+from motorbus.dashboard import BusSetup, Dashboard
+from motorbus.errors import LocalProtocolError, UsageError
+from motorbus.protocol import la
+
+__all__ = ["DEFAULT_LISTEN", "EXTRA_MESSAGE", "parse_listen", "register", "run"]
+
+#: Where the page is served unless --listen says otherwise.
+DEFAULT_LISTEN = "127.0.0.1:8765"
+#: What is printed (exit code 2) when aiohttp is not installed.
+EXTRA_MESSAGE = "motorbus dashboard needs the dashboard extra: pip install 'motorbus[dashboard]'"
+#: Shortest poll round, seconds.
+MIN_INTERVAL_S = 0.005
+#: WebSocket pushes a second (allowed range).
+PUSH_HZ_RANGE = (0.5, 50.0)
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``dashboard`` command."""
+    p = subparsers.add_parser(
+        "dashboard",
+        help="live web page of every bus and device (plots, faults, e-stop)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--ids", help="LA IDs to watch on --port, e.g. 1-3,7 (default: scan)")
+    p.add_argument(
+        "--devices",
+        help="devices on --port as in a bus file, comma list: la:1-3, project-stepper, "
+        "quad-stepper",
+    )
+    p.add_argument(
+        "--interval", type=float, default=0.1, help="seconds per poll round (default 0.1)"
+    )
+    p.add_argument(
+        "--listen",
+        metavar="HOST:PORT",
+        default=DEFAULT_LISTEN,
+        help=f"where to serve the page (default {DEFAULT_LISTEN}; port 0: any free port)",
+    )
+    p.add_argument("--control", action="store_true", help="allow controls (e-stop, move...)")
+    p.add_argument(
+        "--window",
+        metavar="LO:HI",
+        default=f"{la.POSITION_MIN}:{la.POSITION_MAX}",
+        help="positions a move-to may target (default the whole stroke)",
+    )
+    p.add_argument("--record", metavar="DIR", help="record frame logs and plots.csv into DIR")
+    p.add_argument("--push-hz", type=float, default=10.0, help="page updates a second (10)")
+    add_bus_options(p, default_baud=LA_BAUD, json_option=False)
+    p.set_defaults(func=run)
+
+
+def parse_listen(text: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6) into its parts.
+
+    Raises:
+        LocalProtocolError: no port, or a port outside 0..65535.
+    """
+    host, sep, port = text.rpartition(":")
+    host = host.strip("[]")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise LocalProtocolError(
+            f"--listen={text!r} is not HOST:PORT with a port 0..65535 (0: any free port)",
+            field="--listen",
+            value=text,
+        )
+    return host, int(port)
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def _parse_window(text: str) -> tuple[int, int]:
+    lo, sep, hi = text.partition(":")
+    if not sep or not lo.strip().isdigit() or not hi.strip().isdigit():
+        raise LocalProtocolError(
+            f"--window={text!r} is not LO:HI positions, e.g. 200:1800", field="--window"
+        )
+    return int(lo), int(hi)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``motorbus dashboard``; 0 after Ctrl-C or SIGTERM, 2 without the extra."""
+    try:
+        import aiohttp  # noqa: F401  (only to tell a missing extra from other errors)
+    except ImportError:
+        print(EXTRA_MESSAGE, file=sys.stderr)
+        return 2
+    check_seconds("--interval", args.interval, MIN_INTERVAL_S)
+    lo, hi = PUSH_HZ_RANGE
+    if not lo <= args.push_hz <= hi:
+        raise LocalProtocolError(
+            f"--push-hz={args.push_hz} is out of range: allowed {lo:g}..{hi:g}",
+            field="--push-hz",
+            value=args.push_hz,
+        )
+    host, port = parse_listen(args.listen)
+    window = _parse_window(args.window)
+    Dashboard([], window=window)  # checks the window before any port opens
+    manager, wanted = _manager(args)
+    token = None if _is_loopback(host) else secrets.token_urlsafe(18)
+    try:
+        run_safely(_serve(args, manager, wanted, host, port, token, window))
+    except SystemExit as end:
+        if end.code not in (130, 143):  # Ctrl-C and SIGTERM are how a dashboard ends
+            raise
+    return 0
+
+
+def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] | None]]:
+    """The buses to watch and, per bus, the LA IDs (``None``: scan for them)."""
+    port_given = bool(getattr(args, "port", None) or os.environ.get(PORT_ENV))
+    bus_file = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
+    if bus_file and not port_given:
+        if args.ids or args.devices:
+            raise UsageError("--ids and --devices go with --port; the bus file lists devices")
+        loaded = BusManager.from_toml(bus_file, safe_stop=False)
+        manager = BusManager(safe_stop=False)
+        for name, spec in loaded.specs.items():
+            if args.bus and name != args.bus:
+                continue
+            manager.add_spec(spec)
+        if not manager.specs:
+            raise UsageError(
+                f"--bus {args.bus}: {bus_file} has no such bus: "
+                f"choose one of {', '.join(loaded.specs)}"
+            )
+    else:
+        url = resolve_port(args)
+        devices: list[str] = []
+        if args.ids:
+            devices.append("la:" + ",".join(str(i) for i in parse_ids(args.ids)))
+        if args.devices:
+            devices += [d.strip() for d in _split_devices(args.devices)]
+        manager = BusManager(safe_stop=False)
+        manager.add_bus(  # every device item is checked here, before the port opens
+            url,
+            url,
+            baud=args.baud,
+            backend=args.backend,
+            devices=devices,
+            host_margin_ms=CLI_HOST_MARGIN_S * 1e3,
+        )
+    wanted: dict[str, list[int] | None] = {}
+    for name, spec in manager.specs.items():
+        ids = [i for d in spec.devices if d.kind == "la" for i in d.ids]
+        scan_it = not spec.devices and Family.LA in spec.families()
+        wanted[name] = None if scan_it else ids
+    return manager, wanted
+
+
+def _split_devices(text: str) -> list[str]:
+    """``la:1,3,quad-stepper`` -> ``["la:1,3", "quad-stepper"]`` (IDs stay with their la)."""
+    out: list[str] = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if out and out[-1].startswith("la:") and (part[0].isdigit()):
+            out[-1] += "," + part
+        else:
+            out.append(part)
+    return out
+
+
+async def _serve(
+    args: argparse.Namespace,
+    manager: BusManager,
+    wanted: dict[str, list[int] | None],
+    host: str,
+    port: int,
+    token: str | None,
+    window: tuple[int, int],
+) -> None:
+    from aiohttp import web
+
+    from motorbus.dashboard.server import make_app
+
+    async with manager:
+        setups = []
+        for name, bus in manager.buses.items():
+            spec = manager.specs[name]
+            ids = wanted[name]
+            if ids is None:
+                ids = await scan(bus, timeout=SCAN_TIMEOUT_S)
+            project = next((d.motor for d in spec.devices if d.kind == "project_stepper"), None)
+            quad = any(d.kind == "quad_stepper" for d in spec.devices)
+            setups.append(BusSetup(bus, list(ids), project, quad, spec.la_safe_action))
+        dash = Dashboard(setups, period=args.interval, control=args.control, window=window)
+        record = Path(args.record) if args.record else None
+        app = make_app(dash, token=token, push_hz=args.push_hz, record_dir=record)
+        runner = web.AppRunner(app, handle_signals=False, access_log=None)
+        await runner.setup()
+        try:
+            site = web.TCPSite(runner, host, port)
+            await site.start()
+            bound = runner.addresses[0][1] if runner.addresses else port
+            await dash.start()
+            if record is not None:
+                dash.start_recording(record)
+            shown = f"[{host}]" if ":" in host else host
+            print(f"http://{shown}:{bound}/" + (f"?token={token}" if token else ""), flush=True)
+            for s in setups:
+                listed = ", ".join(map(str, s.la_ids)) or "none"
+                print(f"bus {s.bus.name}: LA {listed}", file=sys.stderr, flush=True)
+            await asyncio.Event().wait()  # until Ctrl-C or SIGTERM cancels us
+        finally:
+            await dash.stop()
+            await runner.cleanup()

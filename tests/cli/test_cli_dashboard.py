@@ -1,0 +1,371 @@
+"""``motorbus dashboard`` as a user runs it: against ``motorbus sim`` on a pty, the page
+opened in a real headless browser (Debian's chromium, which CI installs), driven over
+the DevTools protocol with a small client on aiohttp's WebSocket client."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import urllib.error
+import urllib.request
+from collections.abc import AsyncIterator, Iterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motorbus.cli.common import ENV_VARS
+from motorbus.protocol import framelog, la
+from motorbus.protocol.base import format_hex
+from motorbus.sim.process import SimProcess
+from tests.cli.test_cli_la import NO_CONFIG_DIR, cli
+
+aiohttp = pytest.importorskip("aiohttp")
+
+CHROMIUM = shutil.which("chromium")
+needs_browser = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
+#: Generous bound on anything the test waits for (a stuck run fails instead of hanging).
+WAIT_S = 30.0
+#: la:1 moves at 400 units/s, so a 900-unit move is seen at several positions on the way.
+DEVICES = ["la:1,position=300,stroke_speed=400", "la:2,position=300", "la:3,temperature=95"]
+
+
+def _env() -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
+    env["XDG_CONFIG_HOME"] = NO_CONFIG_DIR
+    return env
+
+
+@asynccontextmanager
+async def dashboard(sim: SimProcess | None, *extra: str) -> AsyncIterator[str]:
+    """Run ``motorbus dashboard`` (on the simulator's pty, if given); yield the URL it
+    printed.  On the way out it gets SIGTERM, and must end with status 0."""
+    port = ["--port", sim.path, "--ids", "1-3"] if sim is not None else []
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "motorbus", "dashboard", *port,
+        "--listen", "127.0.0.1:0", "--interval", "0.05", *extra,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
+    )  # fmt: skip
+    assert proc.stdout is not None and proc.stderr is not None
+    try:
+        line = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
+        if not line:
+            raise AssertionError((await proc.stderr.read()).decode())
+        assert re.fullmatch(r"http://[\d.]+:\d+/(\?token=[\w-]+)?", line), line
+        yield line
+    finally:
+        if proc.returncode is None:
+            proc.send_signal(signal.SIGTERM)
+        _, err = await asyncio.wait_for(proc.communicate(), WAIT_S)
+    assert proc.returncode == 0, err.decode()
+
+
+class Page:
+    """One browser tab, driven over the DevTools protocol."""
+
+    def __init__(self, ws: Any) -> None:
+        self.ws = ws
+        self.next_id = 0
+        self.events: list[dict[str, Any]] = []
+        self.replies: dict[int, asyncio.Future[dict[str, Any]]] = {}
+        self.reader = asyncio.create_task(self._read())
+
+    async def _read(self) -> None:
+        async for msg in self.ws:
+            doc = json.loads(msg.data)
+            if "id" in doc:
+                self.replies.pop(doc["id"]).set_result(doc)
+            else:
+                self.events.append(doc)
+
+    async def call(self, method: str, **params: Any) -> dict[str, Any]:
+        self.next_id += 1
+        future = self.replies[self.next_id] = asyncio.get_running_loop().create_future()
+        await self.ws.send_str(json.dumps({"id": self.next_id, "method": method, "params": params}))
+        doc = await asyncio.wait_for(future, WAIT_S)
+        assert "error" not in doc, doc
+        return dict(doc["result"])
+
+    async def js(self, expression: str) -> Any:
+        doc = await self.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        assert "exceptionDetails" not in doc, doc
+        return doc["result"].get("value")
+
+    async def until(self, expression: str) -> Any:
+        """Wait until ``expression`` is truthy in the page; return its value."""
+        async with asyncio.timeout(WAIT_S):
+            while True:
+                value = await self.js(expression)
+                if value:
+                    return value
+                await asyncio.sleep(0.05)
+
+
+@asynccontextmanager
+async def browser(tmp: Path) -> AsyncIterator[Page]:
+    assert CHROMIUM is not None
+    proc = await asyncio.create_subprocess_exec(
+        CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-port=0",
+        f"--user-data-dir={tmp}", "--disable-background-networking", "--no-first-run",
+        "--proxy-server=127.0.0.1:9", "about:blank",
+        stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    assert proc.stderr is not None
+    try:
+        async with asyncio.timeout(WAIT_S):
+            while True:
+                line = (await proc.stderr.readline()).decode()
+                assert line, "chromium ended before it listened"
+                m = re.search(r"DevTools listening on ws://([\d.]+:\d+)/", line)
+                if m:
+                    break
+        async with aiohttp.ClientSession() as http:
+            async with asyncio.timeout(WAIT_S):
+                while True:
+                    targets = await (await http.get(f"http://{m.group(1)}/json/list")).json()
+                    pages = [t for t in targets if t["type"] == "page"]
+                    if pages:
+                        break
+                    await asyncio.sleep(0.1)
+            async with http.ws_connect(pages[0]["webSocketDebuggerUrl"], max_msg_size=0) as ws:
+                page = Page(ws)
+                for domain in ("Page", "Runtime", "Network"):
+                    await page.call(f"{domain}.enable")
+                yield page
+                page.reader.cancel()
+    finally:
+        proc.kill()
+        await proc.wait()
+
+
+def sim_frames(sim: SimProcess, direction: str) -> list[dict[str, Any]]:
+    """The frames the simulator received (``request``) or sent (``reply``), decoded."""
+    out = []
+    for record in sim.log_records():
+        if record["direction"] == direction and record["kind"] == "frame":
+            out += [d.to_json() for d in framelog.describe_record(record)]
+    return out
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[SimProcess]:
+    with SimProcess(DEVICES, baud=921600, log_file=tmp_path / "frames.jsonl") as s:
+        yield s
+
+
+POSITIONS = "[...document.querySelectorAll('.la [data-f=position]')].map(e => e.textContent)"
+
+
+@needs_browser
+async def test_the_page_shows_live_actuators_and_its_estop_reaches_the_simulator(
+    sim: SimProcess, tmp_path: Path
+) -> None:
+    async with dashboard(sim, "--control") as url, browser(tmp_path / "chromium") as page:
+        await page.call("Page.navigate", url=url)
+        await page.until("document.querySelectorAll('.la').length === 3")
+        await page.until("document.getElementById('conn').textContent === 'live'")
+        assert await page.until(f"{POSITIONS}.every(p => p !== '-') && {POSITIONS}") == [
+            "300", "300", "0"
+        ]  # fmt: skip
+        # The over-temperature of la:3 shows by name.
+        assert "OVER_TEMPERATURE" in await page.until(
+            "document.querySelector('.la[data-id=\"3\"] [data-f=errors]').textContent"
+        )
+
+        # Move la:1 from the page: a position, Move, then Confirm.
+        await page.js(
+            "document.querySelector('[data-move=\"1\"]').value = '1200';"
+            "document.querySelector('.la[data-id=\"1\"] [data-action=move]').click();"
+            "document.querySelector('[data-action=confirm-move]').click(); true"
+        )
+        seen: list[int] = []
+        async with asyncio.timeout(WAIT_S):
+            while not seen or seen[-1] != 1200:
+                seen.append(int((await page.js(POSITIONS))[0]))
+                await asyncio.sleep(0.1)
+        moving = sorted(set(seen) - {300, 1200})
+        assert len(moving) >= 3, seen  # the values on the page change over time...
+        reported = {f["fields"]["position"] for f in sim_frames(sim, "reply")
+                    if f["fields"].get("id") == 1}  # fmt: skip
+        assert set(seen) <= reported  # ...and are what the simulator reported
+        assert seen == sorted(seen)
+        assert await page.js("data[Object.keys(data)[0]].position.length") >= len(seen)
+
+        # The bus's e-stop button: every actuator of the bus gets the e-stop frame.
+        await page.js("document.querySelector('section.bus h2 [data-action=estop]').click(); 1")
+        estops = {format_hex(la.Control(i, la.ControlAction.ESTOP).encode()) for i in (1, 2, 3)}
+        async with asyncio.timeout(WAIT_S):
+            while not estops <= {str(r["hex"]) for r in sim.log_records()}:
+                await asyncio.sleep(0.05)
+        await page.until(
+            "[...document.querySelectorAll('.la [data-f=mode]')]"
+            ".every(e => e.textContent === 'estop')"
+        )
+
+        # A phone: nothing scrolls sideways, the big e-stop stays on screen.
+        await page.call(
+            "Emulation.setDeviceMetricsOverride",
+            width=390, height=844, deviceScaleFactor=2, mobile=True,
+        )  # fmt: skip
+        await page.call("Page.reload")
+        await page.until("document.querySelectorAll('.la').length === 3")
+        assert await page.js("document.documentElement.scrollWidth <= window.innerWidth")
+        box = await page.js(
+            "JSON.stringify(document.getElementById('estop-all').getBoundingClientRect())"
+        )
+        rect = json.loads(box)
+        assert rect["width"] > 0 and rect["top"] >= 0 and rect["bottom"] <= 844
+        assert rect["right"] <= 390
+
+        # Nothing was requested from anywhere but the dashboard itself.
+        host = url.removeprefix("http://").rstrip("/")
+        urls = [e["params"]["request"]["url"] for e in page.events
+                if e["method"] == "Network.requestWillBeSent"]  # fmt: skip
+        urls += [
+            e["params"]["url"] for e in page.events if e["method"] == "Network.webSocketCreated"
+        ]
+        assert any(u.startswith(f"ws://{host}/ws") for u in urls)
+        assert [u for u in urls if not re.match(rf"(http|ws)://{re.escape(host)}/", u)] == []
+
+    # Exit: la:1 (moved by the page) was e-stopped already; the dashboard's exit sends
+    # la:1 its safe action (pause) and nothing to the actuators it never moved.
+    requests = [f for f in sim_frames(sim, "request") if f["name"] == "Control"]
+    assert requests[-1]["fields"] == {"id": 1, "action": "PAUSE"}
+    assert {"id": 2, "action": "PAUSE"} not in [r["fields"] for r in requests]
+
+
+@needs_browser
+async def test_without_control_the_page_has_no_buttons_and_a_forged_write_is_refused(
+    sim: SimProcess,
+) -> None:
+    async with dashboard(sim) as url:
+        dom = await asyncio.to_thread(
+            subprocess.run,
+            [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--proxy-server=127.0.0.1:9",
+             "--virtual-time-budget=3000", "--dump-dom", url],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        html = dom.stdout
+        assert html.count('class="la"') == 3, dom.stderr[-2000:]
+        assert re.search(r'data-f="position">300<', html)
+        main = html[html.index('<main id="buses">') : html.index("</main>")]
+        assert "<button" not in main and "data-action" not in main
+        assert '<button id="estop-all" hidden="">' in html
+        request = urllib.request.Request(
+            url + "api/estop", data=b"{}", headers={"Content-Type": "application/json"}
+        )
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            await asyncio.to_thread(urllib.request.urlopen, request)
+        assert refused.value.code == 403
+    names = {f["fields"].get("action") for f in sim_frames(sim, "request")}
+    assert names == {"QUERY_STATUS"}  # watching sent only status queries, on exit too
+
+
+def test_bad_options_are_refused_before_the_port_opens() -> None:
+    for args, message in [
+        (["--listen", "localhost"], "--listen='localhost' is not HOST:PORT"),
+        (["--listen", "127.0.0.1:70000"], "port 0..65535"),
+        (["--interval", "0"], "--interval=0.0 is out of range"),
+        (["--window", "500:100"], "window high=100 is out of range"),
+        (["--ids", "0"], "--ids id=0 is out of range"),
+        (["--devices", "la:1,servo"], "kind 'servo' is unknown"),
+    ]:
+        r = cli("dashboard", "--port", "/dev/nonexistent-port", *args)
+        assert r.returncode == 2, (args, r.stderr)
+        assert message in r.stderr, (args, r.stderr)
+
+
+def test_without_aiohttp_it_says_which_extra_to_install(tmp_path: Path) -> None:
+    # A module named aiohttp that fails to import stands for a missing package.
+    (tmp_path / "aiohttp.py").write_text("raise ImportError('No module named aiohttp')\n")
+    env = {"PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    r = cli("dashboard", "--port", "/dev/nonexistent-port", env=env)
+    assert r.returncode == 2
+    assert r.stderr.strip() == (
+        "motorbus dashboard needs the dashboard extra: pip install 'motorbus[dashboard]'"
+    )
+
+
+def get_json(url: str, body: dict[str, Any] | None = None) -> Any:
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=WAIT_S) as r:
+        return json.load(r)
+
+
+async def test_every_bus_of_a_bus_file_with_its_keys(tmp_path: Path) -> None:
+    with (
+        SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "arm.jsonl") as arm,
+        SimProcess(["project-stepper", "quad-stepper"], baud=9600,
+                   log_file=tmp_path / "feeder.jsonl") as feeder,
+    ):  # fmt: skip
+        buses = tmp_path / "buses.toml"
+        buses.write_text(
+            f'[[bus]]\nname = "arm"\nurl = "{arm.path}"\nbaud = 921600\n'
+            'devices = ["la:1-2"]\nla_safe_action = "estop"\n'
+            f'[[bus]]\nname = "feeder"\nurl = "{feeder.path}"\nbaud = 9600\n'
+            'devices = ["project-stepper", "quad-stepper"]\n'
+        )
+        async with dashboard(None, "--bus-file", str(buses), "--control") as url:
+            async with asyncio.timeout(WAIT_S):
+                while True:
+                    state = await asyncio.to_thread(get_json, url + "api/state")
+                    a, f = state["buses"]
+                    if len(f["project"]["projects"]) == 4 and all(d["latest"] for d in a["la"]):
+                        break
+                    await asyncio.sleep(0.1)
+            assert (a["name"], f["name"]) == ("arm", "feeder")
+            assert [d["id"] for d in a["la"]] == [1, 2] and f["la"] == []
+            assert f["quad"] == {"axes": {}, "last_done": None}
+            move = {"bus": "arm", "id": 1, "position": 600, "confirm": True}
+            assert (await asyncio.to_thread(get_json, url + "api/move", move))["results"][0]["ok"]
+            stop = await asyncio.to_thread(get_json, url + "api/pause", {"bus": "feeder"})
+            assert [r["command"] for r in stop["results"]] == [
+                "StopProject", "ManualStop", "StopAll"
+            ]  # fmt: skip
+        arm_sent = [f["fields"] for f in sim_frames(arm, "request") if f["name"] == "Control"]
+        # The bus file's la_safe_action: the actuator the dashboard moved is e-stopped on
+        # the way out; the other one gets nothing.
+        assert arm_sent[-1] == {"id": 1, "action": "ESTOP"}
+        assert {"id": 2, "action": "ESTOP"} not in arm_sent
+        names = [f["name"] for f in sim_frames(feeder, "request")]
+        assert names.count("ReadProject") == 4
+        assert {"StopProject", "ManualStop", "StopAll"} <= set(names)
+
+
+async def test_listening_beyond_loopback_needs_the_printed_token(sim: SimProcess) -> None:
+    async with dashboard(sim, "--listen", "0.0.0.0:0") as url:
+        assert "?token=" in url
+        base, token = url.split("?token=")
+        local = base.replace("0.0.0.0", "127.0.0.1")
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            await asyncio.to_thread(get_json, local + "api/state")
+        assert refused.value.code == 401
+        state = await asyncio.to_thread(get_json, f"{local}api/state?token={token}")
+        assert [d["id"] for d in state["buses"][0]["la"]] == [1, 2, 3]
+
+
+async def test_record_writes_what_motorbus_replay_reads(sim: SimProcess, tmp_path: Path) -> None:
+    folder = tmp_path / "rec"
+    async with dashboard(sim, "--record", str(folder)) as url:
+        async with asyncio.timeout(WAIT_S):
+            while not (await asyncio.to_thread(get_json, url + "api/state"))["buses"][0]["la"][2][
+                "polls"
+            ]:
+                await asyncio.sleep(0.1)
+    (log,) = folder.glob("*-frames.jsonl")
+    shown = cli("replay", str(log))
+    assert shown.returncode == 0, shown.stderr
+    for i in (1, 2, 3):
+        assert f"la request Control id={i} action=QUERY_STATUS" in shown.stdout
+        assert f"la reply Status id={i} target=" in shown.stdout
+    rows = (folder / "plots.csv").read_text().splitlines()
+    assert rows[0] == "t_s,bus,id,position,target,current_ma,force_g,temperature_c,errors"
+    assert {r.split(",")[2] for r in rows[1:]} == {"1", "2", "3"}
