@@ -340,6 +340,8 @@ class Bus:
         self._done_watches: list[_DoneWatch] = []
         self._last_errors: dict[int, int] = {}
         self._closing = False
+        #: Set when close starts: motion is refused and dropped from then on.
+        self._stopping = False
         self._observers: list[BusObserver] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lease_keeper = LeaseKeeper(
@@ -378,6 +380,7 @@ class Bus:
         if self.state is BusState.OPEN:
             return
         self._closing = False
+        self._stopping = False
         self._loop = asyncio.get_running_loop()
         self._new_reassembler()
         realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
@@ -439,6 +442,10 @@ class Bus:
 
     async def _close(self) -> None:
         with shutdown.deferred_interrupts():
+            # From here no motion is queued or sent: what is queued is dropped unsent,
+            # what is submitted is refused, so nothing can follow the safe stops.
+            self._stopping = True
+            self._drop_queued_motion()
             if self.state is BusState.OPEN:
                 for hook in list(self._close_hooks):
                     try:
@@ -447,6 +454,7 @@ class Bus:
                         log.error("bus %s: a close hook failed: %s", self.name, err)
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
+            self._drop_queued_motion()
             await self._lease_keeper.end_all()
         self._closing = True
         task = self._reconnect_task
@@ -590,6 +598,13 @@ class Bus:
             )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        if self._stopping and cmd.starts_motion:
+            # The bus is closing: its safe stops are going out, and no motion may
+            # follow them (a target after a pause resumes an LA).
+            raise BusClosedError(
+                f"bus {self.name} is closing: {type(cmd).__name__} to {cmd.device_key} "
+                "refused (nothing sent); the devices are being stopped"
+            )
         loop = asyncio.get_running_loop()
         if loop is not self._loop:
             raise WrongLoopError(
@@ -810,6 +825,29 @@ class Bus:
     def _on_pump_timer(self) -> None:
         self._pump_handle = None
         self._pump()
+
+    def _drop_queued_motion(self) -> None:
+        """Fail every queued (unwritten) motion frame: the bus is closing."""
+        kept: list[_Job] = []
+        for job in self._heap:
+            if not job.cmd.starts_motion or job.attempts:
+                kept.append(job)
+                continue
+            if job.expiry is not None:
+                job.expiry.cancel()
+                job.expiry = None
+            if not job.future.done():
+                self.stats.not_sent += 1
+                job.future.set_exception(
+                    BusClosedError(
+                        f"bus {self.name} closed before {type(job.cmd).__name__} to "
+                        f"{job.key} was sent; nothing was sent"
+                    )
+                )
+                job.future.exception()  # retrieved: a stream tick need not be awaited
+        if len(kept) != len(self._heap):
+            heapq.heapify(kept)
+            self._heap = kept
 
     def _drop_unsent(self, job: _Job) -> None:
         """``start_by`` passed with ``job`` still queued: fail it, nothing was written."""

@@ -1,0 +1,53 @@
+"""Nothing moves after the bus's closing safe stops: motion queued or submitted while
+the bus closes is dropped or refused, never written after the pause."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from motorbus.devices.la import InspireLA
+from motorbus.errors import BusClosedError
+from motorbus.protocol import la
+from tests.bus.test_leases_pty import PAUSE_1, la_bus, to_la
+
+pytestmark = pytest.mark.asyncio
+
+
+@pytest.mark.parametrize("pacing", ["wire", "prompt"])
+async def test_queued_motion_is_not_written_after_the_closing_pause(pacing: str) -> None:
+    async with la_bus(pacing) as (bus, rec):
+        futures = [bus.submit(la.MoveTo(1, 500 + (i % 2) * 500), retries=0) for i in range(20)]
+        await asyncio.sleep(0.003)
+    frames = to_la(1, rec.frames)
+    assert frames[-1] == PAUSE_1, [f.hex() for f in frames[-3:]]
+    assert frames.count(PAUSE_1) == 1
+    assert bus.leases == ()
+    dropped = [f for f in futures if f.done() and f.exception() is not None]
+    assert dropped, "some of the 20 moves were still queued at close"
+    assert all(isinstance(f.exception(), BusClosedError) for f in dropped)
+
+
+@pytest.mark.parametrize("pacing", ["wire", "prompt"])
+async def test_motion_submitted_while_the_bus_closes_is_refused(pacing: str) -> None:
+    refused: list[BaseException] = []
+
+    async def mover(actuator: InspireLA) -> None:
+        i = 0
+        while True:
+            try:
+                await actuator.move_to(500 + (i % 2) * 500)
+            except BusClosedError as err:
+                refused.append(err)
+                return
+            i += 1
+
+    async with la_bus(pacing) as (bus, rec):
+        task = asyncio.get_running_loop().create_task(mover(InspireLA(bus, 1)))
+        await asyncio.sleep(0.05)
+    await asyncio.wait_for(task, 5)
+    frames = to_la(1, rec.frames)
+    assert frames[-1] == PAUSE_1, [f.hex() for f in frames[-3:]]
+    assert refused and ("closing" in str(refused[0]) or "closed" in str(refused[0]))
+    assert bus.leases == ()
