@@ -51,3 +51,53 @@ async def test_motion_submitted_while_the_bus_closes_is_refused(pacing: str) -> 
     assert frames[-1] == PAUSE_1, [f.hex() for f in frames[-3:]]
     assert refused and ("closing" in str(refused[0]) or "closed" in str(refused[0]))
     assert bus.leases == ()
+
+
+async def test_a_second_cancellation_does_not_cut_a_lease_s_safe_stop() -> None:
+    from motorbus.errors import MotorbusError
+
+    async with la_bus("wire") as (bus, rec):
+
+        async def worker() -> None:
+            async with bus.lease(["la:1"], owner="w"):
+                await InspireLA(bus, 1).move_to(1500)
+                await asyncio.sleep(10)
+
+        async def poller() -> None:  # keeps the bus busy, so the pause has to queue
+            while True:
+                try:
+                    await InspireLA(bus, 2).status()
+                except MotorbusError:
+                    return
+
+        task = asyncio.get_running_loop().create_task(worker())
+        busy = asyncio.get_running_loop().create_task(poller())
+        await asyncio.sleep(0.05)
+        task.cancel()
+        await asyncio.sleep(0)  # the worker is in __aexit__: its pause is in flight
+        task.cancel()  # a second cancellation (a timeout, a task group)
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert bus.leases == ()
+    await busy
+    frames = to_la(1, rec.frames)
+    assert frames[-1] == PAUSE_1, [f.hex() for f in frames]
+
+
+async def test_a_safe_action_owed_while_the_port_is_lost_goes_out_when_it_is_back() -> None:
+    from motorbus.bus.bus import BusState
+    from motorbus.sim.la import LAModel, PowerState
+    from tests.conftest import sim_bus
+
+    model = LAModel(1)
+    async with sim_bus([model], pacing="prompt") as (bus, sim):
+        lease = bus.lease(["la:1"], owner="me")
+        await InspireLA(bus, 1).move_to(1500)
+        sim.peer.unplug()
+        await bus.wait_state(BusState.LOST, timeout=2)
+        await lease.release()  # owed: the port is lost
+        assert model.power_state is PowerState.WORKING
+        sim.peer.plug()
+        await bus.wait_state(BusState.OPEN, timeout=5)
+        await asyncio.sleep(0.05)
+        assert model.power_state is PowerState.PAUSED

@@ -63,7 +63,7 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
-from motorbus.bus.lease_shell import LeaseKeeper
+from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.stats import BusStats
@@ -435,7 +435,7 @@ class Bus:
         if task is None:
             task = self._close_task = asyncio.ensure_future(self._close())
         try:
-            await asyncio.shield(task)
+            await finish_shielded(task)
         finally:
             if task.done() and self._close_task is task:
                 self._close_task = None
@@ -1210,6 +1210,8 @@ class Bus:
             self.stats.reconnects += 1
             self.state = BusState.OPEN
             self._next_tx = 0.0
+            # Safe actions owed since the loss go out first (emergency priority).
+            await self._lease_keeper.pay_owed()
             self._publish_state("open", "reconnected")
             self._pump()
             return

@@ -52,6 +52,9 @@ class LeaseKeeper:
         self._safe_for: dict[str, SafeCommandsForKey] = {
             action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
         }
+        #: Safe-action commands owed while the port was lost: sent as soon as it is
+        #: back (``pay_owed``, before any other traffic) or at close.
+        self.owed: list[Command[object]] = []
 
     def lease(
         self, keys: Iterable[str] | str, owner: str, safe_action: str, *, bind: bool = True
@@ -107,27 +110,55 @@ class LeaseKeeper:
     async def end_all(self) -> None:
         """End every lease still held, with its safe action (the bus is closing)."""
         table = self.table
-        commands: list[Command[object]] = []
+        commands: list[Command[object]] = list(self.owed)
+        self.owed = []
         for lease in table.leases():
             commands.extend(table.release(lease, hold=False))
         await self.send_safe(commands)
 
+    async def pay_owed(self) -> None:
+        """Send the safe actions owed since the port was lost (it is back): all
+        submitted at once, so that they queue ahead of anything else."""
+        owed, self.owed = self.owed, []
+        if not owed:
+            return
+        results = await asyncio.gather(*(self._send(cmd) for cmd in owed), return_exceptions=True)
+        for cmd, result in zip(owed, results, strict=True):
+            if isinstance(result, BaseException):
+                log.warning(
+                    "bus %s: owed safe action %s to %s failed: %s",
+                    self.name,
+                    type(cmd).__name__,
+                    cmd.device_key,
+                    result,
+                )
+
     async def send_safe(self, commands: list[Command[object]]) -> None:
         """Send safe-action commands, one failure not stopping the rest.
 
-        Runs to its end even if the caller is cancelled meanwhile (the cancellation
-        is delivered after), and Ctrl-C waits for it: a safe stop is never cut half way.
+        Runs to its end even if the caller is cancelled meanwhile, once or more (the
+        cancellation is delivered after), and Ctrl-C waits for it: a safe stop is never
+        cut half way.  While the port is lost the commands are kept as owed and sent
+        the moment it is back, before anything else (``pay_owed``), or at close.
         """
         if not commands:
             return
         state = self._state()
         if state != "open":
+            keys = ", ".join(dict.fromkeys(c.device_key for c in commands))
+            if state == "closed":
+                log.warning(
+                    "bus %s is closed: could not send the safe action to %s", self.name, keys
+                )
+                return
             log.warning(
-                "bus %s is %s: could not send the safe action to %s",
+                "bus %s is %s: the safe action to %s is owed; it goes out the moment "
+                "the port is back",
                 self.name,
                 state,
-                ", ".join(dict.fromkeys(c.device_key for c in commands)),
+                keys,
             )
+            self.owed.extend(commands)
             return
 
         async def send_all() -> None:
@@ -144,7 +175,24 @@ class LeaseKeeper:
                     )
 
         with shutdown.deferred_interrupts():
-            await asyncio.shield(asyncio.ensure_future(send_all()))
+            await finish_shielded(asyncio.ensure_future(send_all()))
+
+
+async def finish_shielded(fut: asyncio.Future[None]) -> None:
+    """Await ``fut`` to its end however often the caller is cancelled meanwhile, then
+    deliver the cancellation (``asyncio.shield`` alone gives it back at once, and a
+    second cancellation would leave the safe stop to a loop that may be closing)."""
+    cancelled = False
+    while not fut.done():
+        try:
+            await asyncio.shield(fut)
+        except asyncio.CancelledError:
+            if fut.done():
+                break
+            cancelled = True
+    if cancelled:
+        raise asyncio.CancelledError
+    fut.result()
 
 
 def _safe_commands_for(action: str) -> SafeCommandsForKey:
