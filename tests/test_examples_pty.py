@@ -27,7 +27,7 @@ EXAMPLES = ROOT / "examples"
 #: example -> (simulated devices, baud, extra arguments, text its output must contain)
 CASES: dict[str, tuple[list[str], int, list[str], str]] = {
     "la_basics.py": (["la:1"], 921600, [], "over-current limit 1000 mA"),
-    "stream_sine.py": (["la:1-15"], 921600, ["--seconds", "1"], "'ticks': 100"),
+    "stream_sine.py": (["la:1-15"], 921600, ["--seconds", "1"], "100 ticks (100 frames)"),
     "project_stepper.py": (["project-stepper"], 9600, [], "project finished (EE DD)"),
     "quad_stepper.py": (["quad-stepper"], 9600, [], "motor 1 done"),
 }

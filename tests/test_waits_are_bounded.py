@@ -10,19 +10,39 @@ from pathlib import Path
 TESTS = Path(__file__).resolve().parent
 
 
+def _is_timeout_block(node: ast.AST) -> bool:
+    """``async with asyncio.timeout(...)`` (or ``timeout(...)``): a bounded block."""
+    return isinstance(node, ast.AsyncWith) and any(
+        isinstance(item.context_expr, ast.Call)
+        and ast.unparse(item.context_expr.func).split(".")[-1] in ("timeout", "timeout_at")
+        for item in node.items
+    )
+
+
 def _bare_sleep_loops(tree: ast.AST) -> list[int]:
-    lines = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.While) and len(node.body) == 1:
-            stmt = node.body[0]
-            if (
-                isinstance(stmt, ast.Expr)
-                and isinstance(stmt.value, ast.Await)
-                and isinstance(stmt.value.value, ast.Call)
-                and ast.unparse(stmt.value.value.func) == "asyncio.sleep"
-            ):
-                lines.append(node.lineno)
+    lines: list[int] = []
+    _visit(tree, bounded=False, lines=lines)
     return lines
+
+
+def _visit(node: ast.AST, *, bounded: bool, lines: list[int]) -> None:
+    bounded = bounded or _is_timeout_block(node)
+    for child in ast.iter_child_nodes(node):
+        _visit(child, bounded=bounded, lines=lines)
+    if not bounded:
+        _check(node, lines)
+
+
+def _check(node: ast.AST, lines: list[int]) -> None:
+    if isinstance(node, ast.While) and len(node.body) == 1:
+        stmt = node.body[0]
+        if (
+            isinstance(stmt, ast.Expr)
+            and isinstance(stmt.value, ast.Await)
+            and isinstance(stmt.value.value, ast.Call)
+            and ast.unparse(stmt.value.value.func) == "asyncio.sleep"
+        ):
+            lines.append(node.lineno)
 
 
 def test_no_unbounded_sleep_loops() -> None:

@@ -7,6 +7,7 @@ on purpose.  The tree (python-standard bases in brackets)::
      +-- MotorbusError
          +-- LocalProtocolError [ValueError]   you asked for what the protocol cannot say
          |   +-- IdListError                    an ID list ("1-3,7") the grammar refuses
+         |   +-- ControlError                   a dashboard control names no such bus/device
          +-- RemoteProtocolError                the peer sent a frame that does not fit
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- ArrivalTimeoutError [TimeoutError] ``move_to(wait=True)``: not there in time
@@ -51,6 +52,7 @@ __all__ = [
     "ArrivalTimeoutError",
     "BusClosedError",
     "CommandFailed",
+    "ControlError",
     "GuardError",
     "IdListError",
     "LeaseConflictError",
@@ -115,6 +117,11 @@ class IdListError(LocalProtocolError):
         self.item = item
         self.first = first
         self.last = last
+
+
+class ControlError(LocalProtocolError):
+    """A dashboard control request names an unknown bus or actuator, or a value out of
+    range (``motorbus.dashboard``); nothing is sent."""
 
 
 class RemoteProtocolError(MotorbusError):

@@ -60,6 +60,7 @@ from typing import Any
 
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, Priority
+from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
@@ -125,6 +126,9 @@ class Streamer:
         self.bus = bus
         self.phase = phase
         self.streams: list[Stream] = []
+        #: This streamer's lease on the actuators of its running streams (one lease,
+        #: since one 0xF3 frame carries several streams): made on the first ``follow``.
+        self.lease: Lease | None = None
         self._task: asyncio.Task[None] | None = None
         self._wake: asyncio.Future[None] | None = None
         #: Planned bus time of one tick of this streamer's streams (s), kept current.
@@ -133,9 +137,22 @@ class Streamer:
         self._active: tuple[float, float] | None = None
         #: The budget every streamer of this bus shares, held by the bus.
         self.budget = _budget_of(bus)
-        bus.add_reservation_source(self._reservation)
-        # Whatever ends the program closes the bus: the streams stop safely first.
-        bus.add_close_hook(self._on_bus_close)
+        self._attached = False
+        self._attach()
+
+    def _attach(self) -> None:
+        if not self._attached:
+            self._attached = True
+            self.bus.add_reservation_source(self._reservation)
+            # Whatever ends the program closes the bus: the streams stop safely first.
+            self.bus.add_close_hook(self._on_bus_close)
+
+    def _detach(self) -> None:
+        """A closed streamer leaves the bus (``follow`` attaches it again)."""
+        if self._attached:
+            self._attached = False
+            self.bus.remove_reservation_source(self._reservation)
+            self.bus.remove_close_hook(self._on_bus_close)
 
     async def _on_bus_close(self) -> None:
         await self.close(safe=True)
@@ -153,6 +170,44 @@ class Streamer:
 
     def _update_tick_cost(self) -> None:
         self._tick_cost_s = sum(tick_cost(self.bus.timing, self.streams).values())
+
+    # -- ownership --------------------------------------------------------------------
+
+    def _take(self, keys: list[str]) -> list[str]:
+        """Hold ``keys`` in this streamer's lease; returns those newly taken.
+
+        Raises:
+            LeaseConflictError: another explicit lease holds one of them.
+        """
+        lease = self.lease
+        if lease is None or not lease.active:
+            self.lease = self.bus.lease(keys, owner=f"stream on {self.bus.name}", bind=False)
+            return keys
+        new = [k for k in keys if k not in lease.keys]
+        if new:
+            lease.add(new)
+        return new
+
+    async def let_go(self, stream: Stream, *, hold: bool) -> None:
+        """``stream`` ended: its actuators leave this streamer's lease.
+
+        ``hold`` (``stop(hold=True)``): let go on purpose, nothing sent, and the bus's
+        close will not stop them.  A stream whose safe action is "hold": they pass to the
+        bus's implicit lease (they hold their target; the bus's close stops them).  Else
+        the stream has applied its safe action; anything it could not send goes now.
+        """
+        lease = self.lease
+        if lease is None or not lease.active:
+            return
+        keys = [f"la:{i}" for i in stream.ids if f"la:{i}" in lease.keys]
+        if not keys:
+            return
+        if hold:
+            await lease.release(hold=True, keys=keys)
+        elif stream.safe_action is SafeAction.HOLD:
+            self.bus.hand_over(lease, keys)
+        else:
+            await lease.release(keys=keys)
 
     # -- starting and stopping --------------------------------------------------------
 
@@ -220,6 +275,11 @@ class Streamer:
                     field="actuators",
                 )
         self.budget.check_ids([a.id for a in group])
+        self._attach()
+        keys = [f"la:{a.id}" for a in group]
+        # One owner per motion: the actuators are this streamer's until the stream ends;
+        # another owner (an explicit lease) is refused here, before anything is sent.
+        taken = self._take(keys)
         stream = Stream(
             self,
             group,
@@ -235,6 +295,8 @@ class Streamer:
             self.budget.admit(self.bus.timing, stream)
         except LocalProtocolError:
             stream.gaps.close()
+            if self.lease is not None:
+                self.lease.table.release(self.lease, hold=True, keys=taken)
             raise
         now = self.bus.timer.now()
         # Align the origin to this bus's grid so streams of one period coalesce.
@@ -276,6 +338,7 @@ class Streamer:
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
+        self._detach()
 
     # -- the tick loop -------------------------------------------------------------------
 
@@ -389,6 +452,7 @@ class Streamer:
                         priority=Priority.HIGH,
                         reserved=True,
                         refresh=while_sending(s, follow),
+                        lease=self.lease,
                     )
                 except MotorbusError:
                     s.stats.feedback_timeouts += 1
@@ -513,7 +577,13 @@ class Streamer:
                     if first is None:
                         continue
                     futures.append(
-                        self.bus.submit(first, priority=Priority.HIGH, reserved=True, refresh=build)
+                        self.bus.submit(
+                            first,
+                            priority=Priority.HIGH,
+                            reserved=True,
+                            refresh=build,
+                            lease=self.lease,
+                        )
                     )
             except MotorbusError as err:
                 fired.set_exception(err)

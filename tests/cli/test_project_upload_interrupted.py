@@ -16,6 +16,7 @@ from motorbus.sim.project_stepper import ProjectStepperModel
 from tests.cli.test_cli_la import cli, rx_frames
 from tests.cli.test_cli_steppers import EXAMPLE, interrupt_once_sent
 from tests.conftest import sim_bus
+from tests.waiting import eventually
 
 #: The clear-project frame for project 1 (A.4 0x1E).
 CLEAR_PROJECT_1 = "FF AA 1E 01 00 00 00 00 00 00 C8"
@@ -94,8 +95,7 @@ async def test_cancelled_upload_raises_cancelled_error_naming_the_project_and_pr
         )
         before = bus.stats.requests
         task = asyncio.create_task(stepper.upload(new))
-        while bus.stats.requests < before + 12:
-            await asyncio.sleep(0.005)
+        await eventually(lambda: bus.stats.requests >= before + 12, "12 upload frames sent")
         task.cancel()
         with pytest.raises(asyncio.CancelledError) as info:
             await task

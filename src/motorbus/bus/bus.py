@@ -698,6 +698,13 @@ class Bus:
         """Forget a listener added with ``add_lease_listener``; unknown ones are ignored."""
         self._leases.remove_listener(fn)
 
+    def hand_over(self, lease: Lease, keys: Iterable[str]) -> None:
+        """End ``lease`` on ``keys`` without sending anything: the devices pass to the
+        bus's implicit lease and hold their last command until it ends (at the latest
+        when the bus closes, with its safe action).  A stream whose ``safe_action`` is
+        ``"hold"`` ends this way."""
+        self._lease_keeper.hand_over(lease, keys)
+
     async def release(self, keys: Iterable[str] | None = None, *, hold: bool = False) -> None:
         """End the implicit lease (motion sent outside any lease) on ``keys`` (default:
         every device it holds): each gets its safe action now, unless ``hold=True``,

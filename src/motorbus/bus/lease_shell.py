@@ -103,6 +103,11 @@ class LeaseKeeper:
             keys = (keys,)
         await self.send_safe(table.release_keys(keys, hold=hold))
 
+    def hand_over(self, lease: Lease, keys: Iterable[str]) -> None:
+        """``Bus.hand_over``: ``keys`` pass from ``lease`` to the implicit lease."""
+        implicit = self.table.implicit(self._safe_for[self.safe_action], self.safe_action)
+        self.table.hand_over(lease, keys, implicit)
+
     async def _release(self, lease: Lease, hold: bool, keys: frozenset[str] | None) -> None:
         hold = check_flag("hold", hold)
         await self.send_safe(self.table.release(lease, hold=hold, keys=keys))

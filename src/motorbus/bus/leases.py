@@ -451,6 +451,17 @@ class LeaseTable:
         self._changed()
         return commands
 
+    def hand_over(self, lease: Lease, keys: Iterable[DeviceKey], to: Lease) -> None:
+        """``lease`` lets go of ``keys`` (those it holds) without a word on the wire; they
+        pass to ``to`` (the implicit lease), owing ``to``'s whole safe action: the devices
+        were moved, and hold until ``to`` ends (the bus closing stops them)."""
+        held = self.keys_of(lease) & frozenset(keys)
+        for key in held:
+            safe = to.safe_for(key)
+            self._entries[key] = _Entry(to, safe, safe)
+        if held:
+            self._changed()
+
     def release_keys(self, keys: Iterable[DeviceKey], *, hold: bool) -> list[Command[object]]:
         """End the implicit lease on ``keys`` (the others it holds stay).  Returns the
         safe commands owed (nothing with ``hold``).

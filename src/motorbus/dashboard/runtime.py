@@ -32,7 +32,7 @@ from motorbus.dashboard.state import DashboardState
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import ControlError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command, check_int
@@ -65,10 +65,6 @@ ACTIONS: dict[str, tuple[la.ControlAction, Priority]] = {
     "work": (la.ControlAction.WORK, Priority.HIGH),
     "clear_fault": (la.ControlAction.CLEAR_FAULT, Priority.HIGH),
 }
-
-
-class ControlError(LocalProtocolError):
-    """A control request names an unknown bus or actuator, or a value out of range."""
 
 
 @dataclass(slots=True)

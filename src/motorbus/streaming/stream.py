@@ -9,7 +9,6 @@ its safe action goes to its actuators once, unless it is ended with ``hold``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import inspect
 import itertools
 import logging
@@ -21,7 +20,7 @@ from typing import Any, Protocol
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import BusEvent, Subscription
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LeaseConflictError, MotorbusError, StreamEnded
+from motorbus.errors import MotorbusError, StreamEnded
 from motorbus.protocol import la
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.model import (
@@ -46,6 +45,9 @@ class StreamOwner(Protocol):
 
     def discard(self, stream: Stream) -> None:
         """Forget ``stream``: it has ended."""
+
+    async def let_go(self, stream: Stream, *, hold: bool) -> None:
+        """``stream`` ended: its actuators leave the streamer's lease."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,15 +183,10 @@ class Stream:
         hold = hold_flag(hold, safe)
         self.stopping = True
         try:
-            if not hold:
-                with deferred_interrupts():
+            with deferred_interrupts():
+                if not hold:
                     await self.apply_safe_action()
-            else:
-                # Held on purpose: the bus's closing must not stop them either (the
-                # stream's frames are owned by the bus's implicit lease; an explicit
-                # lease of the program's own decides for itself).
-                with contextlib.suppress(LeaseConflictError):
-                    await self.streamer.bus.release([f"la:{i}" for i in self.ids], hold=True)
+                await self.streamer.let_go(self, hold=hold)
         finally:
             self._finish(None)
 
@@ -230,6 +227,7 @@ class Stream:
         try:
             with deferred_interrupts():
                 await self.apply_safe_action()
+                await self.streamer.let_go(self, hold=False)
         finally:
             self._finish(error)
 
