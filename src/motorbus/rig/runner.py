@@ -12,7 +12,7 @@ everything at once from the reply that crossed them.
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import logging
 import math
 import statistics
 import time
@@ -22,7 +22,7 @@ from typing import Any
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import la
 from motorbus.rig.analysis import (
     RepeatFigures,
@@ -41,6 +41,8 @@ from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import Streamer
 
 __all__ = ["DeviceResult", "Progress", "RigResult", "run_rig"]
+
+log = logging.getLogger("motorbus.rig")
 
 #: A sample window counts as still when its positions span at most this many noise bands.
 STILL_WINDOW_S = 0.08
@@ -231,11 +233,13 @@ class _Rig:
             stream = streamer.follow(
                 InspireLA(self.bus, ident), targets, period=plan.period, safe_action="pause"
             )
+            self.sampler.stream = stream
             while not stream.done:
                 self.tell(f"la:{ident} track {frequency:g} Hz")
                 await self.sampler.sleep(0.05)
             await stream.wait()
         finally:
+            self.sampler.stream = None
             await streamer.close(safe=True)
         self.sampler.check()
         written = self.sampler.targets[ident][first_write:]
@@ -317,11 +321,14 @@ class _Rig:
 
 async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
     for ident in ids:
-        # A timeout means the pause was written and only its status reply is missing.
-        with contextlib.suppress(ReplyTimeoutError):
+        # Every actuator gets its pause, whatever the one before did (a timeout means
+        # the pause was written and only its status reply is missing).
+        try:
             await bus.request(
                 la.Control(ident, la.ControlAction.PAUSE), priority=Priority.EMERGENCY
             )
+        except MotorbusError as err:
+            log.warning("rig: pause of la:%d failed: %s", ident, err)
 
 
 async def run_rig(bus: Bus, plan: RigPlan, progress: Progress | None = None) -> RigResult:

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.errors import ReplyTimeoutError, RigAborted
+from motorbus.errors import MotorbusError, ReplyTimeoutError, RigAborted
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
 from motorbus.rig.analysis import Sample
@@ -41,6 +41,8 @@ class Sampler:
         #: (written_at, target) per actuator, for every target frame the bus wrote.
         self.targets: dict[int, list[tuple[float, int]]] = {i: [] for i in self.ids}
         self.tripped: str | None = None
+        #: The stream the running test drives, if any (stopped at once on a trip).
+        self.stream: Any = None
         self.polls = 0
         self.poll_timeouts = 0
         self._poll_ids: tuple[int, ...] = ()
@@ -76,6 +78,9 @@ class Sampler:
 
     def _trip(self, why: str) -> None:
         self.tripped = why
+        if self.stream is not None:
+            # No follow target may come after the pause (one would power the LA again).
+            self.stream.stopping = True
         for ident in self.ids:  # pause now, ahead of everything queued
             fut = self.bus.submit(
                 la.Control(ident, la.ControlAction.PAUSE), priority=Priority.EMERGENCY
@@ -121,6 +126,10 @@ class Sampler:
                 )
             except ReplyTimeoutError:
                 self.poll_timeouts += 1
+            except MotorbusError:
+                # The port is lost (or closing): wait, then poll again when it is back.
+                self.poll_timeouts += 1
+                await asyncio.sleep(0.05)
 
     async def _nap(self, seconds: float) -> None:
         timer = self.bus.timer
