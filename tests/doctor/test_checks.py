@@ -38,15 +38,17 @@ def timing(baud: int = 921600, margin: float = 2e-3) -> BusTiming:
 # Wire time is 10 bits a byte.  Status query 8 bytes, status reply 22, follow 0x20 9 bytes,
 # 0xF3 broadcast 6 + 3N bytes, LA turnaround 800 us, spacing 1 ms.  Each row by hand:
 # poll = max(1 ms, (8 + 22) * 10 / baud + 0.8 ms); tick = sum over frames of
-# max(1 ms, (6 + 3N) * 10 / baud); polls = floor((period - tick) / poll).
+# max(1 ms, (6 + 3N) * 10 / baud); polls = floor((period - tick) / poll); the capacities
+# are what Streamer.follow admits: floor(0.8 * period / frame) frames of 15 by broadcast,
+# floor(0.8 * period / max(1 ms, (9 + 22) * 10 / baud + 0.8 ms)) with feedback.
 BUDGET_ROWS = [
     # baud, actuators, period ms, tick ms, frames, poll ms, polls, broadcast cap, feedback cap
-    (921600, 1, 10, 1.0, 1, 1.125521, 7, 150, 8),
-    (921600, 8, 10, 1.0, 1, 1.125521, 7, 150, 8),
-    (921600, 15, 10, 1.0, 1, 1.125521, 7, 150, 8),
-    (921600, 16, 10, 2.0, 2, 1.125521, 7, 150, 8),
-    (921600, 31, 10, 3.0, 3, 1.125521, 6, 150, 8),
-    (115200, 15, 20, 4.427083, 1, 3.404167, 4, 60, 5),
+    (921600, 1, 10, 1.0, 1, 1.125521, 7, 120, 7),
+    (921600, 8, 10, 1.0, 1, 1.125521, 7, 120, 7),
+    (921600, 15, 10, 1.0, 1, 1.125521, 7, 120, 7),
+    (921600, 16, 10, 2.0, 2, 1.125521, 7, 120, 7),
+    (921600, 31, 10, 3.0, 3, 1.125521, 6, 120, 7),
+    (115200, 15, 20, 4.427083, 1, 3.404167, 4, 45, 4),
     (19200, 1, 50, 4.6875, 1, 16.425, 2, 15, 2),
 ]
 

@@ -10,9 +10,10 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from motorbus.bus.occupancy import BusTiming, command_occupancy
+from motorbus.bus.occupancy import BusTiming
 from motorbus.doctor.checks import Finding, Level, LineFacts, poll_occupancy
 from motorbus.protocol import la
+from motorbus.streaming.budget import TICK_BUDGET_SHARE, broadcast_tick, feedback_slot
 
 __all__ = [
     "BUDGET_GAP_SHARE",
@@ -57,30 +58,15 @@ class BudgetTheory:
         }
 
 
-def _broadcast_tick(timing: BusTiming, actuators: int) -> tuple[float, int]:
-    """Bus time of the 0xF3 frames that carry ``actuators`` targets, and their number."""
-    full, rest = divmod(actuators, la.MAX_BROADCAST_ENTRIES)
-    sizes = [la.MAX_BROADCAST_ENTRIES] * full + ([rest] if rest else [])
-    total = 0.0
-    for n in sizes:
-        frame = la.Broadcast(la.BroadcastMode.FOLLOW, tuple((i + 1, 0) for i in range(n)))
-        total += command_occupancy(timing, frame).answered
-    return total, len(sizes)
-
-
 def budget_theory(timing: BusTiming, actuators: int, period_s: float) -> BudgetTheory:
     """The cycle budget from the bus core's occupancy model (no measurement)."""
-    tick, frames = _broadcast_tick(timing, actuators)
+    tick, frames = broadcast_tick(timing, actuators)
     poll = poll_occupancy(timing).answered
-    follow = command_occupancy(timing, la.Follow(la.ID_MIN, 0, True)).answered
-    per_frame = command_occupancy(
-        timing,
-        la.Broadcast(
-            la.BroadcastMode.FOLLOW,
-            tuple((i + 1, 0) for i in range(la.MAX_BROADCAST_ENTRIES)),
-        ),
-    ).answered
-    capacity = min(la.ID_MAX, math.floor(period_s / per_frame + 1e-9) * la.MAX_BROADCAST_ENTRIES)
+    follow = feedback_slot(timing)
+    full_frame, _ = broadcast_tick(timing, la.MAX_BROADCAST_ENTRIES)
+    # What Streamer.follow admits: the ticks may fill TICK_BUDGET_SHARE of the period.
+    usable = period_s * TICK_BUDGET_SHARE
+    capacity = min(la.ID_MAX, math.floor(usable / full_frame + 1e-9) * la.MAX_BROADCAST_ENTRIES)
     return BudgetTheory(
         actuators=actuators,
         period_s=period_s,
@@ -89,7 +75,7 @@ def budget_theory(timing: BusTiming, actuators: int, period_s: float) -> BudgetT
         poll_s=poll,
         polls_between_ticks=max(0, math.floor((period_s - tick) / poll + 1e-9)),
         broadcast_capacity=capacity,
-        feedback_capacity=math.floor(period_s / follow + 1e-9),
+        feedback_capacity=math.floor(usable / follow + 1e-9),
         shortest_period_s=tick,
         shortest_period_polled_s=tick + actuators * poll,
     )

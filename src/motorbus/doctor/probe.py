@@ -61,7 +61,7 @@ from motorbus.errors import (
 )
 from motorbus.manager import BusManager
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.base import Family, check_int, wire_time
 from motorbus.protocol.families import STEPPER_DEFAULT_BAUD
 from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S, SafeAction, Streamer
 from motorbus.transport.base import Transport
@@ -210,7 +210,7 @@ async def echo_facts(config: DoctorConfig, ident: int) -> EchoFacts:
     raw = _query(ident).encode()
     try:
         transport.write(raw)
-        await asyncio.sleep(ECHO_WAIT_S + 3 * la.STATUS_FRAME_SIZE * 10 / config.baud)
+        await asyncio.sleep(ECHO_WAIT_S + wire_time(3 * la.STATUS_FRAME_SIZE, config.baud))
     finally:
         await transport.close()
     return EchoFacts(raw, bytes(got), config.remove_echo)

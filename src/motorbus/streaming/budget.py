@@ -60,20 +60,29 @@ def tick_cost(timing: BusTiming, streams: Iterable[Planned]) -> dict[float, floa
         else:
             broadcast += len(s.ids)
         by_period[s.period] = (broadcast, feedback)
-    follow_bytes = len(la.Follow(1, 0).encode())
     costs: dict[float, float] = {}
     for period, (broadcast, feedback) in by_period.items():
-        full, rest = divmod(broadcast, la.MAX_BROADCAST_ENTRIES)
-        sizes = [la.MAX_BROADCAST_ENTRIES] * full + ([rest] if rest else [])
-        cost = sum(
-            slot_cost(timing, request_bytes=_BROADCAST_HEAD + _BROADCAST_ENTRY * n, reply_bytes=0)
-            for n in sizes
-        )
-        cost += feedback * slot_cost(
-            timing, request_bytes=follow_bytes, reply_bytes=la.STATUS_FRAME_SIZE
-        )
-        costs[period] = cost
+        costs[period] = broadcast_tick(timing, broadcast)[0] + feedback * feedback_slot(timing)
     return costs
+
+
+def broadcast_tick(timing: BusTiming, actuators: int) -> tuple[float, int]:
+    """Bus time of the 0xF3 frames that carry ``actuators`` follow targets in one tick
+    (up to 15 a frame), and how many frames that is."""
+    full, rest = divmod(actuators, la.MAX_BROADCAST_ENTRIES)
+    sizes = [la.MAX_BROADCAST_ENTRIES] * full + ([rest] if rest else [])
+    cost = sum(
+        slot_cost(timing, request_bytes=_BROADCAST_HEAD + _BROADCAST_ENTRY * n, reply_bytes=0)
+        for n in sizes
+    )
+    return cost, len(sizes)
+
+
+def feedback_slot(timing: BusTiming) -> float:
+    """Bus time of one actuator streamed with feedback: a 0x20 follow and its status."""
+    return slot_cost(
+        timing, request_bytes=len(la.Follow(1, 0).encode()), reply_bytes=la.STATUS_FRAME_SIZE
+    )
 
 
 class StreamBudget:
