@@ -101,6 +101,12 @@ from motorbus.protocol.frames import (
     Item,
     ReassemblerStats,
 )
+
+# The frame sizes were defined here before frames.py; they stay importable from here.
+from motorbus.protocol.frames import PROJECT_DUMP_SIZE as PROJECT_DUMP_SIZE
+from motorbus.protocol.frames import PROJECT_REQUEST_SIZE as PROJECT_REQUEST_SIZE
+from motorbus.protocol.frames import QUAD_REQUEST_SIZE as QUAD_REQUEST_SIZE
+from motorbus.protocol.frames import STEPPER_REPLY_SIZE as STEPPER_REPLY_SIZE
 from motorbus.protocol.valid_index import ValidIndex
 
 __all__ = [
