@@ -72,9 +72,9 @@ from motorbus.protocol.la import (
 # SIM_STEP_S, TABLE_BYTES and TABLE_HEADER were defined here; they stay importable from here.
 from motorbus.sim.la_motion import SIM_STEP_S as SIM_STEP_S
 from motorbus.sim.la_motion import LAMotion
+from motorbus.sim.la_table import ID_INDEX, ControlTable
 from motorbus.sim.la_table import TABLE_BYTES as TABLE_BYTES
 from motorbus.sim.la_table import TABLE_HEADER as TABLE_HEADER
-from motorbus.sim.la_table import ControlTable
 from motorbus.sim.model import DeviceModel
 
 __all__ = [
@@ -310,7 +310,7 @@ class LAModel(DeviceModel):
     @property
     def id(self) -> int:
         """The ID the actuator answers to now (RAM index 2)."""
-        return self._table.id
+        return self._table.ram[ID_INDEX]  # read on every frame: no property call
 
     @property
     def baud(self) -> int:

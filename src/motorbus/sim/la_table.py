@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from motorbus.protocol.la import Register
 
-__all__ = ["TABLE_BYTES", "TABLE_HEADER", "ControlTable"]
+__all__ = ["ID_INDEX", "TABLE_BYTES", "TABLE_HEADER", "ControlTable"]
 
 #: One RAM/flash byte per possible index value (the index byte is 0..255).
 TABLE_BYTES = 256
@@ -20,7 +20,7 @@ TABLE_BYTES = 256
 TABLE_HEADER = b"\xaa\x55"
 
 #: Where the 1-byte ID lives in the control table (3.6 index 2): read on every frame.
-_ID_INDEX = Register.ID.index
+ID_INDEX = Register.ID.index
 #: (index, size, signed) of every register, looked up once: Enum attribute access is
 #: slow and the model reads registers on every frame.
 _LAYOUT = {reg: (reg.index, reg.size, reg.signed) for reg in Register}
@@ -60,7 +60,7 @@ class ControlTable:
     @property
     def id(self) -> int:
         """The ID in RAM (index 2)."""
-        return self.ram[_ID_INDEX]
+        return self.ram[ID_INDEX]
 
     def get(self, reg: Register) -> int:
         """The value of ``reg`` in RAM."""
