@@ -24,6 +24,10 @@ What the model does (behaviour from the manual; the numbers marked "model choice
   on CLEAR_FAULT or once the motor draws more than 30 mA, i.e. when the model moves.
 * Nothing answers ID 255, broadcasts, 0x03 or 0x19; a frame ``decode_request`` refuses is
   ignored and counted in ``ignored``.
+
+Where it lives: this module is the device (requests, power states, faults, temperature,
+replies); the control table's RAM and flash storage is ``motorbus.sim.la_table``, and
+the motor's motion (positioning profile, follow, lag, dead band) ``motorbus.sim.la_motion``.
 """
 
 from __future__ import annotations
@@ -64,6 +68,13 @@ from motorbus.protocol.la import (
     build_frame,
     decode_request,
 )
+
+# SIM_STEP_S, TABLE_BYTES and TABLE_HEADER were defined here; they stay importable from here.
+from motorbus.sim.la_motion import SIM_STEP_S as SIM_STEP_S
+from motorbus.sim.la_motion import LAMotion
+from motorbus.sim.la_table import ID_INDEX, ControlTable
+from motorbus.sim.la_table import TABLE_BYTES as TABLE_BYTES
+from motorbus.sim.la_table import TABLE_HEADER as TABLE_HEADER
 from motorbus.sim.model import DeviceModel
 
 __all__ = [
@@ -93,8 +104,6 @@ OVER_TEMPERATURE_OVERSHOOT_C = 5.0
 RAW_FORCE_ZERO_COUNTS = 2048
 GRAMS_PER_COUNT = 10
 RAW_FORCE_MAX = 4095
-#: Model choice: integration step of the motion profile, seconds.
-SIM_STEP_S = 1e-3
 #: Model choice: default speed (full 2000-unit stroke in 1.0 s at cruise) and acceleration.
 DEFAULT_STROKE_SPEED = 2000.0
 DEFAULT_ACCEL = 20000.0
@@ -103,24 +112,12 @@ DEFAULT_COOLING_RATE = 1.0
 #: Reply latency: 120 us typical, up to 800 us when a control task interrupts (manual 3.4.2).
 TURNAROUND_TYPICAL_S = 120e-6
 TURNAROUND_MAX_S = 800e-6
-#: One RAM/flash byte per possible index value (the index byte is 0..255).
-TABLE_BYTES = 256
-#: Table header bytes (C.5 index 0..1), reserved: writes are ignored.
-TABLE_HEADER = b"\xaa\x55"
-
 #: Fault kinds accepted by :meth:`LAModel.trigger_fault`.
 FAULT_KINDS = ("stall", "over_current", "over_temperature", "motor_abnormal")
 _TRIP_FLAGS = {"stall": ErrorFlags.STALL, "over_current": ErrorFlags.OVER_CURRENT}
 
 WriteReply = Literal["status", "ack"]
 IdChangeReply = Literal["old", "new"]
-
-
-#: Where the 1-byte ID lives in the control table (3.6 index 2): read on every frame.
-_ID_INDEX = Register.ID.index
-#: (index, size, signed) of every register, looked up once: Enum attribute access is
-#: slow and the model reads registers on every frame.
-_LAYOUT = {reg: (reg.index, reg.size, reg.signed) for reg in Register}
 
 
 @functools.lru_cache(maxsize=256)
@@ -247,8 +244,8 @@ class LAModel(DeviceModel):
             LocalProtocolError: a value out of range or not one of the choices.
         """
         check_int("id", id, ID_MIN, ID_MAX)
-        self._vmax = _positive("stroke_speed", stroke_speed)
-        self._accel = _positive("accel", accel)
+        vmax = _positive("stroke_speed", stroke_speed)
+        accel = _positive("accel", accel)
         self._write_reply_kind = _choice("write_reply", write_reply, ("status", "ack"))
         echo = _choice("status_cmd_echo", status_cmd_echo, ("0x04", CMD_CONTROL, "request"))
         self._echo_request = echo == "request"
@@ -282,30 +279,23 @@ class LAModel(DeviceModel):
         self._silent_left = check_int("silent_replies", silent_replies, 0, 1_000_000)
         self.silenced = 0
 
-        self._ram = bytearray(TABLE_BYTES)
-        self._ram[0:2] = TABLE_HEADER
-        for reg in Register:
-            if reg.value.default is not None:
-                self._put(reg, reg.value.default)
-        self._put(Register.ID, id)
-        self._put(Register.BAUD, baud_code)
-        self._position = float(position)
-        self._put(Register.TARGET, round(position))
-        self._flash = bytearray(self._ram)
+        #: The control table (RAM and flash).
+        self._table = ControlTable(id=id, baud_code=baud_code, target=round(position))
         self._active_baud = BaudCode(baud_code)
 
         self._dead_time = _not_negative("dead_time", dead_time)
-        self._lag_tau = _not_negative("lag_tau", lag_tau)
-        self._dead_band = _not_negative("dead_band", dead_band)
+        #: The motor: position, velocity and the target it drives toward.
+        self._motion = LAMotion(
+            position=position,
+            vmax=vmax,
+            accel=accel,
+            lag_tau=_not_negative("lag_tau", lag_tau),
+            dead_band=_not_negative("dead_band", dead_band),
+        )
         self._noise = _not_negative("position_noise", position_noise)
         self._rng = random.Random(0 if seed is None else seed)
         # Position commands not yet acted on (dead time): (time due, target, follow).
         self._pending: list[tuple[float, int, bool]] = []
-        self._velocity = 0.0
-        self._goal: int | None = None
-        self._aim = 0.0  # where the motor is driving: the goal less the dead band
-        self._chase = float(position)  # follow mode: the lagged goal
-        self._follow = False
         self._time: float | None = None
         self._power = PowerState.WORKING
         self._force_offset = 0
@@ -320,7 +310,7 @@ class LAModel(DeviceModel):
     @property
     def id(self) -> int:
         """The ID the actuator answers to now (RAM index 2)."""
-        return self._ram[_ID_INDEX]
+        return self._table.ram[ID_INDEX]  # read on every frame: no property call
 
     @property
     def baud(self) -> int:
@@ -335,17 +325,17 @@ class LAModel(DeviceModel):
     @property
     def position(self) -> int:
         """The position as the status reports it, -20..2020."""
-        return min(REPORTED_POSITION_MAX, max(REPORTED_POSITION_MIN, round(self._position)))
+        return min(REPORTED_POSITION_MAX, max(REPORTED_POSITION_MIN, round(self._motion.position)))
 
     @property
     def target(self) -> int:
         """The target register (index 55)."""
-        return self._get(Register.TARGET)
+        return self._table.get(Register.TARGET)
 
     @property
     def moving(self) -> bool:
         """True while the motor is driving toward a target."""
-        return self._goal is not None and (self._velocity != 0.0 or self._position != self._aim)
+        return self._motion.moving
 
     @property
     def errors(self) -> ErrorFlags:
@@ -378,7 +368,7 @@ class LAModel(DeviceModel):
     def register(self, reg: Register) -> int:
         """Return the value of ``reg`` as a read would return it."""
         self._refresh_live()
-        return self._get(reg)
+        return self._table.get(reg)
 
     def set_register(self, reg: Register, value: int) -> None:
         """Put ``value`` into RAM directly, bypassing every check and side effect (tests).
@@ -386,7 +376,7 @@ class LAModel(DeviceModel):
         Raises:
             LocalProtocolError: ``value`` does not fit the register's size.
         """
-        self._put(reg, value)
+        self._table.put(reg, value)
 
     def status(self, now: float) -> Status:
         """Advance to ``now`` and return the status the actuator would report."""
@@ -417,7 +407,7 @@ class LAModel(DeviceModel):
             self._trips[_TRIP_FLAGS[kind]] = (now, latched)
             self._stop()
         elif kind == "over_temperature":
-            limit = self._get(Register.OVER_TEMPERATURE_LIMIT) / 10
+            limit = self._table.get(Register.OVER_TEMPERATURE_LIMIT) / 10
             self.temperature = max(self.temperature, limit + OVER_TEMPERATURE_OVERSHOOT_C)
             self._check_temperature()
         else:
@@ -490,16 +480,16 @@ class LAModel(DeviceModel):
         """Power off and on: RAM reloads from flash, the new baud becomes active, the motor
         stops, faults reset (an overheated motor stays hot and faulted)."""
         self._advance(now)
-        self._ram[:] = self._flash
-        if not ID_MIN <= self._get(Register.ID) <= ID_MAX:
-            self._put(Register.ID, ID_MIN)
-        code = self._get(Register.BAUD)
+        self._table.reload()
+        if not ID_MIN <= self._table.get(Register.ID) <= ID_MAX:
+            self._table.put(Register.ID, ID_MIN)
+        code = self._table.get(Register.BAUD)
         if code in {c.value for c in BaudCode}:
             self._active_baud = BaudCode(code)
         self._power = PowerState.WORKING
         self._stop()
         # The actuator does not run to a stale saved target at power-on.
-        self._put(Register.TARGET, min(POSITION_MAX, max(POSITION_MIN, self.position)))
+        self._table.put(Register.TARGET, min(POSITION_MAX, max(POSITION_MIN, self.position)))
         self._trips.clear()
         self._auto_clears = 0
         self._last_auto_clear = None
@@ -508,42 +498,21 @@ class LAModel(DeviceModel):
 
     # --- internals -----------------------------------------------------------------------
 
-    def _get(self, reg: Register) -> int:
-        index, size, signed = _LAYOUT[reg]
-        return int.from_bytes(self._ram[index : index + size], "little", signed=signed)
-
-    def _put(self, reg: Register, value: int) -> None:
-        self._ram[reg.index : reg.index + reg.size] = reg.encode_value(value)
-
     @property
     def _blocked(self) -> bool:
         """True while a fault forbids motion (stall, over-current, over-temperature)."""
         return bool(self._trips) or self._over_temperature
 
     def _stop(self) -> None:
-        self._goal = None
-        self._velocity = 0.0
+        self._motion.stop()
         self._pending.clear()
 
     def _reported_position(self) -> int:
         """The position with the measurement noise, clamped as the status reports it."""
-        pos = self._position
+        pos = self._motion.position
         if self._noise:
             pos += self._rng.gauss(0.0, self._noise)
         return min(REPORTED_POSITION_MAX, max(REPORTED_POSITION_MIN, round(pos)))
-
-    def _adopt(self, target: int, follow: bool) -> None:
-        """Start driving toward ``target`` (after the dead time, if any)."""
-        if self._goal is None or not self._follow or not follow:
-            self._chase = self._position
-        self._goal = target
-        self._follow = follow
-        distance = target - self._position
-        half = self._dead_band / 2
-        if abs(distance) <= half:
-            self._aim = self._position
-        else:
-            self._aim = target - math.copysign(half, distance)
 
     def _raw_force(self) -> int:
         if not self.force_sensor:
@@ -551,9 +520,9 @@ class LAModel(DeviceModel):
         return min(RAW_FORCE_MAX, max(0, RAW_FORCE_ZERO_COUNTS + self.load_g // GRAMS_PER_COUNT))
 
     def _refresh_live(self) -> None:
-        self._put(Register.POSITION, self._reported_position())
-        self._put(Register.FORCE, self.force)
-        self._put(Register.RAW_FORCE, self._raw_force())
+        self._table.put(Register.POSITION, self._reported_position())
+        self._table.put(Register.FORCE, self.force)
+        self._table.put(Register.RAW_FORCE, self._raw_force())
 
     def _status(self, request_cmd: int, action: int) -> bytes:
         echo = request_cmd if self._echo_request else CMD_CONTROL
@@ -578,7 +547,7 @@ class LAModel(DeviceModel):
 
     def _read(self, cmd: ReadTable) -> bytes:
         self._refresh_live()
-        data = bytes(self._ram[cmd.index : cmd.index + cmd.count])
+        data = self._table.read(cmd.index, cmd.count)
         return build_frame(LA_REPLY_HEADER, bytes((self.id, CMD_READ, cmd.index)) + data)
 
     def _write_reply(self, ident: int, index: int) -> bytes:
@@ -591,25 +560,18 @@ class LAModel(DeviceModel):
         """Apply a table write; return the ID the reply should carry."""
         old_id = self.id
         end = cmd.index + len(cmd.data)
-        protected = {0, 1}
-        for reg in Register:
-            if not reg.writable:
-                protected.update(range(reg.index, reg.index + reg.size))
         target = Register.TARGET
-        before_target = bytes(self._ram[target.index : target.index + target.size])
-        for offset, byte in enumerate(cmd.data):
-            at = cmd.index + offset
-            if at not in protected:
-                self._ram[at] = byte
-        if not ID_MIN <= self._get(Register.ID) <= ID_MAX:
-            self._put(Register.ID, old_id)  # the actuator keeps an address it can answer to
+        before_target = self._table.raw(target)
+        self._table.write(cmd.index, cmd.data)
+        if not ID_MIN <= self._table.get(Register.ID) <= ID_MAX:
+            self._table.put(Register.ID, old_id)  # the actuator keeps an address it can answer to
         if cmd.index <= Register.FORCE_ZERO.index < end:
-            if self._get(Register.FORCE_ZERO) == 1:
+            if self._table.get(Register.FORCE_ZERO) == 1:
                 self._force_offset = self.load_g
-            self._put(Register.FORCE_ZERO, 0)
+            self._table.put(Register.FORCE_ZERO, 0)
         if cmd.index < target.index + target.size and end > target.index:
-            wanted = self._get(target)
-            self._ram[target.index : target.index + target.size] = before_target
+            wanted = self._table.get(target)
+            self._table.set_raw(target, before_target)
             self._position_command(now, CMD_WRITE, wanted, follow=False)
         return old_id if self._id_change_reply == "old" else self.id
 
@@ -620,11 +582,11 @@ class LAModel(DeviceModel):
         if not POSITION_MIN <= target <= POSITION_MAX:
             return  # model choice: an out-of-range target is not adopted
         self._power = PowerState.WORKING
-        self._put(Register.TARGET, target)
+        self._table.put(Register.TARGET, target)
         if self._dead_time:
             self._pending.append((now + self._dead_time, target, follow))
         else:
-            self._adopt(target, follow)
+            self._motion.adopt(target, follow)
 
     def _control(self, action: ControlAction) -> None:
         if action is ControlAction.WORK:
@@ -637,7 +599,7 @@ class LAModel(DeviceModel):
             self._stop()
         elif action is ControlAction.SAVE:
             self._refresh_live()
-            self._flash[:] = self._ram
+            self._table.save()
         elif action is ControlAction.CLEAR_FAULT:
             self._trips.clear()
             self._auto_clears = 0
@@ -650,14 +612,15 @@ class LAModel(DeviceModel):
             return
         start = self._time
         self._time = now
+        motion = self._motion
         while self._pending and self._pending[0][0] <= now:
             due, target, follow = self._pending.pop(0)
-            if self._goal is not None and self.moving and due > start:
-                self._integrate(due - start)
+            if motion.goal is not None and motion.moving and due > start:
+                motion.integrate(due - start)
             start = max(start, due)
-            self._adopt(target, follow)
-        if self._goal is not None and self.moving:
-            self._integrate(now - start)
+            self._motion.adopt(target, follow)
+        if motion.goal is not None and motion.moving:
+            motion.integrate(now - start)
             if self._motor_abnormal and MOVING_CURRENT_MA > MOTOR_ABNORMAL_CLEAR_MA:
                 self._motor_abnormal = False
         for flag, (since, latched) in list(self._trips.items()):
@@ -673,41 +636,10 @@ class LAModel(DeviceModel):
         self._check_temperature()
 
     def _check_temperature(self) -> None:
-        limit = self._get(Register.OVER_TEMPERATURE_LIMIT) / 10
-        recovery = self._get(Register.RECOVERY_TEMPERATURE) / 10
+        limit = self._table.get(Register.OVER_TEMPERATURE_LIMIT) / 10
+        recovery = self._table.get(Register.RECOVERY_TEMPERATURE) / 10
         if not self._over_temperature and self.temperature > limit:
             self._over_temperature = True
             self._stop()
         elif self._over_temperature and self.temperature < recovery:
             self._over_temperature = False
-
-    def _integrate(self, duration: float) -> None:
-        """Move toward the aim for ``duration`` seconds in steps of at most SIM_STEP_S."""
-        steps = max(1, math.ceil(duration / SIM_STEP_S))
-        dt = duration / steps
-        for _ in range(steps):
-            goal = self._aim
-            if self._follow and self._lag_tau:
-                self._chase += (goal - self._chase) * min(1.0, dt / self._lag_tau)
-                if abs(self._aim - self._chase) < 1e-3:
-                    self._chase = self._aim
-                goal = self._chase
-            distance = goal - self._position
-            if self._follow:
-                step = max(-self._vmax * dt, min(self._vmax * dt, distance))
-                self._position += step
-                self._velocity = step / dt
-            else:
-                # Fastest speed from which we can still brake to a stop at the goal.
-                v_wanted = math.copysign(
-                    min(self._vmax, math.sqrt(2.0 * self._accel * abs(distance))), distance
-                )
-                dv = max(-self._accel * dt, min(self._accel * dt, v_wanted - self._velocity))
-                self._velocity += dv
-                self._position += self._velocity * dt
-                if (goal - self._position) * distance <= 0.0:  # reached or passed the goal
-                    self._position = goal
-            if self._position == goal:
-                self._velocity = 0.0
-                if goal == self._aim:
-                    return

@@ -9,21 +9,12 @@ they are read after such a call.
 Memory model: four 220-byte project images laid out exactly as the 0x3E dump (A.5),
 in RAM and in simulated flash.  Programming commands write RAM fields of the project
 selected by the last 0x6E (A0-03); 0x2E copies RAM to flash; 0x1E zeroes both;
-``power_cycle`` reloads RAM from flash.  A cleared image keeps its project number in
-``[0][0]`` and is zero elsewhere (0 steps, so starting it ends at once).
+``power_cycle`` reloads RAM from flash.
 
-Kinematic model (simulator assumptions: doc 000 gives no timing, A0-09/A0-14):
-
-* pulses per revolution = subdivision x 36000 / step_angle_x100 (A.3: 8 x 200 = 1600);
-* a step moves ``run_distance / distance_per_rev`` revolutions;
-* the pulse rate starts at ``min(start_hz, cruise)``, ramps linearly by ``accel_hz``
-  every millisecond (``accel_hz`` 0 = no ramp) to the cruise rate
-  ``speed_rpm / 60 x pulses per rev``, and ramps down the same way (a triangle if the
-  move is too short to reach cruise); speed 0 never moves;
-* a step: wait for its start input (level), switch its outputs and move (cut short,
-  at once, when its stop input is or becomes active), then wait ``delay_ms``; the next
-  step begins :data:`STEP_GAP_S` later (time the controller takes to load a step);
-* stops are immediate whatever the stored stop mode (which is only stored).
+Kinematic model (move profiles, how a project run proceeds step by step):
+``motorbus.sim.project_stepper_motion``.  RAM and flash images:
+``motorbus.sim.project_stepper_memory``.  This module is the device: how each request,
+input change and power cycle acts on them, and when ``EE DD`` is sent.
 
 ``position`` is in motor pulses (a float, forward positive), as of the last call.
 
@@ -48,7 +39,6 @@ Behaviour the manual leaves open (simulator choices):
 from __future__ import annotations
 
 import enum
-import itertools
 import math
 import random
 from collections import deque
@@ -68,13 +58,9 @@ from motorbus.protocol.project_stepper import (
     BASE_STOP_MODE,
     BASE_SUBDIVISION,
     DEFAULT_MOTOR,
-    DUMP_HEADER_SIZE,
-    DUMP_SIZE,
     GLOBAL_REPLY_OPCODES,
     HOME_INPUT,
     MAX_INPUT,
-    MAX_PROJECT,
-    OP_READ,
     OP_STEP_LOOP,
     PROJECT_FINISHED,
     PROJECT_OPCODES,
@@ -100,7 +86,6 @@ from motorbus.protocol.project_stepper import (
     ManualStop,
     MotorSetup,
     OutputPort,
-    ProjectDump,
     ProjectStepperCommand,
     ReadInput,
     ReadProject,
@@ -125,9 +110,19 @@ from motorbus.protocol.project_stepper import (
     StopProject,
     check_motor,
     decode_request,
-    dump_offset,
 )
 from motorbus.sim.model import DeviceModel
+from motorbus.sim.project_stepper_memory import ProjectMemory
+from motorbus.sim.project_stepper_motion import (
+    ACCEL_STEP_S,
+    STEP_GAP_S,
+    Motion,
+    MoveProfile,
+    Phase,
+    Run,
+    pulses_per_rev,
+    step_order,
+)
 
 __all__ = [
     "ACCEL_STEP_S",
@@ -142,22 +137,12 @@ __all__ = [
 
 #: Reply turnaround.  Simulator assumption: doc 000 gives no figure (A0-14).
 DEFAULT_TURNAROUND_S = 1e-3
-#: ``accel_hz`` is read as "Hz per millisecond".  Simulator assumption: the slope unit
-#: is unstated (A.3, A0-09).
-ACCEL_STEP_S = 1e-3
-#: Time between the end of one step and the start of the next.  Simulator assumption
-#: (the controller must load the next step); it also keeps a loop of empty steps from
-#: spinning at one instant.
-STEP_GAP_S = 1e-3
 #: The baud rate of doc 000 (A.1), from the family registry.
 _BAUD = DEFAULT_BAUD[Family.PROJECT_STEPPER]
 #: Oldest step-trace entries are dropped beyond this (a forever loop would grow it).
 MAX_TRACE = 10_000
 #: Output names, in the order OUT1..OUT3 (open collector) then LED1, LED2 (A.3).
 OUTPUT_NAMES = ("OUT1", "OUT2", "OUT3", "LED1", "LED2")
-#: Degrees x 100 in one revolution: pulses/rev = subdivision x 36000 / angle x 100 (A.3).
-_CENTIDEGREES_PER_REV = 36000
-_IMAGE_SIZE = DUMP_SIZE - DUMP_HEADER_SIZE
 
 
 @dataclass(frozen=True, slots=True)
@@ -175,161 +160,18 @@ class StepTrace:
     step: int
 
 
-@dataclass(frozen=True, slots=True)
-class MoveProfile:
-    """A trapezoidal (or triangular) pulse-rate profile; see the module docstring.
-
-    Attributes:
-        pulses: pulses to travel (``math.inf`` = continuous, for jogs and homing).
-        start_rate: pulse rate at the start and end, Hz.
-        peak_rate: highest pulse rate reached, Hz (0 = never moves).
-        accel: ramp slope, Hz/s (0 = no ramp).
-        ramp_time: duration of each ramp, s.
-        cruise_time: time at ``peak_rate``, s (``math.inf`` for continuous moves).
-    """
-
-    pulses: float
-    start_rate: float
-    peak_rate: float
-    accel: float
-    ramp_time: float
-    cruise_time: float
-
-    @classmethod
-    def plan(cls, pulses: float, start_hz: float, cruise_hz: float, accel_hz: float) -> MoveProfile:
-        """Plan a move of ``pulses`` pulses.
-
-        Args:
-            pulses: distance, pulses (``math.inf`` = continuous).
-            start_hz: start frequency, Hz (clipped to the cruise rate).
-            cruise_hz: cruise pulse rate, Hz.
-            accel_hz: accel setting, Hz per :data:`ACCEL_STEP_S` (0 = no ramp).
-
-        Returns:
-            The profile; a zero move lasts 0 s, a move at cruise 0 lasts forever.
-        """
-        if pulses <= 0:
-            return cls(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        if cruise_hz <= 0:
-            return cls(pulses, 0.0, 0.0, 0.0, 0.0, math.inf)
-        f0 = min(float(start_hz), cruise_hz)
-        accel = accel_hz / ACCEL_STEP_S
-        if accel <= 0 or f0 >= cruise_hz:
-            return cls(pulses, f0, cruise_hz, 0.0, 0.0, pulses / cruise_hz)
-        ramp = (cruise_hz - f0) / accel
-        ramp_pulses = (f0 + cruise_hz) / 2 * ramp
-        if pulses >= 2 * ramp_pulses:
-            return cls(pulses, f0, cruise_hz, accel, ramp, (pulses - 2 * ramp_pulses) / cruise_hz)
-        peak = math.sqrt(f0 * f0 + accel * pulses)
-        return cls(pulses, f0, peak, accel, (peak - f0) / accel, 0.0)
-
-    @property
-    def duration(self) -> float:
-        """Total time of the move, s (``math.inf`` if it never ends)."""
-        return 2 * self.ramp_time + self.cruise_time
-
-    def pulses_at(self, t: float) -> float:
-        """Return the pulses travelled ``t`` seconds after the start (clamped to the move)."""
-        if t <= 0 or self.peak_rate <= 0:
-            return 0.0
-        if t >= self.duration:
-            return self.pulses
-        a, f0, tr = self.accel, self.start_rate, self.ramp_time
-        if t < tr:
-            return f0 * t + a * t * t / 2
-        ramp_pulses = f0 * tr + a * tr * tr / 2 if tr > 0 else 0.0
-        if t < tr + self.cruise_time:
-            return ramp_pulses + self.peak_rate * (t - tr)
-        td = t - tr - self.cruise_time
-        return (
-            ramp_pulses + self.peak_rate * self.cruise_time + self.peak_rate * td - a * td * td / 2
-        )
-
-
-@dataclass(slots=True)
-class _Motion:
-    """The motor's current motion: a profile started at ``start`` in direction ``sign``."""
-
-    profile: MoveProfile
-    start: float
-    sign: int
-
-    @property
-    def end(self) -> float:
-        return self.start + self.profile.duration
-
-    def travelled(self, now: float) -> float:
-        return self.sign * self.profile.pulses_at(now - self.start)
-
-
 class _Manual(enum.Enum):
     JOG = "jog"
     SINGLE = "single"
     HOME = "home"
 
 
-class _Phase(enum.Enum):
-    WAIT_START = "wait_start"
-    MOVE = "move"
-    DELAY = "delay"
-
-
-@dataclass(slots=True)
-class _Run:
-    """A running project: the step order of one pass and where it stands."""
-
-    project: int
-    steps: tuple[StepSpec, ...]
-    pulses_per_rev: float
-    distance_per_rev: int
-    order: tuple[int, ...]  # step numbers of one pass, step loop unrolled (A0-15)
-    passes: int | None  # total passes, None = forever (A.4 0x8E 255)
-    started: float
-    notify: bool  # send EE DD at the end
-    pass_index: int = 0
-    position: int = 0  # index into ``order``
-    phase: _Phase = _Phase.WAIT_START
-    phase_end: float = math.inf
-
-    @property
-    def spec(self) -> StepSpec:
-        return self.steps[self.order[self.position] - 1]
-
-    def profile(self, spec: StepSpec) -> MoveProfile:
-        revs = spec.run_distance / self.distance_per_rev if self.distance_per_rev else 0.0
-        cruise = spec.speed_rpm / 60 * self.pulses_per_rev
-        return MoveProfile.plan(revs * self.pulses_per_rev, spec.start_hz, cruise, spec.accel_hz)
-
-
-def _pulses_per_rev(subdivision: int, step_angle_x100: int) -> float:
-    if step_angle_x100 <= 0:
-        return 0.0
-    return subdivision * _CENTIDEGREES_PER_REV / step_angle_x100
-
-
 #: Byte 3 of the 0x5E/0x9E/0xAE replies: 00 as printed, or the request's value echoed.
 GlobalReplyEcho = Literal["zero", "value"]
 
 
-def _step_order(n: int, start: int, end: int, count: int) -> tuple[int, ...]:
-    """One pass: steps 1..n with ``start..end`` repeated ``count`` times in total (A0-15).
-
-    A disabled (0, 0, 0) or impossible loop (outside 1..n) runs every step once.
-    """
-    if not (1 <= start <= end <= n and count >= 1):
-        return tuple(range(1, n + 1))
-    body = tuple(range(start, end + 1))
-    return tuple(range(1, start)) + body * count + tuple(range(end + 1, n + 1))
-
-
 def _reply(b2: int, b3: int, b4: int, b5: int) -> bytes:
     return FF_AA + bytes((b2, b3, b4, b5))
-
-
-def _cleared_image(project: int) -> bytes:
-    image = bytearray(_IMAGE_SIZE)
-    image[dump_offset(0, BASE_NUMBER) - DUMP_HEADER_SIZE] = project
-    return bytes(image)
 
 
 class ProjectStepperModel(DeviceModel):
@@ -392,8 +234,8 @@ class ProjectStepperModel(DeviceModel):
                 )
         self._turnaround_s = float(turnaround_s)
         self._jitter_s = float(turnaround_jitter_s)
-        self._flash: list[bytes] = [_cleared_image(p) for p in range(1, MAX_PROJECT + 1)]
-        self._ram: list[bytearray] = [bytearray(image) for image in self._flash]
+        #: The four project images, in RAM and in flash.
+        self._memory = ProjectMemory()
         self._inputs = [False] * MAX_INPUT
         #: Every step begun by a project run, oldest first (bounded by MAX_TRACE).
         self.trace: deque[StepTrace] = deque(maxlen=MAX_TRACE)
@@ -404,11 +246,11 @@ class ProjectStepperModel(DeviceModel):
         self._current_project = 1
         self._outputs = dict.fromkeys(OUTPUT_NAMES, False)
         self._position = 0.0  # pulses, at the start of ``_motion`` (or now, if idle)
-        self._motion: _Motion | None = None
+        self._motion: Motion | None = None
         self._manual: _Manual | None = None
-        self._run: _Run | None = None
+        self._run: Run | None = None
         self._pending: list[tuple[float, bytes]] = []
-        self._finish_cache: tuple[_Run | None, float | None] | None = None
+        self._finish_cache: tuple[Run | None, float | None] | None = None
 
     # -- test hooks -------------------------------------------------------------------
 
@@ -450,8 +292,7 @@ class ProjectStepperModel(DeviceModel):
         Raises:
             LocalProtocolError: ``project`` is not 1..4.
         """
-        check_int("project", project, 1, MAX_PROJECT)
-        return bytes(self._flash[project - 1] if flash else self._ram[project - 1])
+        return self._memory.image(project, flash=flash)
 
     def set_input(self, n: int, active: bool, now: float) -> None:
         """Drive input ``n`` (1..5) to ``active`` at time ``now`` (s).
@@ -473,9 +314,9 @@ class ProjectStepperModel(DeviceModel):
             self._stop_project(now)
         run = self._run
         if run is not None and active:
-            if run.phase is _Phase.WAIT_START and run.spec.start_input == n:
+            if run.phase is Phase.WAIT_START and run.spec.start_input == n:
                 self._begin_move(run, now)
-            elif run.phase is _Phase.MOVE and run.spec.stop_input == n:
+            elif run.phase is Phase.MOVE and run.spec.stop_input == n:
                 self._end_motion(now)
                 self._begin_delay(run, now)
         if self._manual is _Manual.HOME and active and n == HOME_INPUT:
@@ -527,9 +368,9 @@ class ProjectStepperModel(DeviceModel):
         power-on homing enabled, homing starts at once (A.4 0xAE).
         """
         self._advance(now)
-        self._ram = [bytearray(image) for image in self._flash]
+        self._memory.reload()
         self._reset_volatile(now)
-        if self._base(self._current_project, BASE_POWER_ON_HOMING):
+        if self._memory.base(self._current_project, BASE_POWER_ON_HOMING):
             self._start_manual(_Manual.HOME, now)
 
     # -- commands ---------------------------------------------------------------------
@@ -540,46 +381,49 @@ class ProjectStepperModel(DeviceModel):
         match cmd:
             case SelectProject(project=p, total_steps=n):
                 self._current_project = p
-                self._put(p, 0, BASE_NUMBER, bytes((p, n)))
+                self._memory.put(p, 0, BASE_NUMBER, bytes((p, n)))
             case StepLoop(start=s, end=e, count=c):
-                self._put(cur, 0, BASE_LOOP_START, bytes((s, e, c)))
+                self._memory.put(cur, 0, BASE_LOOP_START, bytes((s, e, c)))
                 return _reply(OP_STEP_LOOP, cur, 0, 0)  # echoes the current project (A0-03)
             case RepeatCount(count=c):
-                self._put(cur, 0, BASE_REPEAT, bytes((c,)))
+                self._memory.put(cur, 0, BASE_REPEAT, bytes((c,)))
                 return _reply(payload[0], cur, 0, 0)
             case StartProject(project=p):
                 self._start_project(p, now)
             case StopProject():
                 self._stop_project(now)
             case ReadProject(project=p):
-                return FF_AA + bytes((OP_READ, p, 0, 0)) + bytes(self._ram[p - 1])
+                return self._memory.dump_bytes(p)
             case SaveProject(project=p):
-                self._flash[p - 1] = bytes(self._ram[p - 1])
+                self._memory.save(p)
             case ClearProject(project=p):
-                self._flash[p - 1] = _cleared_image(p)
-                self._ram[p - 1] = bytearray(self._flash[p - 1])
+                self._memory.clear(p)
             case SetMode4(value=v):
-                self._put(cur, 0, BASE_MODE4, bytes((v,)))
+                self._memory.put(cur, 0, BASE_MODE4, bytes((v,)))
             case SetPowerOnHoming(enabled=on):
-                self._put(cur, 0, BASE_POWER_ON_HOMING, bytes((int(on),)))
+                self._memory.put(cur, 0, BASE_POWER_ON_HOMING, bytes((int(on),)))
             case MotorSetup(subdivision=sub, step_angle_x100=angle):
-                self._put(cur, 0, BASE_SUBDIVISION, sub.to_bytes(2, "little") + bytes((angle,)))
+                self._memory.put(
+                    cur, 0, BASE_SUBDIVISION, sub.to_bytes(2, "little") + bytes((angle,))
+                )
             case DistancePerRev(value=v):
-                self._put(cur, 0, BASE_DISTANCE_PER_REV, v.to_bytes(3, "little"))
+                self._memory.put(cur, 0, BASE_DISTANCE_PER_REV, v.to_bytes(3, "little"))
             case RunDistance(step=s, distance=d):
-                self._put(cur, s, STEP_DISTANCE, d.to_bytes(3, "little"))
+                self._memory.put(cur, s, STEP_DISTANCE, d.to_bytes(3, "little"))
             case DirectionAndStartFrequency(step=s, direction=d, start_hz=f):
-                self._put(cur, s, STEP_DIRECTION, bytes((d,)) + f.to_bytes(2, "little"))
+                self._memory.put(cur, s, STEP_DIRECTION, bytes((d,)) + f.to_bytes(2, "little"))
             case AccelAndSpeed(step=s, accel_hz=a, speed_rpm=v):
-                self._put(cur, s, STEP_ACCEL_HZ, a.to_bytes(2, "little") + v.to_bytes(2, "little"))
+                self._memory.put(
+                    cur, s, STEP_ACCEL_HZ, a.to_bytes(2, "little") + v.to_bytes(2, "little")
+                )
             case StepOutput(step=s, code=c):
-                self._put(cur, s, STEP_OUTPUT, bytes((c,)))
+                self._memory.put(cur, s, STEP_OUTPUT, bytes((c,)))
             case StepDelay(step=s, delay_ms=t):
-                self._put(cur, s, STEP_DELAY_MS, t.to_bytes(3, "little"))
+                self._memory.put(cur, s, STEP_DELAY_MS, t.to_bytes(3, "little"))
             case StartInput(step=s, input_number=n):
-                self._put(cur, s, STEP_START_INPUT, bytes((n,)))
+                self._memory.put(cur, s, STEP_START_INPUT, bytes((n,)))
             case StopInput(step=s, input_number=n):
-                self._put(cur, s, STEP_STOP_INPUT, bytes((n,)))
+                self._memory.put(cur, s, STEP_STOP_INPUT, bytes((n,)))
             case JogForward() | JogReverse() | SingleRun() | Home():
                 kind = {
                     JogForward: _Manual.JOG,
@@ -593,7 +437,7 @@ class ProjectStepperModel(DeviceModel):
                     self._end_motion(now)
                     self._manual = None
             case StopMode(mode=m):
-                self._put(cur, 0, BASE_STOP_MODE, bytes((m,)))
+                self._memory.put(cur, 0, BASE_STOP_MODE, bytes((m,)))
             case SetOutput(port=port, level=level):
                 self._set_port(port, bool(level))
                 return _reply(payload[0], payload[1], port, 0)
@@ -606,17 +450,6 @@ class ProjectStepperModel(DeviceModel):
         if op in PROJECT_OPCODES:
             return _reply(op, payload[1], 0, 0)
         return _reply(op, payload[1], 0, payload[7] if payload[1] in STEP_COMMANDS else 0)
-
-    def _put(self, project: int, block: int, k: int, data: bytes) -> None:
-        off = dump_offset(block, k) - DUMP_HEADER_SIZE
-        self._ram[project - 1][off : off + len(data)] = data
-
-    def _base(self, project: int, k: int) -> int:
-        return self._ram[project - 1][dump_offset(0, k) - DUMP_HEADER_SIZE]
-
-    def _dump(self, project: int) -> ProjectDump:
-        header = FF_AA + bytes((OP_READ, project, 0, 0))
-        return ProjectDump.decode(header + bytes(self._ram[project - 1]))
 
     def _set_port(self, port: int, active: bool) -> None:
         if port == OutputPort.ALL_OUTPUTS:
@@ -652,11 +485,11 @@ class ProjectStepperModel(DeviceModel):
         if self.running:
             return  # the controller is busy: acknowledged, ignored (simulator choice)
         try:
-            dump = self._dump(1)
+            dump = self._memory.dump(1)
             spec = dump.steps[0] if dump.steps else StepSpec(run_distance=0, speed_rpm=0)
         except (RemoteProtocolError, LocalProtocolError):
             return
-        ppr = _pulses_per_rev(dump.subdivision, dump.step_angle_x100)
+        ppr = pulses_per_rev(dump.subdivision, dump.step_angle_x100)
         cruise = spec.speed_rpm / 60 * ppr
         if kind is _Manual.HOME:
             if self._inputs[HOME_INPUT - 1]:
@@ -670,7 +503,7 @@ class ProjectStepperModel(DeviceModel):
             pulses = spec.run_distance / dpr * ppr if dpr else 0.0
             sign = -1 if spec.direction == RotationDirection.REVERSE else 1
         profile = MoveProfile.plan(pulses, spec.start_hz, cruise, spec.accel_hz)
-        self._motion = _Motion(profile, now, sign)
+        self._motion = Motion(profile, now, sign)
         self._manual = kind
 
     def _finish_homing(self, now: float) -> None:
@@ -684,16 +517,16 @@ class ProjectStepperModel(DeviceModel):
         if self.running:
             return  # busy: acknowledged, ignored (simulator choice)
         try:
-            dump = self._dump(project)
+            dump = self._memory.dump(project)
         except RemoteProtocolError:
             return
         n = len(dump.steps)
-        run = _Run(
+        run = Run(
             project=project,
             steps=dump.steps,
-            pulses_per_rev=_pulses_per_rev(dump.subdivision, dump.step_angle_x100),
+            pulses_per_rev=pulses_per_rev(dump.subdivision, dump.step_angle_x100),
             distance_per_rev=dump.distance_per_rev,
-            order=_step_order(n, dump.loop_start, dump.loop_end, dump.loop_count),
+            order=step_order(n, dump.loop_start, dump.loop_end, dump.loop_count),
             passes=None if dump.repeat_count == REPEAT_FOREVER else max(1, dump.repeat_count),
             started=now,
             notify=True,
@@ -704,15 +537,15 @@ class ProjectStepperModel(DeviceModel):
             return
         self._enter_step(run, now)
 
-    def _enter_step(self, run: _Run, t: float) -> None:
+    def _enter_step(self, run: Run, t: float) -> None:
         self.trace.append(StepTrace(t, run.project, run.order[run.position]))
-        run.phase = _Phase.WAIT_START
+        run.phase = Phase.WAIT_START
         run.phase_end = math.inf
         gate = run.spec.start_input
         if gate == 0 or self._inputs[gate - 1]:
             self._begin_move(run, t)
 
-    def _begin_move(self, run: _Run, t: float) -> None:
+    def _begin_move(self, run: Run, t: float) -> None:
         spec = run.spec
         self._apply_step_output(spec.output)  # outputs switch with the motion (A.4 06)
         stop = spec.stop_input
@@ -720,15 +553,15 @@ class ProjectStepperModel(DeviceModel):
             self._begin_delay(run, t)  # the stop input holds the motor
             return
         sign = -1 if spec.direction == RotationDirection.REVERSE else 1
-        self._motion = _Motion(run.profile(spec), t, sign)
-        run.phase = _Phase.MOVE
+        self._motion = Motion(run.profile(spec), t, sign)
+        run.phase = Phase.MOVE
         run.phase_end = self._motion.end
 
-    def _begin_delay(self, run: _Run, t: float) -> None:
-        run.phase = _Phase.DELAY
+    def _begin_delay(self, run: Run, t: float) -> None:
+        run.phase = Phase.DELAY
         run.phase_end = t + run.spec.delay_ms / 1000
 
-    def _next_step(self, run: _Run, t: float) -> None:
+    def _next_step(self, run: Run, t: float) -> None:
         run.position += 1
         if run.position >= len(run.order):
             run.pass_index += 1
@@ -744,7 +577,7 @@ class ProjectStepperModel(DeviceModel):
         if run is not None and run.notify:
             self._pending.append((max(t, self._earliest_finish(run)), PROJECT_FINISHED))
 
-    def _earliest_finish(self, run: _Run) -> float:
+    def _earliest_finish(self, run: Run) -> float:
         # Keep EE DD behind the 4E acknowledgement on the wire.
         return run.started + self._turnaround_s + wire_time(REPLY_SIZE, _BAUD)
 
@@ -763,8 +596,8 @@ class ProjectStepperModel(DeviceModel):
 
     def _next_transition(self) -> float | None:
         run = self._run
-        if run is not None and run.phase is not _Phase.WAIT_START:
-            if run.phase is _Phase.DELAY:
+        if run is not None and run.phase is not Phase.WAIT_START:
+            if run.phase is Phase.DELAY:
                 return run.phase_end
             return run.phase_end if run.phase_end < math.inf else None
         if self._manual is _Manual.SINGLE and self._motion is not None:
@@ -778,10 +611,10 @@ class ProjectStepperModel(DeviceModel):
             if t is None or t > now:
                 break
             run = self._run
-            if run is not None and run.phase is _Phase.MOVE:
+            if run is not None and run.phase is Phase.MOVE:
                 self._end_motion(t)
                 self._begin_delay(run, t)
-            elif run is not None and run.phase is _Phase.DELAY:
+            elif run is not None and run.phase is Phase.DELAY:
                 self._next_step(run, t)
             else:  # a single run reached its distance
                 self._end_motion(t)
@@ -804,38 +637,9 @@ class ProjectStepperModel(DeviceModel):
 
     def _compute_finish(self) -> float | None:
         run = self._run
-        if run is None or not run.notify or run.passes is None:
+        if run is None or not run.notify:
             return None
-        if run.phase is _Phase.WAIT_START:
-            return None
-        t = run.phase_end
-        if run.phase is _Phase.MOVE:
-            t = t + run.spec.delay_ms / 1000
-        more_passes = run.passes - run.pass_index - 1
-        rest = itertools.chain(
-            run.order[run.position + 1 :], itertools.chain.from_iterable([run.order] * more_passes)
-        )
-        moves: dict[int, float | None] = {}
-        for step in rest:
-            if step not in moves:
-                moves[step] = self._move_time(run, step)
-            move = moves[step]
-            if move is None:
-                return None  # a step still to come waits for an input that is not active
-            t = t + STEP_GAP_S  # same operations, same order as the transitions
-            if move:
-                t = t + move
-            t = t + run.steps[step - 1].delay_ms / 1000
-        if not t < math.inf:
+        t = run.finish_time(self._inputs)
+        if t is None:
             return None
         return max(t, self._earliest_finish(run))
-
-    def _move_time(self, run: _Run, step: int) -> float | None:
-        """Duration of the move of ``step`` with today's input levels; None if it waits."""
-        spec = run.steps[step - 1]
-        gate, stop = spec.start_input, spec.stop_input
-        if gate and not self._inputs[gate - 1]:
-            return None
-        if stop and self._inputs[stop - 1]:
-            return 0.0
-        return run.profile(spec).duration

@@ -1,0 +1,432 @@
+"""What lies at a position of the byte stream: the reassembler's frame-by-frame verdicts.
+
+``protocol/reassembler.py`` walks the stream, keeps the bytes between reads and counts
+what it discards; at each candidate header it asks :class:`FrameJudge` what is there:
+
+* ``parse_at``: a complete frame (or ``EE DD``), a frame still lacking bytes, a hold
+  (a dump whose header matched, or a checksum-less candidate with an unfinished LA
+  frame inside it), or an invalid candidate with the reason it is one.  The rules by
+  which each family is cut (checksums, expected reply shapes, checksummed frames win
+  over checksum-less ones) are described in ``protocol/reassembler.py``'s docstring.
+* ``later_valid_frame``: the first complete checksum-valid frame after a position,
+  which proves an incomplete header before it garbage.  Its answers are kept across
+  reads in a ``valid_index.ValidIndex`` so that work per byte stays bounded.
+* ``unexpected_run``: how many bytes a refused stepper reply costs.
+
+The frame sizes come from ``protocol/frames.py``.  Sans-I/O, pure: positions in
+``buf`` are relative to the bytes being scanned, whose stream offset is ``base``.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections.abc import Iterable
+
+from motorbus.protocol.base import (
+    FF_AA,
+    LA_REPLY_HEADER,
+    LA_REQUEST_HEADER,
+    PROJECT_FINISHED_BYTES,
+    Direction,
+    Family,
+    FrameShape,
+    ProjectFinishedMarker,
+)
+from motorbus.protocol.frames import (
+    LA_MIN_LEN,
+    PROJECT_DUMP_SIZE,
+    PROJECT_REQUEST_SIZE,
+    QUAD_REQUEST_SIZE,
+    STEPPER_REPLY_SIZE,
+    Frame,
+    Item,
+)
+from motorbus.protocol.valid_index import ValidIndex, sum8_at
+
+__all__ = [
+    "COMPLETE",
+    "HEADER_FIRST_BYTES",
+    "INCOMPLETE",
+    "INVALID",
+    "UNEXPECTED",
+    "WAIT",
+    "FrameJudge",
+    "discard_reason",
+]
+
+_QUAD_ONLY_ADDRESSES = frozenset((0x09, 0xBC))  # "all motors" and "save" (doc 001 B.2)
+_DUMP_SHAPE = FrameShape.exact(PROJECT_DUMP_SIZE, 0xFF, 0xAA, 0x3E, frozenset(range(1, 5)), 0, 0)
+_ANY_STEPPER_REPLY = FrameShape.exact(STEPPER_REPLY_SIZE, 0xFF, 0xAA)
+#: First bytes of every header: a buffer ending in one may be cut mid-header.
+HEADER_FIRST_BYTES = frozenset((0x55, 0xAA, 0xFF, 0xEE))
+
+# Outcome of trying to parse a frame at a position.
+COMPLETE = 0
+#: The frame at this position lacks bytes of its own; a later valid frame may prove it garbage.
+INCOMPLETE = 1
+INVALID = 2
+#: Hold the stream here until more bytes come, with no skipping ahead: a dump whose header
+#: matched, or a checksum-less candidate with an unfinished LA frame starting inside it.
+WAIT = 3
+
+# Why an ``INVALID`` candidate is refused (the size slot of its verdict).
+_BAD_LENGTH = 1
+_BAD_CHECKSUM = 2
+UNEXPECTED = 3
+_OVERLAP = 4
+_REASONS = {
+    _BAD_LENGTH: "bad length",
+    _BAD_CHECKSUM: "bad checksum",
+    UNEXPECTED: "unexpected reply shape",
+    _OVERLAP: "overlaps an LA frame",
+}
+
+
+def discard_reason(code: int) -> str:
+    """The discard reason for the code of an ``INVALID`` verdict."""
+    return _REASONS.get(code, "invalid")
+
+
+# Verdicts of ``_la_inside``.
+_CLEAR = 0
+_REFUSE = 1
+_HOLD = 2
+
+
+class FrameJudge:
+    """Verdicts on candidate frames for one stream's direction and families.
+
+    Args:
+        direction: ``REPLY``, ``REQUEST`` or ``None`` for both, as for the reassembler.
+        families: the device families that may appear on the stream.
+
+    Attributes the reassembler sets: ``expected`` (the acceptable stepper reply shapes,
+    ``None`` for the default), ``base`` (the stream offset of ``buf[0]`` in the bytes
+    being scanned) and ``index`` (a fresh ``ValidIndex`` when the stream ends).
+    """
+
+    def __init__(self, direction: Direction | None, families: Iterable[Family]) -> None:
+        families = frozenset(families)
+        self.direction = direction
+        self.expected: tuple[FrameShape, ...] | None = None
+        self.base = 0
+        self.index = ValidIndex()
+        la = Family.LA in families
+        project = Family.PROJECT_STEPPER in families
+        quad = Family.QUAD_STEPPER in families
+        headers: list[bytes] = []
+        la_headers: list[bytes] = []
+        if la and direction in (Direction.REPLY, None):
+            la_headers.append(LA_REPLY_HEADER)
+        if la and direction in (Direction.REQUEST, None):
+            la_headers.append(LA_REQUEST_HEADER)
+        headers += la_headers
+        if project or quad:
+            headers.append(FF_AA)
+        if project and direction in (Direction.REPLY, None):
+            headers.append(PROJECT_FINISHED_BYTES)
+        #: Every header this stream may carry, in the order the scanner searches them.
+        self.headers = tuple(headers)
+        #: LA headers this stream may carry: a stepper candidate that one of them starts
+        #: inside of is checked against it (checksummed frames win).
+        self._la_headers = tuple(la_headers)
+        #: Headers of self-validating frames (the only ones that prove a header garbage).
+        valid_headers = list(la_headers)
+        if (project or quad) and direction is not Direction.REPLY:
+            valid_headers.append(FF_AA)
+        self._valid_headers = tuple(valid_headers)
+        self._project = project
+        self._quad = quad
+
+    def parse_at(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
+        """Try to parse one item at ``p``: (state, size or reason code, item)."""
+        b0 = buf[p]
+        if b0 == 0xAA:  # AA 55: LA reply
+            return self._parse_la(buf, p, Direction.REPLY)
+        if b0 == 0x55:  # 55 AA: LA request
+            return self._parse_la(buf, p, Direction.REQUEST)
+        if b0 == 0xEE:  # EE DD between frames
+            return COMPLETE, 2, ProjectFinishedMarker()
+        return self._parse_stepper(buf, p, final)
+
+    def _parse_la(self, buf: bytes, p: int, direction: Direction) -> tuple[int, int, Item | None]:
+        avail = len(buf) - p
+        if avail < 3:
+            return INCOMPLETE, 0, None
+        length = buf[p + 2]
+        if length < LA_MIN_LEN:
+            return INVALID, _BAD_LENGTH, None
+        total = length + 5
+        if avail < total:
+            return INCOMPLETE, 0, None
+        end = p + total
+        if sum8_at(buf, p + 2, end - 1) != buf[end - 1]:
+            return INVALID, _BAD_CHECKSUM, None
+        return COMPLETE, total, Frame(Family.LA, direction, buf[p:end])
+
+    def _parse_stepper(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
+        avail = len(buf) - p
+        if self.direction is not Direction.REPLY:
+            state, size, item = self._parse_stepper_request(buf, p, avail, final)
+            if state != INVALID or self.direction is Direction.REQUEST:
+                return state, size, item
+        return self._parse_stepper_reply(buf, p, avail, final)
+
+    def _parse_stepper_request(
+        self, buf: bytes, p: int, avail: int, final: bool
+    ) -> tuple[int, int, Item | None]:
+        """A checksummed ``FF AA`` request: 9 bytes (quad) or 11 (project).
+
+        With both families possible, the two checksums decide (see the module
+        docstring); a candidate is refused if a checksum-valid LA frame starts inside it.
+        """
+        quad_ok = (
+            self._quad
+            and avail >= QUAD_REQUEST_SIZE
+            and sum8_at(buf, p, p + QUAD_REQUEST_SIZE - 1) == buf[p + QUAD_REQUEST_SIZE - 1]
+        )
+        candidates: list[tuple[int, Family]] = []
+        waiting = False
+        if self._project:
+            end = p + PROJECT_REQUEST_SIZE
+            if avail < PROJECT_REQUEST_SIZE:
+                waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
+            elif sum8_at(buf, p, end - 1) == buf[end - 1]:
+                # If the 9-byte checksum holds too, the 11-byte frame is preferred; it
+                # cannot end in the ``FF AA`` of a next frame (see the module docstring).
+                candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
+        if quad_ok:
+            candidates.append((QUAD_REQUEST_SIZE, Family.QUAD_STEPPER))
+        elif self._quad and avail < QUAD_REQUEST_SIZE:
+            waiting = True
+        refused = False
+        for size, family in candidates:
+            verdict = self._la_inside(buf, p, size, final)
+            if verdict == _CLEAR:
+                return COMPLETE, size, Frame(family, Direction.REQUEST, buf[p : p + size])
+            if verdict == _HOLD:
+                return WAIT, 0, None
+            refused = True
+        if waiting and not final and not refused:
+            return INCOMPLETE, 0, None
+        return INVALID, _OVERLAP if refused else _BAD_CHECKSUM, None
+
+    def _parse_stepper_reply(
+        self, buf: bytes, p: int, avail: int, final: bool
+    ) -> tuple[int, int, Item | None]:
+        shapes = self.expected
+        if shapes is None:
+            shapes = (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if self._project else (_ANY_STEPPER_REPLY,)
+        head = buf[p : p + min(avail, 8)]
+        refused = False
+        for shape in shapes:  # in order of preference: the first fitting shape wins
+            if not shape.matches(head):
+                continue
+            size = shape.length
+            if avail < len(shape.pattern) or avail < size:
+                if size > STEPPER_REPLY_SIZE and avail >= len(shape.pattern) and not final:
+                    # A dump whose header matched is consumed whole: its data may hold
+                    # anything (AA 55, FF AA, EE DD), so nothing inside may cut it short.
+                    return WAIT, 0, None
+                return INCOMPLETE, 0, None  # fits so far: wait for the rest
+            if size <= STEPPER_REPLY_SIZE:
+                verdict = self._la_inside(buf, p, size, final)
+                if verdict == _REFUSE:
+                    refused = True
+                    continue
+                if verdict == _HOLD:
+                    return WAIT, 0, None
+            raw = buf[p : p + size]
+            return COMPLETE, size, Frame(self._stepper_family(raw), Direction.REPLY, raw)
+        if refused:
+            return INVALID, _OVERLAP, None
+        # The refused reply may still be arriving: wait for its bytes (or a header), so
+        # that a reply split across reads is discarded as one run, as a whole one is.
+        still_arriving = avail < STEPPER_REPLY_SIZE and not final
+        if still_arriving and self.unexpected_run(buf, p) >= p + avail - 1:
+            return INCOMPLETE, 0, None
+        return INVALID, UNEXPECTED, None
+
+    def _la_inside(self, buf: bytes, p: int, size: int, final: bool) -> int:
+        """Does a checksummed LA frame start inside the candidate ``buf[p : p + size]``?
+
+        ``_REFUSE`` if a complete, checksum-valid one starts at ``p + 1 .. p + size - 1``
+        (checksummed frames win); ``_HOLD`` if one may still (its header is there but
+        its bytes are not, and no later valid frame proves that header garbage);
+        ``_CLEAR`` otherwise.  At the end of the stream nothing is held.
+        """
+        headers = self._la_headers
+        if not headers:
+            return _CLEAR
+        last = p + size - 1  # the last byte at which an inner frame may start
+        hold = False
+        for header in headers:
+            q = buf.find(header, p + 1, last + 2)
+            while q >= 0:
+                direction = Direction.REPLY if header == LA_REPLY_HEADER else Direction.REQUEST
+                state, _, _ = self._parse_la(buf, q, direction)
+                if state == COMPLETE:
+                    return _REFUSE
+                if state == INCOMPLETE and not final and not hold:
+                    hold = self.later_valid_frame(buf, q + 1) < 0
+                q = buf.find(header, q + 1, last + 2)
+        # A candidate whose last byte is the first half of an LA header is not held for
+        # the next byte: a request's checksum byte is 0x55 once in 256, and a simulator
+        # holding that request would stall the bus until the host timed out.
+        return _HOLD if hold else _CLEAR
+
+    def unexpected_run(self, buf: bytes, p: int) -> int:
+        """End of the refused stepper reply at ``p``: up to 6 bytes, or the next header."""
+        n = len(buf)
+        end = p + 1
+        limit = min(p + STEPPER_REPLY_SIZE, n)
+        while end < limit:
+            if end == n - 1 and buf[end] in HEADER_FIRST_BYTES:
+                break
+            if any(buf.startswith(h, end) for h in self.headers):
+                break
+            end += 1
+        return end
+
+    def _stepper_family(self, raw: bytes) -> Family:
+        if not self._quad:
+            return Family.PROJECT_STEPPER
+        if not self._project:
+            return Family.QUAD_STEPPER
+        # Both possible (motorbus decode without --family): the only telling bytes
+        # are the address values each controller alone uses (A0-05).
+        b2, b3 = raw[2], raw[3]
+        if b2 in _QUAD_ONLY_ADDRESSES or (b2 == 0 and b3 == 0x09):
+            return Family.QUAD_STEPPER
+        return Family.PROJECT_STEPPER
+
+    def later_valid_frame(self, buf: bytes, start: int) -> int:
+        """Position of the first complete checksum-valid frame at or after ``start``, or -1.
+
+        Only self-validating frames count (LA frames, stepper requests): a stepper
+        reply has no checksum, so finding one proves nothing.  The answer comes from
+        an index kept across ``feed`` calls (``ValidIndex``): each candidate header is
+        judged when first seen and again only when bytes it depends on arrive, so a
+        stream of look-alike headers costs bounded work per byte however it is read.
+        """
+        ix = self.index
+        base = self.base
+        n_abs = base + len(buf)
+        s = base + start
+        if s >= n_abs:
+            return -1
+        if s > ix.to:
+            ix.restart(s)
+        elif s < ix.lo:
+            # Positions before the index (a query from inside an earlier candidate).
+            self._index_range(buf, s, ix.lo)
+            ix.lo = s
+        valid = ix.valid
+        if valid and valid[0] < base:
+            ix.prune(base)
+        due = ix.due
+        while due and due[0][0] <= n_abs:
+            _, q = heapq.heappop(due)
+            if q >= base:
+                self._judge(buf, q)
+            else:
+                ix.forget(q)
+        if valid:
+            found = ix.first_valid(s)
+            if found >= 0:
+                return found - base
+        if ix.to >= n_abs - 1:
+            return -1  # every place a header can start is judged: none is valid
+        return self._extend_index(buf, s)
+
+    def _extend_index(self, buf: bytes, s: int) -> int:
+        """Index candidates from ``ix.to`` on until one is valid at or after ``s``."""
+        ix = self.index
+        base = self.base
+        n = len(buf)
+        nxt = ix.next
+        headers = self._valid_headers
+        last = base + n - 1  # a header needs two bytes: none can start here yet
+        while True:
+            best = -1
+            for i, header in enumerate(headers):
+                q = nxt[i]
+                if q < ix.to:
+                    # Unknown (-1), stale (found before ``to``), or none before ``-q - 2``.
+                    since = max(ix.to, -q - 2, base)
+                    if since >= last:
+                        continue
+                    found = buf.find(header, since - base)
+                    q = nxt[i] = found + base if found >= 0 else -last - 2
+                    if found < 0:
+                        continue
+                if best < 0 or q < best:
+                    best = q
+            if best < 0:
+                ix.to = max(ix.to, base + n - 1)
+                return -1
+            ix.to = best + 1
+            if self._judge(buf, best) and best >= s:
+                return best - base
+
+    def _index_range(self, buf: bytes, lo: int, hi: int) -> None:
+        """Judge every candidate header at stream offsets ``lo <= q < hi``."""
+        base = self.base
+        for header in self._valid_headers:
+            q = buf.find(header, lo - base, hi - base + 1)
+            while q >= 0:
+                self._judge(buf, q + base)
+                q = buf.find(header, q + 1, hi - base + 1)
+
+    def _judge(self, buf: bytes, q_abs: int) -> bool:
+        """Is the candidate at stream offset ``q_abs`` a complete valid frame now?
+
+        Records the answer in the index, and when later bytes may change it.
+        """
+        p = q_abs - self.base
+        n = len(buf)
+        avail = n - p
+        if buf[p] == 0xFF:
+            state, _, _ = self._parse_stepper_request(buf, p, avail, True)
+            due = self._request_due(buf, p, avail)
+        else:
+            state, _, _ = self._parse_la(buf, p, Direction.REPLY)
+            if avail < 3:
+                due = p + 3
+            elif buf[p + 2] < LA_MIN_LEN:
+                due = -1
+            else:
+                total = buf[p + 2] + 5
+                due = p + total if avail < total else -1
+        valid = state == COMPLETE
+        self.index.record(q_abs, valid, due + self.base if due >= 0 else -1)
+        return valid
+
+    def _request_due(self, buf: bytes, p: int, avail: int) -> int:
+        """Where a stepper request's verdict (at ``p``) may next change, or -1 if never.
+
+        Before the shortest request is in, nothing is decided: when it is.  Then, until
+        the widest window (11 bytes and the header that may start at its last byte) is
+        in: at the next byte.  Then: when an LA frame starting inside it is complete.
+        """
+        shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
+        if avail < shortest:
+            return p + shortest
+        window = PROJECT_REQUEST_SIZE + 1
+        if avail < window:
+            return p + avail + 1
+        due = -1
+        n = p + avail
+        for header in self._la_headers:
+            q = buf.find(header, p + 1, p + window)
+            while q >= 0:
+                if n - q < 3:
+                    d = q + 3
+                elif buf[q + 2] >= LA_MIN_LEN and n - q < buf[q + 2] + 5:
+                    d = q + buf[q + 2] + 5
+                else:
+                    d = -1
+                if d >= 0 and (due < 0 or d < due):
+                    due = d
+                q = buf.find(header, q + 1, p + window)
+        return due
