@@ -61,6 +61,7 @@ BAD: dict[str, list[tuple[Any, str | None]]] = {
     "low_latency": [("off", None), ("false", None), (0, None), (1, None)],
     "share": [("yes", None), ("true", None), (1, None), (0, None)],
     "guard": [("on", None), ("false", None), (1, None), (1.0, None)],
+    "la_stroke_mm": [(0, None), (0.5, None), (1001, None), ("30", None), (True, None), (NAN, None)],
     "min_spacing_ms": [
         (True, None),
         ("1", None),
@@ -226,6 +227,9 @@ def test_the_brief_examples_are_refused_with_their_key_and_bus() -> None:
         ("guard", True, True),
         ("backend", "pyserial-asyncio", "pyserial-asyncio"),
         ("la_safe_action", "hold", "hold"),
+        ("la_stroke_mm", 1, 1.0),
+        ("la_stroke_mm", 30, 30.0),
+        ("la_stroke_mm", 1000, 1000.0),
     ],
 )
 def test_boundary_values_are_accepted(key: str, value: Any, stored: Any) -> None:

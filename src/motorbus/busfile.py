@@ -41,6 +41,8 @@ min_spacing_ms      finite number 0..100 (default 1; the LA manual asks >= 1 ms)
 host_margin_ms      finite number 0..10000 (default 2, 20 for socket:// and rfc2217://)
 retries             integer 0..10 (default 1)
 la_safe_action      pause | estop | hold (default pause)
+la_stroke_mm        finite number 1..1000, the LA actuators' stroke in millimetres
+                    (``BusManager.la()`` gives them ``stroke_mm``; default none)
 devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, ranges
                     low-high), ``project-stepper[:motor=N]`` (N a valid motor byte,
                     see ``protocol.project_stepper.check_motor``), ``quad-stepper``
@@ -103,6 +105,7 @@ BUS_KEYS = frozenset(
         "host_margin_ms",
         "retries",
         "la_safe_action",
+        "la_stroke_mm",
         "devices",
     }
 )
@@ -301,6 +304,9 @@ def _check_fields(values: Mapping[str, Any]) -> dict[str, Any]:
         ),
         "retries": lambda v: check_int("retries", v, 0, RETRIES_MAX),
         "la_safe_action": lambda v: _check_choice("la_safe_action", v, _SAFE_ACTIONS),
+        "la_stroke_mm": lambda v: (
+            None if v is None else check_number("la_stroke_mm", v, 1.0, 1000.0, "mm")
+        ),
     }
     out = {key: checks[key](value) for key, value in values.items() if key in checks}
     if out.get("rs485") and out.get("backend") == "serialx":
@@ -336,6 +342,7 @@ class BusSpec:
     host_margin_ms: float = DEFAULT_HOST_MARGIN_S * 1e3
     retries: int = 1
     la_safe_action: str = "pause"
+    la_stroke_mm: float | None = None
 
     def __post_init__(self) -> None:
         values = {key: getattr(self, key) for key in BUS_KEYS if key != "devices"}

@@ -389,8 +389,8 @@ class BusManager:
             ) from None
 
     def la(self, bus: str, id: int) -> InspireLA:
-        """The LA actuator ``id`` on bus ``bus``."""
-        return InspireLA(self.bus(bus), id)
+        """The LA actuator ``id`` on bus ``bus`` (with the bus's ``la_stroke_mm``)."""
+        return InspireLA(self.bus(bus), id, stroke_mm=self.specs[bus].la_stroke_mm)
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""

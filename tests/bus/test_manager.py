@@ -83,3 +83,21 @@ async def test_many_buses_stream_and_stop_safely() -> None:
         assert all(b.state is BusState.CLOSED for b in mgr.buses.values())
         with pytest.raises(LocalProtocolError, match="no bus named"):
             mgr.la("nope", 1)
+
+
+async def test_la_stroke_mm_of_a_bus_reaches_its_actuators() -> None:
+    async with MemorySim.start([LAModel(1)]) as sim:
+        mgr = BusManager()
+        mgr.add_bus(
+            "arm",
+            "memory://arm",
+            baud=921600,
+            devices=["la:1"],
+            transport=sim.transport,
+            la_stroke_mm=30,
+        )
+        async with mgr:
+            actuator = mgr.la("arm", 1)
+            assert actuator.stroke_mm == 30.0
+            await actuator.move_to_mm(15.0)
+            assert (await actuator.status()).target == 1000
