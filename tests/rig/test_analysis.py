@@ -175,3 +175,14 @@ def test_peak_speed_ignores_replies_read_late() -> None:
     samples.sort(key=lambda s: s.t)
     fig = step_figures(samples, 0.0, 500.0, 1500.0)
     assert fig.peak_speed_units_per_s == pytest.approx(1000.0, rel=0.02)
+
+
+def test_a_noisy_sample_is_not_a_motion() -> None:
+    # At rest at 500 with one spike past the band at 5 ms; the motion starts at 20 ms.
+    def pos(t: float) -> float:
+        if abs(t - 0.005) < 1e-9:
+            return 504.0
+        return 500.0 if t < 0.020 else 500.0 + 1000.0 * (t - 0.020)
+
+    fig = step_figures(sampled(pos, 0.0, 1.0, 0.001), 0.0, 500.0, 1000.0, noise_band=2.0)
+    assert fig.dead_time_ms == pytest.approx(22.0, abs=1.0)

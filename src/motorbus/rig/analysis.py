@@ -139,6 +139,21 @@ def _slope(window: Sequence[Sample]) -> float:
     return _percentile(slopes, 0.5) if slopes else 0.0
 
 
+#: A sample counts as moved past the noise band only if the next ones stay past it too
+#: (one noisy sample is not a motion).
+MOVED_SAMPLES = 3
+
+
+def _moved(samples: Sequence[Sample], level: float, rising: bool) -> float:
+    """Time of the first sample past ``level`` that the next ``MOVED_SAMPLES - 1``
+    samples stay past too, interpolated as in ``_crossing``; NaN if none."""
+    past = [(s.position >= level) if rising else (s.position <= level) for s in samples]
+    for i in range(len(samples)):
+        if all(past[i : i + MOVED_SAMPLES]) and i + MOVED_SAMPLES <= len(samples):
+            return _crossing(samples[max(0, i - 1) :], level, rising)
+    return math.nan
+
+
 def step_figures(
     samples: Sequence[Sample],
     command_t: float,
@@ -155,8 +170,9 @@ def step_figures(
     Args:
         samples: the samples from the write of the target on (earlier ones are ignored),
             at least until the actuator has settled.
-        noise_band: a sample has "moved" once it is more than this many units from
-            ``start`` in the direction of ``end`` (dead time).
+        noise_band: the position has "moved" once it is more than this many units
+            from ``start`` toward ``end`` on ``MOVED_SAMPLES`` samples in a row (dead
+            time; one noisy sample is not a motion).
         settle_band_pct: the settling band, in percent of the step size.
         tail_s: the steady-state error is the mean error of the samples in the last
             ``tail_s`` seconds.
@@ -178,7 +194,7 @@ def step_figures(
     def frac_level(f: float) -> float:
         return start + sign * size * f
 
-    moved_t = _crossing(after, start + sign * noise_band, rising)
+    moved_t = _moved(after, start + sign * noise_band, rising)
     dead_ms = (moved_t - command_t) * 1e3
     t10 = _crossing(after, frac_level(0.1), rising)
     t90 = _crossing(after, frac_level(0.9), rising)
