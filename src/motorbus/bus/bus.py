@@ -42,11 +42,8 @@ frame is counted as ``early_replies`` and logged, never silently made a timeout.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import enum
-import heapq
-import itertools
 import logging
 import math
 import os
@@ -65,7 +62,9 @@ from motorbus.bus.events import (
 )
 from motorbus.bus.lease_shell import LeaseKeeper
 from motorbus.bus.leases import Lease, LeaseInfo
+from motorbus.bus.matching import DoneWatch, Matcher, TimedOut, Verdict, wire_floor
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
+from motorbus.bus.schedule import Job, Priority, ReservationSource, Scheduler, Wait
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
 from motorbus.errors import (
@@ -86,7 +85,6 @@ from motorbus.protocol.base import (
     check_int,
     check_timeout,
     format_hex,
-    wire_time,
 )
 from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from motorbus.transport.base import Transport
@@ -124,26 +122,10 @@ DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 
 #: device's late answer (if it comes) arrives before a new question it could be
 #: mistaken for.  Requests to other devices are not held.
 DEFAULT_LATE_GUARD_S = 20e-3
-#: Quad stepper "done" replies awaited at once, at most: more outstanding runs than
-#: this means done replies are being lost (four motors and the LEDs fit easily).
-MAX_DONE_WATCHES = 16
-#: How long a timed-out request is remembered to recognise its late reply.
-LATE_WINDOW_S = 2.0
-#: With ``wire_floor=True`` (a real UART that paces bytes at the baud), a reply cannot
-#: complete before its request and itself have crossed the wire; 10 % is allowed for
-#: baud-rate tolerance before a frame is called "too early to be ours".  Off by default:
-#: ptys, USB-CDC devices and TCP bridges deliver far sooner than the wire would.
-WIRE_FLOOR_FACTOR = 0.9
 #: A timer callback that runs this much after its deadline means the host (not the
 #: device) stalled: a full garbage collection, another process on the core.  Timeouts
 #: and late replies decided then are counted apart (``BusStats.host_stalls``).
 HOST_STALL_S = 1e-3
-#: What a write is assumed to take when a request is fitted before a reserved stream
-#: tick: the largest recent write duration, decaying by this factor a write, within
-#: these bounds (seconds).  A write that takes longer only slips the tick (counted).
-WRITE_COST_DECAY = 0.99
-WRITE_COST_MIN_S = 50e-6
-WRITE_COST_MAX_S = 500e-6
 #: Retries of each safe-action command a lease's end sends (pause, e-stop, stop project,
 #: stop all are idempotent: sending one twice is harmless, missing one is not).
 SAFE_STOP_RETRIES = 2
@@ -151,15 +133,6 @@ SAFE_STOP_RETRIES = 2
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
 RECONNECT_MAX_S = 2.0
-
-
-class Priority(enum.IntEnum):
-    """Queue order; lower goes first."""
-
-    EMERGENCY = 0  # e-stop, stop-all: jump the queue
-    HIGH = 1
-    NORMAL = 2
-    BACKGROUND = 3  # status polling that yields to everything else
 
 
 class BusObserver(Protocol):
@@ -183,55 +156,21 @@ class BusState(enum.Enum):
 #: Called at the moment a queued frame is written: returns the command to send now
 #: (rebuilt from what is still wanted) or None to drop it unsent.
 Refresh = Callable[[], "Command[object] | None"]
-#: A source of reserved bus windows: given the time now, the earliest (start, end) window
-#: that ends after now, or None.
-ReservationSource = Callable[[float], "tuple[float, float] | None"]
 
 
-@dataclass(slots=True, eq=False)
-class _Job:
-    """One request travelling through the bus."""
+@dataclass(slots=True, eq=False, kw_only=True)
+class _Job(Job):
+    """One request travelling through the bus: the pure core's record (``Job``), and
+    beside it what the asyncio shell keeps: its future and its timer handles."""
 
-    cmd: Command[object]
-    raw: bytes
     future: asyncio.Future[Any]
-    priority: int
-    seq: int
-    timeout: float
-    retries_left: int
-    key: str
-    after_write: float = 0.0  # completed write to the earliest next write (Occupancy)
-    tx_time: float = 0.0  # when the write returned
-    rx_mark: int = 0  # stream offset of the first received byte that may be its reply
-    earliest: float = 0.0  # wire floor (wire_floor=True only)
-    deadline: float = 0.0
-    handle: TimerHandle | None = None
-    attempts: int = 0
-    reserved: bool = False  # a stream tick's frame: it owns the reserved window
+    handle: TimerHandle | None = None  # its reply deadline
     refresh: Refresh | None = None
     start_by: float = math.inf
-    expiry: TimerHandle | None = None
+    expiry: TimerHandle | None = None  # its start_by
 
-    def __lt__(self, other: _Job) -> bool:
-        return (self.priority, self.seq) < (other.priority, other.seq)
-
-
-@dataclass(slots=True)
-class _Timeout:
-    cmd: Command[object]
-    key: str
-    until: float  # remembered until then, to recognise its late reply
-    deadline: float  # the deadline it missed
-
-
-@dataclass(slots=True)
-class _DoneWatch:
-    """A quad stepper command whose "done" reply is still to come."""
-
-    shapes: tuple[FrameShape, ...]
-    kind: str
-    led: int | None
-    cmd: Command[object]
+    def gone(self) -> bool:
+        return self.future.done()
 
 
 @dataclass(slots=True)
@@ -321,23 +260,20 @@ class Bus:
         self.state = BusState.CLOSED
         self._timer = timer
         self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
-        self._heap: list[_Job] = []
-        self._seq = itertools.count()
-        self._pending: _Job | None = None
-        self._next_tx = 0.0
-        self._write_cost = WRITE_COST_MIN_S
+        # The pure core: when frames may start (queue, spacing, late guards,
+        # reservations), and whose frame a received one is (pending request, late
+        # window, done-watches, the shapes the reassembler may cut).
+        self._schedule: Scheduler[_Job] = Scheduler()
+        self._matcher: Matcher[_Job] = Matcher(
+            self.families, wire_floor=wire_floor, on_shapes=self._expect_shapes
+        )
         self._rx_total = 0  # bytes handed to the reassembler since the port opened
-        self._reservation_sources: list[ReservationSource] = []
-        self._expected_shapes: tuple[FrameShape, ...] | None = None
         self._close_hooks: list[Callable[[], Awaitable[None]]] = []
         self._close_task: asyncio.Future[None] | None = None
         self._pump_handle: TimerHandle | None = None
         self._pump_at = 0.0
         self._pumping = False
         self._reconnect_task: asyncio.Task[None] | None = None
-        self._timeouts: collections.deque[_Timeout] = collections.deque()
-        self._guard_until: dict[str, float] = {}
-        self._done_watches: list[_DoneWatch] = []
         self._last_errors: dict[int, int] = {}
         self._closing = False
         self._observers: list[BusObserver] = []
@@ -366,7 +302,7 @@ class Bus:
     @property
     def next_write_at(self) -> float:
         """The earliest time (``bus.timer`` clock) the spacing rule allows the next write."""
-        return self._next_tx
+        return self._schedule.next_tx
 
     @property
     def baudrate(self) -> int:
@@ -391,8 +327,7 @@ class Bus:
         """A fresh stream (on open and after a lost port): nothing buffered, offsets at 0."""
         self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
         self._rx_total = 0
-        self._expected_shapes = None
-        self._expect_shapes()
+        self._matcher.update_shapes(force=True)
 
     def _check_adapter_latency(self) -> None:
         """Warn if a USB adapter's latency timer leaves no deadline of this bus a chance.
@@ -611,7 +546,7 @@ class Bus:
             raw=raw,
             future=loop.create_future(),
             priority=int(priority),
-            seq=next(self._seq),
+            seq=self._schedule.next_seq(),
             timeout=budget,
             retries_left=n_retries,
             key=cmd.device_key,
@@ -624,7 +559,7 @@ class Bus:
             job.expiry = self.timer.call_at(
                 job.start_by, lambda: self._drop_unsent(job), precise=False
             )
-        heapq.heappush(self._heap, job)
+        self._schedule.push(job)
         self._pump()  # an idle bus sends right here
         return job.future
 
@@ -727,38 +662,12 @@ class Bus:
         begins; it waits until the window ends.  Emergency frames ignore reservations.
         Streams use this so that user requests never delay a tick.
         """
-        self._reservation_sources.append(source)
+        self._schedule.reservation_sources.append(source)
 
     def remove_reservation_source(self, source: ReservationSource) -> None:
         """Forget a source added with ``add_reservation_source``; unknown ones are ignored."""
         with contextlib.suppress(ValueError):
-            self._reservation_sources.remove(source)
-
-    def _held_by_reservation(self, job: _Job, start: float) -> float | None:
-        """End of the reserved window ``job`` would overlap if started at ``start``."""
-        if job.reserved or job.priority == Priority.EMERGENCY or not self._reservation_sources:
-            return None
-        # The job's own timeout may differ from its budget (``request(timeout=...)``).
-        occupancy = self._write_cost + max(
-            job.after_write, job.timeout if job.cmd.expects_reply else 0.0
-        )
-        for source in self._reservation_sources:
-            window = source(start)
-            if window is None:
-                continue
-            begin, end = window
-            if start >= end or start + occupancy <= begin:
-                continue  # after the window, or done before it begins
-            if start >= begin:
-                return end  # inside the window: wait for its end
-            following = source(end + 1e-9)
-            gap = math.inf if following is None else following[0] - end
-            if occupancy > gap:
-                # No gap between windows is long enough for its whole budget (a long
-                # timeout): it goes now; a tick waits only if the reply is really slow.
-                continue
-            return end
-        return None
+            self._schedule.reservation_sources.remove(source)
 
     # -- writer ------------------------------------------------------------------
     #
@@ -774,27 +683,15 @@ class Bus:
             return  # called back from inside a transmission: the loop below goes on
         self._pumping = True
         try:
-            heap = self._heap
-            while heap and self._pending is None and self.state is BusState.OPEN:
-                job = heap[0]
-                if job.future.done():
-                    heapq.heappop(heap)  # cancelled (or expired) while queued
-                    continue
-                now = self.timer.now()
-                start = max(self._next_tx, self._guard_until.get(job.key, 0.0), now)
-                held = self._held_by_reservation(job, start)
-                if held is not None:
-                    start = held
-                if start > now:
-                    # Spinning the timer's last microseconds costs CPU; it is worth it
-                    # for a tick's frame or a user's request, not for a background poll
-                    # (the spacing rule is a minimum: a late poll breaks nothing).
-                    self._pump_later(
-                        start, precise=job.reserved or job.priority < Priority.BACKGROUND
-                    )
+            matcher, schedule, timer = self._matcher, self._schedule, self.timer
+            while matcher.pending is None and self.state is BusState.OPEN:
+                decision = schedule.poll(timer.now())
+                if decision is None:
                     return
-                heapq.heappop(heap)
-                self._transmit(job)
+                if isinstance(decision, Wait):
+                    self._pump_later(decision.at, precise=decision.precise)
+                    return
+                self._transmit(decision)
         finally:
             self._pumping = False
 
@@ -856,8 +753,7 @@ class Bus:
             # Registered before the write: no callback can run during it, and whatever
             # the reassembler holds or has consumed so far came before it.
             job.rx_mark = self._rx_total
-            self._pending = job
-            self._expect_shapes()
+            self._matcher.sent(job)
         else:
             stats.no_reply_frames += 1
         if log.isEnabledFor(logging.DEBUG):
@@ -871,11 +767,7 @@ class Bus:
             return
         after = timer.now()
         # Spacing counts from the completed write (module docstring).
-        self._next_tx = after + job.after_write
-        took = after - before
-        self._write_cost = min(
-            WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
-        )
+        self._schedule.wrote(job, before, after)
         job.tx_time = after
         if self._observers:
             self._tell(lambda o: o.on_write(cmd, after))
@@ -885,37 +777,17 @@ class Bus:
             self._leases.sent(cmd)
         if expects:
             if self.config.wire_floor:
-                baud = self.baudrate
-                job.earliest = before + WIRE_FLOOR_FACTOR * (
-                    wire_time(len(job.raw), baud) + wire_time(min(cmd.reply_lengths()), baud)
+                job.earliest = wire_floor(
+                    before, len(job.raw), min(cmd.reply_lengths()), self.baudrate
                 )
             job.deadline = after + job.timeout
             job.handle = timer.call_at(job.deadline, self._on_deadline)
         elif not job.future.done():
             job.future.set_result(None)
 
-    def _expect_shapes(self) -> None:
-        """Tell the reassembler which checksum-less stepper replies it may cut now.
-
-        Exactly what the bus awaits: the pending request's replies, the "done" replies
-        still to come, and the replies of requests that timed out recently (so that
-        their late answers are recognised and counted).  Nothing else: stray ``FF AA``
-        bytes are then discarded, never taken for a frame.
-        """
-        if self.families == {Family.LA}:
-            return
-        shapes: list[FrameShape] = []
-        job = self._pending
-        if job is not None:
-            shapes.extend(job.cmd.reply_shapes())
-        for watch in self._done_watches:
-            shapes.extend(watch.shapes)
-        for t in self._timeouts:
-            shapes.extend(t.cmd.reply_shapes())
-        expected = tuple(dict.fromkeys(shapes))
-        if expected != self._expected_shapes:
-            self._expected_shapes = expected
-            self._reassembler.expect(expected)
+    def _expect_shapes(self, shapes: tuple[FrameShape, ...]) -> None:
+        """The matcher's shapes changed: tell the reassembler (``Matcher.update_shapes``)."""
+        self._reassembler.expect(shapes)
 
     def _finish(self, job: _Job, outcome: Any) -> None:
         """Resolve ``job`` with a value or an exception and free the bus."""
@@ -925,9 +797,7 @@ class Bus:
         if job.expiry is not None:
             job.expiry.cancel()
             job.expiry = None
-        if self._pending is job:
-            self._pending = None
-            self._expect_shapes()
+        self._matcher.release(job)
         if not job.future.done():
             if isinstance(outcome, BaseException):
                 self.stats.failed += 1
@@ -939,7 +809,7 @@ class Bus:
     # -- deadlines ---------------------------------------------------------------
 
     def _on_deadline(self) -> None:
-        job = self._pending
+        job = self._matcher.pending
         if job is None:
             return
         job.handle = None
@@ -958,8 +828,8 @@ class Bus:
             # The deadline was decided this late: the host, not the device, was slow.
             stats.timeouts_in_host_stall += 1
             stats.host_stall_max = max(stats.host_stall_max, stalled)
-        self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S, job.deadline))
-        self._guard_until[job.key] = now + self.config.late_guard
+        self._matcher.timed_out(job, now)
+        self._schedule.guard(job.key, now + self.config.late_guard)
         log.debug(
             "%s timeout: %s to %s after %.0f us%s",
             self.name,
@@ -973,10 +843,8 @@ class Bus:
             job.retries_left -= 1
             stats.retries += 1
             stats.device(job.key).retries += 1
-            self._pending = None
-            self._expect_shapes()
-            job.priority = min(job.priority, int(Priority.HIGH))
-            heapq.heappush(self._heap, job)
+            self._matcher.release(job)
+            self._schedule.requeue(job, Priority.HIGH)
             self._pump()
             return
         self._finish(
@@ -1016,31 +884,45 @@ class Bus:
         raw = frame.raw
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s RX %s", self.name, format_hex(raw))
-        job = self._pending
-        if job is not None and start >= job.rx_mark and job.cmd.matches_reply(raw):
-            if now > job.deadline:
-                # Seen after the deadline, whichever callback runs first: late.  The
-                # deadline's own callback has not run yet (the loop was held up), so the
-                # timeout is decided here, and the frame is counted as its late reply.
-                self._expire(job, now)
-            elif self.config.wire_floor and now < job.earliest:
-                self.stats.early_replies += 1
-                log.debug(
-                    "%s frame %s too early for the wire (%.0f us before the floor)",
-                    self.name,
-                    format_hex(raw),
-                    (job.earliest - now) * 1e6,
-                )
-                return
-            else:
-                self._accept(job, raw, now)
-                return
-        if self._match_done(raw, now):
+        matcher = self._matcher
+        job = matcher.pending
+        verdict, about = matcher.classify(raw, start, now)
+        if verdict is Verdict.ACCEPTED:
+            assert job is not None
+            self._accept(job, raw, now)
+        elif verdict is Verdict.OVERDUE:
+            # Seen after the deadline, whichever callback runs first: late.  The
+            # deadline's own callback has not run yet (the loop was held up), so the
+            # timeout is decided here, and the frame is counted as its late reply.
+            assert job is not None
+            self._expire(job, now)
+            verdict, about = matcher.classify(raw, start, now)
+        elif verdict is Verdict.EARLY:
+            assert job is not None
+            self.stats.early_replies += 1
+            log.debug(
+                "%s frame %s too early for the wire (%.0f us before the floor)",
+                self.name,
+                format_hex(raw),
+                (job.earliest - now) * 1e6,
+            )
             return
-        if self._is_late(raw, now):
-            return
-        self.stats.unexpected_frames += 1
-        log.debug("%s unexpected frame %s", self.name, format_hex(raw))
+        if verdict is Verdict.DONE:
+            assert isinstance(about, DoneWatch)
+            rest = safety.at_rest_after_done(about.cmd)
+            if rest is not None:
+                self._leases.sent(rest)  # the run is over: its stop is not owed
+            self._publish(QuadDone(self.name, now, about.kind, raw[2], about.led, raw))
+        elif verdict is Verdict.LATE:
+            assert isinstance(about, TimedOut)
+            stats = self.stats
+            stats.late_replies += 1
+            stats.late_reply_max = max(stats.late_reply_max, now - about.deadline)
+            stats.device(about.key).late_replies += 1
+            log.debug("%s late reply from %s: %s", self.name, about.key, format_hex(raw))
+        elif verdict is Verdict.UNEXPECTED:
+            self.stats.unexpected_frames += 1
+            log.debug("%s unexpected frame %s", self.name, format_hex(raw))
 
     def _accept(self, job: _Job, raw: bytes, now: float) -> None:
         latency = now - job.tx_time
@@ -1058,61 +940,14 @@ class Bus:
         self._leases.note(job.key)  # it answered: "la:255" stands for it too
         if not job.cmd.starts_motion:
             self._leases.sent(job.cmd)  # a safe action answered: no longer owed
-        if job.cmd.done_shapes():
-            self._watch_done(_done_watch(job.cmd))
+        if job.cmd.done_shapes() and self._matcher.watch_done(job.cmd):
+            # Past MAX_DONE_WATCHES: a done reply lost on the line, the oldest forgotten.
+            self.stats.done_watches_dropped += 1
         self._observe(job.cmd.fault_state(value), value, now)
         if self._observers:
             cmd, written = job.cmd, job.tx_time
             self._tell(lambda o: o.on_reply(cmd, value, written, now))
         self._finish(job, value)
-
-    def _watch_done(self, watch: _DoneWatch) -> None:
-        """Remember a "done" reply to come, keeping at most ``MAX_DONE_WATCHES``.
-
-        A done reply that is lost on the line would otherwise be awaited forever, and
-        the list (and the reply shapes the reassembler is given) would grow with every
-        run.  Past the bound the oldest is forgotten and counted.
-        """
-        self._done_watches.append(watch)
-        if len(self._done_watches) > MAX_DONE_WATCHES:
-            del self._done_watches[0]
-            self.stats.done_watches_dropped += 1
-        self._expect_shapes()
-
-    def _match_done(self, raw: bytes, now: float) -> bool:
-        for i, watch in enumerate(self._done_watches):
-            if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
-                del self._done_watches[i]
-                self._expect_shapes()
-                rest = safety.at_rest_after_done(watch.cmd)
-                if rest is not None:
-                    self._leases.sent(rest)  # the run is over: its stop is not owed
-                self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
-                return True
-        return False
-
-    def _is_late(self, raw: bytes, now: float) -> bool:
-        """Recognise the answer to a request whose deadline already ran out.
-
-        Such a frame is never given to the pending request: either it matched no
-        pending request at all, or it began before the pending request was written
-        (``_Job.rx_mark``), or it was seen after that request's deadline, or the
-        per-device late guard kept a same-device request from being sent while it could
-        still arrive.
-        """
-        timeouts = self._timeouts
-        if timeouts and timeouts[0].until < now:
-            while timeouts and timeouts[0].until < now:
-                timeouts.popleft()
-            self._expect_shapes()
-        for t in reversed(timeouts):
-            if t.cmd.matches_reply(raw):
-                self.stats.late_replies += 1
-                self.stats.late_reply_max = max(self.stats.late_reply_max, now - t.deadline)
-                self.stats.device(t.key).late_replies += 1
-                log.debug("%s late reply from %s: %s", self.name, t.key, format_hex(raw))
-                return True
-        return False
 
     def _observe(self, fault: FaultState | None, value: Any, now: float) -> None:
         """Turn the fault flags a reply reports (``Command.fault_state``: the LA's
@@ -1135,10 +970,10 @@ class Bus:
     # -- port loss and reconnect ---------------------------------------------------
 
     def _fail_all(self, err: BaseException) -> None:
-        if self._pending is not None:
-            self._finish(self._pending, err)
-        while self._heap:
-            job = heapq.heappop(self._heap)
+        job = self._matcher.pending
+        if job is not None:
+            self._finish(job, err)
+        for job in self._schedule.drain():
             if not job.future.done():
                 self.stats.failed += 1
                 job.future.set_exception(err)
@@ -1171,7 +1006,7 @@ class Bus:
                 continue
             self.stats.reconnects += 1
             self.state = BusState.OPEN
-            self._next_tx = 0.0
+            self._schedule.restart()
             self._publish_state("open", "reconnected")
             self._pump()
             return
@@ -1218,8 +1053,3 @@ def _check_request_options(timeout: object, retries: object, priority: object) -
             field="priority",
             value=priority,
         )
-
-
-def _done_watch(cmd: Command[object]) -> _DoneWatch:
-    led = getattr(cmd, "led", None)
-    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led, cmd)
