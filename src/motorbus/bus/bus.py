@@ -62,7 +62,7 @@ from motorbus.bus.events import (
 )
 from motorbus.bus.lease_shell import LeaseKeeper
 from motorbus.bus.leases import Lease, LeaseInfo
-from motorbus.bus.matching import DoneWatch, Matcher, TimedOut, Verdict, wire_floor
+from motorbus.bus.matching import DoneWatch, Matcher, TimedOut, Verdict
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
 from motorbus.bus.schedule import Job, Priority, ReservationSource, Scheduler, Wait
 from motorbus.bus.stats import BusStats
@@ -776,11 +776,7 @@ class Bus:
         elif not expects:
             self._leases.sent(cmd)
         if expects:
-            if self.config.wire_floor:
-                job.earliest = wire_floor(
-                    before, len(job.raw), min(cmd.reply_lengths()), self.baudrate
-                )
-            job.deadline = after + job.timeout
+            self._matcher.written(job, before, after, self.baudrate)
             job.handle = timer.call_at(job.deadline, self._on_deadline)
         elif not job.future.done():
             job.future.set_result(None)

@@ -166,6 +166,15 @@ class Matcher(Generic[J]):
         self.pending = job
         self.update_shapes()
 
+    def written(self, job: J, before: float, after: float, baud: int) -> None:
+        """``job`` (``sent``) was written: the call began at ``before`` and returned at
+        ``after``.  Its deadline counts from the completed write, ``after + timeout``,
+        never from earlier; with ``wire_floor``, its reply cannot complete before
+        ``earliest`` (counted from the start of the write)."""
+        if self.wire_floor:
+            job.earliest = wire_floor(before, len(job.raw), min(job.cmd.reply_lengths()), baud)
+        job.deadline = after + job.timeout
+
     def release(self, job: J) -> bool:
         """``job`` no longer holds the bus (answered, failed or to be retried); False
         if it was not the pending request."""
