@@ -163,17 +163,23 @@ def test_a_late_reply_is_not_given_to_the_next_request_to_that_device() -> None:
 
 def test_the_newest_timed_out_request_is_credited_and_old_ones_are_forgotten() -> None:
     matcher: Matcher[Job] = Matcher({Family.LA})
-    for ident, at in ((1, 1.0), (2, 1.5)):
-        job = sent(matcher, status(ident), mark=0, at=at)
+    deadlines = []
+    for at in (1.0, 1.5):  # the same question to la:1 timed out twice
+        job = sent(matcher, status(1), mark=0, at=at)
         matcher.timed_out(job, at + 0.01)
         matcher.release(job)
-    verdict, about = matcher.classify(status_reply(2), 0, 1.6)
-    assert verdict is Verdict.LATE and isinstance(about, TimedOut) and about.key == "la:2"
-    # Past its window, la:1's late reply is nobody's, and la:1 is no longer remembered.
-    assert matcher.classify(status_reply(1), 0, 1.01 + LATE_WINDOW_S + 1e-3)[0] is (
+        deadlines.append(job.deadline)
+    verdict, about = matcher.classify(status_reply(1), 0, 1.6)
+    assert verdict is Verdict.LATE and isinstance(about, TimedOut)
+    assert about.deadline == deadlines[1]
+    # Past the first's window only the second is remembered; past both, nobody's.
+    verdict, about = matcher.classify(status_reply(1), 0, 1.01 + LATE_WINDOW_S + 1e-3)
+    assert verdict is Verdict.LATE and isinstance(about, TimedOut)
+    assert [t.deadline for t in matcher.timeouts] == [deadlines[1]]
+    assert matcher.classify(status_reply(1), 0, 1.51 + LATE_WINDOW_S + 1e-3)[0] is (
         Verdict.UNEXPECTED
     )
-    assert [t.key for t in matcher.timeouts] == ["la:2"]
+    assert not matcher.timeouts
 
 
 # -- done-watches --------------------------------------------------------------------------
