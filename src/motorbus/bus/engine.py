@@ -141,7 +141,7 @@ class BusEngine:
         self._closing = False
         self._observers: list[BusObserver] = []
 
-    if TYPE_CHECKING:  # Bus's public properties, used here
+    if TYPE_CHECKING:  # what Bus defines and this class uses
 
         @property
         def timer(self) -> Timer: ...
