@@ -247,7 +247,7 @@ async def test_a_reply_seen_after_its_deadline_is_late_whichever_callback_runs_f
             )
             await asyncio.sleep(0)
             assert bus.stats.requests == 1
-            deadline = bus._pending.deadline  # type: ignore[union-attr]
+            deadline = bus._matcher.pending.deadline  # type: ignore[union-attr]
             # The host stalls for 5 ms past the deadline; then both become due.
             timer.t = deadline + 5e-3
             if data_first:

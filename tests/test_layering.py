@@ -68,6 +68,18 @@ def test_the_pure_parts_of_streams_import_no_io_and_no_clock() -> None:
 
 #: The modules of ``motorbus.bus`` that are pure arithmetic and data.
 PURE_BUS = {"motorbus.bus.occupancy", "motorbus.bus.stats"}
+#: The bus's sans-I/O core: scheduling and reply matching, driven by a time passed in.
+BUS_CORE = {"motorbus.bus.schedule", "motorbus.bus.matching"}
+
+
+def test_the_bus_core_is_pure() -> None:
+    # Bus (bus/bus.py) is the asyncio shell: timer, transport, futures, reconnect.
+    forbidden = {"asyncio", "anyio", "serial", "time", "socket", "threading", "os"}
+    for module in sorted(BUS_CORE):
+        names = imports_of(SRC / "bus" / (module.rsplit(".", 1)[1] + ".py"))
+        bad = {n.split(".")[0] for n in names} & forbidden
+        bad |= {n for n in names if n.startswith("motorbus.bus.") and n not in PURE_BUS | BUS_CORE}
+        assert not bad, f"{module} imports {bad}"
 
 
 def test_library_modules_do_not_import_sim_or_cli() -> None:

@@ -327,7 +327,7 @@ async def test_simulated_disconnect_fault_and_recovery(pacing: Pacing) -> None:
 @pytest.mark.parametrize("pacing", PACINGS)
 async def test_lost_done_replies_do_not_pile_up(pacing: Pacing) -> None:
     """Done replies that never come are forgotten past a bound, and counted."""
-    from motorbus.bus.bus import MAX_DONE_WATCHES
+    from motorbus.bus.matching import MAX_DONE_WATCHES
     from motorbus.protocol import quad_stepper as q
     from motorbus.sim.quad_stepper import QuadStepperModel
     from tests.conftest import sim_bus
@@ -338,6 +338,6 @@ async def test_lost_done_replies_do_not_pile_up(pacing: Pacing) -> None:
         await bus.request(q.RunPulses(1, 1_000_000))  # long enough not to finish
         for _ in range(MAX_DONE_WATCHES + 5):
             await bus.request(q.Run(1))  # acked each time; the done reply never comes
-        assert len(bus._done_watches) == MAX_DONE_WATCHES
+        assert len(bus._matcher.done_watches) == MAX_DONE_WATCHES
         assert bus.stats.done_watches_dropped == 5
         await bus.request(q.Stop(1))

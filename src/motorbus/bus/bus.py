@@ -37,58 +37,42 @@ guard with exactly the shape of a newer request cannot be told apart: raise
 ``late_guard`` for such devices.  ``wire_floor=True`` (for a real UART that paces bytes
 at the baud) also refuses frames that completed sooner than the wire allows; each such
 frame is counted as ``early_replies`` and logged, never silently made a timeout.
+
+Where each part lives: the rules are a pure core, driven by a time passed in
+(``motorbus.bus.schedule``: when a frame may start; ``motorbus.bus.matching``: whose
+frame a received one is), with a frame's bus time from ``motorbus.bus.occupancy``;
+``motorbus.bus.engine`` drives the core with the timer and the transport (writer,
+deadlines, reader, reconnect); this module is the public face (options, requests,
+leases, observers, open and close).
 """
 
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
-import enum
-import heapq
-import itertools
 import logging
-import math
-import os
 from collections.abc import Awaitable, Callable, Iterable, Mapping
-from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
-from motorbus.bus.events import (
-    BusStateChanged,
-    EventHub,
-    FaultChanged,
-    ProjectFinished,
-    QuadDone,
-)
+from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refresh
+from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
-from motorbus.bus.stats import BusStats
-from motorbus.bus.timer import Timer, TimerHandle, default_timer
-from motorbus.errors import (
-    BusClosedError,
-    LocalProtocolError,
-    NotSentError,
-    RemoteProtocolError,
-    ReplyTimeoutError,
-    WrongLoopError,
-)
-from motorbus.protocol import families, safety
-from motorbus.protocol.base import (
-    Command,
-    Family,
-    FaultState,
-    FrameShape,
-    check_flag,
-    check_int,
-    check_timeout,
-    format_hex,
-    wire_time,
-)
-from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
+from motorbus.bus.options import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
+from motorbus.bus.options import DEFAULT_LATE_GUARD_S as DEFAULT_LATE_GUARD_S
+from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
+from motorbus.bus.options import MIN_SPACING_S as MIN_SPACING_S
+from motorbus.bus.options import REQUEST_TIMEOUT_MAX_S as REQUEST_TIMEOUT_MAX_S
+from motorbus.bus.options import BusConfig as BusConfig
+from motorbus.bus.options import check_request_options
+from motorbus.bus.schedule import Priority, ReservationSource
+from motorbus.bus.timer import Timer, default_timer
+from motorbus.errors import BusClosedError, LocalProtocolError, WrongLoopError
+from motorbus.protocol import safety
+from motorbus.protocol.base import Command, Family, check_flag, check_int
 from motorbus.transport.base import Transport
 from motorbus.validation import (
     HOST_MARGIN_MAX_S,
@@ -108,146 +92,12 @@ log = logging.getLogger("motorbus.bus")
 #: The decoded reply type of the command given to ``request`` / ``submit``.
 R = TypeVar("R")
 
-#: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
-#: (LA manual 3.4.2, docs/protocols.md C.6).
-MIN_SPACING_S = 1e-3
-#: Worst-case device turnaround, request end to reply start, per family: the registry's
-#: ``FamilyInfo.turnaround_s`` (protocol/families.py says where each figure comes from).
-DEFAULT_TURNAROUND: Mapping[Family, float] = families.DEFAULT_TURNAROUND
-#: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
-#: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
-#: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
-#: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.  On a loaded or
-#: slow host, raise it for every bus at once with ``MOTORBUS_HOST_MARGIN_MS``.
-DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 1e3
-#: After a timeout, the next request to the same device waits this long, so that the
-#: device's late answer (if it comes) arrives before a new question it could be
-#: mistaken for.  Requests to other devices are not held.
-DEFAULT_LATE_GUARD_S = 20e-3
-#: Quad stepper "done" replies awaited at once, at most: more outstanding runs than
-#: this means done replies are being lost (four motors and the LEDs fit easily).
-MAX_DONE_WATCHES = 16
-#: How long a timed-out request is remembered to recognise its late reply.
-LATE_WINDOW_S = 2.0
-#: With ``wire_floor=True`` (a real UART that paces bytes at the baud), a reply cannot
-#: complete before its request and itself have crossed the wire; 10 % is allowed for
-#: baud-rate tolerance before a frame is called "too early to be ours".  Off by default:
-#: ptys, USB-CDC devices and TCP bridges deliver far sooner than the wire would.
-WIRE_FLOOR_FACTOR = 0.9
-#: A timer callback that runs this much after its deadline means the host (not the
-#: device) stalled: a full garbage collection, another process on the core.  Timeouts
-#: and late replies decided then are counted apart (``BusStats.host_stalls``).
-HOST_STALL_S = 1e-3
-#: What a write is assumed to take when a request is fitted before a reserved stream
-#: tick: the largest recent write duration, decaying by this factor a write, within
-#: these bounds (seconds).  A write that takes longer only slips the tick (counted).
-WRITE_COST_DECAY = 0.99
-WRITE_COST_MIN_S = 50e-6
-WRITE_COST_MAX_S = 500e-6
 #: Retries of each safe-action command a lease's end sends (pause, e-stop, stop project,
 #: stop all are idempotent: sending one twice is harmless, missing one is not).
 SAFE_STOP_RETRIES = 2
-#: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
-RECONNECT_FIRST_S = 0.05
-RECONNECT_FACTOR = 2.0
-RECONNECT_MAX_S = 2.0
 
 
-class Priority(enum.IntEnum):
-    """Queue order; lower goes first."""
-
-    EMERGENCY = 0  # e-stop, stop-all: jump the queue
-    HIGH = 1
-    NORMAL = 2
-    BACKGROUND = 3  # status polling that yields to everything else
-
-
-class BusObserver(Protocol):
-    """What ``Bus.add_observer`` calls (see there)."""
-
-    def on_write(self, cmd: Command[object], at: float) -> None: ...
-
-    def on_reply(
-        self, cmd: Command[object], value: Any, written_at: float, replied_at: float
-    ) -> None: ...
-
-
-class BusState(enum.Enum):
-    """Where the bus is in its life."""
-
-    CLOSED = "closed"
-    OPEN = "open"
-    LOST = "lost"  # the port went away; reconnecting if enabled
-
-
-#: Called at the moment a queued frame is written: returns the command to send now
-#: (rebuilt from what is still wanted) or None to drop it unsent.
-Refresh = Callable[[], "Command[object] | None"]
-#: A source of reserved bus windows: given the time now, the earliest (start, end) window
-#: that ends after now, or None.
-ReservationSource = Callable[[float], "tuple[float, float] | None"]
-
-
-@dataclass(slots=True, eq=False)
-class _Job:
-    """One request travelling through the bus."""
-
-    cmd: Command[object]
-    raw: bytes
-    future: asyncio.Future[Any]
-    priority: int
-    seq: int
-    timeout: float
-    retries_left: int
-    key: str
-    after_write: float = 0.0  # completed write to the earliest next write (Occupancy)
-    tx_time: float = 0.0  # when the write returned
-    rx_mark: int = 0  # stream offset of the first received byte that may be its reply
-    earliest: float = 0.0  # wire floor (wire_floor=True only)
-    deadline: float = 0.0
-    handle: TimerHandle | None = None
-    attempts: int = 0
-    reserved: bool = False  # a stream tick's frame: it owns the reserved window
-    refresh: Refresh | None = None
-    start_by: float = math.inf
-    expiry: TimerHandle | None = None
-
-    def __lt__(self, other: _Job) -> bool:
-        return (self.priority, self.seq) < (other.priority, other.seq)
-
-
-@dataclass(slots=True)
-class _Timeout:
-    cmd: Command[object]
-    key: str
-    until: float  # remembered until then, to recognise its late reply
-    deadline: float  # the deadline it missed
-
-
-@dataclass(slots=True)
-class _DoneWatch:
-    """A quad stepper command whose "done" reply is still to come."""
-
-    shapes: tuple[FrameShape, ...]
-    kind: str
-    led: int | None
-    cmd: Command[object]
-
-
-@dataclass(slots=True)
-class BusConfig:
-    """Timing policy of one bus (all durations in seconds)."""
-
-    min_spacing: float = MIN_SPACING_S
-    host_margin: float = DEFAULT_HOST_MARGIN_S
-    turnaround: dict[Family, float] = field(default_factory=lambda: dict(DEFAULT_TURNAROUND))
-    retries: int = 1
-    late_guard: float = DEFAULT_LATE_GUARD_S
-    reconnect: bool = True
-    wire_floor: bool = False
-
-
-class Bus:
+class Bus(BusEngine):
     """A serial bus of devices: ``await bus.request(command)`` returns the decoded reply.
 
     Args:
@@ -304,10 +154,7 @@ class Bus:
         reconnect = check_flag("reconnect", reconnect)
         wire_floor = check_flag("wire_floor", wire_floor)
         self.safe_action = safety.check_safe_action(safe_action)
-        self.transport = transport
-        self.name = name or transport.url
-        self.families = frozenset(families)
-        self.config = BusConfig(
+        config = BusConfig(
             min_spacing=min_spacing,
             host_margin=host_margin,
             turnaround={**DEFAULT_TURNAROUND, **(turnaround or {})},
@@ -316,33 +163,9 @@ class Bus:
             reconnect=reconnect,
             wire_floor=wire_floor,
         )
-        self.stats = BusStats()
-        self.events = EventHub()
-        self.state = BusState.CLOSED
-        self._timer = timer
-        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
-        self._heap: list[_Job] = []
-        self._seq = itertools.count()
-        self._pending: _Job | None = None
-        self._next_tx = 0.0
-        self._write_cost = WRITE_COST_MIN_S
-        self._rx_total = 0  # bytes handed to the reassembler since the port opened
-        self._reservation_sources: list[ReservationSource] = []
-        self._expected_shapes: tuple[FrameShape, ...] | None = None
+        super().__init__(transport, name or transport.url, frozenset(families), config, timer)
         self._close_hooks: list[Callable[[], Awaitable[None]]] = []
         self._close_task: asyncio.Future[None] | None = None
-        self._pump_handle: TimerHandle | None = None
-        self._pump_at = 0.0
-        self._pumping = False
-        self._reconnect_task: asyncio.Task[None] | None = None
-        self._timeouts: collections.deque[_Timeout] = collections.deque()
-        self._guard_until: dict[str, float] = {}
-        self._done_watches: list[_DoneWatch] = []
-        self._last_errors: dict[int, int] = {}
-        self._closing = False
-        #: Set when close starts: motion is refused and dropped from then on.
-        self._stopping = False
-        self._observers: list[BusObserver] = []
         self._loop: asyncio.AbstractEventLoop | None = None
         self._lease_keeper = LeaseKeeper(
             self.name,
@@ -368,7 +191,7 @@ class Bus:
     @property
     def next_write_at(self) -> float:
         """The earliest time (``bus.timer`` clock) the spacing rule allows the next write."""
-        return self._next_tx
+        return self._schedule.next_tx
 
     @property
     def baudrate(self) -> int:
@@ -389,13 +212,6 @@ class Bus:
         shutdown.register_bus(self)
         self._check_adapter_latency()
         self._publish_state("open")
-
-    def _new_reassembler(self) -> None:
-        """A fresh stream (on open and after a lost port): nothing buffered, offsets at 0."""
-        self._reassembler = Reassembler(families=self.families, stats=self.stats.reassembler)
-        self._rx_total = 0
-        self._expected_shapes = None
-        self._expect_shapes()
 
     def _check_adapter_latency(self) -> None:
         """Warn if a USB adapter's latency timer leaves no deadline of this bus a chance.
@@ -589,7 +405,7 @@ class Bus:
                 f"{', '.join(sorted(f.value for f in self.families))}",
                 field="cmd",
             )
-        _check_request_options(timeout, retries, priority)
+        check_request_options(timeout, retries, priority)
         if start_by is not None and not (
             isinstance(start_by, int | float) and not isinstance(start_by, bool)
         ):
@@ -621,12 +437,12 @@ class Bus:
         n_retries = self.config.retries if retries is None else retries
         if cmd.starts_motion or not cmd.expects_reply:
             n_retries = 0
-        job = _Job(
+        job = BusJob(
             cmd=cmd,
             raw=raw,
             future=loop.create_future(),
             priority=int(priority),
-            seq=next(self._seq),
+            seq=self._schedule.next_seq(),
             timeout=budget,
             retries_left=n_retries,
             key=cmd.device_key,
@@ -639,7 +455,7 @@ class Bus:
             job.expiry = self.timer.call_at(
                 job.start_by, lambda: self._drop_unsent(job), precise=False
             )
-        heapq.heappush(self._heap, job)
+        self._schedule.push(job)
         self._pump()  # an idle bus sends right here
         return job.future
 
@@ -717,7 +533,7 @@ class Bus:
         """
         await self._lease_keeper.release_implicit(keys, hold)
 
-    # -- reservations --------------------------------------------------------------
+    # -- observers and reservations --------------------------------------------------
 
     def add_observer(self, observer: BusObserver) -> None:
         """Tell ``observer`` of every frame written and every reply accepted, with the
@@ -733,14 +549,6 @@ class Bus:
         with contextlib.suppress(ValueError):
             self._observers.remove(observer)
 
-    def _tell(self, call: Callable[[BusObserver], None]) -> None:
-        for observer in list(self._observers):
-            try:
-                call(observer)
-            except Exception:
-                log.exception("%s: observer %r failed; removed", self.name, observer)
-                self.remove_observer(observer)
-
     def add_reservation_source(self, source: ReservationSource) -> None:
         """Register ``source(now) -> (start, end) | None``: the next reserved window.
 
@@ -749,479 +557,12 @@ class Bus:
         begins; it waits until the window ends.  Emergency frames ignore reservations.
         Streams use this so that user requests never delay a tick.
         """
-        self._reservation_sources.append(source)
+        self._schedule.reservation_sources.append(source)
 
     def remove_reservation_source(self, source: ReservationSource) -> None:
         """Forget a source added with ``add_reservation_source``; unknown ones are ignored."""
         with contextlib.suppress(ValueError):
-            self._reservation_sources.remove(source)
-
-    def _held_by_reservation(self, job: _Job, start: float) -> float | None:
-        """End of the reserved window ``job`` would overlap if started at ``start``."""
-        if job.reserved or job.priority == Priority.EMERGENCY or not self._reservation_sources:
-            return None
-        # The job's own timeout may differ from its budget (``request(timeout=...)``).
-        occupancy = self._write_cost + max(
-            job.after_write, job.timeout if job.cmd.expects_reply else 0.0
-        )
-        for source in self._reservation_sources:
-            window = source(start)
-            if window is None:
-                continue
-            begin, end = window
-            if start >= end or start + occupancy <= begin:
-                continue  # after the window, or done before it begins
-            if start >= begin:
-                return end  # inside the window: wait for its end
-            following = source(end + 1e-9)
-            gap = math.inf if following is None else following[0] - end
-            if occupancy > gap:
-                # No gap between windows is long enough for its whole budget (a long
-                # timeout): it goes now; a tick waits only if the reply is really slow.
-                continue
-            return end
-        return None
-
-    # -- writer ------------------------------------------------------------------
-    #
-    # There is no writer task: ``_pump`` sends the head of the queue as soon as the bus
-    # allows it, and is called whenever that may have changed (a request queued, a reply
-    # matched, a deadline run out, the port back) or by the timer when the spacing, a
-    # late guard or a reservation ends.  A task would add an event-loop step (~55 us p50
-    # on this VM, benchmarks/bench_wakeups.py) to every command; a timer callback sends
-    # on time.
-
-    def _pump(self) -> None:
-        if self._pumping:
-            return  # called back from inside a transmission: the loop below goes on
-        self._pumping = True
-        try:
-            heap = self._heap
-            while heap and self._pending is None and self.state is BusState.OPEN:
-                job = heap[0]
-                if job.future.done():
-                    heapq.heappop(heap)  # cancelled (or expired) while queued
-                    continue
-                now = self.timer.now()
-                start = max(self._next_tx, self._guard_until.get(job.key, 0.0), now)
-                held = self._held_by_reservation(job, start)
-                if held is not None:
-                    start = held
-                if start > now:
-                    # Spinning the timer's last microseconds costs CPU; it is worth it
-                    # for a tick's frame or a user's request, not for a background poll
-                    # (the spacing rule is a minimum: a late poll breaks nothing).
-                    self._pump_later(
-                        start, precise=job.reserved or job.priority < Priority.BACKGROUND
-                    )
-                    return
-                heapq.heappop(heap)
-                self._transmit(job)
-        finally:
-            self._pumping = False
-
-    def _pump_later(self, start: float, *, precise: bool = True) -> None:
-        handle = self._pump_handle
-        if handle is not None:
-            if self._pump_at == start and handle.precise == precise:
-                return
-            handle.cancel()
-        self._pump_at = start
-        self._pump_handle = self.timer.call_at(start, self._on_pump_timer, precise=precise)
-
-    def _on_pump_timer(self) -> None:
-        self._pump_handle = None
-        self._pump()
-
-    def _drop_queued_motion(self) -> None:
-        """Fail every queued (unwritten) motion frame: the bus is closing."""
-        kept: list[_Job] = []
-        for job in self._heap:
-            if not job.cmd.starts_motion or job.attempts:
-                kept.append(job)
-                continue
-            if job.expiry is not None:
-                job.expiry.cancel()
-                job.expiry = None
-            if not job.future.done():
-                self.stats.not_sent += 1
-                job.future.set_exception(
-                    BusClosedError(
-                        f"bus {self.name} closed before {type(job.cmd).__name__} to "
-                        f"{job.key} was sent; nothing was sent"
-                    )
-                )
-                job.future.exception()  # retrieved: a stream tick need not be awaited
-        if len(kept) != len(self._heap):
-            heapq.heapify(kept)
-            self._heap = kept
-
-    def _drop_unsent(self, job: _Job) -> None:
-        """``start_by`` passed with ``job`` still queued: fail it, nothing was written."""
-        job.expiry = None
-        if job.attempts or job.future.done():
-            return
-        self.stats.not_sent += 1
-        job.future.set_exception(
-            NotSentError(
-                f"{type(job.cmd).__name__} to {job.key} could not start by its start_by "
-                "time; nothing was sent"
-            )
-        )
-        job.future.exception()  # retrieved: a poller that gave up need not await it
-        self._pump()  # it may have been the head of the queue
-
-    def _transmit(self, job: _Job) -> None:
-        if job.expiry is not None:
-            job.expiry.cancel()
-            job.expiry = None
-        if job.refresh is not None:
-            fresh = job.refresh()
-            if fresh is None:
-                self.stats.dropped_by_refresh += 1
-                if not job.future.done():
-                    job.future.set_result(None)
-                return
-            if fresh is not job.cmd:
-                job.cmd = fresh
-                job.raw = fresh.encode()
-                job.after_write = self.occupancy(fresh, len(job.raw)).after_write
-        cmd = job.cmd
-        job.attempts += 1
-        stats = self.stats
-        stats.requests += 1
-        stats.bytes_out += len(job.raw)
-        device = stats.device(job.key)
-        device.requests += 1
-        expects = cmd.expects_reply
-        if expects:
-            # Bytes the OS already holds came before this write, whenever the loop gets
-            # round to them: read them first, so that they fall before the mark.
-            self.transport.drain_input()
-            # Registered before the write: no callback can run during it, and whatever
-            # the reassembler holds or has consumed so far came before it.
-            job.rx_mark = self._rx_total
-            self._pending = job
-            self._expect_shapes()
-        else:
-            stats.no_reply_frames += 1
-        if log.isEnabledFor(logging.DEBUG):
-            log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
-        timer = self.timer
-        before = timer.now()
-        try:
-            self.transport.write(job.raw)
-        except BusClosedError as err:
-            self._finish(job, err)
-            return
-        after = timer.now()
-        # Spacing counts from the completed write (module docstring).
-        self._next_tx = after + job.after_write
-        took = after - before
-        self._write_cost = min(
-            WRITE_COST_MAX_S, max(WRITE_COST_MIN_S, took, self._write_cost * WRITE_COST_DECAY)
-        )
-        job.tx_time = after
-        if self._observers:
-            self._tell(lambda o: o.on_write(cmd, after))
-        if cmd.starts_motion:
-            self._leases.moved(cmd)
-        elif not expects:
-            self._leases.sent(cmd)
-        if expects:
-            if self.config.wire_floor:
-                baud = self.baudrate
-                job.earliest = before + WIRE_FLOOR_FACTOR * (
-                    wire_time(len(job.raw), baud) + wire_time(min(cmd.reply_lengths()), baud)
-                )
-            job.deadline = after + job.timeout
-            job.handle = timer.call_at(job.deadline, self._on_deadline)
-        elif not job.future.done():
-            job.future.set_result(None)
-
-    def _expect_shapes(self) -> None:
-        """Tell the reassembler which checksum-less stepper replies it may cut now.
-
-        Exactly what the bus awaits: the pending request's replies, the "done" replies
-        still to come, and the replies of requests that timed out recently (so that
-        their late answers are recognised and counted).  Nothing else: stray ``FF AA``
-        bytes are then discarded, never taken for a frame.
-        """
-        if self.families == {Family.LA}:
-            return
-        shapes: list[FrameShape] = []
-        job = self._pending
-        if job is not None:
-            shapes.extend(job.cmd.reply_shapes())
-        for watch in self._done_watches:
-            shapes.extend(watch.shapes)
-        for t in self._timeouts:
-            shapes.extend(t.cmd.reply_shapes())
-        expected = tuple(dict.fromkeys(shapes))
-        if expected != self._expected_shapes:
-            self._expected_shapes = expected
-            self._reassembler.expect(expected)
-
-    def _finish(self, job: _Job, outcome: Any) -> None:
-        """Resolve ``job`` with a value or an exception and free the bus."""
-        if job.handle is not None:
-            job.handle.cancel()
-            job.handle = None
-        if job.expiry is not None:
-            job.expiry.cancel()
-            job.expiry = None
-        if self._pending is job:
-            self._pending = None
-            self._expect_shapes()
-        if not job.future.done():
-            if isinstance(outcome, BaseException):
-                self.stats.failed += 1
-                job.future.set_exception(outcome)
-            else:
-                job.future.set_result(outcome)
-        self._pump()
-
-    # -- deadlines ---------------------------------------------------------------
-
-    def _on_deadline(self) -> None:
-        job = self._pending
-        if job is None:
-            return
-        job.handle = None
-        self._expire(job, self.timer.now())
-
-    def _expire(self, job: _Job, now: float) -> None:
-        """``job``'s deadline has passed (seen at ``now``): retry it or fail it."""
-        if job.handle is not None:
-            job.handle.cancel()
-            job.handle = None
-        stats = self.stats
-        stats.timeouts += 1
-        stats.device(job.key).timeouts += 1
-        stalled = now - job.deadline
-        if stalled > HOST_STALL_S:
-            # The deadline was decided this late: the host, not the device, was slow.
-            stats.timeouts_in_host_stall += 1
-            stats.host_stall_max = max(stats.host_stall_max, stalled)
-        self._timeouts.append(_Timeout(job.cmd, job.key, now + LATE_WINDOW_S, job.deadline))
-        self._guard_until[job.key] = now + self.config.late_guard
-        log.debug(
-            "%s timeout: %s to %s after %.0f us%s",
-            self.name,
-            type(job.cmd).__name__,
-            job.key,
-            (now - job.tx_time) * 1e6,
-            f" (decided {stalled * 1e3:.1f} ms late: host stall)" if stalled > HOST_STALL_S else "",
-        )
-        # A caller that cancelled while its request was on the wire awaits no retry.
-        if job.retries_left > 0 and not job.future.done():
-            job.retries_left -= 1
-            stats.retries += 1
-            stats.device(job.key).retries += 1
-            self._pending = None
-            self._expect_shapes()
-            job.priority = min(job.priority, int(Priority.HIGH))
-            heapq.heappush(self._heap, job)
-            self._pump()
-            return
-        self._finish(
-            job,
-            ReplyTimeoutError(
-                f"no reply from {job.key} to {type(job.cmd).__name__} "
-                f"({format_hex(job.raw)}) within {job.timeout * 1e3:.2f} ms"
-                + (f" after {job.attempts} attempts" if job.attempts > 1 else "")
-            ),
-        )
-
-    # -- reader ------------------------------------------------------------------
-
-    def _on_data(self, data: bytes) -> None:
-        now = self.timer.now()
-        stats = self.stats
-        stats.bytes_in += len(data)
-        reassembler = self._reassembler
-        # Stream offset of the first byte the reassembler still holds: the items it
-        # returns cover the stream from there, contiguously and in order.
-        offset = self._rx_total - reassembler.buffered
-        self._rx_total += len(data)
-        for item in reassembler.feed(data):
-            start = offset
-            offset += len(item.raw)
-            if type(item) is Frame:
-                self._on_frame(item, start, now)
-            elif type(item) is Discarded:
-                # Counted by the reassembler, in stats.reassembler (garbage_bytes, ...).
-                if log.isEnabledFor(logging.DEBUG):
-                    log.debug("%s discarded %s (%s)", self.name, format_hex(item.raw), item.reason)
-            elif type(item) is ProjectFinishedMarker:
-                self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
-                self._publish(ProjectFinished(self.name, now))
-
-    def _on_frame(self, frame: Frame, start: int, now: float) -> None:
-        raw = frame.raw
-        if log.isEnabledFor(logging.DEBUG):
-            log.debug("%s RX %s", self.name, format_hex(raw))
-        job = self._pending
-        if job is not None and start >= job.rx_mark and job.cmd.matches_reply(raw):
-            if now > job.deadline:
-                # Seen after the deadline, whichever callback runs first: late.  The
-                # deadline's own callback has not run yet (the loop was held up), so the
-                # timeout is decided here, and the frame is counted as its late reply.
-                self._expire(job, now)
-            elif self.config.wire_floor and now < job.earliest:
-                self.stats.early_replies += 1
-                log.debug(
-                    "%s frame %s too early for the wire (%.0f us before the floor)",
-                    self.name,
-                    format_hex(raw),
-                    (job.earliest - now) * 1e6,
-                )
-                return
-            else:
-                self._accept(job, raw, now)
-                return
-        if self._match_done(raw, now):
-            return
-        if self._is_late(raw, now):
-            return
-        self.stats.unexpected_frames += 1
-        log.debug("%s unexpected frame %s", self.name, format_hex(raw))
-
-    def _accept(self, job: _Job, raw: bytes, now: float) -> None:
-        latency = now - job.tx_time
-        stats = self.stats
-        stats.replies += 1
-        stats.latency.record(latency)
-        device = stats.device(job.key)
-        device.replies += 1
-        device.latency.record(latency)
-        try:
-            value: Any = job.cmd.decode_reply(raw)
-        except RemoteProtocolError as err:
-            self._finish(job, err)
-            return
-        self._leases.note(job.key)  # it answered: "la:255" stands for it too
-        if not job.cmd.starts_motion:
-            self._leases.sent(job.cmd)  # a safe action answered: no longer owed
-        if job.cmd.done_shapes():
-            self._watch_done(_done_watch(job.cmd))
-        self._observe(job.cmd.fault_state(value), value, now)
-        if self._observers:
-            cmd, written = job.cmd, job.tx_time
-            self._tell(lambda o: o.on_reply(cmd, value, written, now))
-        self._finish(job, value)
-
-    def _watch_done(self, watch: _DoneWatch) -> None:
-        """Remember a "done" reply to come, keeping at most ``MAX_DONE_WATCHES``.
-
-        A done reply that is lost on the line would otherwise be awaited forever, and
-        the list (and the reply shapes the reassembler is given) would grow with every
-        run.  Past the bound the oldest is forgotten and counted.
-        """
-        self._done_watches.append(watch)
-        if len(self._done_watches) > MAX_DONE_WATCHES:
-            del self._done_watches[0]
-            self.stats.done_watches_dropped += 1
-        self._expect_shapes()
-
-    def _match_done(self, raw: bytes, now: float) -> bool:
-        for i, watch in enumerate(self._done_watches):
-            if any(len(raw) == s.length and s.matches(raw) for s in watch.shapes):
-                del self._done_watches[i]
-                self._expect_shapes()
-                rest = safety.at_rest_after_done(watch.cmd)
-                if rest is not None:
-                    self._leases.sent(rest)  # the run is over: its stop is not owed
-                self._publish(QuadDone(self.name, now, watch.kind, raw[2], watch.led, raw))
-                return True
-        return False
-
-    def _is_late(self, raw: bytes, now: float) -> bool:
-        """Recognise the answer to a request whose deadline already ran out.
-
-        Such a frame is never given to the pending request: either it matched no
-        pending request at all, or it began before the pending request was written
-        (``_Job.rx_mark``), or it was seen after that request's deadline, or the
-        per-device late guard kept a same-device request from being sent while it could
-        still arrive.
-        """
-        timeouts = self._timeouts
-        if timeouts and timeouts[0].until < now:
-            while timeouts and timeouts[0].until < now:
-                timeouts.popleft()
-            self._expect_shapes()
-        for t in reversed(timeouts):
-            if t.cmd.matches_reply(raw):
-                self.stats.late_replies += 1
-                self.stats.late_reply_max = max(self.stats.late_reply_max, now - t.deadline)
-                self.stats.device(t.key).late_replies += 1
-                log.debug("%s late reply from %s: %s", self.name, t.key, format_hex(raw))
-                return True
-        return False
-
-    def _observe(self, fault: FaultState | None, value: Any, now: float) -> None:
-        """Turn the fault flags a reply reports (``Command.fault_state``: the LA's
-        status replies) into fault-change events."""
-        if fault is not None:
-            before = self._last_errors.get(fault.device_id, 0)
-            self._last_errors[fault.device_id] = fault.errors
-            if fault.errors != before:
-                self._publish(
-                    FaultChanged(self.name, now, fault.device_id, before, fault.errors, value)
-                )
-
-    def _publish(self, event: Any) -> None:
-        self.stats.events += 1
-        self.events.publish(event)
-
-    def _publish_state(self, state: str, detail: str = "") -> None:
-        self.events.publish(BusStateChanged(self.name, self.timer.now(), state, detail))
-
-    # -- port loss and reconnect ---------------------------------------------------
-
-    def _fail_all(self, err: BaseException) -> None:
-        if self._pending is not None:
-            self._finish(self._pending, err)
-        while self._heap:
-            job = heapq.heappop(self._heap)
-            if not job.future.done():
-                self.stats.failed += 1
-                job.future.set_exception(err)
-
-    def _on_lost(self, exc: BaseException | None) -> None:
-        if self._closing:
-            return
-        self.stats.disconnects += 1
-        self.state = BusState.LOST
-        detail = f"{type(exc).__name__}: {exc}" if exc else "port closed"
-        log.warning("bus %s lost its port (%s)", self.name, detail)
-        self._fail_all(BusClosedError(f"bus {self.name} lost its port: {detail}"))
-        self._new_reassembler()
-        self._publish_state("lost", detail)
-        if self.config.reconnect:
-            self._reconnect_task = asyncio.get_running_loop().create_task(
-                self._reconnect(), name=f"motorbus reconnect {self.name}"
-            )
-
-    async def _reconnect(self) -> None:
-        delay = RECONNECT_FIRST_S
-        while not self._closing:
-            await asyncio.sleep(delay)
-            self._publish_state("reconnecting")
-            try:
-                await self.transport.open(self._on_data, self._on_lost)
-            except (OSError, BusClosedError) as err:
-                log.debug("bus %s reopen failed: %s", self.name, err)
-                delay = min(delay * RECONNECT_FACTOR, RECONNECT_MAX_S)
-                continue
-            self.stats.reconnects += 1
-            self.state = BusState.OPEN
-            self._next_tx = 0.0
-            # Safe actions owed since the loss go out first (emergency priority).
-            await self._lease_keeper.pay_owed()
-            self._publish_state("open", "reconnected")
-            self._pump()
-            return
+            self._schedule.reservation_sources.remove(source)
 
     async def wait_state(self, state: BusState, timeout: float | None = None) -> None:
         """Wait until the bus reaches ``state`` (e.g. ``OPEN`` after a reconnect)."""
@@ -1231,42 +572,3 @@ class Bus:
             if self.state is state:
                 return
             await sub.next(timeout)
-
-
-#: Ceiling on a per-request reply budget: far beyond any reply the three manuals
-#: describe (the 226-byte 0x3E dump takes 0.24 s at 9600 bit/s), it only refuses nonsense.
-REQUEST_TIMEOUT_MAX_S = 3600.0
-#: Ceiling on per-request retries, the same as the bus-wide ``retries`` option.
-REQUEST_RETRIES_MAX = 10
-
-
-#: Every priority, built once: the check runs on every submit (the stream's hot path).
-_PRIORITIES = frozenset(Priority)
-
-
-def _check_request_options(timeout: object, retries: object, priority: object) -> None:
-    """Refuse a bad ``timeout``/``retries``/``priority`` before anything is queued."""
-    if timeout is not None:
-        check_timeout("timeout", timeout, REQUEST_TIMEOUT_MAX_S)
-    if retries is not None and (
-        isinstance(retries, bool)
-        or not isinstance(retries, int)
-        or not 0 <= retries <= REQUEST_RETRIES_MAX
-    ):
-        raise LocalProtocolError(
-            f"retries={retries!r} is out of range: allowed 0..{REQUEST_RETRIES_MAX} or None",
-            field="retries",
-            value=retries,
-        )
-    if isinstance(priority, bool) or priority not in _PRIORITIES:
-        raise LocalProtocolError(
-            f"priority={priority!r} is not allowed: choose one of "
-            f"{', '.join(p.name for p in Priority)}",
-            field="priority",
-            value=priority,
-        )
-
-
-def _done_watch(cmd: Command[object]) -> _DoneWatch:
-    led = getattr(cmd, "led", None)
-    return _DoneWatch(cmd.done_shapes(), "led" if led is not None else "run", led, cmd)

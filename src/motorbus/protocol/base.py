@@ -327,6 +327,11 @@ class Command(abc.ABC, Generic[ReplyT_co]):
         """Shapes of a later "done" reply (quad stepper run and LED commands), else ``()``."""
         return ()
 
+    def matches_done(self, raw: bytes) -> bool:
+        """Return True if the complete frame ``raw`` is a later "done" reply of this
+        request: the length and every byte of one of its ``done_shapes``."""
+        return any(len(raw) == s.length and s.matches(raw) for s in self.done_shapes())
+
     @property
     def expects_reply(self) -> bool:
         """True if the device answers this request."""

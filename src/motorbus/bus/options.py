@@ -1,0 +1,93 @@
+"""The options of a bus and of a request: their defaults, their ranges, their checks.
+
+Pure (no asyncio, no clock); ``MOTORBUS_HOST_MARGIN_MS`` is read once, at import.
+``Bus`` (``motorbus.bus.bus``) checks its own options at construction and each request's
+with ``check_request_options`` before anything is queued: a bad value raises
+``LocalProtocolError`` naming the field, the value and what is allowed, nothing sent.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from motorbus.bus.schedule import Priority
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol import families
+from motorbus.protocol.base import Family, check_timeout
+
+__all__ = [
+    "DEFAULT_HOST_MARGIN_S",
+    "DEFAULT_LATE_GUARD_S",
+    "DEFAULT_TURNAROUND",
+    "MIN_SPACING_S",
+    "REQUEST_RETRIES_MAX",
+    "REQUEST_TIMEOUT_MAX_S",
+    "BusConfig",
+    "check_request_options",
+]
+
+#: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
+#: (LA manual 3.4.2, docs/protocols.md C.6).
+MIN_SPACING_S = 1e-3
+#: Worst-case device turnaround, request end to reply start, per family: the registry's
+#: ``FamilyInfo.turnaround_s`` (protocol/families.py says where each figure comes from).
+DEFAULT_TURNAROUND: Mapping[Family, float] = families.DEFAULT_TURNAROUND
+#: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
+#: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
+#: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
+#: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.  On a loaded or
+#: slow host, raise it for every bus at once with ``MOTORBUS_HOST_MARGIN_MS``.
+DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 1e3
+#: After a timeout, the next request to the same device waits this long, so that the
+#: device's late answer (if it comes) arrives before a new question it could be
+#: mistaken for.  Requests to other devices are not held.
+DEFAULT_LATE_GUARD_S = 20e-3
+
+
+@dataclass(slots=True)
+class BusConfig:
+    """Timing policy of one bus (all durations in seconds)."""
+
+    min_spacing: float = MIN_SPACING_S
+    host_margin: float = DEFAULT_HOST_MARGIN_S
+    turnaround: dict[Family, float] = field(default_factory=lambda: dict(DEFAULT_TURNAROUND))
+    retries: int = 1
+    late_guard: float = DEFAULT_LATE_GUARD_S
+    reconnect: bool = True
+    wire_floor: bool = False
+
+
+#: Ceiling on a per-request reply budget: far beyond any reply the three manuals
+#: describe (the 226-byte 0x3E dump takes 0.24 s at 9600 bit/s), it only refuses nonsense.
+REQUEST_TIMEOUT_MAX_S = 3600.0
+#: Ceiling on per-request retries, the same as the bus-wide ``retries`` option.
+REQUEST_RETRIES_MAX = 10
+
+
+#: Every priority, built once: the check runs on every submit (the stream's hot path).
+_PRIORITIES = frozenset(Priority)
+
+
+def check_request_options(timeout: object, retries: object, priority: object) -> None:
+    """Refuse a bad ``timeout``/``retries``/``priority`` before anything is queued."""
+    if timeout is not None:
+        check_timeout("timeout", timeout, REQUEST_TIMEOUT_MAX_S)
+    if retries is not None and (
+        isinstance(retries, bool)
+        or not isinstance(retries, int)
+        or not 0 <= retries <= REQUEST_RETRIES_MAX
+    ):
+        raise LocalProtocolError(
+            f"retries={retries!r} is out of range: allowed 0..{REQUEST_RETRIES_MAX} or None",
+            field="retries",
+            value=retries,
+        )
+    if isinstance(priority, bool) or priority not in _PRIORITIES:
+        raise LocalProtocolError(
+            f"priority={priority!r} is not allowed: choose one of "
+            f"{', '.join(p.name for p in Priority)}",
+            field="priority",
+            value=priority,
+        )
