@@ -14,17 +14,26 @@ a shared machine hits both alike.  "after" is this checkout's ``src``; "before" 
 ``src`` of git ref ``--before-ref`` (default ``main``), unpacked with ``git archive``
 into a temporary directory, or the directory ``--before-src``.  Both run with
 ``PYTHONPATH`` pointing at their tree, the same interpreter, no ``MOTORBUS_*``
-variables and no user bus file.  Reported per command and tree: min and median
-seconds, and the median above the floor.  Goal (issue 23): ``--version`` and
-``la status`` within 0.3 s.  The load average is printed and recorded: on a shared
-machine the medians move with it; the minimum is the better estimate of the cost.
+variables and no user bus file.
+
+Bytecode: an installed package has its ``.pyc`` files (pip compiles them), so by
+default each tree gets its own ``PYTHONPYCACHEPREFIX`` and one warm-up run per command
+before the clock starts (``PYTHONDONTWRITEBYTECODE`` is dropped for the children).
+``--bytecode none`` keeps ``PYTHONDONTWRITEBYTECODE=1`` and no cache: every run compiles
+every module from source, as a checkout run with that variable set does (on this
+machine, where it is set for every session, that alone costs ~0.2 s per command).
+
+Reported per command and tree: min and median seconds, and the median above the
+floor.  Goal (issue 23): ``--version`` and ``la status`` within 0.3 s.  The load
+average is printed and recorded: on a shared machine the medians move with it; the
+minimum is the better estimate of the cost.
 
 ``python -X importtime -m motorbus --version`` shows where the time goes.
 
 Prints a table and writes ``benchmarks/results/startup.json``.
 
 Usage: ``python benchmarks/bench_startup.py [--runs 7] [--before-ref main |
---before-src DIR | --no-before] [--out PATH]``
+--before-src DIR | --no-before] [--bytecode cached|none] [--out PATH]``
 """
 
 from __future__ import annotations
@@ -57,12 +66,20 @@ COMMANDS: dict[str, list[str]] = {
 GOALS = ("motorbus --version", "motorbus la status 1 --port PTY")
 
 
-def clean_env(src: Path | None) -> dict[str, str]:
+def clean_env(src: Path | None, pycache: Path | None) -> dict[str, str]:
+    """The environment of a measured process: ``src`` first on the path; bytecode cached
+    under ``pycache``, or (``None``) never written nor read from a cache."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MOTORBUS_")}
     env["XDG_CONFIG_HOME"] = "/nonexistent/motorbus-bench-config"  # no user bus file
     env.pop("PYTHONPATH", None)
+    env.pop("PYTHONPYCACHEPREFIX", None)
     if src is not None:
         env["PYTHONPATH"] = str(src)
+    if pycache is None:
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
+    else:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = str(pycache)
     return env
 
 
@@ -96,14 +113,22 @@ def summary(samples: list[float], floor: float) -> dict[str, float]:
     }
 
 
-def measure(trees: dict[str, Path], port: str, runs: int) -> dict[str, Any]:
+def measure(trees: dict[str, Path], port: str, runs: int, pycache: Path | None) -> dict[str, Any]:
     floor: list[float] = []
     samples: dict[str, dict[str, list[float]]] = {t: {c: [] for c in COMMANDS} for t in trees}
-    envs = {t: clean_env(src) for t, src in trees.items()}
+    envs = {t: clean_env(src, None if pycache is None else pycache / t) for t, src in trees.items()}
+    floor_env = clean_env(None, None if pycache is None else pycache / "floor")
+    argvs = {
+        command: [sys.executable, "-m", "motorbus", *(a.format(port=port) for a in args)]
+        for command, args in COMMANDS.items()
+    }
+    wall([sys.executable, "-c", "pass"], floor_env)  # warm-up: fill the bytecode caches
+    for tree in trees:
+        for argv in argvs.values():
+            wall(argv, envs[tree])
     for _ in range(runs):
-        floor.append(wall([sys.executable, "-c", "pass"], clean_env(None)))
-        for command, args in COMMANDS.items():
-            argv = [sys.executable, "-m", "motorbus", *(a.format(port=port) for a in args)]
+        floor.append(wall([sys.executable, "-c", "pass"], floor_env))
+        for command, argv in argvs.items():
             for tree in trees:
                 samples[tree][command].append(wall(argv, envs[tree]))
     floor_median = statistics.median(floor)
@@ -119,6 +144,7 @@ def measure(trees: dict[str, Path], port: str, runs: int) -> dict[str, Any]:
 
 def print_table(result: dict[str, Any]) -> None:
     floor = result["floor"]
+    print(f"bytecode: {result['bytecode']}")
     print(f"load average at start: {result['loadavg_start']}, at end: {result['loadavg_end']}")
     print(
         f"{'command':34} {'tree':7} {'min s':>7} {'median s':>9} {'- floor':>8}  goal"
@@ -143,6 +169,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--before-src", type=Path, help="a 'before' src directory instead")
     parser.add_argument("--no-before", action="store_true", help="measure this tree only")
     parser.add_argument("--quick", action="store_true", help="3 runs (a smoke test)")
+    parser.add_argument(
+        "--bytecode",
+        choices=("cached", "none"),
+        default="cached",
+        help="cached: .pyc files as installed (default); none: compile every run",
+    )
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     args = parser.parse_args(argv)
     runs = 3 if args.quick else args.runs
@@ -161,7 +193,8 @@ def main(argv: list[str] | None = None) -> int:
                 before = f"git ref {args.before_ref}"
         trees["after"] = ROOT / "src"
         loadavg_start = os.getloadavg()
-        result = measure(trees, sim.path, runs)
+        pycache = Path(tmp) / "pycache" if args.bytecode == "cached" else None
+        result = measure(trees, sim.path, runs, pycache)
         result["loadavg_start"] = [round(x, 2) for x in loadavg_start]
         result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     result.update(
@@ -170,6 +203,7 @@ def main(argv: list[str] | None = None) -> int:
             "command": "python benchmarks/bench_startup.py " + " ".join(argv or sys.argv[1:]),
             "runs": runs,
             "before": before,
+            "bytecode": args.bytecode,
             "python": platform.python_version(),
             "machine": platform.platform(),
             "cpus": os.cpu_count(),

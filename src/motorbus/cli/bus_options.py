@@ -22,7 +22,6 @@ import os
 import re
 from collections.abc import AsyncIterator, Iterable
 from contextlib import asynccontextmanager
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from motorbus import (
@@ -173,6 +172,8 @@ def chosen_bus(
         return None
     # The bus file reader (tomllib, every family's checks) only when a file may apply:
     # ``motorbus la status 1 --port P`` starts without it.
+    from pathlib import Path
+
     from motorbus import default_bus_file, load_bus_file
 
     path = Path(explicit) if explicit else default_bus_file()
