@@ -114,3 +114,11 @@ def test_the_top_level_help_is_the_same_with_or_without_the_modules() -> None:
 def test_a_command_parses_the_same_alone_as_with_every_command() -> None:
     line = ["la", "status", "1-3", "--port", "/dev/null"]
     assert build_parser(only="la").parse_args(line) == build_parser().parse_args(line)
+
+
+@pytest.mark.parametrize("command", list(COMMANDS))
+def test_no_command_help_loads_the_web_server(tmp_path: Path, command: str) -> None:
+    # aiohttp loads only when the dashboard runs (not even for ``dashboard --help``).
+    modules = modules_at_exit(tmp_path, command, "--help")
+    assert f"motorbus.cli.{command}" in modules
+    assert not loaded(modules, "aiohttp")
