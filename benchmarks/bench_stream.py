@@ -7,9 +7,19 @@ grid (``motorbus.sim.analysis.tick_timing``), so a constant latency is not count
 but every wobble and any drift is.
 
 Part 1: 15 actuators at 10 ms on one bus (one broadcast frame a tick), motorbus's
-Streamer against a naive ``await bus.send(frame); await asyncio.sleep(period)`` loop
-on the same bus, in the same run.  Goals: p99 <= 300 us, max <= 2 ms, no missed
-tick, no drift.
+Streamer against, in the same run and on the same simulator:
+
+* the hand-written baselines of ``baselines.py`` (no bus, raw ``os.write`` of the same
+  frame on an absolute 10 ms grid): (a) ``sleep``, ``asyncio.sleep`` to each absolute
+  deadline, the loop a careful user writes; (b) ``timerfd``, a bare timerfd read by
+  ``add_reader``, the floor; (c) ``timerfd_spin``, the same plus a busy-wait for the
+  last 0.5 ms, the precision floor at full CPU cost.  motorbus's kernel-clock tick
+  jitter (p50/p99/max) and CPU per tick are reported as ratios to (b) and (c);
+* the old "naive" loop, ``await bus.send(frame); await asyncio.sleep(period)``, which
+  drifts: its "jitter" against a fixed grid is its accumulated drift, so it is
+  labelled drift and is not a baseline for the ratios.
+
+Goals: p99 <= 300 us, max <= 2 ms, no missed tick, no drift.
 
 Part 2: 1, 4, 16 and 32 buses of 15 actuators each in one process: our process's CPU
 time (per bus and in all) and the worst bus's p99 jitter.  Goal: 32 buses under 50 %
@@ -45,6 +55,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from baselines import BASELINES, run_baseline
 from kernel_clock import KernelWriteTrace, port_figures, worst_tick_figures
 from motorbus.bus.timer import default_timer
 from motorbus.manager import BusManager
@@ -139,6 +150,34 @@ async def naive_loop(path: str, seconds: float, backend: str) -> None:
             for frame in la.split_broadcast(la.BroadcastMode.FOLLOW, targets):
                 await bus.send(frame)
             await asyncio.sleep(PERIOD_S)
+
+
+def tick_frame(k: int) -> bytes:
+    """Tick ``k``'s 0xF3 follow broadcast, built as the Streamer builds it (one frame)."""
+    targets = {i + 1: round(v) for i, v in enumerate(trajectory(k * PERIOD_S))}
+    return la.split_broadcast(la.BroadcastMode.FOLLOW, targets)[0].encode()
+
+
+def baselines_one_bus(seconds: float, tmp: Path) -> dict[str, Any]:
+    """Each baseline of ``baselines.py`` on its own simulator, under the kernel clock."""
+    out: dict[str, Any] = {}
+    for name in BASELINES:
+        log = tmp / f"one-baseline-{name}.jsonl"
+        with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD, log_file=log) as sim:
+            with KernelWriteTrace() as trace:
+                cost = run_baseline(name, [sim.path], tick_frame, PERIOD_S, seconds)
+            sim.stop()
+            arrivals = f3_arrivals(sim)
+        timing = tick_timing(arrivals, PERIOD_S)
+        kernel = port_figures(
+            trace,
+            [BROADCAST_BYTES],
+            tick_bytes=BROADCAST_BYTES,
+            period=PERIOD_S,
+            expected_ticks=round(seconds / PERIOD_S),
+        )
+        out[name] = {**timing.as_dict(), **cost.as_dict(), "kernel": kernel}
+    return out
 
 
 def one_bus(seconds: float, backend: str, tmp: Path) -> dict[str, Any]:
@@ -285,6 +324,8 @@ def main() -> int:
             flush=True,
         )
         one = one_bus(args.seconds, args.backend, tmp)
+        print("baselines (no bus): sleep, timerfd, timerfd_spin", flush=True)
+        base = baselines_one_bus(args.seconds, tmp)
         print(f"scaling, {args.scaling_seconds:.0f} s per step", flush=True)
         scale = scaling(counts, args.scaling_seconds, args.backend, tmp)
     ours, naive = one["motorbus"], one["naive"]
@@ -302,8 +343,12 @@ def main() -> int:
         "naive_tick_jitter_max_us": round(naive["tick_jitter_max_us"]),
         "naive_drift_ppm": round(naive["drift_ppm"], 1),
         "naive_mean_period_us": round(naive["mean_period_us"], 1),
+        "naive_note": "send then sleep(period): drifts; its jitter is its accumulated drift",
+        "cpu_us_per_tick": round(ours["cpu_percent"] / 100 * PERIOD_S * 1e6, 1),
         **kernel_keys(ours["kernel"], ""),
         **kernel_keys(naive["kernel"], "naive_"),
+        **baseline_keys(base),
+        **ratio_keys(ours, base),
         "scaling": scale,
         "seconds": args.seconds,
         "scaling_seconds": args.scaling_seconds,
@@ -341,6 +386,9 @@ def main() -> int:
     if not result["kernel_measured"]:
         print(f"kernel clock not measured: {result['kernel_why']}")
     print(f"{'mean period (us)':34}{PERIOD_S * 1e6:12.0f}{naive['mean_period_us']:14.0f}")
+    print("(naive sleep = send, then sleep(period): it drifts, its jitter is its drift)")
+    print()
+    print_baselines(result)
     print()
     for name, ok in result["goals"].items():
         print(f"goal {name:28} {'met' if ok else 'NOT met'}")
@@ -384,6 +432,80 @@ def kernel_keys(k: dict[str, Any], prefix: str) -> dict[str, Any]:
             value = round(value, 1) if math.isfinite(value) else None
         out[f"{prefix}kernel_{key}"] = value
     return out
+
+
+#: Figures of a baseline kept in the report, from its kernel-clock figures.
+_BASELINE_KERNEL = (
+    "tick_jitter_p50_us",
+    "tick_jitter_p99_us",
+    "tick_jitter_max_us",
+    "late_ticks",
+    "missed_ticks",
+)
+
+
+def baseline_keys(base: dict[str, Any]) -> dict[str, Any]:
+    """``baseline_<name>_*`` keys: kernel-clock jitter, late/missed ticks, CPU per tick."""
+    out: dict[str, Any] = {}
+    for name, figures in base.items():
+        prefix = f"baseline_{name}_"
+        for key in _BASELINE_KERNEL:
+            value = figures["kernel"].get(f"kernel_{key}")
+            if isinstance(value, float):
+                value = round(value, 1) if math.isfinite(value) else None
+            out[f"{prefix}kernel_{key}"] = value
+        out[f"{prefix}tick_jitter_p99_us"] = round(figures["tick_jitter_p99_us"])
+        out[f"{prefix}tick_jitter_max_us"] = round(figures["tick_jitter_max_us"])
+        out[f"{prefix}cpu_us_per_tick"] = figures["cpu_us_per_bus_tick"]
+        out[f"{prefix}cpu_percent"] = figures["cpu_percent"]
+    return out
+
+
+def _ratio(value: Any, baseline: Any) -> float | None:
+    if not isinstance(value, int | float) or not isinstance(baseline, int | float):
+        return None
+    if not (math.isfinite(value) and math.isfinite(baseline)) or baseline <= 0:
+        return None
+    return round(value / baseline, 2)
+
+
+def ratio_keys(ours: dict[str, Any], base: dict[str, Any]) -> dict[str, Any]:
+    """motorbus's kernel-clock jitter and CPU per tick over baselines (b) and (c)."""
+    cpu = ours["cpu_percent"] / 100 * PERIOD_S * 1e6
+    out: dict[str, Any] = {}
+    for name in ("timerfd", "timerfd_spin"):
+        if name not in base:
+            continue
+        for q in ("p50", "p99", "max"):
+            key = f"kernel_tick_jitter_{q}_us"
+            out[f"ratio_vs_{name}_kernel_jitter_{q}"] = _ratio(
+                ours["kernel"].get(key), base[name]["kernel"].get(key)
+            )
+        out[f"ratio_vs_{name}_cpu_per_tick"] = _ratio(cpu, base[name]["cpu_us_per_bus_tick"])
+    return out
+
+
+def print_baselines(result: dict[str, Any]) -> None:
+    """The motorbus-against-baselines table (kernel clock, CPU per tick, ratios)."""
+    cols = [("motorbus", "")] + [(n, f"baseline_{n}_") for n in BASELINES]
+    print(f"{'one bus, same frames':34}" + "".join(f"{c:>14}" for c, _ in cols))
+    rows = [(f"kernel tick jitter {q} (us)", f"kernel_tick_jitter_{q}_us") for q in _QS]
+    rows += [("kernel late ticks (> 1 ms)", "kernel_late_ticks")]
+    rows += [("kernel missed ticks", "kernel_missed_ticks")]
+    rows += [("CPU per tick (us)", "cpu_us_per_tick")]
+    for label, key in rows:
+        cells = [result.get(f"{prefix}{key}") for _, prefix in cols]
+        print(f"{label:34}" + "".join(f"{'n/a' if v is None else v:>14}" for v in cells))
+    for name in ("timerfd", "timerfd_spin"):
+        ratios = [result.get(f"ratio_vs_{name}_kernel_jitter_{q}") for q in _QS]
+        cpu = result.get(f"ratio_vs_{name}_cpu_per_tick")
+        print(
+            f"motorbus / {name}: jitter p50 {ratios[0]}x, p99 {ratios[1]}x, "
+            f"max {ratios[2]}x; CPU per tick {cpu}x"
+        )
+
+
+_QS = ("p50", "p99", "max")
 
 
 def default_timer_name() -> str:

@@ -233,6 +233,33 @@ STREAM_KEYS = (
     "kernel_gaps_under_1000us",
     "naive_kernel_tick_jitter_p99_us",
     "naive_kernel_tick_jitter_max_us",
+    # The hand-written baselines (benchmarks/baselines.py) and motorbus's ratios to them.
+    "cpu_us_per_tick",
+    *(
+        f"baseline_{name}_{key}"
+        for name in ("sleep", "timerfd", "timerfd_spin")
+        for key in (
+            "kernel_tick_jitter_p50_us",
+            "kernel_tick_jitter_p99_us",
+            "kernel_tick_jitter_max_us",
+            "kernel_late_ticks",
+            "kernel_missed_ticks",
+            "tick_jitter_p99_us",
+            "tick_jitter_max_us",
+            "cpu_us_per_tick",
+            "cpu_percent",
+        )
+    ),
+    *(
+        f"ratio_vs_{name}_{key}"
+        for name in ("timerfd", "timerfd_spin")
+        for key in (
+            "kernel_jitter_p50",
+            "kernel_jitter_p99",
+            "kernel_jitter_max",
+            "cpu_per_tick",
+        )
+    ),
 )
 SCALING_KEYS = (
     "buses",
@@ -877,35 +904,70 @@ MAIN_ROWS = (
         goal="bus.timeout_never_early",
     ),
     Row(
+        "stream tick jitter p50 (kernel clock)",
+        "stream.kernel_tick_jitter_p50_us",
+        "µs",
+        "bare timerfd loop p50 (kernel)",
+        "stream.baseline_timerfd_kernel_tick_jitter_p50_us",
+    ),
+    Row(
         "stream tick jitter p99 (kernel clock)",
         "stream.kernel_tick_jitter_p99_us",
         "µs",
-        "naive sleep loop p99 (kernel)",
-        "stream.naive_kernel_tick_jitter_p99_us",
+        "bare timerfd loop p99 (kernel)",
+        "stream.baseline_timerfd_kernel_tick_jitter_p99_us",
         "stream.kernel_p99_le_150us",
+    ),
+    Row(
+        "stream tick jitter p99 (kernel clock)",
+        "stream.kernel_tick_jitter_p99_us",
+        "µs",
+        "timerfd + busy-wait loop p99 (kernel)",
+        "stream.baseline_timerfd_spin_kernel_tick_jitter_p99_us",
     ),
     Row(
         "stream tick jitter max (kernel clock)",
         "stream.kernel_tick_jitter_max_us",
         "µs",
-        "naive sleep loop max (kernel)",
-        "stream.naive_kernel_tick_jitter_max_us",
+        "bare timerfd loop max (kernel)",
+        "stream.baseline_timerfd_kernel_tick_jitter_max_us",
         "stream.kernel_max_le_1ms",
+    ),
+    Row(
+        "stream tick jitter max (kernel clock)",
+        "stream.kernel_tick_jitter_max_us",
+        "µs",
+        "timerfd + busy-wait loop max (kernel)",
+        "stream.baseline_timerfd_spin_kernel_tick_jitter_max_us",
+    ),
+    Row(
+        "stream CPU per tick, one bus",
+        "stream.cpu_us_per_tick",
+        "µs",
+        "bare timerfd loop",
+        "stream.baseline_timerfd_cpu_us_per_tick",
+    ),
+    Row(
+        "stream CPU per tick, one bus",
+        "stream.cpu_us_per_tick",
+        "µs",
+        "timerfd + busy-wait loop",
+        "stream.baseline_timerfd_spin_cpu_us_per_tick",
     ),
     Row(
         "stream tick jitter p99",
         "stream.tick_jitter_p99_us",
         "µs",
-        "naive sleep loop p99",
-        "stream.naive_tick_jitter_p99_us",
+        "absolute-deadline asyncio.sleep loop p99",
+        "stream.baseline_sleep_tick_jitter_p99_us",
         "stream.p99_le_300us",
     ),
     Row(
         "stream tick jitter max",
         "stream.tick_jitter_max_us",
         "µs",
-        "naive sleep loop max",
-        "stream.naive_tick_jitter_max_us",
+        "absolute-deadline asyncio.sleep loop max",
+        "stream.baseline_sleep_tick_jitter_max_us",
         "stream.max_le_2ms",
     ),
     Row("stream missed ticks", "stream.missed_ticks", "", goal="stream.no_missed_tick"),
@@ -913,7 +975,7 @@ MAIN_ROWS = (
         "stream drift",
         "stream.drift_ppm",
         "ppm",
-        "naive sleep loop drift",
+        "send-then-sleep loop drift",
         "stream.naive_drift_ppm",
         "stream.no_drift",
     ),
@@ -1040,13 +1102,26 @@ KERNEL_VS_SIM = (
         "stream.tick_jitter_max_us",
     ),
     ("stream: missed ticks", "stream.kernel_missed_ticks", "stream.missed_ticks"),
+    *(
+        (
+            f"{label}: tick jitter {q} (µs)",
+            f"stream.baseline_{name}_kernel_tick_jitter_{q}_us",
+            f"stream.baseline_{name}_tick_jitter_{q}_us",
+        )
+        for name, label in (
+            ("sleep", "absolute-deadline asyncio.sleep loop"),
+            ("timerfd", "bare timerfd loop (floor)"),
+            ("timerfd_spin", "timerfd + busy-wait loop (precision floor)"),
+        )
+        for q in ("p99", "max")
+    ),
     (
-        "naive sleep loop: tick jitter p99 (µs)",
+        "send-then-sleep loop, DRIFT not jitter: p99 (µs)",
         "stream.naive_kernel_tick_jitter_p99_us",
         "stream.naive_tick_jitter_p99_us",
     ),
     (
-        "naive sleep loop: tick jitter max (µs)",
+        "send-then-sleep loop, DRIFT not jitter: max (µs)",
         "stream.naive_kernel_tick_jitter_max_us",
         "stream.naive_tick_jitter_max_us",
     ),

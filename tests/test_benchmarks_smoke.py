@@ -92,6 +92,11 @@ def fake_reports() -> dict[str, Any]:
             "kernel_tick_jitter_p99_us": 120.0,
             "kernel_tick_jitter_max_us": 1500.0,
             "naive_kernel_tick_jitter_p99_us": 4000.0,
+            "cpu_us_per_tick": 90.0,
+            "baseline_sleep_tick_jitter_max_us": 5000,
+            "baseline_timerfd_kernel_tick_jitter_p99_us": 60.0,
+            "baseline_timerfd_cpu_us_per_tick": 30.0,
+            "baseline_timerfd_spin_cpu_us_per_tick": 60.0,
         },
         "load": {
             "plain": {"tick_jitter_p99_us": 4000.0, "missed_ticks": 30, "late_ticks": 100},
@@ -301,7 +306,18 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     # RTT against the minimal client (1000 / 800) and the blocking one (1000 / 640)
     assert "| minimal asyncio client p50: 800 µs | 1.25 | <= 1.3 | met |" in text
     assert "blocking pyserial p50: 640 µs | 1.56 | - | - |" in text
-    assert "| stream tick jitter max | 2,500 µs | naive sleep loop max: 5,000 µs | 0.50 |" in text
+    assert (
+        "| stream tick jitter max | 2,500 µs | absolute-deadline asyncio.sleep loop max: "
+        "5,000 µs | 0.50 |"
+    ) in text
+    # the fair baselines (issue 23): the bare timerfd loop and its busy-wait variant
+    assert "| bare timerfd loop p99 (kernel): 60 µs | 2.00 | <= 150 | met |" in text
+    assert "| stream CPU per tick, one bus | 90 µs | bare timerfd loop: 30 µs | 3.00 |" in text
+    assert "| timerfd + busy-wait loop: 60 µs | 1.50 |" in text
+    # the send-then-sleep loop drifts: never a jitter baseline, labelled drift where shown
+    main = text.split("| figure |", 1)[1].split("\n\n", 1)[0]
+    assert "naive" not in main and "send-then-sleep loop drift" in main
+    assert "send-then-sleep loop, DRIFT not jitter: p99 (µs)" in text
     assert (
         "- **NOT MET**: `stream.max_le_2ms`: stream.tick_jitter_max_us = 2,500 (goal <= 2,000)"
     ) in text

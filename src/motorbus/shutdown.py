@@ -34,12 +34,14 @@ import contextlib
 import logging
 import os
 import signal
+import sys
 import threading
 import weakref
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
-from typing import Any, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
-from motorbus import guard as guard_process
+if TYPE_CHECKING:
+    from types import ModuleType
 
 __all__ = [
     "STOP_SIGNALS",
@@ -169,18 +171,29 @@ class _AutoGuard:
 _guard = _AutoGuard()
 
 
+def _guard_process() -> ModuleType | None:
+    """``motorbus.guard`` if it is loaded: a guard process runs only once something has
+    imported it (``guarded``, ``start_guard``), so a program without one never pays its
+    import (start-up time of the command line, tests/cli/test_cli_startup.py)."""
+    return sys.modules.get("motorbus.guard")
+
+
 def register_bus(bus: Any) -> None:
     """A bus opened: protect it (called by ``Bus.open``); a running guard follows it."""
     _buses[bus] = asyncio.get_running_loop()
     _guard.bus_opened()
-    guard_process.bus_opened(bus)
+    guard_process = _guard_process()
+    if guard_process is not None:
+        guard_process.bus_opened(bus)
 
 
 def unregister_bus(bus: Any) -> None:
     """A bus closed (called by ``Bus.close``): the guard forgets it."""
     if _buses.pop(bus, None) is not None:
         _guard.bus_closed()
-    guard_process.bus_closed(bus)
+    guard_process = _guard_process()
+    if guard_process is not None:
+        guard_process.bus_closed(bus)
 
 
 def register_manager(manager: Any) -> None:
@@ -363,7 +376,9 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
                 await stop_everything()
             handlers.uninstall()
 
-    with guard_process.guarded(guard):
+    from motorbus.guard import guarded
+
+    with guarded(guard):
         try:
             return asyncio.run(runner())
         except asyncio.CancelledError:

@@ -22,17 +22,13 @@ import os
 import re
 from collections.abc import AsyncIterator, Iterable
 from contextlib import asynccontextmanager
-from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from motorbus import (
     BACKENDS,
     DEFAULT_BACKEND,
     Bus,
-    BusSpec,
     Transport,
-    default_bus_file,
-    load_bus_file,
     open_transport,
 )
 from motorbus.cli.main import UsageError
@@ -41,6 +37,9 @@ from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import PortInUseError
 from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
+
+if TYPE_CHECKING:
+    from motorbus import BusSpec
 
 __all__ = [
     "BACKEND_ENV",
@@ -171,6 +170,12 @@ def chosen_bus(
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)
     if not explicit and port_given and not name:
         return None
+    # The bus file reader (tomllib, every family's checks) only when a file may apply:
+    # ``motorbus la status 1 --port P`` starts without it.
+    from pathlib import Path
+
+    from motorbus import default_bus_file, load_bus_file
+
     path = Path(explicit) if explicit else default_bus_file()
     if path is None or not path.is_file():
         if explicit:

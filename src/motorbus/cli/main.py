@@ -1,8 +1,11 @@
 """The ``motorbus`` command line.
 
 Each command lives in its own module under ``motorbus.cli`` with a ``register``
-function that adds its sub-parser; commands are imported when the parser is built,
-so one command's optional dependency never breaks another.
+function that adds its sub-parser.  Only the module of the command on the line is
+imported (``motorbus --version`` and ``motorbus --help`` import none): a tool run many
+times a day starts in a small fraction of a second, and one command's optional
+dependency never breaks another.  The top-level help lists :data:`COMMANDS`, whose
+one-line texts tests/cli/test_cli_startup.py checks against each module's ``register``.
 
 Exit codes (documented in docs/cli.md):
     0  success
@@ -29,13 +32,14 @@ ends the command quietly.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
-import importlib.metadata
 import logging
 import os
 import sys
 from collections.abc import Sequence
 
+import motorbus
 from motorbus.errors import (
     CommandFailed,
     LocalProtocolError,
@@ -44,7 +48,6 @@ from motorbus.errors import (
     ReplyTimeoutError,
     UsageError,
 )
-from motorbus.guard import guarded
 
 __all__ = [
     "EXIT_FAILURE",
@@ -61,23 +64,28 @@ EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
 
-#: Modules that each contribute one or more commands, in help order.
-COMMAND_MODULES = (
-    "demo",
-    "sim",
-    "decode",
-    "scan",
-    "doctor",
-    "la",
-    "stream",
-    "monitor",
-    "project",
-    "quad",
-    "capture",
-    "replay",
-    "rig",
-    "dashboard",
-)
+#: Every command, in help order, with its one-line help; command NAME is registered by
+#: ``motorbus.cli.NAME.register``.  The texts are here so that ``motorbus --help`` imports
+#: no command module; tests/cli/test_cli_startup.py checks they are each module's own.
+COMMANDS: dict[str, str] = {
+    "demo": "run every device on built-in simulators (no hardware)",
+    "sim": "serve simulated devices on a pseudo-terminal",
+    "decode": "describe frames given in hex",
+    "scan": "find the LA actuators that answer on a bus",
+    "doctor": "check a bus: port, adapter, echo, baud, devices, timing, what it can sustain",
+    "la": "commands to Inspire LA actuators",
+    "stream": "stream a CSV trajectory to LA actuators (follow mode)",
+    "monitor": "live table of LA actuator status",
+    "project": "program and run the FF AA project stepper",
+    "quad": "commands to the 4-axis FF AA stepper controller",
+    "capture": "record every frame on a bus as a frame log (listen only)",
+    "replay": "print a frame log, or send its requests again through a bus",
+    "rig": "characterise LA actuators: step, tracking, latency, repeatability; compare runs",
+    "dashboard": "live web page of every bus and device (plots, faults, e-stop)",
+}
+
+#: Modules that each contribute one command (the command of the same name), in help order.
+COMMAND_MODULES = tuple(COMMANDS)
 
 
 #: Options every command accepts wherever they stand on the line.
@@ -85,15 +93,21 @@ GLOBAL_FLAGS = ("--debug", "--json")
 
 
 def version() -> str:
-    """The installed motorbus version."""
-    try:
-        return importlib.metadata.version("motorbus")
-    except importlib.metadata.PackageNotFoundError:
-        return "unknown"
+    """The motorbus version (``motorbus.__version__``, which tests check against the
+    installed metadata; reading the metadata would cost ``--version`` 30 ms of imports)."""
+    return motorbus.__version__
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The top-level parser with every command registered."""
+def build_parser(only: str | None = "") -> argparse.ArgumentParser:
+    """The top-level parser.
+
+    Args:
+        only: ``""`` (the default): every command registered from its module.  A command
+            name: only that command's module is imported and registered; the others get a
+            sub-parser with their one-line help from :data:`COMMANDS`, enough for the
+            top-level help and for argparse to name the choices.  ``None``: no command
+            module is imported at all (``motorbus --help``, ``--version``, a typo).
+    """
     parser = argparse.ArgumentParser(
         prog="motorbus",
         description="Drive buses of serial motion devices (Inspire LA actuators, FF AA steppers).",
@@ -114,10 +128,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        # A command whose module does not import is a broken install: say so, never
-        # leave the command out of the help as if it did not exist.
-        module = importlib.import_module(f"motorbus.cli.{name}")
-        module.register(sub)
+        if only == "" or name == only:
+            # A command whose module does not import is a broken install: say so, never
+            # leave the command out of the help as if it did not exist.
+            module = importlib.import_module(f"motorbus.cli.{name}")
+            module.register(sub)
+        else:
+            sub.add_parser(name, help=COMMANDS.get(name), add_help=False)
     _plain_help(parser)
     return parser
 
@@ -158,10 +175,19 @@ def _split_global_flags(argv: Sequence[str]) -> tuple[list[str], set[str]]:
     return rest, flags
 
 
+def _command_of(argv: Sequence[str]) -> str | None:
+    """The command named on the line, if any: the first word that is not an option (the
+    top-level options take no value), or ``None`` (``--help``, ``--version``, a typo)."""
+    for arg in argv:
+        if arg != "--" and not arg.startswith("-"):
+            return arg if arg in COMMANDS else None
+    return None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
-    parser = build_parser()
     rest, flags = _split_global_flags(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(only=_command_of(rest))
     args = parser.parse_args(rest)
     args.debug = "--debug" in flags
     if "--json" in flags:
@@ -177,7 +203,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        with guarded(getattr(args, "guard", False)):  # --guard: see motorbus.guard
+        with _guarded(getattr(args, "guard", False)):  # --guard: see motorbus.guard
             code: int = func(args)
         sys.stdout.flush()  # a closed pipe shows here, inside the handler below
         return code
@@ -211,6 +237,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"motorbus {args.command}: {err}{_port_in_use_hint(err, args)}", file=sys.stderr)
         return EXIT_FAILURE
+
+
+def _guarded(enabled: bool) -> contextlib.AbstractContextManager[object]:
+    """``motorbus.guard.guarded(enabled)``, imported only for ``--guard`` (start-up time)."""
+    if not enabled:
+        return contextlib.nullcontext()
+    from motorbus.guard import guarded
+
+    return guarded(True)
 
 
 #: Commands that only watch a bus: on a port another program holds, what to do instead.

@@ -23,10 +23,13 @@ from collections.abc import Iterable
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
-from motorbus.protocol import project_stepper as ps
-from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Command, Family
 from motorbus.protocol.families import FAMILIES
+
+# The stepper families are imported inside the functions, where a stepper command is at
+# hand (a command of a family means its module is loaded, so the import is a dict
+# look-up): a program or a ``motorbus la`` command that only speaks to LA actuators does
+# not pay the 60 ms it takes to import them (tests/cli/test_cli_startup.py).
 
 __all__ = [
     "AT_REST_AFTER_PROJECT_END",
@@ -123,7 +126,11 @@ def safe_stop_commands(
         sub = la.ControlAction.ESTOP if name == "estop" else la.ControlAction.PAUSE
         return (la.Control(int(key[len(_LA_PREFIX) :]), sub),)
     if family is Family.PROJECT_STEPPER:
+        from motorbus.protocol import project_stepper as ps
+
         return (ps.StopProject(), ps.ManualStop(motor=ps.DEFAULT_MOTOR if motor is None else motor))
+    from motorbus.protocol import quad_stepper as q
+
     return (q.StopAll(),)
 
 
@@ -134,10 +141,16 @@ def motion_stops(cmd: Command[object]) -> tuple[Command[object], ...] | None:
     means the device's safe action itself (an LA's pause or e-stop, a quad's stop all)."""
     if cmd.family is Family.LA:
         return None  # the stream's path: no isinstance chain
-    if isinstance(cmd, ps.StartProject):
-        return (ps.StopProject(),)
-    if isinstance(cmd, ps.ProjectStepperCommand):
-        return (ps.ManualStop(motor=getattr(cmd, "motor", ps.DEFAULT_MOTOR)),)
+    if cmd.family is Family.PROJECT_STEPPER:
+        from motorbus.protocol import project_stepper as ps
+
+        if isinstance(cmd, ps.StartProject):
+            return (ps.StopProject(),)
+        if isinstance(cmd, ps.ProjectStepperCommand):
+            return (ps.ManualStop(motor=getattr(cmd, "motor", ps.DEFAULT_MOTOR)),)
+        return None
+    from motorbus.protocol import quad_stepper as q
+
     if isinstance(cmd, (q.Run, q.Home)):
         return (q.Stop(cmd.motor),)
     return None
@@ -146,11 +159,26 @@ def motion_stops(cmd: Command[object]) -> tuple[Command[object], ...] | None:
 def at_rest_after_done(cmd: Command[object]) -> Command[object] | None:
     """The stop a motion's own "done" reply is as good as (a quad run's done: that
     motor's stop), or None."""
+    if cmd.family is not Family.QUAD_STEPPER:
+        return None
+    from motorbus.protocol import quad_stepper as q
+
     return q.Stop(cmd.motor) if isinstance(cmd, q.Run) else None
 
 
-#: A project's end (``EE DD``) is as good as a stop project.
-AT_REST_AFTER_PROJECT_END: Command[object] = ps.StopProject()
+#: A project's end (``EE DD``) is as good as a stop project (made on first use, by the
+#: module ``__getattr__`` below: only a project stepper's bus reads it).
+AT_REST_AFTER_PROJECT_END: Command[object]
+
+
+def __getattr__(name: str) -> object:
+    if name == "AT_REST_AFTER_PROJECT_END":
+        from motorbus.protocol import project_stepper as ps
+
+        value = ps.StopProject()
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def motion_keys(cmd: Command[object]) -> tuple[str, ...]:
@@ -170,8 +198,11 @@ def covers(sent: Command[object], safe: Command[object]) -> bool:
     """
     if sent == safe:
         return True
-    if isinstance(sent, q.StopAll) and isinstance(safe, q.Stop):
-        return True
+    if sent.family is Family.QUAD_STEPPER:
+        from motorbus.protocol import quad_stepper as q
+
+        if isinstance(sent, q.StopAll) and isinstance(safe, q.Stop):
+            return True
     if isinstance(sent, la.Control) and isinstance(safe, la.Control):
         return (sent.id in (safe.id, la.BROADCAST_ID)) and safe.action in _LA_STOPS.get(
             sent.action, frozenset()
