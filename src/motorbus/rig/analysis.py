@@ -108,6 +108,8 @@ class StepFigures:
     steady_state_error: float
     peak_current: float
     peak_force: float
+    #: When the target was written (the bus's clock, s): where the plot starts.
+    command_t: float = math.nan
 
 
 def _crossing(samples: Sequence[Sample], level: float, rising: bool) -> float:
@@ -226,6 +228,7 @@ def step_figures(
     tail = [s for s in after if s.t >= last_t - tail_s]
     steady = sum(s.position - end for s in tail) / len(tail)
     return StepFigures(
+        command_t=command_t,
         start=start,
         end=end,
         dead_time_ms=dead_ms,

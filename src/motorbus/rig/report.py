@@ -211,26 +211,24 @@ def _device_section(ident: int, d: DeviceResult, result: RigResult) -> str:
     if d.steps:
         series = []
         for s in d.steps:
-            t_cmd = next((t for t, x in reversed(targets) if x == s.end), None)
-            if t_cmd is None:
+            t_cmd = s.command_t
+            if not math.isfinite(t_cmd):
                 continue
-            end_t = t_cmd + (s.settling_time_ms / 1e3 if math.isfinite(s.settling_time_ms) else 2.0)
-            series.append(
-                (f"{s.start:g} → {s.end:g}", _window(samples, t_cmd, end_t + 0.2), "line")
-            )
+            settle = s.settling_time_ms / 1e3 if math.isfinite(s.settling_time_ms) else 2.0
+            points = _window(samples, t_cmd, t_cmd + settle + 0.2)
+            series.append((f"{s.start:g} → {s.end:g}", points, "line"))
         parts.append(_svg("Step response", series, "ms from the target's write", "position"))
     if d.tracks:
-        first = d.tracks[0]
-        f = first.response.frequency_hz if first.response else None
-        follow = [(t, x) for t, x in targets]
-        if follow:
-            t_end = follow[-1][0]
-            t_start = t_end - (min(2.0, 2.0 / f) if f else 2.0)
-            tgt = [((t - t_start) * 1e3, float(x)) for t, x in follow if t >= t_start]
+        last = d.tracks[-1]
+        f = last.response.frequency_hz if last.response else None
+        if d.track_windows:
+            t_first, t_end = d.track_windows[-1]
+            t_start = max(t_first, t_end - (min(2.0, 2.0 / f) if f else 2.0))
+            tgt = [((t - t_start) * 1e3, float(x)) for t, x in targets if t_start <= t <= t_end]
             pos = _window(samples, t_start, t_end)
             parts.append(
                 _svg(
-                    "Tracking (last stretch of the last frequency)",
+                    f"Tracking at {f:g} Hz (its last stretch)" if f else "Tracking",
                     [("target", tgt, "line"), ("position", pos, "line")],
                     "ms",
                     "position",

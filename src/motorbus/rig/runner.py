@@ -62,6 +62,8 @@ class DeviceResult:
     id: int
     steps: list[StepFigures] = field(default_factory=list)
     tracks: list[TrackFigures] = field(default_factory=list)
+    #: (first, last) write time of each tracking run's targets (bus clock, s).
+    track_windows: list[tuple[float, float]] = field(default_factory=list)
     dead_times_ms: list[float] = field(default_factory=list)
     repeat: RepeatFigures | None = None
     #: Where each repeatability approach ended, per side ("below", "above").
@@ -206,13 +208,22 @@ class _Rig:
         await self.sampler.sleep(TAIL_S)
         self.measure_noise(ident)
 
+    def rest_position(self, ident: int, fallback: float) -> float:
+        """Where the actuator is at rest now: the mean of the last still window (a dead
+        band or an offset leaves it short of its last target, and the dead time is
+        measured from where it really is)."""
+        now = self.bus.timer.now()
+        recent = [s.position for s in self.sampler.since(ident, now - STILL_WINDOW_S)]
+        return statistics.fmean(recent) if recent else fallback
+
     async def step(self, ident: int, start: int, end: int) -> StepFigures:
         await self.goto(ident, start)
         band = self.noise_band(ident)
+        rest = self.rest_position(ident, start)
         t = await self.move(ident, end)
         await self.settle(ident, end, t, abs(end - start))
         await self.sampler.sleep(TAIL_S)
-        return step_figures(self.sampler.since(ident, t), t, start, end, noise_band=band)
+        return step_figures(self.sampler.since(ident, t), t, rest, end, noise_band=band)
 
     async def track(self, ident: int, frequency: float) -> TrackFigures:
         plan = self.plan
@@ -270,11 +281,12 @@ class _Rig:
                 )
             )
             band = min(self.noise_band(ident), plan.latency_step / 2)
+            rest = self.rest_position(ident, start)
             t = await self.move(ident, end)
             await self.settle(ident, end, t, plan.latency_step)
             await self.sampler.sleep(TAIL_S)
             self.measure_noise(ident)
-            fig = step_figures(self.sampler.since(ident, t), t, start, end, noise_band=band)
+            fig = step_figures(self.sampler.since(ident, t), t, rest, end, noise_band=band)
             result.dead_times_ms.append(fig.dead_time_ms)
             self.tell(f"la:{ident} latency {k + 1}/{plan.latency_count}")
 
@@ -311,7 +323,11 @@ class _Rig:
         result.noise = self.rest_noise.get(ident, math.nan)
         if "track" in plan.tests:
             for f in plan.frequencies:
+                first = len(self.sampler.targets[ident])
                 result.tracks.append(await self.track(ident, f))
+                written = self.sampler.targets[ident][first:]
+                if written:
+                    result.track_windows.append((written[0][0], written[-1][0]))
         if "latency" in plan.tests:
             await self.latency(ident, result)
         if "repeat" in plan.tests:
