@@ -60,7 +60,7 @@ from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refres
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
-from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
+from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy, reply_slack
 from motorbus.bus.options import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
 from motorbus.bus.options import DEFAULT_LATE_GUARD_S as DEFAULT_LATE_GUARD_S
 from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
@@ -222,9 +222,7 @@ class Bus(BusEngine):
         warn = getattr(self.transport, "warn_if_latency_exceeds", None)
         if warn is None:
             return
-        # A reply's slack beyond the wire: turnaround + margin (Occupancy.budget's terms).
-        slack = min(self.config.turnaround[f] for f in self.families) + self.config.host_margin
-        warn(slack)
+        warn(reply_slack(self.timing, self.families))
 
     def add_close_hook(self, hook: Callable[[], Awaitable[None]]) -> None:
         """Run ``await hook()`` at the start of every ``close``, before the port closes.

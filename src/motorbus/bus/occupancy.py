@@ -32,12 +32,12 @@ From them:
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 from motorbus.protocol.base import Command, Family, wire_time
 
-__all__ = ["BusTiming", "Occupancy", "command_occupancy", "occupancy"]
+__all__ = ["BusTiming", "Occupancy", "command_occupancy", "occupancy", "reply_slack"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,3 +115,14 @@ def command_occupancy(
         request_bytes=len(cmd.encode()) if request_bytes is None else request_bytes,
         reply_bytes=max(lengths) if lengths else 0,
     )
+
+
+def reply_slack(timing: BusTiming, families: Iterable[Family] | None = None) -> float:
+    """How long a reply may be held beyond its own wire time and still meet its deadline
+    (``Occupancy.budget``'s terms): the shortest turnaround of ``families`` (every
+    family ``timing`` knows if None) plus the host margin.  What a USB adapter's
+    latency timer must stay under."""
+    chosen = (
+        timing.turnaround.values() if families is None else [timing.turnaround[f] for f in families]
+    )
+    return min(chosen) + timing.host_margin

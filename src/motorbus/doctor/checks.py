@@ -21,7 +21,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
-from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy
+from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy, reply_slack
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
 
@@ -295,7 +295,7 @@ def check_latency(facts: LatencyFacts, timing: BusTiming, period_s: float) -> Fi
         udev_rule=rule,
         udev_rule_path=UDEV_RULE_PATH,
     )
-    slack = min(timing.turnaround.values()) + timing.host_margin
+    slack = reply_slack(timing)
     level = Level.RED if ms / 1e3 > slack else Level.YELLOW
     why = (
         f"{facts.tty_name}: latency timer {ms} ms (ASYNC_LOW_LATENCY {flag}): each reply may "
