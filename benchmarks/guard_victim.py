@@ -1,6 +1,6 @@
 """A program to kill: streams follow targets to LA actuators until it is killed.
 
-Used by ``bench_guard.py`` and ``tests/test_guard.py``::
+Used by ``bench_guard.py`` and ``tests/guard/test_guard.py``::
 
     python benchmarks/guard_victim.py --port /dev/pts/5 --port /dev/pts/6 --ids 1-3 --guard
 

@@ -38,7 +38,7 @@ from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.streams import StreamEnded, Streamer
 from motorbus.transport.memory import memory_pair
 from motorbus.transport.serial import SerialTransport
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 
 #: Wrong types for an integer (or enum) argument.  ``True`` is refused: it is not a number.
 WRONG_INT = ("1", 1.5, None, True)

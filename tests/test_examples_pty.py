@@ -19,7 +19,7 @@ import pytest
 
 from motorbus.sim.bus import Pacing
 from motorbus.sim.process import SimProcess
-from tests.conftest import PACINGS
+from tests.helpers import PACINGS
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"

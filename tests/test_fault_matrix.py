@@ -53,7 +53,7 @@ from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.streams import Streamer
 from tests.bus.test_bus_faults import eventually
-from tests.conftest import PACINGS, sim_bus
+from tests.helpers import PACINGS, sim_bus
 
 #: How long each cell drives traffic, seconds of simulator time.
 RUN_S = 0.3

@@ -26,7 +26,7 @@ from motorbus.protocol.base import check_choice, check_flag, check_int, check_ti
 from motorbus.sim.la import LAModel
 from motorbus.streams import StreamEnded, Streamer
 from motorbus.transport.memory import memory_pair
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 from tests.test_bad_input import COMMANDS
 
 NP_INTS = (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)

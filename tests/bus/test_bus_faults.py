@@ -20,7 +20,7 @@ from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import LAModel
 from tests.bus.test_bus_memory import DELIVERIES, frames, la_models, logged_sim_bus
-from tests.conftest import PACINGS
+from tests.helpers import PACINGS
 
 #: Tight deadlines for the timeout tests (the bus default): what times out here should.
 TIGHT_MARGIN_S = 1e-3
@@ -330,7 +330,7 @@ async def test_lost_done_replies_do_not_pile_up(pacing: Pacing) -> None:
     from motorbus.bus.matching import MAX_DONE_WATCHES
     from motorbus.protocol import quad_stepper as q
     from motorbus.sim.quad_stepper import QuadStepperModel
-    from tests.conftest import sim_bus
+    from tests.helpers import sim_bus
 
     model = QuadStepperModel()
     async with sim_bus([model], baud=115200, pacing=pacing) as (bus, _):

@@ -36,7 +36,7 @@ from motorbus.sim.memory import MemorySim
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.sim.quad_stepper import QuadStepperModel
-from tests.conftest import PACINGS
+from tests.helpers import PACINGS
 
 DELIVERIES = ["whole", "bytewise", "random"]
 #: Tolerance on start-to-start gaps measured by the simulator: the in-memory hop

@@ -25,7 +25,7 @@ from motorbus.sim.model import DeviceModel
 from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.transport.serial import BACKENDS, SerialTransport, available_backends
-from tests.conftest import PACINGS
+from tests.helpers import PACINGS
 
 LA_BAUD = 921600  # LA "D" interface (docs/protocols.md C.1)
 QUAD_BAUD = 9600  # A1-01: the family default

@@ -87,7 +87,7 @@ async def test_a_second_cancellation_does_not_cut_a_lease_s_safe_stop() -> None:
 async def test_a_safe_action_owed_while_the_port_is_lost_goes_out_when_it_is_back() -> None:
     from motorbus.bus.bus import BusState
     from motorbus.sim.la import LAModel, PowerState
-    from tests.conftest import sim_bus
+    from tests.helpers import sim_bus
 
     model = LAModel(1)
     async with sim_bus([model], pacing="prompt") as (bus, sim):

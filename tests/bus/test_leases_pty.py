@@ -35,7 +35,7 @@ from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.streams import Streamer
 from motorbus.transport.serial import SerialTransport
-from tests.conftest import PACINGS
+from tests.helpers import PACINGS
 
 LA_BAUD = 921600
 STEPPER_BAUD = 9600

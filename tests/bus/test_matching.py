@@ -1,6 +1,6 @@
 """The bus's reply matching on the pure core (``motorbus.bus.matching``): plain numbers
 and frames, no event loop, no clock.  The same guarantees are checked over ptys and
-simulators in tests/test_bus_guarantees.py."""
+simulators in tests/bus/test_bus_guarantees.py."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from motorbus.protocol.la.wire import build_frame
 
 BAUD = 115200
 TIMING = BusTiming(BAUD, 1e-3, 2e-3, DEFAULT_TURNAROUND)
-#: The LA status reply of ID 1 (tests/test_bus_guarantees.py), its body reused for others.
+#: The LA status reply of ID 1 (tests/bus/test_bus_guarantees.py), its body reused for others.
 _STATUS_1 = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
 
 

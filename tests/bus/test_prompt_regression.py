@@ -24,7 +24,7 @@ from motorbus.sim.la import LAModel
 from motorbus.sim.project_stepper import ProjectStepperModel
 from motorbus.streams import Streamer
 from tests.bus.test_bus_memory import logged_sim_bus
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 
 STEPPER_BAUD = 9600
 REQUESTS = 10

@@ -1,6 +1,6 @@
 """The bus's scheduling rules on the pure core (``motorbus.bus.schedule``): plain numbers,
 no event loop, no clock.  The same guarantees are checked over ptys and simulators in
-tests/test_bus_guarantees.py."""
+tests/bus/test_bus_guarantees.py."""
 
 from __future__ import annotations
 

@@ -26,7 +26,7 @@ from motorbus.protocol.base import Family
 from motorbus.sim.bus import SimBus
 from motorbus.sim.la import LAModel
 from motorbus.transport.serial import SerialTransport
-from tests.cli.test_cli_la import cli, json_lines
+from tests.helpers import cli, json_lines
 
 LA_BAUD = 921600
 #: How often the echoing device looks for host bytes, seconds.

@@ -28,7 +28,7 @@ from motorbus.cli.main import EXIT_OK, EXIT_USAGE, UsageError, build_parser, mai
 from motorbus.errors import LocalProtocolError
 from motorbus.manager import BusManager, default_bus_file
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli, json_lines
+from tests.helpers import cli, json_lines
 
 
 @pytest.fixture(scope="module")

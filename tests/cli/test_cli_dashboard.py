@@ -25,7 +25,7 @@ from motorbus.cli.common import ENV_VARS
 from motorbus.protocol import framelog, la
 from motorbus.protocol.base import format_hex
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import NO_CONFIG_DIR, cli
+from tests.helpers import NO_CONFIG_DIR, cli
 
 aiohttp = pytest.importorskip("aiohttp")
 

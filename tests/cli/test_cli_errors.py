@@ -14,7 +14,7 @@ import pytest
 from motorbus.cli.common import ENV_VARS
 from motorbus.cli.main import EXIT_FAILURE, EXIT_USAGE, main
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import NO_CONFIG_DIR, cli, rx_frames
+from tests.helpers import NO_CONFIG_DIR, cli, rx_frames
 
 
 @pytest.fixture(scope="module")

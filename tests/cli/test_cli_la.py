@@ -1,57 +1,22 @@
 """``motorbus la``, ``scan`` and ``monitor`` as subprocesses against ``motorbus sim`` on a pty.
 
-Also home of :func:`cli` and the simulator fixtures the other ``test_cli_*`` files use.
+The command-line helpers (``cli``...) are in ``tests.helpers``.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import subprocess
-import sys
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 
-from motorbus.cli.common import ENV_VARS, PORT_ENV, LiveText, parse_id_args, parse_ids
+from motorbus.cli.common import PORT_ENV, LiveText, parse_id_args, parse_ids
 from motorbus.cli.la import baud_code, format_value, status_json, status_row
 from motorbus.cli.main import build_parser
 from motorbus.cli.scan import ProgressBar
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-
-#: Generous ceiling for one CLI run (a stuck command fails the test instead of hanging).
-CLI_TIMEOUT_S = 60
-
-
-#: A configuration directory with no motorbus/buses.toml: the user's own never leaks in.
-NO_CONFIG_DIR = "/nonexistent/motorbus-test-config"
-
-
-def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
-    """Run ``python -m motorbus ARGS``; the ``MOTORBUS_*`` variables are unset and there is
-    no user bus file unless ``env`` sets them."""
-    base = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
-    base["XDG_CONFIG_HOME"] = NO_CONFIG_DIR
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", *args],
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
-        env={**base, **(env or {})},
-    )
-
-
-def json_lines(out: str) -> list[Any]:
-    """Every line of ``out`` parsed as JSON."""
-    return [json.loads(line) for line in out.splitlines() if line.strip()]
-
-
-def rx_frames(sim: SimProcess) -> list[str]:
-    """Hex of every frame the simulator received so far."""
-    return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
+from tests.helpers import cli, json_lines, rx_frames
 
 
 @pytest.fixture(scope="module")

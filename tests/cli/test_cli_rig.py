@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli
+from tests.helpers import cli
 
 SPEED, DEAD = 1000.0, 0.012
 TRUTH = f"stroke_speed={SPEED:g},accel=10000,dead_time={DEAD},position=300"

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from motorbus.cli.main import COMMANDS, build_parser
-from tests.cli.test_cli_la import CLI_TIMEOUT_S
+from tests.helpers import CLI_TIMEOUT_S
 
 #: What ``motorbus --version`` must never load: the event loop, the bus, the web server.
 HEAVY = ("asyncio", "motorbus.bus", "aiohttp", "motorbus.dashboard")

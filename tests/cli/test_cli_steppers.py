@@ -20,7 +20,7 @@ from motorbus.cli.project import project_from_toml, project_to_dict, project_to_
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import project_stepper as ps
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import CLI_TIMEOUT_S, NO_CONFIG_DIR, cli, json_lines, rx_frames
+from tests.helpers import CLI_TIMEOUT_S, NO_CONFIG_DIR, cli, json_lines, rx_frames
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "project.toml"
 

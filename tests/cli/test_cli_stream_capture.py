@@ -17,7 +17,7 @@ from motorbus.cli.stream import ramp_rows, read_trajectory
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import CLI_TIMEOUT_S, cli, json_lines, rx_frames
+from tests.helpers import CLI_TIMEOUT_S, cli, json_lines, rx_frames
 
 #: A 0xF3 broadcast in the simulator's log, from byte 2 on: Len, ID FF, F3.
 F3_AT_BYTE_2 = "FF F3"

@@ -10,7 +10,7 @@ import pytest
 
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli, json_lines, rx_frames
+from tests.helpers import cli, json_lines, rx_frames
 
 
 def write_csv(path: Path, rows: int) -> Path:
@@ -83,7 +83,7 @@ async def test_a_faulted_actuator_is_refused_before_anything_is_sent() -> None:
     from motorbus.cli.main import CommandFailed
     from motorbus.cli.stream import check_actuators
     from motorbus.sim.la import LAModel
-    from tests.conftest import sim_bus
+    from tests.helpers import sim_bus
 
     models = [LAModel(1), LAModel(2)]
     async with sim_bus(models) as (bus, _):

@@ -18,7 +18,7 @@ from motorbus.cli.replay import load_records
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import CLI_TIMEOUT_S, json_lines
+from tests.helpers import CLI_TIMEOUT_S, json_lines
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 QUERY_2 = la.Control(2, la.ControlAction.QUERY_STATUS).encode()

@@ -16,7 +16,7 @@ from motorbus.cli.listen import Watch
 from motorbus.cli.main import main
 from motorbus.protocol import framelog, la, quad_stepper
 from motorbus.protocol.base import Family
-from tests.cli.test_cli_la import CLI_TIMEOUT_S
+from tests.helpers import CLI_TIMEOUT_S
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_1 = la.Status(1, target=100, position=90).encode()

@@ -11,7 +11,7 @@ import pytest
 from motorbus.cli.plot import render
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import CLI_TIMEOUT_S, cli
+from tests.helpers import CLI_TIMEOUT_S, cli
 
 
 def status(position: int, target: int, force: int) -> la.Status:

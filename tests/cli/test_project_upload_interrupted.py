@@ -13,9 +13,8 @@ from motorbus.errors import ProjectInvalidError
 from motorbus.protocol import project_stepper as ps
 from motorbus.sim.process import SimProcess
 from motorbus.sim.project_stepper import ProjectStepperModel
-from tests.cli.test_cli_la import cli, rx_frames
 from tests.cli.test_cli_steppers import EXAMPLE, interrupt_once_sent
-from tests.conftest import sim_bus
+from tests.helpers import cli, rx_frames, sim_bus
 from tests.waiting import eventually
 
 #: The clear-project frame for project 1 (A.4 0x1E).

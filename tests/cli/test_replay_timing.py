@@ -15,8 +15,8 @@ from motorbus import Priority
 from motorbus.cli.replay import _Planned, _schedule, _Sender
 from motorbus.protocol import framelog, la
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import CLI_TIMEOUT_S
 from tests.fakeclock import rig
+from tests.helpers import CLI_TIMEOUT_S
 
 
 def plan(*times: float) -> list[_Planned]:

@@ -22,7 +22,7 @@ from motorbus.protocol import la
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.process import SimProcess
-from tests.cli.test_cli_la import cli, json_lines
+from tests.helpers import cli, json_lines
 
 SLOW = "turnaround_typical=0.0008,turnaround_max=0.0008"
 

@@ -8,7 +8,7 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.la import LAModel
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 
 
 async def test_move_to_wait_returns_once_the_position_is_within_tolerance() -> None:

@@ -11,8 +11,8 @@ from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
-from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import LA_VARIANTS
+from tests.helpers import PACINGS, sim_bus
 
 
 @pytest.mark.parametrize("delivery", ["whole", "bytewise", "random"])

@@ -16,8 +16,8 @@ from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import project_stepper as ps
 from motorbus.sim.bus import Pacing
 from motorbus.sim.project_stepper import ProjectStepperModel
-from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import PROJECT_VARIANTS
+from tests.helpers import PACINGS, sim_bus
 from tests.waiting import eventually
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -12,8 +12,8 @@ from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.sim.bus import Pacing
 from motorbus.sim.quad_stepper import QuadStepperModel
-from tests.conftest import PACINGS, sim_bus
 from tests.devices.variants import QUAD_VARIANTS
+from tests.helpers import PACINGS, sim_bus
 from tests.waiting import eventually
 
 

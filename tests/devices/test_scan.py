@@ -16,7 +16,7 @@ from motorbus.protocol import la
 from motorbus.protocol.base import wire_time
 from motorbus.sim.faults import FaultConfig
 from motorbus.sim.la import TURNAROUND_MAX_S, LAModel
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 
 #: A model that always takes the manual's slowest turnaround.
 SLOW = {"turnaround_typical": TURNAROUND_MAX_S, "turnaround_max": TURNAROUND_MAX_S}

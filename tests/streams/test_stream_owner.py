@@ -10,7 +10,7 @@ import pytest
 from motorbus import InspireLA, Streamer
 from motorbus.errors import LeaseConflictError, LocalProtocolError
 from motorbus.sim.la import LAModel, PowerState
-from tests.conftest import sim_bus
+from tests.helpers import sim_bus
 from tests.waiting import eventually
 
 pytestmark = pytest.mark.asyncio

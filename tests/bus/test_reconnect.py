@@ -26,7 +26,7 @@ from motorbus.sim.pty import PtySim
 from motorbus.streams import Streamer
 from motorbus.transport.serial import SerialTransport
 from tests.bus.test_bus_faults import eventually
-from tests.conftest import PACINGS, sim_bus
+from tests.helpers import PACINGS, sim_bus
 
 PERIOD_S = 0.01
 #: Upper bound on waiting for the bus to come back (a hang guard, not a timing claim).

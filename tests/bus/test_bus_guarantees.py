@@ -29,8 +29,8 @@ from motorbus.protocol.base import Family
 from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.streams import Streamer
 from motorbus.transport.memory import memory_pair
-from tests.conftest import PACINGS
 from tests.fakeclock import AutojumpTimer, TimedTransport, preempted_writes, rig
+from tests.helpers import PACINGS
 
 MIN_SPACING_S = 1e-3
 PERIOD_S = 0.01

@@ -19,7 +19,7 @@ from motorbus.guard import GuardDevice, GuardPort, GuardState, port_message, sen
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 VICTIM = ROOT / "benchmarks" / "guard_victim.py"
 START_TIMEOUT_S = 60.0
 IDS = (1, 2, 3)

@@ -14,8 +14,8 @@ from motorbus.protocol import la
 from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
 from motorbus.streams import SafeAction, StreamEnded, Streamer
-from tests.conftest import PACINGS, sim_bus
 from tests.fakeclock import rig
+from tests.helpers import PACINGS, sim_bus
 from tests.waiting import eventually
 
 

@@ -32,7 +32,7 @@ from motorbus.streaming.targets import ramp_step
 from motorbus.streams import Streamer, StreamGap
 from motorbus.transport.serial import SerialTransport
 from tests.bus.test_bus_faults import eventually
-from tests.conftest import PACINGS, sim_bus
+from tests.helpers import PACINGS, sim_bus
 
 LA_BAUD = 921600
 PERIOD_S = 0.01

@@ -1,0 +1,113 @@
+"""Helpers the tests share, in one place: simulated buses, the command line as a user
+runs it, and bounded waits (``tests.waiting.eventually``).
+
+``PACINGS`` are the simulator pacings every bus-facing test runs against: ``"wire"``
+(replies when their last byte would arrive at the baud, as on a UART) and ``"prompt"``
+(replies the moment a request is complete, as from a USB-CDC device or a TCP bridge).
+A test that passes only against one of them shares an assumption with the bus.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from typing import Any
+
+from motorbus.bus.bus import Bus
+from motorbus.bus.timer import default_timer
+from motorbus.cli.common import ENV_VARS
+from motorbus.protocol.base import Family
+from motorbus.sim.bus import PACING_MODES, Pacing
+from motorbus.sim.memory import MemorySim
+from motorbus.sim.model import DeviceModel
+from motorbus.sim.process import SimProcess
+from tests.waiting import eventually
+
+__all__ = [
+    "CLI_TIMEOUT_S",
+    "NO_CONFIG_DIR",
+    "PACINGS",
+    "cli",
+    "eventually",
+    "json_lines",
+    "rx_frames",
+    "sim_bus",
+]
+
+#: Simulator pacings, for ``pytest.mark.parametrize("pacing", PACINGS)``.
+PACINGS: list[Pacing] = list(PACING_MODES)
+
+
+@asynccontextmanager
+async def sim_bus(
+    models: Sequence[DeviceModel],
+    *,
+    baud: int | None = None,
+    delivery: str = "whole",
+    faults: Any = None,
+    seed: int = 0,
+    pacing: Pacing = "wire",
+    **bus_options: Any,
+) -> AsyncIterator[tuple[Bus, MemorySim]]:
+    """A bus talking to simulated devices over the in-memory link.
+
+    ``pacing`` is the simulator's (``MemorySim.start``): ``"wire"`` or ``"prompt"``.
+    """
+    timer = default_timer()
+    before = set(asyncio.all_tasks())
+    async with MemorySim.start(
+        models,
+        baud=baud,
+        delivery=delivery,
+        faults=faults,
+        seed=seed,
+        timer=timer,  # type: ignore[arg-type]
+        pacing=pacing,
+    ) as sim:
+        families = {m.family for m in models} or set(Family)
+        # Tests assert behaviour, not speed: a generous host margin keeps a loaded CI
+        # machine from turning a slow reply into a timeout.  Timeout tests pass their own.
+        bus_options.setdefault("host_margin", 0.05)
+        bus = Bus(sim.transport, name="sim", families=families, timer=timer, **bus_options)
+        async with bus:
+            yield bus, sim
+    await asyncio.sleep(0)
+    leaked = [t for t in asyncio.all_tasks() - before if not t.done()]
+    assert not leaked, f"the bus leaked tasks: {leaked}"
+
+
+#: Generous ceiling for one CLI run (a stuck command fails the test instead of hanging).
+CLI_TIMEOUT_S = 60
+
+
+#: A configuration directory with no motorbus/buses.toml: the user's own never leaks in.
+NO_CONFIG_DIR = "/nonexistent/motorbus-test-config"
+
+
+def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
+    """Run ``python -m motorbus ARGS``; the ``MOTORBUS_*`` variables are unset and there is
+    no user bus file unless ``env`` sets them."""
+    base = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
+    base["XDG_CONFIG_HOME"] = NO_CONFIG_DIR
+    return subprocess.run(
+        [sys.executable, "-m", "motorbus", *args],
+        capture_output=True,
+        text=True,
+        timeout=CLI_TIMEOUT_S,
+        env={**base, **(env or {})},
+    )
+
+
+def json_lines(out: str) -> list[Any]:
+    """Every line of ``out`` parsed as JSON."""
+    return [json.loads(line) for line in out.splitlines() if line.strip()]
+
+
+def rx_frames(sim: SimProcess) -> list[str]:
+    """Hex of every frame the simulator received so far."""
+    return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
