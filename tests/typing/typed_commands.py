@@ -1,4 +1,4 @@
-"""Checked by mypy in tests/protocol/test_typed_commands.py (never imported by pytest itself)."""
+"""Checked by mypy in tests/test_typed_commands.py (never imported by pytest itself)."""
 
 from __future__ import annotations
 

@@ -19,7 +19,8 @@ construction, encodes itself and recognises its own reply.  ``decode_reply`` and
 The package: ``wire`` (frame layout, IDs, command codes, frame helpers, enums),
 ``table`` (the control table, ``Register``), ``replies`` (``Status`` and the other
 replies), ``commands`` and ``decode`` (requests back into commands, temperature-limit
-plans); everything is importable from here, as before the split.
+plans); the public names (``__all__``) are importable from here, the rest from their
+modules.
 """
 
 from __future__ import annotations
@@ -52,22 +53,13 @@ from motorbus.protocol.la.commands import (
     WriteTable as WriteTable,
 )
 from motorbus.protocol.la.commands import (
-    _TargetCommand as _TargetCommand,
-)
-from motorbus.protocol.la.commands import (
     split_broadcast as split_broadcast,
-)
-from motorbus.protocol.la.decode import (
-    _decode_request_body as _decode_request_body,
 )
 from motorbus.protocol.la.decode import (
     decode_request as decode_request,
 )
 from motorbus.protocol.la.decode import (
     temperature_limit_writes as temperature_limit_writes,
-)
-from motorbus.protocol.la.replies import (
-    _STATUS_LAYOUT as _STATUS_LAYOUT,
 )
 from motorbus.protocol.la.replies import (
     ReadReply as ReadReply,
@@ -80,15 +72,6 @@ from motorbus.protocol.la.replies import (
 )
 from motorbus.protocol.la.replies import (
     WriteAck as WriteAck,
-)
-from motorbus.protocol.la.replies import (
-    _is_status_frame as _is_status_frame,
-)
-from motorbus.protocol.la.replies import (
-    _make_status as _make_status,
-)
-from motorbus.protocol.la.replies import (
-    _StatusFields as _StatusFields,
 )
 from motorbus.protocol.la.replies import (
     decode_reply as decode_reply,
@@ -104,12 +87,6 @@ from motorbus.protocol.la.table import (
 )
 from motorbus.protocol.la.table import (
     RegisterInfo as RegisterInfo,
-)
-from motorbus.protocol.la.wire import (
-    _BAUD_RATES as _BAUD_RATES,
-)
-from motorbus.protocol.la.wire import (
-    _ERROR_FLAGS as _ERROR_FLAGS,
 )
 from motorbus.protocol.la.wire import (
     BROADCAST_ENTRY_SIZE as BROADCAST_ENTRY_SIZE,
@@ -145,15 +122,6 @@ from motorbus.protocol.la.wire import (
     CMD_WRITE as CMD_WRITE,
 )
 from motorbus.protocol.la.wire import (
-    CONTROL_LEN_BYTE as CONTROL_LEN_BYTE,
-)
-from motorbus.protocol.la.wire import (
-    CONTROL_RESERVED as CONTROL_RESERVED,
-)
-from motorbus.protocol.la.wire import (
-    FRAME_OVERHEAD as FRAME_OVERHEAD,
-)
-from motorbus.protocol.la.wire import (
     ID_MAX as ID_MAX,
 )
 from motorbus.protocol.la.wire import (
@@ -169,25 +137,10 @@ from motorbus.protocol.la.wire import (
     MAX_FRAME_SIZE as MAX_FRAME_SIZE,
 )
 from motorbus.protocol.la.wire import (
-    MAX_TABLE_BYTES as MAX_TABLE_BYTES,
-)
-from motorbus.protocol.la.wire import (
-    MIN_FRAME_SIZE as MIN_FRAME_SIZE,
-)
-from motorbus.protocol.la.wire import (
-    MOTION_LEN_BYTE as MOTION_LEN_BYTE,
-)
-from motorbus.protocol.la.wire import (
-    NO_ERRORS as NO_ERRORS,
-)
-from motorbus.protocol.la.wire import (
     POSITION_MAX as POSITION_MAX,
 )
 from motorbus.protocol.la.wire import (
     POSITION_MIN as POSITION_MIN,
-)
-from motorbus.protocol.la.wire import (
-    READ_REQUEST_LEN_BYTE as READ_REQUEST_LEN_BYTE,
 )
 from motorbus.protocol.la.wire import (
     REPORTED_POSITION_MAX as REPORTED_POSITION_MAX,
@@ -202,12 +155,6 @@ from motorbus.protocol.la.wire import (
     STATUS_LEN_BYTE as STATUS_LEN_BYTE,
 )
 from motorbus.protocol.la.wire import (
-    TABLE_INDEX_MAX as TABLE_INDEX_MAX,
-)
-from motorbus.protocol.la.wire import (
-    TABLE_SIZE as TABLE_SIZE,
-)
-from motorbus.protocol.la.wire import (
     TARGET_INDEX as TARGET_INDEX,
 )
 from motorbus.protocol.la.wire import (
@@ -215,9 +162,6 @@ from motorbus.protocol.la.wire import (
 )
 from motorbus.protocol.la.wire import (
     WRITE_ACK_FRAME_SIZE as WRITE_ACK_FRAME_SIZE,
-)
-from motorbus.protocol.la.wire import (
-    WRITE_ACK_LEN_BYTE as WRITE_ACK_LEN_BYTE,
 )
 from motorbus.protocol.la.wire import (
     BaudCode as BaudCode,
@@ -232,21 +176,6 @@ from motorbus.protocol.la.wire import (
     ErrorFlags as ErrorFlags,
 )
 from motorbus.protocol.la.wire import (
-    _check_id as _check_id,
-)
-from motorbus.protocol.la.wire import (
-    _check_position as _check_position,
-)
-from motorbus.protocol.la.wire import (
-    _is_reply_frame as _is_reply_frame,
-)
-from motorbus.protocol.la.wire import (
-    _s16 as _s16,
-)
-from motorbus.protocol.la.wire import (
-    _u16 as _u16,
-)
-from motorbus.protocol.la.wire import (
     build_frame as build_frame,
 )
 from motorbus.protocol.la.wire import (
@@ -257,6 +186,7 @@ from motorbus.protocol.la.wire import (
 )
 
 __all__ = [
+    "BROADCAST_ENTRY_SIZE",
     "BROADCAST_ID",
     "CMD_BROADCAST_FOLLOW",
     "CMD_BROADCAST_MOVE",
@@ -269,6 +199,7 @@ __all__ = [
     "CMD_WRITE",
     "ID_MAX",
     "ID_MIN",
+    "KNOWN_ERROR_BITS",
     "MAX_BROADCAST_ENTRIES",
     "MAX_FRAME_SIZE",
     "POSITION_MAX",
@@ -287,6 +218,7 @@ __all__ = [
     "ControlAction",
     "ErrorFlags",
     "Follow",
+    "LACommand",
     "MoveTo",
     "ReadRegister",
     "ReadReply",

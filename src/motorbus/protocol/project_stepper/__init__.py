@@ -19,7 +19,8 @@ revolution), frequencies Hz, speed RPM, delays ms, the step angle degrees x 100.
 
 The package: ``wire`` (sizes, opcodes, enums, framing, ``Ack``), ``commands``,
 ``project`` (``StepSpec``, ``Project``, ``ProjectDump`` and the dump codec) and
-``decode``; everything is importable from here, as before the split.
+``decode``; the public names (``__all__``) are importable from here; the rest
+from their modules.
 """
 
 from __future__ import annotations
@@ -114,34 +115,10 @@ from motorbus.protocol.project_stepper.commands import (
     StopProject as StopProject,
 )
 from motorbus.protocol.project_stepper.commands import (
-    _GatingCommand as _GatingCommand,
-)
-from motorbus.protocol.project_stepper.commands import (
-    _MotorCommand as _MotorCommand,
-)
-from motorbus.protocol.project_stepper.commands import (
-    _ProjectCommand as _ProjectCommand,
-)
-from motorbus.protocol.project_stepper.commands import (
-    _StepCommand as _StepCommand,
-)
-from motorbus.protocol.project_stepper.commands import (
     project_commands as project_commands,
 )
 from motorbus.protocol.project_stepper.commands import (
     step_commands as step_commands,
-)
-from motorbus.protocol.project_stepper.decode import (
-    _parse_io as _parse_io,
-)
-from motorbus.protocol.project_stepper.decode import (
-    _parse_motor as _parse_motor,
-)
-from motorbus.protocol.project_stepper.decode import (
-    _parse_project as _parse_project,
-)
-from motorbus.protocol.project_stepper.decode import (
-    _Parser as _Parser,
 )
 from motorbus.protocol.project_stepper.decode import (
     decode_reply_context_free as decode_reply_context_free,
@@ -151,12 +128,6 @@ from motorbus.protocol.project_stepper.decode import (
 )
 from motorbus.protocol.project_stepper.project import (
     BASE_DISTANCE_PER_REV as BASE_DISTANCE_PER_REV,
-)
-from motorbus.protocol.project_stepper.project import (
-    BASE_LOOP_COUNT as BASE_LOOP_COUNT,
-)
-from motorbus.protocol.project_stepper.project import (
-    BASE_LOOP_END as BASE_LOOP_END,
 )
 from motorbus.protocol.project_stepper.project import (
     BASE_LOOP_START as BASE_LOOP_START,
@@ -172,15 +143,6 @@ from motorbus.protocol.project_stepper.project import (
 )
 from motorbus.protocol.project_stepper.project import (
     BASE_REPEAT as BASE_REPEAT,
-)
-from motorbus.protocol.project_stepper.project import (
-    BASE_RESERVED as BASE_RESERVED,
-)
-from motorbus.protocol.project_stepper.project import (
-    BASE_STEP_ANGLE as BASE_STEP_ANGLE,
-)
-from motorbus.protocol.project_stepper.project import (
-    BASE_STEPS as BASE_STEPS,
 )
 from motorbus.protocol.project_stepper.project import (
     BASE_STOP_MODE as BASE_STOP_MODE,
@@ -210,15 +172,6 @@ from motorbus.protocol.project_stepper.project import (
     STEP_OUTPUT as STEP_OUTPUT,
 )
 from motorbus.protocol.project_stepper.project import (
-    STEP_RESERVED as STEP_RESERVED,
-)
-from motorbus.protocol.project_stepper.project import (
-    STEP_SPEED_RPM as STEP_SPEED_RPM,
-)
-from motorbus.protocol.project_stepper.project import (
-    STEP_START_HZ as STEP_START_HZ,
-)
-from motorbus.protocol.project_stepper.project import (
     STEP_START_INPUT as STEP_START_INPUT,
 )
 from motorbus.protocol.project_stepper.project import (
@@ -233,65 +186,8 @@ from motorbus.protocol.project_stepper.project import (
 from motorbus.protocol.project_stepper.project import (
     StepSpec as StepSpec,
 )
-from motorbus.protocol.project_stepper.project import (
-    _zero_unused as _zero_unused,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _ANY_PROJECT as _ANY_PROJECT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _INPUT_STATES as _INPUT_STATES,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_ACCEL_SPEED as CMD_ACCEL_SPEED,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_DIRECTION_START_FREQ as CMD_DIRECTION_START_FREQ,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_DISTANCE_PER_REV as CMD_DISTANCE_PER_REV,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_HOME as CMD_HOME,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_JOG_FORWARD as CMD_JOG_FORWARD,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_JOG_REVERSE as CMD_JOG_REVERSE,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_MANUAL_STOP as CMD_MANUAL_STOP,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_MOTOR_SETUP as CMD_MOTOR_SETUP,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_RUN_DISTANCE as CMD_RUN_DISTANCE,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_SINGLE_RUN as CMD_SINGLE_RUN,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_START_INPUT as CMD_START_INPUT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_STEP_DELAY as CMD_STEP_DELAY,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_STEP_OUTPUT as CMD_STEP_OUTPUT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_STOP_INPUT as CMD_STOP_INPUT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    CMD_STOP_MODE as CMD_STOP_MODE,
-)
 from motorbus.protocol.project_stepper.wire import (
     DEFAULT_MOTOR as DEFAULT_MOTOR,
-)
-from motorbus.protocol.project_stepper.wire import (
-    DUMP_BLOCK_SIZE as DUMP_BLOCK_SIZE,
 )
 from motorbus.protocol.project_stepper.wire import (
     DUMP_HEADER_SIZE as DUMP_HEADER_SIZE,
@@ -304,15 +200,6 @@ from motorbus.protocol.project_stepper.wire import (
 )
 from motorbus.protocol.project_stepper.wire import (
     HOME_INPUT as HOME_INPUT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    IO_ADDRESS as IO_ADDRESS,
-)
-from motorbus.protocol.project_stepper.wire import (
-    IO_READ_INPUT as IO_READ_INPUT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    IO_SET_OUTPUT as IO_SET_OUTPUT,
 )
 from motorbus.protocol.project_stepper.wire import (
     MAX_INPUT as MAX_INPUT,
@@ -336,43 +223,10 @@ from motorbus.protocol.project_stepper.wire import (
     MAX_U24 as MAX_U24,
 )
 from motorbus.protocol.project_stepper.wire import (
-    MODE4_VALUES as MODE4_VALUES,
-)
-from motorbus.protocol.project_stepper.wire import (
-    MOTOR_COMMANDS as MOTOR_COMMANDS,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_CLEAR as OP_CLEAR,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_MODE4 as OP_MODE4,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_POWER_ON_HOMING as OP_POWER_ON_HOMING,
-)
-from motorbus.protocol.project_stepper.wire import (
     OP_READ as OP_READ,
 )
 from motorbus.protocol.project_stepper.wire import (
-    OP_REPEAT as OP_REPEAT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_SAVE as OP_SAVE,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_SELECT as OP_SELECT,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_START as OP_START,
-)
-from motorbus.protocol.project_stepper.wire import (
     OP_STEP_LOOP as OP_STEP_LOOP,
-)
-from motorbus.protocol.project_stepper.wire import (
-    OP_STOP as OP_STOP,
-)
-from motorbus.protocol.project_stepper.wire import (
-    PAYLOAD_SIZE as PAYLOAD_SIZE,
 )
 from motorbus.protocol.project_stepper.wire import (
     PROJECT_FINISHED as PROJECT_FINISHED,
@@ -420,27 +274,6 @@ from motorbus.protocol.project_stepper.wire import (
     StopBehavior as StopBehavior,
 )
 from motorbus.protocol.project_stepper.wire import (
-    _ack_from as _ack_from,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _check_project as _check_project,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _check_step as _check_step,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _le as _le,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _shape as _shape,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _u16 as _u16,
-)
-from motorbus.protocol.project_stepper.wire import (
-    _u24 as _u24,
-)
-from motorbus.protocol.project_stepper.wire import (
     build_request as build_request,
 )
 from motorbus.protocol.project_stepper.wire import (
@@ -454,11 +287,45 @@ from motorbus.protocol.project_stepper.wire import (
 )
 
 __all__ = [
+    "BASE_DISTANCE_PER_REV",
+    "BASE_LOOP_START",
+    "BASE_MODE4",
+    "BASE_NUMBER",
+    "BASE_POWER_ON_HOMING",
+    "BASE_REPEAT",
+    "BASE_STOP_MODE",
+    "BASE_SUBDIVISION",
     "DEFAULT_MOTOR",
+    "DUMP_HEADER_SIZE",
     "DUMP_SIZE",
+    "GLOBAL_REPLY_OPCODES",
+    "HOME_INPUT",
+    "MAX_INPUT",
+    "MAX_LOOP_COUNT",
+    "MAX_PROJECT",
+    "MAX_STEPS",
+    "MAX_STEP_ANGLE_X100",
+    "MAX_U16",
+    "MAX_U24",
+    "OP_READ",
+    "OP_STEP_LOOP",
     "PROJECT_FINISHED",
+    "PROJECT_OPCODES",
+    "PROJECT_START_INPUT",
+    "PROJECT_STOP_INPUT",
+    "REPEAT_FOREVER",
     "REPLY_SIZE",
     "REQUEST_SIZE",
+    "RESERVED_SIZE",
+    "STEP_ACCEL_HZ",
+    "STEP_COMMANDS",
+    "STEP_DATA_SIZE",
+    "STEP_DELAY_MS",
+    "STEP_DIRECTION",
+    "STEP_DISTANCE",
+    "STEP_OUTPUT",
+    "STEP_START_INPUT",
+    "STEP_STOP_INPUT",
     "AccelAndSpeed",
     "Ack",
     "AckCommand",
