@@ -278,7 +278,9 @@ def _stepper(args: argparse.Namespace) -> int:
         what = "project number 1..4" if kind == "project" else "motor 1..4"
         raise UsageError(f"rig {kind}: give one {what}, e.g. rig {kind} 1 --runs 10")
     number = int(rest[0])
-    check_int("--runs", args.runs, 1, 10_000)
+    from motorbus.rig.steppers import MAX_RUNS
+
+    check_int("--runs", args.runs, 1, MAX_RUNS)
     check_seconds("--timeout", args.timeout, 0.001)
     args._default_baud = STEPPER_BAUD  # the steppers' rate unless --baud or a bus file says
     family = Family.PROJECT_STEPPER if kind == "project" else Family.QUAD_STEPPER

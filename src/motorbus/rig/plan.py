@@ -14,13 +14,12 @@ from dataclasses import dataclass, field
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol.base import check_int
 from motorbus.protocol.la import ID_MAX, ID_MIN, POSITION_MAX, POSITION_MIN
+from motorbus.streaming.model import PERIOD_MAX_S, PERIOD_MIN_S
 
 __all__ = ["TESTS", "RigPlan", "default_window"]
 
 #: Every test the rig knows, in the order it runs them.
 TESTS = ("step", "track", "latency", "repeat")
-#: Stream periods the LA manual allows (3.5.3), seconds.
-PERIOD_MIN_S, PERIOD_MAX_S = 0.010, 0.050
 #: A tracked sine needs at least this many ticks per cycle.
 MIN_TICKS_PER_CYCLE = 10
 #: Default frequencies of the tracking test, Hz.

@@ -328,6 +328,10 @@ class SerialTransport(CountingTransport):
         self.share = share
         self.latency_timer_ms: int | None = None
         self._transport: asyncio.Transport | None = None
+        #: ``drain_input``'s reader and fd, looked up once per opened backend transport
+        #: (every request calls it: no attribute walk and fileno() call each time).
+        self._drain_for: object = None
+        self._drain_with: tuple[Callable[[], None] | None, int | None] = (None, None)
         self._adapter: _Adapter | None = None
         self._on_data: DataCallback | None = None
         self._on_lost: LostCallback | None = None
@@ -459,8 +463,10 @@ class SerialTransport(CountingTransport):
         up), at most ``DRAIN_READS_MAX`` times.
         """
         transport = self._transport
-        read_ready = getattr(transport, "_read_ready", None)
-        fd = _readable_fd(transport)
+        if self._drain_for is not transport:
+            self._drain_for = transport
+            self._drain_with = (getattr(transport, "_read_ready", None), _readable_fd(transport))
+        read_ready, fd = self._drain_with
         if read_ready is None or fd is None:
             return
         for _ in range(DRAIN_READS_MAX):
