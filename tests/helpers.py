@@ -14,8 +14,9 @@ import json
 import os
 import subprocess
 import sys
-from collections.abc import AsyncIterator, Sequence
-from contextlib import asynccontextmanager
+import tty
+from collections.abc import AsyncIterator, Iterator, Sequence
+from contextlib import asynccontextmanager, contextmanager
 from typing import Any
 
 from motorbus.bus.bus import Bus
@@ -35,6 +36,7 @@ __all__ = [
     "cli",
     "eventually",
     "json_lines",
+    "raw_pty",
     "rx_frames",
     "sim_bus",
 ]
@@ -111,3 +113,18 @@ def json_lines(out: str) -> list[Any]:
 def rx_frames(sim: SimProcess) -> list[str]:
     """Hex of every frame the simulator received so far."""
     return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
+
+
+@contextmanager
+def raw_pty(*, nonblocking_master: bool = False) -> Iterator[tuple[int, str]]:
+    """A raw pseudo-terminal: (master fd, slave path).  What a program writes to the
+    slave path the test reads from the master, and the other way round."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    if nonblocking_master:
+        os.set_blocking(master, False)
+    try:
+        yield master, os.ttyname(slave)
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -7,7 +7,6 @@ import os
 import subprocess
 import sys
 import time
-import tty
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -17,7 +16,7 @@ from motorbus.cli.stream import ramp_rows, read_trajectory
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.helpers import CLI_TIMEOUT_S, cli, json_lines, rx_frames
+from tests.helpers import CLI_TIMEOUT_S, cli, json_lines, raw_pty, rx_frames
 
 #: A 0xF3 broadcast in the simulator's log, from byte 2 on: Len, ID FF, F3.
 F3_AT_BYTE_2 = "FF F3"
@@ -217,13 +216,8 @@ def test_stream_bad_period_exits_2_and_sends_nothing(la_sim: SimProcess, tmp_pat
 @pytest.fixture
 def bare_pty() -> Iterator[tuple[int, str]]:
     """A pty pair: bytes written to the master are what a listener on the slave hears."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    try:
-        yield master, os.ttyname(slave)
-    finally:
-        os.close(master)
-        os.close(slave)
+    with raw_pty() as pair:
+        yield pair
 
 
 def capture(master: int, port: str, out: Path, data: bytes) -> subprocess.CompletedProcess[str]:

@@ -9,7 +9,6 @@ import json
 import os
 import subprocess
 import sys
-import tty
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ from motorbus.cli.main import main
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la, logview
 from motorbus.sim.process import SimProcess
-from tests.helpers import CLI_TIMEOUT_S
+from tests.helpers import CLI_TIMEOUT_S, raw_pty
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_1 = la.Status(1, target=100, position=90).encode()
@@ -151,13 +150,8 @@ def test_format_does_not_go_with_json(log: Path, capsys: pytest.CaptureFixture[s
 
 @pytest.fixture
 def bare_pty() -> Iterator[tuple[int, str]]:
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    try:
-        yield master, os.ttyname(slave)
-    finally:
-        os.close(master)
-        os.close(slave)
+    with raw_pty() as pair:
+        yield pair
 
 
 def test_dry_run_sends_only_the_filtered_requests_at_speed(

@@ -7,7 +7,6 @@ import json
 import os
 import subprocess
 import sys
-import tty
 from collections.abc import Iterator
 
 import pytest
@@ -16,7 +15,7 @@ from motorbus.cli.listen import Watch
 from motorbus.cli.main import main
 from motorbus.protocol import framelog, la, quad_stepper
 from motorbus.protocol.base import Family
-from tests.helpers import CLI_TIMEOUT_S
+from tests.helpers import CLI_TIMEOUT_S, raw_pty
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_1 = la.Status(1, target=100, position=90).encode()
@@ -26,14 +25,8 @@ STATUS_2 = la.Status(2, target=1300, position=12, temperature=31).encode()
 
 @pytest.fixture
 def bare_pty() -> Iterator[tuple[int, str]]:
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    try:
-        yield master, os.ttyname(slave)
-    finally:
-        os.close(master)
-        os.close(slave)
+    with raw_pty(nonblocking_master=True) as pair:
+        yield pair
 
 
 def test_listen_shows_the_statuses_heard_and_sends_nothing(bare_pty: tuple[int, str]) -> None:

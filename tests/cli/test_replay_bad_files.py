@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import tty
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -14,6 +13,7 @@ import pytest
 
 from motorbus.cli.main import main
 from motorbus.protocol import framelog, la, quad_stepper
+from tests.helpers import raw_pty
 
 HEADER = json.dumps(
     framelog.header("capture", started_utc="2026-01-01T00:00:00.000000Z", families=["la"])
@@ -60,14 +60,8 @@ BAD_FILES: list[tuple[str, list[str | bytes], int, str]] = [
 @pytest.fixture
 def port() -> Iterator[tuple[int, str]]:
     """A pty: what a replay writes to the slave path can be read from the master."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    os.set_blocking(master, False)
-    try:
-        yield master, os.ttyname(slave)
-    finally:
-        os.close(master)
-        os.close(slave)
+    with raw_pty(nonblocking_master=True) as pair:
+        yield pair
 
 
 def write(path: Path, lines: list[str | bytes]) -> Path:
