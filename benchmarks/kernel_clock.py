@@ -421,7 +421,10 @@ def _unavailable() -> str | None:
         if paranoid > -1:
             return f"not root and kernel.perf_event_paranoid={paranoid} (tracepoints need -1)"
     if not any(os.path.isdir(d) for d in TRACEPOINT_DIRS):
-        return "the syscalls:sys_enter_write tracepoint is missing (no tracefs or no ftrace)"
+        return (
+            "the syscalls:sys_enter_write tracepoint is missing (no tracefs or no ftrace; "
+            "as root: mount -t tracefs nodev /sys/kernel/tracing)"
+        )
     return None
 
 

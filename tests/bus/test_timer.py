@@ -246,3 +246,64 @@ def test_timerfd_is_released_with_its_loop() -> None:
     # The per-loop cache held the timer weakly through its loop: both are gone and the
     # fd was closed by the finalizer.
     assert not finalizers[0].alive
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_timerfd_counts_its_wakeups_and_spin_and_tells_the_wake_observer(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop],
+) -> None:
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+    seen: list[tuple[float, float, float]] = []
+    fired: list[float] = []
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=300e-6)
+        timer.wake_observer = lambda armed, woke, spun: seen.append((armed, woke, spun))
+        deadline = timer.now() + 2e-3
+        done = asyncio.get_running_loop().create_future()
+        timer.call_at(deadline, lambda: (fired.append(timer.now()), done.set_result(None)))
+        await done
+        assert timer.wakeups == len(seen) >= 1
+        armed, woke, spun = seen[-1]
+        # Armed before the deadline (the spin lead), woken after the armed time; the
+        # spin ends at the deadline unless the wake-up itself was late.
+        assert 0 < armed <= deadline <= fired[0]
+        assert armed <= woke <= spun
+        assert spun >= deadline or woke >= deadline
+        assert timer.spin_seconds == pytest.approx(sum(s - w for _, w, s in seen))
+        timer.close()
+
+    run(loop_factory, main())
+
+
+def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
+    """The spin lead is the recent wake-ups' p99 lateness less the tolerance, within
+    [0, spin_lead]; a wake-up too late for any spin to help is left out."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=500e-6)
+        assert timer.lead == 500e-6  # cautious before anything was measured
+        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
+            timer._note_lateness(20e-6)  # prompt wake-ups: no spin needed
+        assert timer.lead == 0.0
+        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
+            timer._note_lateness(300e-6)
+        assert timer.lead == pytest.approx(300e-6 - TimerfdTimer.TOLERANCE_S)
+        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
+            timer._note_lateness(5e-3)  # not running at all: spinning cannot help
+        assert timer.lead == pytest.approx(300e-6 - TimerfdTimer.TOLERANCE_S)
+        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
+            timer._note_lateness(540e-6)  # just within what a spin can make up
+        assert timer.lead == pytest.approx(540e-6 - TimerfdTimer.TOLERANCE_S)
+        assert timer.lead <= 500e-6
+        off = TimerfdTimer(spin_lead=0.0)
+        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
+            off._note_lateness(300e-6)
+        assert off.lead == 0.0
+        timer.close()
+        off.close()
+
+    run(asyncio.new_event_loop, main())

@@ -1,0 +1,315 @@
+"""Late ticks, found: every stream tick later than 500 µs at the kernel, with its cause.
+
+README's stream (15 actuators at 10 ms, one 0xF3 broadcast a tick, ``poll_status=True``)
+runs ``--runs`` times for ``--seconds`` against ``motorbus sim`` (a child process).  The
+bus runs in a child process of this script, so ``--realtime`` puts only it under
+SCHED_FIFO, and ``--hogs N`` adds N ``while True: pass`` processes beside it.
+
+The child records its own ``write(2)`` calls with ``perf`` (``kernel_clock.py``) and,
+on the same clock, the timer's wake-ups, the loop's ``select`` calls, garbage
+collections and its run-queue wait (``late_ticks.py`` says what each is and how a cause
+is chosen).  Per run: the kernel figures (jitter p99/max on a least-squares grid, late
+and missed ticks) and, for every tick whose write came more than ``--threshold-us``
+after its deadline, the cause; then a table of causes over all runs.
+
+Goals (issue 23): on a quiet machine, kernel max <= 1 ms in each of three 60 s runs;
+in real-time mode under two CPU hogs, max <= 500 µs and no late tick.
+
+    python benchmarks/bench_late_ticks.py [--runs 3] [--seconds 60] [--realtime]
+        [--hogs 0] [--threshold-us 500] [--quick] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import gc
+import json
+import math
+import os
+import platform
+import selectors
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
+from late_ticks import CAUSES, TickRecords, attribute, summarise
+from motorbus.bus.timer import TimerfdTimer, default_timer
+from motorbus.manager import BusManager
+from motorbus.protocol import la
+from motorbus.sim.process import SimProcess
+
+HERE = Path(__file__).resolve().parent
+RESULTS = HERE / "results" / "late_ticks.json"
+PERIOD_S = 0.010
+N_ACTUATORS = 15
+BAUD = 921600
+RT_PRIORITY = 50
+BROADCAST_BYTES = len(
+    la.split_broadcast(la.BroadcastMode.FOLLOW, dict.fromkeys(range(1, N_ACTUATORS + 1), 1000))[
+        0
+    ].encode()
+)
+FRAME_SIZES = (len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()), BROADCAST_BYTES)
+GOAL_QUIET_MAX_US = 1000.0
+GOAL_RT_MAX_US = 500.0
+#: Longest a child run may take beyond its planned length.
+CHILD_SLACK_S = 60.0
+KERNEL_KEYS = (
+    "tick_jitter_p50_us",
+    "tick_jitter_p99_us",
+    "tick_jitter_max_us",
+    "late_ticks",
+    "missed_ticks",
+)
+
+
+def trajectory(t: float) -> list[float]:
+    return [
+        1000 + 600 * math.sin(2 * math.pi * 0.5 * t + 2 * math.pi * i / N_ACTUATORS)
+        for i in range(N_ACTUATORS)
+    ]
+
+
+class TimedSelector(selectors.DefaultSelector):
+    """The loop's selector, noting when each ``select`` was entered and returned."""
+
+    def __init__(self, log: list[tuple[float, float]]) -> None:
+        super().__init__()
+        self.log = log
+
+    def select(self, timeout: float | None = None) -> list[Any]:
+        entered = time.monotonic()
+        ready = super().select(timeout)
+        self.log.append((entered, time.monotonic()))
+        return ready
+
+
+class Recorder:
+    """Everything the attribution needs, recorded in the bus process."""
+
+    def __init__(self) -> None:
+        self.selects: list[tuple[float, float]] = []
+        self.wakeups: list[tuple[float, float, float]] = []
+        self.collections: list[tuple[float, float]] = []
+        self.runqueue: list[tuple[float, float]] = []
+        self._gc_start = 0.0
+        self._schedstat = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
+
+    def on_gc(self, phase: str, info: dict[str, Any]) -> None:
+        if phase == "start":
+            self._gc_start = time.monotonic()
+        else:
+            self.collections.append((self._gc_start, time.monotonic()))
+
+    def on_write(self, cmd: object, at: float) -> None:
+        if isinstance(cmd, la.Broadcast):
+            wait_ns = int(os.pread(self._schedstat, 100, 0).split()[1])
+            self.runqueue.append((at, wait_ns / 1e9))
+
+    def on_reply(self, *args: object) -> None:
+        pass
+
+    def close(self) -> None:
+        os.close(self._schedstat)
+
+
+def go_realtime() -> str:
+    """Put this process under SCHED_FIFO through motorbus.realtime; say how."""
+    from motorbus import realtime
+
+    realtime.enable(RT_PRIORITY)
+    policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+    return "motorbus.realtime.enable()" if policy == os.SCHED_FIFO else f"policy {policy}"
+
+
+async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
+    timer = default_timer()
+    if isinstance(timer, TimerfdTimer):
+        timer.wake_observer = lambda armed, woke, spun: rec.wakeups.append((armed, woke, spun))
+    mgr = BusManager(safe_stop=False)
+    mgr.add_bus("late", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
+    async with mgr:
+        mgr.bus("late").add_observer(rec)
+        actuators = [mgr.la("late", i) for i in range(1, N_ACTUATORS + 1)]
+        s = mgr.streamer("late").follow(
+            actuators,
+            lambda t, _: None if t >= seconds else trajectory(t),
+            period=PERIOD_S,
+            poll_status=True,
+        )
+        cpu0 = time.process_time()
+        await asyncio.wait_for(s.wait(), seconds + CHILD_SLACK_S / 2)
+        cpu = time.process_time() - cpu0
+        ticks = s.stats.ticks
+        return {
+            "origin": s.origin,
+            "ticks": ticks,
+            "cpu_us_per_tick": round(1e6 * cpu / max(1, ticks), 1),
+            "host_late": s.stats.late,
+            "host_skipped": s.stats.skipped,
+            "timer_wakeups": getattr(timer, "wakeups", None),
+            "timer_spin_s": round(getattr(timer, "spin_seconds", math.nan), 4),
+        }
+
+
+def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> int:
+    """Run the stream here, record, attribute; write JSON to ``out``."""
+    rec = Recorder()
+    method = "none (SCHED_OTHER)"
+    gc.callbacks.append(rec.on_gc)
+    with KernelWriteTrace() as trace:
+        if rt:
+            try:
+                method = go_realtime()
+            except (OSError, ImportError) as err:
+                method = f"FAILED: {err}"
+        with asyncio.Runner(
+            loop_factory=lambda: asyncio.SelectorEventLoop(TimedSelector(rec.selects))
+        ) as runner:
+            host = runner.run(stream(path, seconds, rec))
+    gc.callbacks.remove(rec.on_gc)
+    rec.close()
+    kernel = port_figures(
+        trace,
+        FRAME_SIZES,
+        tick_bytes=BROADCAST_BYTES,
+        period=PERIOD_S,
+        expected_ticks=round(seconds / PERIOD_S),
+    )
+    result: dict[str, Any] = {"rt_method": method, **host, "kernel_why": kernel.get("kernel_why")}
+    for key in KERNEL_KEYS:
+        value = kernel.get(f"kernel_{key}")
+        result[key] = (
+            round(value, 1) if isinstance(value, float) and math.isfinite(value) else value
+        )
+    late: list[dict[str, Any]] = []
+    if trace.measured:
+        fd = busiest_fd(trace.calls, FRAME_SIZES)
+        writes = trace.starts(fd, [BROADCAST_BYTES]) if fd is not None else []
+        origin = host["origin"]
+        n = math.ceil((writes[-1] - origin) / PERIOD_S) + 1 if writes else 0
+        records = TickRecords(
+            deadlines=[origin + k * PERIOD_S for k in range(n)],
+            writes=writes,
+            wakeups=rec.wakeups,
+            selects=rec.selects,
+            collections=rec.collections,
+            runqueue=rec.runqueue,
+        )
+        late = [t.as_dict() for t in attribute(records, threshold)]
+    result["late"] = late
+    result["gc_collections"] = len(rec.collections)
+    out.write_text(json.dumps(result) + "\n", encoding="utf-8")
+    return 0
+
+
+def one_run(args: argparse.Namespace, k: int, tmp: Path) -> dict[str, Any]:
+    hog = [sys.executable, "-c", "while True: pass"]
+    out = tmp / f"run{k}.json"
+    with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD) as sim:
+        hogs = [subprocess.Popen(hog) for _ in range(args.hogs)]
+        try:
+            cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(args.seconds)]
+            cmd += ["--threshold-us", str(args.threshold_us), "--out", str(out)]
+            cmd += ["--realtime"] if args.realtime else []
+            subprocess.run(cmd, check=True, timeout=args.seconds + CHILD_SLACK_S)
+        finally:
+            for h in hogs:
+                h.kill()
+            for h in hogs:
+                h.wait()
+    report: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))
+    return report
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--seconds", type=float, default=60.0, help="length of each run")
+    parser.add_argument("--realtime", action="store_true", help="the bus under SCHED_FIFO")
+    parser.add_argument("--hogs", type=int, default=0, help="CPU hogs beside the bus")
+    parser.add_argument("--threshold-us", type=float, default=500.0)
+    parser.add_argument("--quick", action="store_true", help="one 10 s run")
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--child", metavar="PTY", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        return child(args.child, args.seconds, args.realtime, args.threshold_us * 1e-6, args.out)
+    if args.quick:
+        args.runs, args.seconds = 1, 10.0
+    for name in ("runs", "seconds", "threshold_us"):
+        if getattr(args, name) <= 0:
+            parser.error(f"--{name.replace('_', '-')} must be > 0, got {getattr(args, name)}")
+    load_before = [round(x, 2) for x in os.getloadavg()]
+    with tempfile.TemporaryDirectory(prefix="motorbus-late-") as tmp_name:
+        runs = [one_run(args, k, Path(tmp_name)) for k in range(args.runs)]
+    late = [t for r in runs for t in r.pop("late")]
+    from late_ticks import LateTick
+
+    causes = summarise([LateTick(**t) for t in late])
+    goal_max = GOAL_RT_MAX_US if args.realtime and args.hogs else GOAL_QUIET_MAX_US
+    maxes = [r["tick_jitter_max_us"] for r in runs]
+    measured = all(isinstance(m, int | float) for m in maxes)
+    goals = {
+        f"kernel_max_le_{goal_max:.0f}us_every_run": measured and max(maxes) <= goal_max,
+    }
+    if args.realtime and args.hogs:
+        goals["no_late_tick"] = measured and sum(r["late_ticks"] or 0 for r in runs) == 0
+    result: dict[str, Any] = {
+        "runs": runs,
+        "late_ticks": late,
+        "causes": causes,
+        "goals": goals,
+        "seconds": args.seconds,
+        "realtime": args.realtime,
+        "hogs": args.hogs,
+        "threshold_us": args.threshold_us,
+        "machine": {
+            "platform": platform.platform(),
+            "python": sys.version.split()[0],
+            "cpus": os.cpu_count(),
+            "load_avg_before": load_before,
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "command": "python benchmarks/bench_late_ticks.py " + " ".join(sys.argv[1:]),
+    }
+    mode = "real-time" if args.realtime else "SCHED_OTHER"
+    print(
+        f"late ticks: {args.runs} x {args.seconds:.0f} s, {N_ACTUATORS} actuators at "
+        f"{PERIOD_S * 1e3:.0f} ms, poll_status, {mode}, {args.hogs} hogs, "
+        f"load before {load_before}"
+    )
+    if runs and runs[0].get("kernel_why"):
+        print(f"kernel clock: not measured: {runs[0]['kernel_why']}")
+    print(
+        f"\n{'run':>4}{'p50 us':>9}{'p99 us':>9}{'max us':>9}{'late':>6}{'missed':>8}"
+        f"{'gc':>5}{'spin ms':>9}{'cpu us/tick':>13}"
+    )
+    for k, r in enumerate(runs):
+        spin = r.get("timer_spin_s")
+        print(
+            f"{k + 1:>4}{r['tick_jitter_p50_us']!s:>9}{r['tick_jitter_p99_us']!s:>9}"
+            f"{r['tick_jitter_max_us']!s:>9}{r['late_ticks']!s:>6}{r['missed_ticks']!s:>8}"
+            f"{r['gc_collections']:>5}{spin * 1e3 if spin else 0:>9.1f}"
+            f"{r['cpu_us_per_tick']:>13}"
+        )
+    print(f"\nticks later than {args.threshold_us:.0f} us at the kernel, by cause:")
+    print(f"{'cause':24}{'ticks':>7}{'worst us':>10}")
+    for cause in CAUSES:
+        print(f"{cause:24}{causes[cause]['ticks']:>7}{causes[cause]['worst_us']:>10}")
+    for name, met in goals.items():
+        print(f"goal {name}: {'met' if met else 'NOT met'}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
