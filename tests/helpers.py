@@ -21,7 +21,7 @@ from typing import Any
 
 from motorbus.bus.bus import Bus
 from motorbus.bus.timer import default_timer
-from motorbus.cli.common import ENV_VARS
+from motorbus.cli.bus_options import ENV_VARS
 from motorbus.protocol.base import Family
 from motorbus.sim.bus import PACING_MODES, Pacing
 from motorbus.sim.memory import MemorySim

@@ -197,9 +197,13 @@ def test_family_codecs_do_not_reach_into_the_reassembler() -> None:
 
 def test_project_values_do_not_import_the_commands() -> None:
     # Projects are values; turning one into commands lives beside the commands
-    # (project_commands), so the two modules do not import each other.
-    path = SRC / "protocol" / "project_stepper" / "project.py"
-    assert "motorbus.protocol.project_stepper.commands" not in imports_of(path)
+    # (upload.project_commands), so no two of these modules import each other:
+    # project <- commands <- upload, and project <- upload.
+    package = SRC / "protocol" / "project_stepper"
+    commands = "motorbus.protocol.project_stepper.commands"
+    upload = "motorbus.protocol.project_stepper.upload"
+    assert not {commands, upload} & imports_of(package / "project.py")
+    assert upload not in imports_of(package / "commands.py")
 
 
 def test_the_rig_core_is_pure() -> None:

@@ -14,14 +14,14 @@ from types import SimpleNamespace
 
 import pytest
 
-from motorbus.cli import common
-from motorbus.cli.common import (
+from motorbus.cli.bus_options import (
     BACKEND_ENV,
     BAUD_ENV,
     BUS_ENV,
     BUS_FILE_ENV,
     ENV_VARS,
     PORT_ENV,
+    available_ports,
     resolve_port,
 )
 from motorbus.cli.main import EXIT_OK, EXIT_USAGE, UsageError, build_parser, main
@@ -270,7 +270,7 @@ def test_a_port_error_is_one_line_listing_the_ports(
         "available ports: /dev/ttyACM0, /dev/ttyUSB0 (FT232R USB UART)\n"
     )
     monkeypatch.setattr(list_ports, "comports", list)
-    assert common.available_ports() == "no serial ports found on this machine"
+    assert available_ports() == "no serial ports found on this machine"
 
 
 def _parsers(parser: argparse.ArgumentParser) -> Iterator[argparse.ArgumentParser]:

@@ -21,7 +21,7 @@ from typing import Any
 
 import pytest
 
-from motorbus.cli.common import ENV_VARS
+from motorbus.cli.bus_options import ENV_VARS
 from motorbus.protocol import framelog, la
 from motorbus.protocol.base import format_hex
 from motorbus.sim.process import SimProcess

@@ -11,7 +11,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from motorbus.cli.common import ENV_VARS
+from motorbus.cli.bus_options import ENV_VARS
 from motorbus.cli.main import EXIT_FAILURE, EXIT_USAGE, main
 from motorbus.sim.process import SimProcess
 from tests.helpers import NO_CONFIG_DIR, cli, rx_frames

@@ -9,9 +9,11 @@ from collections.abc import Iterator
 
 import pytest
 
-from motorbus.cli.common import PORT_ENV, LiveText, parse_id_args, parse_ids
+from motorbus.cli.bus_options import PORT_ENV
+from motorbus.cli.ids import parse_id_args, parse_ids
 from motorbus.cli.la import baud_code, format_value, status_json, status_row
 from motorbus.cli.main import build_parser
+from motorbus.cli.output import LiveText
 from motorbus.cli.scan import ProgressBar
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from motorbus.cli.common import ENV_VARS
+from motorbus.cli.bus_options import ENV_VARS
 from motorbus.cli.project import project_from_toml, project_to_dict, project_to_toml
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import project_stepper as ps

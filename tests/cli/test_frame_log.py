@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from motorbus.cli.common import PORT_ENV
+from motorbus.cli.bus_options import PORT_ENV
 from motorbus.cli.replay import load_records
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from motorbus.bus.bus import DEFAULT_TURNAROUND
-from motorbus.cli import common, demo
+from motorbus.cli import demo
+from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la, quad_stepper
 from motorbus.protocol.base import Family
@@ -37,7 +38,7 @@ def test_registry_values() -> None:
 
 
 def test_every_consumer_reads_the_registry() -> None:
-    assert (common.LA_BAUD, common.STEPPER_BAUD) == (921600, 9600)
+    assert (LA_BAUD, STEPPER_BAUD) == (921600, 9600)
     assert (demo.LA_BAUD, demo.STEPPER_BAUD) == (921600, 9600)
     assert (spec.LA_DEFAULT_BAUD, spec.STEPPER_DEFAULT_BAUD) == (921600, 9600)
     assert spec.DEVICE_KINDS == SPEC_NAMES

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from motorbus.cli.common import parse_ids
+from motorbus.cli.ids import parse_ids
 from motorbus.errors import LocalProtocolError
 from motorbus.manager import parse_devices
 from motorbus.protocol.ids import IdListError, parse_id_list

@@ -32,17 +32,17 @@ from typing import Any
 
 from motorbus import BusManager, Family, scan
 from motorbus import run as run_safely
-from motorbus.cli.common import (
+from motorbus.cli.bus_options import (
     BUS_FILE_ENV,
     CLI_HOST_MARGIN_S,
     LA_BAUD,
     PORT_ENV,
     add_bus_options,
-    check_seconds,
-    parse_ids,
     resolve_port,
 )
+from motorbus.cli.ids import parse_ids
 from motorbus.cli.scan import SCAN_TIMEOUT_S
+from motorbus.cli.values import check_seconds
 from motorbus.dashboard import BusSetup, Dashboard
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la

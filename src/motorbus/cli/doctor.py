@@ -33,18 +33,18 @@ import sys
 from typing import Any
 
 from motorbus import DoctorConfig, default_bus_file, diagnose
-from motorbus.cli.common import (
+from motorbus.cli.bus_options import (
     BUS_ENV,
     BUS_FILE_ENV,
     LA_BAUD,
     PORT_ENV,
     add_bus_options,
     available_ports,
-    parse_ids,
-    print_json,
     resolve_port,
 )
+from motorbus.cli.ids import parse_ids
 from motorbus.cli.main import UsageError
+from motorbus.cli.output import print_json
 from motorbus.errors import LocalProtocolError
 
 __all__ = ["register", "run"]

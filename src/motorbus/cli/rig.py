@@ -34,15 +34,10 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from motorbus.cli.common import (
-    LA_BAUD,
-    STEPPER_BAUD,
-    add_bus_options,
-    check_seconds,
-    open_bus,
-    parse_id_args,
-    print_json,
-)
+from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD, add_bus_options, open_bus
+from motorbus.cli.ids import parse_id_args
+from motorbus.cli.output import print_json
+from motorbus.cli.values import check_seconds
 from motorbus.errors import CommandFailed, LocalProtocolError, UsageError
 from motorbus.protocol.base import Family, check_int
 from motorbus.rig.plan import DEFAULT_FREQUENCIES, TESTS, RigPlan, default_window

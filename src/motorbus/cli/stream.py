@@ -62,17 +62,10 @@ from motorbus import (
     SafeAction,
     Streamer,
 )
-from motorbus.cli.common import (
-    LA_BAUD,
-    add_bus_options,
-    add_guard_option,
-    check_ids,
-    check_seconds,
-    open_bus,
-    parse_ids,
-    plural,
-    print_json,
-)
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, add_guard_option, open_bus
+from motorbus.cli.ids import check_ids, parse_ids
+from motorbus.cli.output import plural, print_json
+from motorbus.cli.values import check_seconds
 from motorbus.errors import (
     CommandFailed,
     LocalProtocolError,

@@ -18,9 +18,9 @@ Units (A.3, A0-09): distances are user units (revolutions = distance / distance 
 revolution), frequencies Hz, speed RPM, delays ms, the step angle degrees x 100.
 
 The package: ``wire`` (sizes, opcodes, enums, framing, ``Ack``), ``commands``,
-``project`` (``StepSpec``, ``Project``, ``ProjectDump`` and the dump codec) and
-``decode``; the public names (``__all__``) are importable from here; the rest
-from their modules.
+``project`` (``StepSpec``, ``Project``, ``ProjectDump`` and the dump codec), ``upload``
+(the commands that write a project, A.6) and ``decode``; the public names
+(``__all__``) are importable from here; the rest from their modules.
 """
 
 from __future__ import annotations
@@ -114,12 +114,6 @@ from motorbus.protocol.project_stepper.commands import (
 from motorbus.protocol.project_stepper.commands import (
     StopProject as StopProject,
 )
-from motorbus.protocol.project_stepper.commands import (
-    project_commands as project_commands,
-)
-from motorbus.protocol.project_stepper.commands import (
-    step_commands as step_commands,
-)
 from motorbus.protocol.project_stepper.decode import (
     decode_reply_context_free as decode_reply_context_free,
 )
@@ -185,6 +179,12 @@ from motorbus.protocol.project_stepper.project import (
 )
 from motorbus.protocol.project_stepper.project import (
     StepSpec as StepSpec,
+)
+from motorbus.protocol.project_stepper.upload import (
+    project_commands as project_commands,
+)
+from motorbus.protocol.project_stepper.upload import (
+    step_commands as step_commands,
 )
 from motorbus.protocol.project_stepper.wire import (
     DEFAULT_MOTOR as DEFAULT_MOTOR,

@@ -1,4 +1,7 @@
-"""The project stepper's commands (doc 000 A.4), one frozen dataclass each."""
+"""The project stepper's commands (doc 000 A.4), one frozen dataclass each.
+
+Which of them write a whole project, and in what order, is in
+:mod:`motorbus.protocol.project_stepper.upload`."""
 
 from __future__ import annotations
 
@@ -16,7 +19,7 @@ from motorbus.protocol.base import (
     format_hex,
 )
 from motorbus.protocol.ff_aa import RotationDirection
-from motorbus.protocol.project_stepper.project import Project, ProjectDump, StepSpec
+from motorbus.protocol.project_stepper.project import ProjectDump
 from motorbus.protocol.project_stepper.wire import (
     _ANY_PROJECT,
     _INPUT_STATES,
@@ -655,48 +658,3 @@ class ReadInput(ProjectStepperCommand[bool]):
             RemoteProtocolError: ``raw`` is not a reply to this request.
         """
         return self._ack(raw).value == 1
-
-
-# -- projects to commands -----------------------------------------------------------------
-
-
-def step_commands(
-    spec: StepSpec, step: int, motor: int = DEFAULT_MOTOR
-) -> list[ProjectStepperCommand[object]]:
-    """Return the seven commands 03..09 that program ``spec`` as step ``step`` (A.6).
-
-    Raises:
-        LocalProtocolError: ``step`` is not 1..10 or ``motor`` is not allowed.
-    """
-    return [
-        RunDistance(step, spec.run_distance, motor=motor),
-        DirectionAndStartFrequency(step, spec.direction, spec.start_hz, motor=motor),
-        AccelAndSpeed(step, spec.accel_hz, spec.speed_rpm, motor=motor),
-        StepOutput(step, spec.output, motor=motor),
-        StepDelay(step, spec.delay_ms, motor=motor),
-        StartInput(step, spec.start_input, motor=motor),
-        StopInput(step, spec.stop_input, motor=motor),
-    ]
-
-
-def project_commands(
-    project: Project, motor: int = DEFAULT_MOTOR
-) -> list[ProjectStepperCommand[object]]:
-    """Return the programming sequence of A.6 for ``project``, without the final SaveProject.
-
-    SelectProject, MotorSetup, DistancePerRev, then 03..09 for each step, then StepLoop
-    and RepeatCount (always sent, so stale loop settings are overwritten).
-
-    Raises:
-        LocalProtocolError: ``motor`` is not allowed (A0-02).
-    """
-    out: list[ProjectStepperCommand[object]] = [
-        SelectProject(project.number, len(project.steps)),
-        MotorSetup(project.subdivision, project.step_angle_x100, motor=motor),
-        DistancePerRev(project.distance_per_rev, motor=motor),
-    ]
-    for i, spec in enumerate(project.steps, start=1):
-        out += step_commands(spec, i, motor)
-    out.append(StepLoop(project.loop_start, project.loop_end, project.loop_count))
-    out.append(RepeatCount(project.repeat_count))
-    return out
