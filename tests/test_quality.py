@@ -26,3 +26,16 @@ def test_ruff_is_clean() -> None:
 def test_mypy_strict_is_clean_on_src() -> None:
     out = run(sys.executable, "-m", "mypy")
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
+
+
+#: h11 keeps each module under this; a module that grows past it holds two concerns.
+MODULE_LINES_MAX = 700
+
+
+def test_no_module_in_src_is_over_700_lines() -> None:
+    long = {
+        str(p.relative_to(ROOT)): n
+        for p in sorted((ROOT / "src").rglob("*.py"))
+        if (n := len(p.read_text(encoding="utf-8").splitlines())) > MODULE_LINES_MAX
+    }
+    assert not long, f"split these modules by concern (lines): {long}"
