@@ -80,17 +80,18 @@ def test_callbacks_never_fire_early_and_run_in_deadline_order(
     run(loop_factory, main())
 
 
+@pytest.mark.parametrize("precise", [True, False], ids=["precise", "not-precise"])
 @pytest.mark.parametrize("loop_factory", LOOPS)
 @pytest.mark.parametrize("timer_cls", TIMERS)
 def test_sleep_until_never_returns_early(
-    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer], precise: bool
 ) -> None:
     async def main() -> None:
         timer = timer_cls()
         origin = timer.now()
         for k in range(1, 101):
             deadline = origin + k * 2e-4  # 200 µs periodic absolute deadlines
-            await timer.sleep_until(deadline)
+            await timer.sleep_until(deadline, precise=precise)
             assert timer.now() >= deadline
         await timer.sleep_until(origin)  # long past: returns after yielding once
         assert timer.pending == 0
@@ -307,3 +308,26 @@ def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
         off.close()
 
     run(asyncio.new_event_loop, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_cancelling_the_earliest_callback_rearms_instead_of_waking_for_nothing(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop],
+) -> None:
+    """A reply deadline cancelled by its reply must not leave the timerfd armed for it:
+    that wake-up would find nothing to do (and costs far more than re-arming)."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        later = timer.call_at(timer.now() + 1.0, lambda: None)
+        soon = timer.call_at(timer.now() + 0.002, lambda: None)
+        soon.cancel()
+        await asyncio.sleep(0.02)  # well past the cancelled deadline
+        assert timer.wakeups == 0
+        assert timer.pending == 1
+        later.cancel()
+        timer.close()
+
+    run(loop_factory, main())
