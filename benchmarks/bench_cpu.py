@@ -13,7 +13,16 @@ ptys (one ``pty_recorder.py --answer`` process answers every bus at once):
   timeouts, no spacing rule: the least a program can do for the same writes.
 
 CPU is this process's user + system time over the run's wall time (100 % = one core).
-Goals: ours / minimal <= 1.5 at every bus count, and 32 buses under 35 % of a core.
+Goals (issue 23): ours / minimal <= 1.5 at 1, 16 and 32 buses, and 32 buses under 35 %
+of a core.  Larger counts (``run.py`` adds 128) show where one core saturates: this
+process has one thread, so it never uses more than one core; past that point it sends
+fewer ticks than it should.  Ours "keeps up" with a bus count when it sent at least 99 %
+of its ticks and no stream ended with an error; ``max_buses_keeping_up`` is the largest
+count up to which it kept up with every measured count.  Falling behind at well under
+100 % CPU means the machine did not give this process its core (the responder and any
+other load share the machine's cores).  ``ratio_per_tick`` divides each side's CPU by
+the ticks it sent: the same as ``ratio`` while ours keeps up, the honest figure once it
+does not.
 
     python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--buses 1,16,32,64]
         [--out PATH]
@@ -54,7 +63,15 @@ MINIMAL_POLL_OFFSET_S = 0.0015
 OURS_POLL_OFFSET_S = 0.003
 REPLY_BYTES = la.STATUS_FRAME_SIZE
 GOAL_RATIO = 1.5
+#: The bus counts the ratio goal is set at (issue 23); others are reported only.
+GOAL_RATIO_BUSES = (1, 16, 32)
 GOAL_32_CPU_PERCENT = 35.0
+#: Share of its ticks ours must send to keep up with a bus count.
+KEEPS_UP_TICKS_SENT_PCT = 99.0
+#: File descriptors a bus count needs here, per bus (ours and the minimal loop open one
+#: pty each; the responder, a child that inherits the limit, holds two), plus room.
+FDS_PER_BUS = 2
+FDS_SPARE = 64
 #: Start-up room before the first tick.
 LEAD_S = 0.05
 
@@ -62,6 +79,16 @@ LEAD_S = 0.05
 def cpu_seconds() -> float:
     usage = resource.getrusage(resource.RUSAGE_SELF)
     return usage.ru_utime + usage.ru_stime
+
+
+def raise_fd_limit(buses: int) -> None:
+    """Raise the soft RLIMIT_NOFILE to the hard limit if ``buses`` could need more."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    need = FDS_PER_BUS * buses + FDS_SPARE
+    if soft != resource.RLIM_INFINITY and soft < need:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        if hard != resource.RLIM_INFINITY and hard < need:
+            raise SystemExit(f"{buses} buses need about {need} file descriptors; limit {hard}")
 
 
 def trajectory(t: float) -> list[float]:
@@ -139,6 +166,7 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
         names = list(mgr.buses)
         polls = [0]
         failed = [0]
+        end = [math.inf]
         streams = []
         for name in names:
             actuators = [mgr.la(name, i) for i in range(1, N_ACTUATORS + 1)]
@@ -154,7 +182,8 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
             bus = mgr.bus(name)
             actuators = [mgr.la(name, i) for i in range(1, N_ACTUATORS + 1)]
             k = 0
-            while origin + k * PERIOD_S < origin + seconds:
+            # Bounded by time as well: a saturated loop must not poll on past the run.
+            while origin + k * PERIOD_S < origin + seconds and bus.timer.now() < end[0]:
                 # As the minimal loop's loop.call_at: on time, not to the microsecond.
                 await bus.timer.sleep_until(
                     origin + k * PERIOD_S + OURS_POLL_OFFSET_S, precise=False
@@ -167,12 +196,21 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
                 k += 1
 
         wall0, cpu0 = time.monotonic(), cpu_seconds()
+        end[0] = max(s.origin for s in streams) + seconds + PERIOD_S
         tasks = [
             asyncio.create_task(poller(name, s.origin))
             for name, s in zip(names, streams, strict=True)
         ]
-        await asyncio.gather(*(s.wait() for s in streams), *tasks)
+        # A saturated loop falls behind and a stream may end with a gap: that is a figure
+        # (stream_errors), not a failure of the benchmark.
+        outcomes = await asyncio.gather(
+            *(s.wait() for s in streams), *tasks, return_exceptions=True
+        )
         wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+        errors = [o for o in outcomes if isinstance(o, BaseException)]
+        for err in errors:
+            if not isinstance(err, MotorbusError):
+                raise err
         return {
             "cpu_percent": 100 * cpu / wall,
             "ticks": sum(s.stats.ticks for s in streams),
@@ -180,6 +218,8 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
             "replies": polls[0],
             "late_ticks": sum(s.stats.late for s in streams),
             "skipped_ticks": sum(s.stats.skipped for s in streams),
+            "stream_errors": len(errors),
+            "first_error": str(errors[0]) if errors else None,
         }
 
 
@@ -200,6 +240,17 @@ class Responder:
     def stop(self) -> None:
         self.proc.send_signal(signal.SIGINT)
         self.proc.wait(30)
+
+
+def max_buses_keeping_up(buses: list[int], kept_up: list[bool]) -> int:
+    """The largest count up to which ours kept up with every measured count; 0 if it did
+    not with the smallest."""
+    best = 0
+    for n, ok in sorted(zip(buses, kept_up, strict=True)):
+        if not ok:
+            break
+        best = n
+    return best
 
 
 def main() -> int:
@@ -224,14 +275,20 @@ def main() -> int:
             "cpu_percent",
             "minimal_cpu_percent",
             "ratio",
+            "ratio_per_tick",
             "ticks",
             "minimal_ticks",
             "replies",
             "minimal_replies",
             "late_ticks",
             "skipped_ticks",
+            "ticks_sent_pct",
+            "stream_errors",
+            "keeps_up",
         )
     }
+    raise_fd_limit(max(counts))
+    ticks_per_bus = round(args.seconds / PERIOD_S)
     print(f"CPU per bus-tick, {args.seconds:.0f} s per case, {PERIOD_S * 1e3:.0f} ms ticks")
     with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
         for n in counts:
@@ -246,23 +303,40 @@ def main() -> int:
             rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
             rows["minimal_cpu_percent"].append(round(base["cpu_percent"], 1))
             rows["ratio"].append(round(ratio, 2) if math.isfinite(ratio) else None)
+            # The same per tick sent: differs from ``ratio`` once ours falls behind.
+            per_tick = ratio * base["ticks"] / mine["ticks"] if mine["ticks"] else math.nan
+            rows["ratio_per_tick"].append(round(per_tick, 2) if math.isfinite(per_tick) else None)
             rows["ticks"].append(mine["ticks"])
             rows["minimal_ticks"].append(base["ticks"])
             rows["replies"].append(mine["replies"])
             rows["minimal_replies"].append(base["replies"])
             rows["late_ticks"].append(mine["late_ticks"])
             rows["skipped_ticks"].append(mine["skipped_ticks"])
+            sent_pct = 100 * mine["ticks"] / (n * ticks_per_bus)
+            keeps_up = sent_pct >= KEEPS_UP_TICKS_SENT_PCT and mine["stream_errors"] == 0
+            rows["ticks_sent_pct"].append(round(sent_pct, 1))
+            rows["stream_errors"].append(mine["stream_errors"])
+            rows["keeps_up"].append(keeps_up)
             print(
                 f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} %, minimal "
                 f"{base['cpu_percent']:5.1f} %, ratio {ratio:.2f}; ticks {mine['ticks']} / "
-                f"{base['ticks']}, replies {mine['replies']} / {base['replies']}",
+                f"{base['ticks']} ({sent_pct:.1f} % sent), replies {mine['replies']} / "
+                f"{base['replies']}; {'keeps up' if keeps_up else 'FALLS BEHIND'}",
                 flush=True,
             )
+            if mine["first_error"]:
+                print(f"        {mine['stream_errors']} ended: {mine['first_error']}")
     at32 = rows["buses"].index(32) if 32 in rows["buses"] else None
     ratios = [r for r in rows["ratio"] if r is not None]
+    goal_ratios = [
+        r for b, r in zip(rows["buses"], rows["ratio"], strict=True) if b in GOAL_RATIO_BUSES
+    ]
+    goal_ratios = [r for r in goal_ratios if r is not None]
     result: dict[str, Any] = {
         **rows,
         "max_ratio": max(ratios) if ratios else None,
+        "max_ratio_1_16_32": max(goal_ratios) if goal_ratios else None,
+        "max_buses_keeping_up": max_buses_keeping_up(rows["buses"], rows["keeps_up"]),
         "cpu_percent_at_32": None if at32 is None else rows["cpu_percent"][at32],
         "seconds": args.seconds,
         "machine": {
@@ -273,9 +347,12 @@ def main() -> int:
         },
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
+    print(f"largest bus count ours keeps up with: {result['max_buses_keeping_up']}")
     result["goals"] = {
-        "ratio_le_1.5x": None if not ratios else max(ratios) <= GOAL_RATIO,
-        "32_buses_lt_35pct": None if at32 is None else rows["cpu_percent"][at32] < 35.0,
+        "ratio_le_1.5x": None if not goal_ratios else max(goal_ratios) <= GOAL_RATIO,
+        "32_buses_lt_35pct": None
+        if at32 is None
+        else rows["cpu_percent"][at32] < GOAL_32_CPU_PERCENT,
     }
     for name, ok in result["goals"].items():
         print(f"goal {name:24} {'not measured' if ok is None else 'met' if ok else 'NOT met'}")

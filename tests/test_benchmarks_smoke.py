@@ -17,6 +17,7 @@ import pytest
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 
+import bench_cpu  # noqa: E402
 import report_plots  # noqa: E402
 import run  # noqa: E402
 
@@ -114,12 +115,61 @@ def fake_reports() -> dict[str, Any]:
             "seconds": 5.0,
         },
         "cpu": {
-            "buses": [1, 16, 32, 64],
-            "cpu_percent": [2.0, 20.0, 36.0, 70.0],
-            "minimal_cpu_percent": [1.0, 15.0, 30.0, 60.0],
-            "ratio": [2.0, 1.33, 1.2, 1.17],
+            "buses": [1, 16, 32, 64, 128],
+            "cpu_percent": [2.0, 20.0, 36.0, 70.0, 99.0],
+            "minimal_cpu_percent": [1.0, 15.0, 30.0, 60.0, 90.0],
+            "ratio": [2.0, 1.33, 1.2, 1.17, 1.1],
+            "ratio_per_tick": [2.0, 1.33, 1.2, 1.17, 2.2],
+            "ticks": [300, 4800, 9600, 19200, 19200],
+            "minimal_ticks": [300, 4800, 9600, 19200, 38400],
+            "ticks_sent_pct": [100.0, 100.0, 100.0, 99.94, 50.0],
+            "stream_errors": [0, 0, 0, 0, 3],
+            "keeps_up": [True, True, True, True, False],
             "max_ratio": 2.0,
+            "max_buses_keeping_up": 64,
             "seconds": 3.0,
+        },
+        "late_ticks": {
+            "runs": [
+                {
+                    "tick_jitter_p50_us": 40.0,
+                    "tick_jitter_p99_us": 120.0,
+                    "tick_jitter_max_us": 900.0,
+                    "late_ticks": 0,
+                    "missed_ticks": 0,
+                    "gc_collections": 42,
+                    "timer_spin_s": 0.1225,
+                    "cpu_us_per_tick": 95.5,
+                    "kernel_why": None,
+                    "origin": 775.28,  # not a figure: left out
+                },
+                {
+                    "tick_jitter_p50_us": 45.0,
+                    "tick_jitter_p99_us": 505.7,
+                    "tick_jitter_max_us": 3447.1,
+                    "late_ticks": 4,
+                    "missed_ticks": 1,
+                    "gc_collections": 40,
+                    "timer_spin_s": 0.0,
+                    "cpu_us_per_tick": 101.0,
+                    "kernel_why": None,
+                },
+            ],
+            "late_ticks": [{"index": 10, "late_us": 3447.1, "cause": "machine: run queue"}] * 5,
+            "causes": {
+                "gc": {"ticks": 1, "worst_us": 620.0},
+                "machine: run queue": {"ticks": 4, "worst_us": 3447.1},
+                "ours: loop busy": {"ticks": 0, "worst_us": 0.0},
+                "machine: slow wake-up": {"ticks": 0, "worst_us": 0.0},
+                "ours: wake to write": {"ticks": 0, "worst_us": 0.0},
+                "unattributed": {"ticks": 0, "worst_us": 0.0},
+            },
+            "goals": {"kernel_max_le_1000us_every_run": False},
+            "seconds": 60.0,
+            "realtime": False,
+            "hogs": 0,
+            "threshold_us": 500.0,
+            "machine": {"load_avg_before": [0.07, 0.1, 0.2]},
         },
         "timer": {
             "seconds_per_run": 1.0,
@@ -167,8 +217,15 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
         "timer",
         "load",
         "cpu",
+        "late_ticks",
     ]
     assert all("--quick" in s.args for s in steps if s.script != "bench_timer.py")
+    assert steps[-1].command(Path("/x/raw"))[1:] == [
+        str(run.HERE / "bench_late_ticks.py"),
+        "--quick",
+        "--out",
+        "/x/raw/late_ticks.json",
+    ]
     assert steps[5].args == ("--seconds", "1")
     # The mixed workload runs once, with the headline bus configuration.
     assert "--mixed-seconds" not in steps[1].args
@@ -187,7 +244,15 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
         "--samples",
         "/x/raw/bus-fast-uvloop.samples.json",
     ]
-    assert "--quick" not in run.plan(False, ["fast"], ["asyncio"])[0].args
+    full = {s.name: s for s in run.plan(False, ["fast"], ["asyncio"])}
+    assert "--quick" not in full["reassembler"].args
+    # The full run: where one core saturates (up to 128 buses); three 60 s late-tick runs.
+    assert full["cpu"].args == ("--buses", "1,16,32,64,128")
+    assert full["late_ticks"].args == ("--runs", "3", "--seconds", "60")
+    assert not full["late_ticks"].samples
+    # Its runs, each with its start-up (simulator, perf), fit in a step's time.
+    args = full["late_ticks"].args
+    assert int(args[1]) * float(args[3]) <= run.STEP_TIMEOUT_S / 2
 
 
 def test_results_have_every_documented_key() -> None:
@@ -219,6 +284,18 @@ def test_results_have_every_documented_key() -> None:
         "cpu.buses",
         "cpu.ratio",
         "cpu.max_ratio",
+        "cpu.ratio_per_tick",
+        "cpu.ticks_sent_pct",
+        "cpu.keeps_up",
+        "cpu.max_ratio_1_16_32",
+        "cpu.max_buses_keeping_up",
+        "late_ticks.runs",
+        "late_ticks.kernel_max_us",
+        "late_ticks.attributed_ticks",
+        "late_ticks.causes",
+        "late_ticks.seconds",
+        "late_ticks.threshold_us",
+        "late_ticks.load_avg_before",
         "machine.platform",
         "machine.python",
         "machine.cpus",
@@ -229,6 +306,15 @@ def test_results_have_every_documented_key() -> None:
     assert r["bus"]["backends"]["pyserial-asyncio"]["status"] == "failed"
     assert r["bus"]["loops"]["uvloop"]["rtt_p50_us"] == 900.0
     assert r["scaling"]["cpu_percent"] == [3.0, 10.0, None]  # NaN is not JSON
+    assert r["cpu"]["max_ratio_1_16_32"] == 2.0  # 64 and 128 buses are reported only
+    late = r["late_ticks"]
+    assert late["kernel_max_us"] == 3447.1  # the worst run's
+    assert late["attributed_ticks"] == 5
+    assert [run_["tick_jitter_max_us"] for run_ in late["runs"]] == [900.0, 3447.1]
+    assert set(late["runs"][0]) == set(run.LATE_RUN_KEYS)  # "origin" left out
+    assert late["runs"][0]["timer_wakeups"] is None  # absent: null, not missing
+    assert list(late["causes"]) == list(run.LATE_CAUSES)
+    assert late["causes"]["machine: run queue"] == {"ticks": 4, "worst_us": 3447.1}
     assert r["errors"] == [
         "bus-pyserial-asyncio-asyncio: exit status 1 (timeout if null), "
         "see logs/bus-pyserial-asyncio-asyncio.log"
@@ -241,10 +327,23 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
     assert r["bus"]["rtt_p50_us"] is None
     assert r["scaling"]["buses"] == []
     assert r["cpu"]["buses"] == []
+    assert r["cpu"]["keeps_up"] == []
+    assert r["cpu"]["max_buses_keeping_up"] is None
+    assert r["cpu"]["max_ratio_1_16_32"] is None
+    assert r["late_ticks"]["runs"] == []
+    assert r["late_ticks"]["kernel_max_us"] is None
+    assert r["late_ticks"]["attributed_ticks"] is None
+    assert r["late_ticks"]["causes"] == {
+        c: {"ticks": None, "worst_us": None} for c in run.LATE_CAUSES
+    }
     assert r["load"]["rt"]["tick_jitter_p99_us"] is None
     assert r["bus"]["backends"]["fast"]["status"] == "failed"
     assert all(g["met"] is None for g in r["goals"].values())
-    assert "n/a" in run.render_report(r)
+    text = run.render_report(r)
+    assert "n/a" in text
+    assert "## Late ticks, attributed: 0 run(s) of n/a" in text
+    assert "| `gc` | n/a | n/a |" in text
+    assert "no stream ended): not measured." in text
 
 
 @pytest.mark.parametrize(
@@ -273,6 +372,7 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
         ("stream.max_le_2ms", 2500, False),
         ("stream.no_drift", -150.0, False),  # |drift| counts, not its sign
         ("scaling.32_buses_cpu_lt_50pct", None, None),  # 32 buses not run in quick mode
+        ("late_ticks.kernel_max_le_1000us_every_run", 3447.1, False),  # one run of two
     ],
 )
 def test_goals(name: str, value: Any, met: bool | None) -> None:
@@ -291,6 +391,42 @@ def test_scaling_goal_reads_the_32_bus_entry() -> None:
     assert goals["scaling.32_buses_cpu_lt_50pct"]["met"] is True
     assert goals["scaling.32_buses_p99_le_1ms"]["value"] == 1001
     assert goals["scaling.32_buses_p99_le_1ms"]["met"] is False
+
+
+def test_cpu_ratio_goal_reads_1_16_and_32_buses_only() -> None:
+    reports = fake_reports()
+    reports["cpu"]["ratio"] = [1.4, 1.5, 1.2, 3.0, 4.0]
+    r = build(reports)
+    goal = r["goals"]["cpu.ratio_le_1.5x_minimal"]
+    assert (goal["figure"], goal["value"], goal["met"]) == ("cpu.max_ratio_1_16_32", 1.5, True)
+    reports["cpu"]["buses"] = [64, 128]
+    reports["cpu"]["ratio"] = [1.0, 1.0]
+    assert build(reports)["goals"]["cpu.ratio_le_1.5x_minimal"]["met"] is None
+
+
+def test_where_one_core_saturates_is_the_first_count_ours_falls_behind_at() -> None:
+    buses = [1, 16, 32, 64, 128]
+    # A count kept up with after one that was not (noise) does not count.
+    assert bench_cpu.max_buses_keeping_up(buses, [True, True, False, True, False]) == 16
+    assert bench_cpu.max_buses_keeping_up(buses[::-1], [False, True, True, True, True]) == 64
+    assert bench_cpu.max_buses_keeping_up(buses, [False] * 5) == 0
+    reports = fake_reports()
+    reports["cpu"]["max_buses_keeping_up"] = 0
+    assert "ours fell behind already at **1 bus**" in run.render_report(build(reports))
+
+
+def test_late_tick_goal_needs_every_run_measured() -> None:
+    reports = fake_reports()
+    runs = reports["late_ticks"]["runs"]
+    runs[1]["tick_jitter_max_us"] = 999.0
+    r = build(reports)
+    goal = r["goals"]["late_ticks.kernel_max_le_1000us_every_run"]
+    assert (goal["value"], goal["met"]) == (999.0, True)
+    runs[1].update(tick_jitter_max_us=None, kernel_why="perf is not installed")
+    r = build(reports)
+    assert r["late_ticks"]["kernel_max_us"] is None
+    assert r["goals"]["late_ticks.kernel_max_le_1000us_every_run"]["met"] is None
+    assert "- run 2: kernel clock not measured: perf is not installed" in run.render_report(r)
 
 
 def test_report_shows_ratios_goals_and_machine() -> None:
@@ -332,7 +468,27 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "| mixed: smallest start gap (µs) | 998 | 87 |" in text
     assert "- load (real-time): kernel clock not measured: perf is not installed" in text
     assert "- polls against a prompt device: pending: no pacing option" in text
-    assert "| 32 | 36 % | 30 % | 1.20 |" in text
+    assert "| 32 | 36 % | 30 % | 1.20 | 1.20 | 9,600 / 9,600 | 100.0 % |" in text
+    assert "| 128 | 99 % | 90 % | 1.10 | 2.20 | 19,200 / 38,400 | 50.0 % |" in text
+    assert "| 3 | **no: fell behind** |" in text
+    assert "| 19,200 / 19,200 | 99.9 % |" in text  # not rounded up to 100 %
+    assert (
+        "Where one core saturates (keeping up: sent >= 99 % of its ticks, no stream "
+        "ended): ours kept up with every count up to **64 buses** (measured: 1, 16, 32, "
+        "64, 128)."
+    ) in text
+    # the late-tick attribution: a row per run, a row per cause
+    assert "## Late ticks, attributed: 2 run(s) of 60 s" in text
+    assert "SCHED_OTHER, 0 CPU hogs, load average before [0.07, 0.1, 0.2]" in text
+    assert "| 1 | 40 µs | 120 µs | 900 µs | 0 | 0 | 42 | 122 ms | 96 µs |" in text
+    assert "| 2 | 45 µs | 506 µs | 3,447 µs | 4 | 1 | 40 | 0 ms | 101 µs |" in text
+    assert "Ticks later than 500 µs after their deadline at the kernel, over all runs (5)" in text
+    assert "| `machine: run queue` | 4 | 3,447 µs |" in text
+    assert "| `gc` | 1 | 620 µs |" in text
+    assert (
+        "- **NOT MET**: `late_ticks.kernel_max_le_1000us_every_run`: "
+        "late_ticks.kernel_max_us = 3,447 (goal <= 1,000)"
+    ) in text
 
 
 @pytest.mark.parametrize(
