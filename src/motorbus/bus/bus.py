@@ -403,7 +403,8 @@ class Bus(BusEngine):
                 f"{', '.join(sorted(f.value for f in self.families))}",
                 field="cmd",
             )
-        check_request_options(timeout, retries, priority)
+        if timeout is not None or retries is not None or priority is not Priority.NORMAL:
+            check_request_options(timeout, retries, priority)
         if start_by is not None and not (
             isinstance(start_by, int | float) and not isinstance(start_by, bool)
         ):
@@ -412,7 +413,8 @@ class Bus(BusEngine):
             )
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
-        if self._stopping and cmd.starts_motion:
+        moves = cmd.starts_motion
+        if self._stopping and moves:
             # The bus is closing: its safe stops are going out, and no motion may
             # follow them (a target after a pause resumes an LA).
             raise BusClosedError(
@@ -427,13 +429,13 @@ class Bus(BusEngine):
                 "in this loop, or run the call on the bus's loop "
                 "(asyncio.run_coroutine_threadsafe)"
             )
-        if cmd.starts_motion:
+        if moves:
             self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
         occ = self.occupancy(cmd, len(raw))
         budget = occ.budget if timeout is None else float(timeout)
         n_retries = self.config.retries if retries is None else retries
-        if cmd.starts_motion or not cmd.expects_reply:
+        if moves or not occ.expects_reply:
             n_retries = 0
         job = BusJob(
             cmd=cmd,
