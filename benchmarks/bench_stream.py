@@ -124,14 +124,23 @@ async def stream_buses(paths: list[str], seconds: float, backend: str) -> dict[s
                     period=PERIOD_S,
                 )
             )
+        timer = default_timer()
+        wake0, spin0 = getattr(timer, "wakeups", 0), getattr(timer, "spin_seconds", 0.0)
         wall0, cpu0 = time.monotonic(), cpu_seconds()
         await asyncio.gather(*(s.wait() for s in streams))
         wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+        wakeups = getattr(timer, "wakeups", 0) - wake0
+        spin = getattr(timer, "spin_seconds", 0.0) - spin0
         late = sum(s.stats.late for s in streams)
         skipped = sum(s.stats.skipped for s in streams)
         host_p99 = max(s.stats.jitter.percentile(99) for s in streams)
+    ticks = max(1, sum(s.stats.ticks for s in streams))
     return {
         "cpu_percent": 100 * cpu / wall,
+        # What the CPU figure depends on besides our code: how often the timer woke the
+        # loop and how long it spun (the spin follows the machine's wake-up lateness).
+        "timer_wakeups_per_tick": wakeups / ticks,
+        "timer_spin_us_per_tick": 1e6 * spin / ticks,
         "host_late": late,
         "host_skipped": skipped,
         "host_jitter_p99_us": host_p99 * 1e6,
@@ -220,7 +229,9 @@ class Recorder:
         self.out = out
         script = Path(__file__).resolve().parent / "pty_recorder.py"
         self.proc = subprocess.Popen(
-            [sys.executable, str(script), str(count), str(out)],
+            # --answer: the streams end with their safe pause, which expects a reply;
+            # no other request is sent, so answering costs the recorder nothing meanwhile.
+            [sys.executable, str(script), str(count), str(out), "--answer"],
             stdout=subprocess.PIPE,
             text=True,
             start_new_session=True,
@@ -259,9 +270,13 @@ def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[
             "kernel_tick_jitter_max_us",
             "kernel_late_ticks",
             "kernel_missed_ticks",
+            "timer_wakeups_per_tick",
+            "timer_spin_us_per_tick",
+            "load_avg_1min",
         )
     }
     for n in counts:
+        rows["load_avg_1min"].append(round(os.getloadavg()[0], 2))
         recorder = Recorder(n, tmp / f"scale{n}.json")
         try:
             with KernelWriteTrace() as trace:
@@ -276,6 +291,8 @@ def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[
         rows["tick_jitter_p99_us"].append(round(max(t.jitter_p99 for t in timings) * 1e6))
         rows["tick_jitter_max_us"].append(round(max(t.jitter_max for t in timings) * 1e6))
         rows["missed_ticks"].append(sum(t.missed for t in timings))
+        rows["timer_wakeups_per_tick"].append(round(host["timer_wakeups_per_tick"], 2))
+        rows["timer_spin_us_per_tick"].append(round(host["timer_spin_us_per_tick"], 1))
         for key in (
             "kernel_tick_jitter_p99_us",
             "kernel_tick_jitter_max_us",
@@ -287,7 +304,8 @@ def scaling(counts: list[int], seconds: float, backend: str, tmp: Path) -> dict[
             f"  {n:3d} buses: CPU {host['cpu_percent']:5.1f} % "
             f"({host['cpu_percent'] / n:.2f} %/bus), worst-bus p99 "
             f"{rows['tick_jitter_p99_us'][-1]} us, max {rows['tick_jitter_max_us'][-1]} us, "
-            f"missed {rows['missed_ticks'][-1]}; kernel clock: "
+            f"missed {rows['missed_ticks'][-1]}; spin {rows['timer_spin_us_per_tick'][-1]} "
+            f"us/tick, load {rows['load_avg_1min'][-1]}; kernel clock: "
             + (
                 f"p99 {rows['kernel_tick_jitter_p99_us'][-1]} us, "
                 f"max {rows['kernel_tick_jitter_max_us'][-1]} us"
