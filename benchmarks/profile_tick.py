@@ -37,11 +37,21 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
             await a.enable()
         ticks = round(seconds / PERIOD_S)
         rows = [[1000 + 400 * math.sin(k / 50 + i / 3) for i in range(15)] for k in range(ticks)]
+        timer = bus.timer
+        wake0, spin0 = getattr(timer, "wakeups", 0), getattr(timer, "spin_seconds", 0.0)
         cpu0 = time.process_time()
         s = motorbus.Streamer(bus).follow(actuators, rows, period=PERIOD_S, poll_status=True)
         await s.wait()
         cpu = time.process_time() - cpu0
-        return {"ticks": s.stats.ticks, "cpu_s": cpu, "stats": s.stats.as_dict()}
+        n = max(1, s.stats.ticks)
+        return {
+            "ticks": s.stats.ticks,
+            "cpu_s": cpu,
+            # The timer's share: how often it woke the loop, how long it spun.
+            "timer_wakeups_per_tick": (getattr(timer, "wakeups", 0) - wake0) / n,
+            "timer_spin_us_per_tick": 1e6 * (getattr(timer, "spin_seconds", 0.0) - spin0) / n,
+            "stats": s.stats.as_dict(),
+        }
 
 
 def main() -> int:
@@ -72,7 +82,9 @@ def main() -> int:
     per_tick_us = plain["cpu_s"] / max(1, plain["ticks"]) * 1e6
     print(
         f"process CPU per tick without the profiler: {per_tick_us:.0f} us "
-        f"({plain['ticks']} ticks, {plain['cpu_s']:.2f} s CPU)"
+        f"({plain['ticks']} ticks, {plain['cpu_s']:.2f} s CPU); timer: "
+        f"{plain['timer_wakeups_per_tick']:.2f} wake-ups and "
+        f"{plain['timer_spin_us_per_tick']:.0f} us of spin a tick"
     )
     print(f"{'self us/tick':>12} {'cum us/tick':>12} {'calls/tick':>10}  function")
     for r in rows[: args.top]:
