@@ -154,7 +154,6 @@ class CandidateFinder:
         single = self._single
         headers = self.headers
         cache = self._cache
-        max_len = LA_MAX_LEN
         while True:
             if single is not None:
                 p = buf.find(single, pos)
@@ -171,11 +170,18 @@ class CandidateFinder:
                         p = q
             if p < 0:
                 return p
+            # ``passes``, inline: this is the hot path of every frame.
             b0 = buf[p]
-            if b0 == 0xAA or b0 == 0x55:  # ``passes`` for an LA header, inline (the hot path)
-                if p + 4 >= len(buf) or buf[p + 2] <= max_len[buf[p + 4]]:
+            if b0 == 0xAA or b0 == 0x55:
+                if p + 4 >= len(buf) or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]:
                     return p
-            elif self.passes(buf, p):
+            elif (
+                b0 != 0xFF
+                or p + 3 >= len(buf)
+                or buf[p + 3] <= STEPPER_B3_MAX
+                or self._ff_rule == FF_ANY
+                or (self._ff_rule == FF_REQUEST and buf[p + 2] == STEPPER_FREE_B3_OPCODE)
+            ):
                 return p
             self._misses += 1
             if self._misses >= DENSE_AFTER:

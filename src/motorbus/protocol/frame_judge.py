@@ -225,7 +225,7 @@ class FrameJudge:
         docstring); a candidate is refused if a checksum-valid LA frame starts inside it,
         or if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``).
         """
-        if avail >= 4 and not _b3_fits_a_request(buf, p):
+        if avail >= 4 and buf[p + 3] > STEPPER_B3_MAX and buf[p + 2] != STEPPER_FREE_B3_OPCODE:
             return INVALID, _BAD_COMMAND, None
         quad_ok = (
             self._quad
