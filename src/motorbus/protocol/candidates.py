@@ -81,16 +81,13 @@ def _at(offset: int, flag: int) -> int:
     return 8 * offset + flag.bit_length() - 1
 
 
-#: Each rule: factors to AND, each factor a tuple of shifts to OR (see ``_at``).
-_Rule = tuple[tuple[int, ...], ...]
-_LA_COMMAND: _Rule = ((_at(4, _CMD),), (_at(2, _SHORT), _at(4, _ANY_LEN)))
-_LA_REPLY_RULE: _Rule = ((_at(0, _AA),), (_at(1, _55),), *_LA_COMMAND)
-_LA_REQUEST_RULE: _Rule = ((_at(0, _55),), (_at(1, _AA),), *_LA_COMMAND)
-_FF_RULES: dict[int, _Rule] = {
-    FF_ANY: ((_at(0, _FF),), (_at(1, _AA),)),
-    FF_REPLY: ((_at(0, _FF),), (_at(1, _AA),), (_at(3, _LOW),)),
-    FF_REQUEST: ((_at(0, _FF),), (_at(1, _AA),), (_at(3, _LOW), _at(2, _8E))),
-}
+# The shifts of the rules (see ``_at``): a header's two bytes, LA Len and CMD, stepper
+# bytes 2 and 3.
+_AA_AT_1 = _at(1, _AA)
+_55_AT_0, _55_AT_1 = _at(0, _55), _at(1, _55)
+_FF_AT_0 = _at(0, _FF)
+_CMD_AT_4, _ANY_LEN_AT_4, _SHORT_AT_2 = _at(4, _CMD), _at(4, _ANY_LEN), _at(2, _SHORT)
+_LOW_AT_3, _8E_AT_2 = _at(3, _LOW), _at(2, _8E)
 
 
 class CandidateFinder:
@@ -211,39 +208,29 @@ class CandidateFinder:
 
         Computed in C: each byte's flags (a translation table) become one integer, in
         which a shift by ``8 * offset + bit`` brings the flag of byte ``p + offset`` to
-        bit 0 of byte ``p``; the rules are ANDs and ORs of such shifts.
+        bit 0 of byte ``p``; the rules are ANDs and ORs of such shifts.  (Only bit 0 of
+        each byte is kept: the other bits of a result byte mean nothing.)
         """
         n = len(buf)
         flags = int.from_bytes(buf.translate(_FLAGS) + _PAD, "little")
-        shifted: dict[int, int] = {0: flags}
-        found = 0
-        for rule in self._rules():
-            term = None
-            for factor in rule:
-                alternatives = None
-                for shift in factor:
-                    value = shifted.get(shift)
-                    if value is None:
-                        value = shifted[shift] = flags >> shift
-                    alternatives = value if alternatives is None else alternatives | value
-                assert alternatives is not None
-                term = alternatives if term is None else term & alternatives
-            assert term is not None
-            found |= term
+        headers = self.headers
+        la = 0
+        if LA_REPLY_HEADER in headers:
+            la = flags & (flags >> _55_AT_1)  # AA is flag bit 0 of byte p itself: no shift
+        if LA_REQUEST_HEADER in headers:
+            la |= (flags >> _55_AT_0) & (flags >> _AA_AT_1)
+        if la:
+            la &= (flags >> _CMD_AT_4) & ((flags >> _SHORT_AT_2) | (flags >> _ANY_LEN_AT_4))
+        ff = 0
+        if FF_AA in headers:
+            ff = (flags >> _FF_AT_0) & (flags >> _AA_AT_1)
+            if self._ff_rule == FF_REPLY:
+                ff &= flags >> _LOW_AT_3
+            elif self._ff_rule == FF_REQUEST:
+                ff &= (flags >> _LOW_AT_3) | (flags >> _8E_AT_2)
         if self._ones[0] != n:
             self._ones = (n, int.from_bytes(b"\x01" * n, "little"))
-        return (found & self._ones[1]).to_bytes(n, "little")
-
-    def _rules(self) -> list[_Rule]:
-        rules: list[_Rule] = []
-        for header in self.headers:
-            if header == LA_REPLY_HEADER:
-                rules.append(_LA_REPLY_RULE)
-            elif header == LA_REQUEST_HEADER:
-                rules.append(_LA_REQUEST_RULE)
-            elif header == FF_AA:
-                rules.append(_FF_RULES[self._ff_rule])
-        return rules
+        return ((la | ff) & self._ones[1]).to_bytes(n, "little")
 
     def _in_marks(self, marks: bytes, buf: bytes, pos: int) -> int:
         p = marks.find(1, pos)
