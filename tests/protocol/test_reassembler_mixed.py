@@ -16,6 +16,7 @@ from hypothesis import assume, event, given, settings
 from hypothesis import strategies as st
 
 from motorbus.protocol.base import Direction, Family, FrameShape, parse_hex, sum8
+from motorbus.protocol.frames import LA_COMMANDS
 from motorbus.protocol.reassembler import (
     Discarded,
     Frame,
@@ -32,6 +33,9 @@ READ_PROJECT_REQUEST = parse_hex("FF AA 3E 01 00 00 00 00 00 00 E8")
 DUMP_SHAPE = FrameShape.exact(226, 0xFF, 0xAA, 0x3E, 0x02, 0, 0)
 LA_PROJECT = (Family.LA, Family.PROJECT_STEPPER)
 LA_HEADERS = (b"\xaa\x55", b"\x55\xaa")
+#: An expectation that takes any 6-byte ``FF AA`` reply, byte 3 included: every ``FF AA``
+#: is then a candidate, and only the LA frame inside it can refuse it.
+ANY_REPLY = [FrameShape.exact(6, 0xFF, 0xAA)]
 
 
 def la(header: bytes, body: bytes) -> bytes:
@@ -62,18 +66,27 @@ def with_checksum(head: bytes) -> bytes:
 # -- 1. checksummed frames win -------------------------------------------------------------
 
 
-def test_stray_ff_before_an_la_status_costs_that_byte_not_the_status() -> None:
+@pytest.mark.parametrize(
+    ("expected", "reason"), [(None, "garbage"), (ANY_REPLY, "overlaps an LA frame")]
+)
+def test_stray_ff_before_an_la_status_costs_that_byte_not_the_status(
+    expected: list[FrameShape] | None, reason: str
+) -> None:
+    # By default FF AA 55 11 is no reply (a reply's byte 3 is at most 0x0F): the FF is
+    # garbage.  Taking any FF AA reply makes it a candidate, which the status refuses.
     r = Reassembler(families=LA_PROJECT)
+    r.expect(expected)
     assert r.feed(b"\xff" + STATUS) == [
-        Discarded(b"\xff", "overlaps an LA frame"),
+        Discarded(b"\xff", reason),
         Frame(Family.LA, Direction.REPLY, STATUS),
     ]
-    assert r.stats.by_reason == {"overlaps an LA frame": 1}
+    assert r.stats.by_reason == {reason: 1}
 
 
 @pytest.mark.parametrize("stray", [b"\xff", b"\xff\xaa"])
 def test_stepper_candidate_waits_for_an_unfinished_la_frame_inside_it(stray: bytes) -> None:
     r = Reassembler(families=LA_PROJECT)
+    r.expect(ANY_REPLY)
     assert r.feed(stray + STATUS[:9]) == []
     assert r.buffered == len(stray) + 9
     assert frames_of(r.feed(STATUS[9:])) == [STATUS]
@@ -81,8 +94,9 @@ def test_stepper_candidate_waits_for_an_unfinished_la_frame_inside_it(stray: byt
 
 
 def test_stepper_reply_is_taken_once_the_la_frame_inside_it_turns_out_invalid() -> None:
-    # AA 55 03 at byte 1 claims an 8-byte LA frame; the bytes that follow break its checksum.
-    reply = parse_hex("FF AA 55 03 00 00")
+    # AA 55 03 01 04 at byte 1 claims an 8-byte LA frame; the bytes that follow break its
+    # checksum.
+    reply = parse_hex("FF AA 55 03 01 04")
     r = Reassembler(families=LA_PROJECT)
     assert r.feed(reply) == []
     items = r.feed(b"\x01\x02\x00")
@@ -93,32 +107,30 @@ def test_stepper_reply_is_taken_once_the_la_frame_inside_it_turns_out_invalid() 
 
 
 def test_at_end_of_stream_an_unfinished_inner_la_frame_does_not_hold_the_reply() -> None:
-    reply = parse_hex("FF AA 55 03 00 00")
+    reply = parse_hex("FF AA 55 03 01 04")
     r = Reassembler(families=LA_PROJECT)
     assert r.feed(reply) == []
     assert r.end_of_stream() == [Frame(Family.PROJECT_STEPPER, Direction.REPLY, reply)]
 
 
 def test_a_later_valid_frame_proves_the_inner_header_garbage() -> None:
-    reply = parse_hex("FF AA 55 F0 00 00")  # AA 55 F0 claims 245 bytes
+    reply = parse_hex("FF AA 55 F0 01 04")  # AA 55 F0 claims 245 bytes
     r = Reassembler(families=LA_PROJECT)
+    r.expect(ANY_REPLY)
     assert frames_of(r.feed(reply + SHORT_ACK)) == [reply, SHORT_ACK]
     assert r.buffered == 0
 
 
 def _request_hiding_an_la_frame(size: int) -> tuple[bytes, bytes]:
-    """``FF AA`` + an LA request whose data byte makes the ``size``-byte checksum hold."""
-    # FF AA 55 AA Len ID CMD IDX d0 d1 ... : the stepper checksum is byte size - 1,
-    # which is LA data byte (size - 1) - 8, the last one here.
-    data_len = size - 8
-    for value in range(256):
-        data = bytearray(data_len)
-        data[-1] = value
-        frame = la(b"\x55\xaa", bytes([0x01, 0x19, 0x37]) + bytes(data))
-        stream = b"\xff\xaa" + frame
+    """``FF AA b2 03`` + an LA request, with the ``b2`` that makes the ``size``-byte checksum
+    hold (byte 3 of a request is at most 0x0F, so the LA frame starts at byte 4)."""
+    # FF AA b2 03 55 AA Len ID CMD IDX PosL PosH CS: the stepper checksum is byte size - 1.
+    frame = la(b"\x55\xaa", bytes([0x01, 0x19, 0x37, 0xE8, 0x03]))
+    for b2 in range(256):
+        stream = bytes([0xFF, 0xAA, b2, 0x03]) + frame
         if sum8(stream[: size - 1]) == stream[size - 1]:
             return stream, frame
-    raise AssertionError("no data byte makes the stepper checksum hold")
+    raise AssertionError("no byte 2 makes the stepper checksum hold")
 
 
 @pytest.mark.parametrize(
@@ -230,11 +242,14 @@ def test_documented_limit_a_pause_after_byte_8_cuts_the_look_alike_short() -> No
 
 def test_any_valid_9_byte_request_followed_by_a_next_frame_is_cut_at_9_bytes() -> None:
     # Bytes 9..10 are the next frame's FF AA, so the 11-byte checksum cannot hold as well
-    # (module docstring): the 9-byte frame is never swallowed, whatever its content.
+    # (module docstring): the 9-byte frame is never swallowed, whatever its content (with
+    # a byte 3 that a request may carry, at most 0x0F).
     rng = random.Random(11)
     r = Reassembler(direction=Direction.REQUEST)
     for _ in range(2000):
-        nine = with_checksum(b"\xff\xaa" + rng.randbytes(6))
+        body = bytearray(rng.randbytes(6))
+        body[1] &= 0x0F
+        nine = with_checksum(b"\xff\xaa" + body)
         assert frames_of(r.feed(nine + READ_PROJECT_REQUEST)) == [nine, READ_PROJECT_REQUEST]
     assert r.stats.discarded_bytes == 0
 
@@ -291,7 +306,13 @@ STRAY_BYTE = st.one_of(st.sampled_from([0xFF, 0xAA, 0x55, 0xEE, 0xDD, 0x00]), st
 la_any = st.builds(
     la,
     st.sampled_from(LA_HEADERS),
-    st.binary(min_size=3, max_size=24),  # ID CMD IDX data: Len 2..23
+    # ID CMD IDX data: Len 2..23, CMD one of the LA command codes
+    st.builds(
+        lambda ident, cmd, rest: bytes((ident, cmd)) + rest,
+        st.integers(0, 255),
+        st.sampled_from(sorted(LA_COMMANDS)),
+        st.binary(min_size=1, max_size=22),
+    ),
 )
 la_with_stray = st.lists(
     st.tuples(st.lists(STRAY_BYTE, max_size=3).map(bytes), la_any), min_size=1, max_size=12
@@ -299,11 +320,11 @@ la_with_stray = st.lists(
 
 
 def _la_status(buf: bytes, p: int) -> int:
-    """Total size of a complete checksum-valid LA frame at ``p``, else 0."""
+    """Total size of a complete checksum-valid LA frame (with a command code) at ``p``, else 0."""
     if buf[p : p + 2] not in LA_HEADERS or len(buf) < p + 3:
         return 0
     total = buf[p + 2] + 5
-    if buf[p + 2] < 2 or len(buf) < p + total:
+    if buf[p + 2] < 2 or len(buf) < p + total or buf[p + 4] not in LA_COMMANDS:
         return 0
     return total if sum8(buf[p + 2 : p + total - 1]) == buf[p + total - 1] else 0
 
@@ -374,6 +395,12 @@ def test_seeded_streams_count_the_excluded_case_and_recover_the_rest() -> None:
     """The same property over 3000 seeded streams of 10 frames, counting the exclusion."""
     rng = random.Random(2026)
     stray_pool = [0xFF, 0xAA, 0x55, 0xEE, 0xDD, 0x00]
+    commands = sorted(LA_COMMANDS)
+
+    def la_body() -> bytes:
+        return bytes((rng.randrange(256), rng.choice(commands))) + rng.randbytes(
+            rng.randint(1, 22)
+        )
 
     def stray() -> bytes:
         return bytes(
@@ -384,10 +411,7 @@ def test_seeded_streams_count_the_excluded_case_and_recover_the_rest() -> None:
     excluded = 0
     trials = 3000
     for _ in range(trials):
-        parts = [
-            (stray(), la(rng.choice(LA_HEADERS), rng.randbytes(rng.randint(3, 24))))
-            for _ in range(10)
-        ]
+        parts = [(stray(), la(rng.choice(LA_HEADERS), la_body())) for _ in range(10)]
         stream, ambiguous = build(parts)
         if ambiguous:
             excluded += 1

@@ -50,6 +50,13 @@ def _junk(kind: str, size: int = 3000) -> bytes:
         return b"\xaa\x55\xff" * (size // 3)
     if kind == "mixed-headers":
         return b"\xff\xaa\x55\xaa" * (size // 4)
+    # Junk that passes the candidate prefilter (protocol/candidates.py): every header is
+    # judged in Python.  A read reply (CMD 01) may claim 260 bytes; byte 3 of a request
+    # is at most 0x0F.
+    if kind == "plausible-la-headers":
+        return b"\xaa\x55\xff\x01\x01" * (size // 5)
+    if kind == "plausible-requests":
+        return b"\xff\xaa\x00\x01" * (size // 4)
     raise AssertionError(kind)
 
 
@@ -75,7 +82,16 @@ def calls_per_byte(r: Reassembler, data: bytes, chunk: int) -> float:
 @pytest.mark.parametrize("chunk", [1, 7, 4096])
 @pytest.mark.parametrize(
     "kind",
-    ["random", "aa55-dense", "ffaa-dense", "all-ff", "longest-la-headers", "mixed-headers"],
+    [
+        "random",
+        "aa55-dense",
+        "ffaa-dense",
+        "all-ff",
+        "longest-la-headers",
+        "mixed-headers",
+        "plausible-la-headers",
+        "plausible-requests",
+    ],
 )
 @pytest.mark.parametrize("setup", sorted(SETUPS))
 def test_work_per_byte_is_bounded_for_every_kind_of_junk(setup: str, kind: str, chunk: int) -> None:
@@ -91,9 +107,14 @@ def test_work_per_byte_is_bounded_for_every_kind_of_junk(setup: str, kind: str, 
 
 
 def test_work_does_not_grow_with_the_frame_a_header_claims() -> None:
-    """Headers claiming 259-byte frames cost about what ones claiming 7 bytes cost."""
-    short = b"\xaa\x55\x02" * 1000
-    longest = b"\xaa\x55\xfe" * 1000
+    """Headers claiming 259-byte frames cost about what ones claiming 13 bytes cost.
+
+    Every header here is a read reply's (CMD 01), which may be that long: each is judged.
+    (A header claiming 7 bytes costs less: no later frame can fit in what follows it
+    before its own frame is complete, so none is looked for.)
+    """
+    short = b"\xaa\x55\x08\x01\x01" * 600
+    longest = b"\xaa\x55\xfe\x01\x01" * 600
     per_byte = {
         name: calls_per_byte(Reassembler(direction=None), data, 1)
         for name, data in (("short", short), ("longest", longest))

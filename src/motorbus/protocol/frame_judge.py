@@ -13,7 +13,9 @@ what it discards; at each candidate header it asks :class:`FrameJudge` what is t
   reads in a ``valid_index.ValidIndex`` so that work per byte stays bounded.
 * ``unexpected_run``: how many bytes a refused stepper reply costs.
 
-The frame sizes come from ``protocol/frames.py``.  Sans-I/O, pure: positions in
+The frame sizes and command bytes come from ``protocol/frames.py``; ``finder`` (a
+``candidates.CandidateFinder``) says where a frame may start, by the same command-byte
+rules as the verdicts here.  Sans-I/O, pure: positions in
 ``buf`` are relative to the bytes being scanned, whose stream offset is ``base``.
 """
 
@@ -32,11 +34,15 @@ from motorbus.protocol.base import (
     FrameShape,
     ProjectFinishedMarker,
 )
+from motorbus.protocol.candidates import FF_ANY, FF_REPLY, FF_REQUEST, CandidateFinder
 from motorbus.protocol.frames import (
+    LA_MAX_LEN,
     LA_MIN_LEN,
     PROJECT_DUMP_SIZE,
     PROJECT_REQUEST_SIZE,
     QUAD_REQUEST_SIZE,
+    STEPPER_B3_MAX,
+    STEPPER_FREE_B3_OPCODE,
     STEPPER_REPLY_SIZE,
     Frame,
     Item,
@@ -56,7 +62,10 @@ __all__ = [
 
 _QUAD_ONLY_ADDRESSES = frozenset((0x09, 0xBC))  # "all motors" and "save" (doc 001 B.2)
 _DUMP_SHAPE = FrameShape.exact(PROJECT_DUMP_SIZE, 0xFF, 0xAA, 0x3E, frozenset(range(1, 5)), 0, 0)
-_ANY_STEPPER_REPLY = FrameShape.exact(STEPPER_REPLY_SIZE, 0xFF, 0xAA)
+#: Without an expectation: any 6-byte reply whose byte 3 is one a reply may carry.
+_ANY_STEPPER_REPLY = FrameShape.exact(
+    STEPPER_REPLY_SIZE, 0xFF, 0xAA, None, frozenset(range(STEPPER_B3_MAX + 1))
+)
 #: First bytes of every header: a buffer ending in one may be cut mid-header.
 HEADER_FIRST_BYTES = frozenset((0x55, 0xAA, 0xFF, 0xEE))
 
@@ -74,11 +83,13 @@ _BAD_LENGTH = 1
 _BAD_CHECKSUM = 2
 UNEXPECTED = 3
 _OVERLAP = 4
+_BAD_COMMAND = 5
 _REASONS = {
     _BAD_LENGTH: "bad length",
     _BAD_CHECKSUM: "bad checksum",
     UNEXPECTED: "unexpected reply shape",
     _OVERLAP: "overlaps an LA frame",
+    _BAD_COMMAND: "unknown command",
 }
 
 
@@ -86,6 +97,16 @@ def discard_reason(code: int) -> str:
     """The discard reason for the code of an ``INVALID`` verdict."""
     return _REASONS.get(code, "invalid")
 
+
+def _b3_fits_a_request(buf: bytes, p: int) -> bool:
+    """Byte 3 of the ``FF AA`` at ``p`` is one a request may carry (``protocol/frames.py``)."""
+    return buf[p + 3] <= STEPPER_B3_MAX or buf[p + 2] == STEPPER_FREE_B3_OPCODE
+
+
+#: Builds a ``Frame`` without its Python-level ``__new__`` (one per frame, the hot path).
+_new = tuple.__new__
+#: The shortest self-validating frame: an LA frame of Len 2.
+_SHORTEST_VALID = LA_MIN_LEN + 5
 
 # Verdicts of ``_la_inside``.
 _CLEAR = 0
@@ -103,12 +124,13 @@ class FrameJudge:
     Attributes the reassembler sets: ``expected`` (the acceptable stepper reply shapes,
     ``None`` for the default), ``base`` (the stream offset of ``buf[0]`` in the bytes
     being scanned) and ``index`` (a fresh ``ValidIndex`` when the stream ends).
+    ``finder`` finds the candidate headers, for the reassembler and for the index.
     """
 
     def __init__(self, direction: Direction | None, families: Iterable[Family]) -> None:
         families = frozenset(families)
         self.direction = direction
-        self.expected: tuple[FrameShape, ...] | None = None
+        self._expected: tuple[FrameShape, ...] | None = None
         self.base = 0
         self.index = ValidIndex()
         la = Family.LA in families
@@ -137,6 +159,26 @@ class FrameJudge:
         self._valid_headers = tuple(valid_headers)
         self._project = project
         self._quad = quad
+        self.finder = CandidateFinder(self.headers, self._ff_rule())
+
+    @property
+    def expected(self) -> tuple[FrameShape, ...] | None:
+        """The acceptable stepper reply shapes (``None``: the default ones)."""
+        return self._expected
+
+    @expected.setter
+    def expected(self, shapes: tuple[FrameShape, ...] | None) -> None:
+        self._expected = shapes
+        self.finder.ff_rule = self._ff_rule()
+
+    def _ff_rule(self) -> int:
+        """What an ``FF AA`` header must show to be a candidate (``protocol/candidates.py``)."""
+        if self.direction is Direction.REQUEST:
+            return FF_REQUEST
+        if self._expected is not None:
+            return FF_ANY  # the shapes decide, and a refusal has its reason
+        # The default reply rule is the request rule without its 0x8E exception.
+        return FF_REPLY if self.direction is Direction.REPLY else FF_REQUEST
 
     def parse_at(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
         """Try to parse one item at ``p``: (state, size or reason code, item)."""
@@ -156,13 +198,15 @@ class FrameJudge:
         length = buf[p + 2]
         if length < LA_MIN_LEN:
             return INVALID, _BAD_LENGTH, None
+        if avail >= 5 and length > LA_MAX_LEN[buf[p + 4]]:
+            return INVALID, _BAD_COMMAND, None
         total = length + 5
         if avail < total:
             return INCOMPLETE, 0, None
         end = p + total
         if sum8_at(buf, p + 2, end - 1) != buf[end - 1]:
             return INVALID, _BAD_CHECKSUM, None
-        return COMPLETE, total, Frame(Family.LA, direction, buf[p:end])
+        return COMPLETE, total, _new(Frame, (Family.LA, direction, buf[p:end]))
 
     def _parse_stepper(self, buf: bytes, p: int, final: bool) -> tuple[int, int, Item | None]:
         avail = len(buf) - p
@@ -178,8 +222,11 @@ class FrameJudge:
         """A checksummed ``FF AA`` request: 9 bytes (quad) or 11 (project).
 
         With both families possible, the two checksums decide (see the module
-        docstring); a candidate is refused if a checksum-valid LA frame starts inside it.
+        docstring); a candidate is refused if a checksum-valid LA frame starts inside it,
+        or if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``).
         """
+        if avail >= 4 and buf[p + 3] > STEPPER_B3_MAX and buf[p + 2] != STEPPER_FREE_B3_OPCODE:
+            return INVALID, _BAD_COMMAND, None
         quad_ok = (
             self._quad
             and avail >= QUAD_REQUEST_SIZE
@@ -203,7 +250,7 @@ class FrameJudge:
         for size, family in candidates:
             verdict = self._la_inside(buf, p, size, final)
             if verdict == _CLEAR:
-                return COMPLETE, size, Frame(family, Direction.REQUEST, buf[p : p + size])
+                return COMPLETE, size, _new(Frame, (family, Direction.REQUEST, buf[p : p + size]))
             if verdict == _HOLD:
                 return WAIT, 0, None
             refused = True
@@ -214,7 +261,7 @@ class FrameJudge:
     def _parse_stepper_reply(
         self, buf: bytes, p: int, avail: int, final: bool
     ) -> tuple[int, int, Item | None]:
-        shapes = self.expected
+        shapes = self._expected
         if shapes is None:
             shapes = (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if self._project else (_ANY_STEPPER_REPLY,)
         head = buf[p : p + min(avail, 8)]
@@ -237,7 +284,7 @@ class FrameJudge:
                 if verdict == _HOLD:
                     return WAIT, 0, None
             raw = buf[p : p + size]
-            return COMPLETE, size, Frame(self._stepper_family(raw), Direction.REPLY, raw)
+            return COMPLETE, size, _new(Frame, (self._stepper_family(raw), Direction.REPLY, raw))
         if refused:
             return INVALID, _OVERLAP, None
         # The refused reply may still be arriving: wait for its bytes (or a header), so
@@ -309,12 +356,13 @@ class FrameJudge:
         judged when first seen and again only when bytes it depends on arrive, so a
         stream of look-alike headers costs bounded work per byte however it is read.
         """
+        n = len(buf)
+        if n - start < _SHORTEST_VALID:
+            return -1  # no self-validating frame fits in what is left
         ix = self.index
         base = self.base
-        n_abs = base + len(buf)
+        n_abs = base + n
         s = base + start
-        if s >= n_abs:
-            return -1
         if s > ix.to:
             ix.restart(s)
         elif s < ix.lo:
@@ -340,43 +388,36 @@ class FrameJudge:
         return self._extend_index(buf, s)
 
     def _extend_index(self, buf: bytes, s: int) -> int:
-        """Index candidates from ``ix.to`` on until one is valid at or after ``s``."""
+        """Index candidates from ``ix.to`` on until one is valid at or after ``s``.
+
+        Candidates come from the finder: a header it skips cannot be valid, as its
+        command bytes are in and wrong (it keeps a header whose bytes are still due).
+        """
         ix = self.index
         base = self.base
-        n = len(buf)
-        nxt = ix.next
-        headers = self._valid_headers
-        last = base + n - 1  # a header needs two bytes: none can start here yet
+        last = base + len(buf) - 1  # a header needs two bytes: none can start here yet
+        find = self.finder.find
+        valid_headers = self._valid_headers
         while True:
-            best = -1
-            for i, header in enumerate(headers):
-                q = nxt[i]
-                if q < ix.to:
-                    # Unknown (-1), stale (found before ``to``), or none before ``-q - 2``.
-                    since = max(ix.to, -q - 2, base)
-                    if since >= last:
-                        continue
-                    found = buf.find(header, since - base)
-                    q = nxt[i] = found + base if found >= 0 else -last - 2
-                    if found < 0:
-                        continue
-                if best < 0 or q < best:
-                    best = q
-            if best < 0:
-                ix.to = max(ix.to, base + n - 1)
+            since = max(ix.to, base)
+            q = find(buf, since - base) if since < last else -1
+            if q < 0:
+                ix.to = max(ix.to, last)
                 return -1
-            ix.to = best + 1
-            if self._judge(buf, best) and best >= s:
-                return best - base
+            ix.to = q + base + 1
+            if buf[q : q + 2] in valid_headers and self._judge(buf, q + base) and q + base >= s:
+                return q
 
     def _index_range(self, buf: bytes, lo: int, hi: int) -> None:
         """Judge every candidate header at stream offsets ``lo <= q < hi``."""
         base = self.base
-        for header in self._valid_headers:
-            q = buf.find(header, lo - base, hi - base + 1)
-            while q >= 0:
+        find = self.finder.find
+        valid_headers = self._valid_headers
+        q = find(buf, lo - base)
+        while 0 <= q < hi - base:
+            if buf[q : q + 2] in valid_headers:
                 self._judge(buf, q + base)
-                q = buf.find(header, q + 1, hi - base + 1)
+            q = find(buf, q + 1)
 
     def _judge(self, buf: bytes, q_abs: int) -> bool:
         """Is the candidate at stream offset ``q_abs`` a complete valid frame now?
@@ -393,7 +434,7 @@ class FrameJudge:
             state, _, _ = self._parse_la(buf, p, Direction.REPLY)
             if avail < 3:
                 due = p + 3
-            elif buf[p + 2] < LA_MIN_LEN:
+            elif buf[p + 2] < LA_MIN_LEN or (avail >= 5 and buf[p + 2] > LA_MAX_LEN[buf[p + 4]]):
                 due = -1
             else:
                 total = buf[p + 2] + 5
@@ -409,6 +450,8 @@ class FrameJudge:
         the widest window (11 bytes and the header that may start at its last byte) is
         in: at the next byte.  Then: when an LA frame starting inside it is complete.
         """
+        if avail >= 4 and not _b3_fits_a_request(buf, p):
+            return -1  # never a request
         shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
         if avail < shortest:
             return p + shortest
@@ -422,7 +465,11 @@ class FrameJudge:
             while q >= 0:
                 if n - q < 3:
                     d = q + 3
-                elif buf[q + 2] >= LA_MIN_LEN and n - q < buf[q + 2] + 5:
+                elif (
+                    buf[q + 2] >= LA_MIN_LEN
+                    and n - q < buf[q + 2] + 5
+                    and (n - q < 5 or buf[q + 2] <= LA_MAX_LEN[buf[q + 4]])
+                ):
                     d = q + buf[q + 2] + 5
                 else:
                     d = -1

@@ -8,28 +8,33 @@ How each family is framed
 -------------------------
 * LA frames (``55 AA`` requests, ``AA 55`` replies) carry their length
   (``Len = total - 5``, docs/protocols.md A2-01) and a checksum, so they are validated on
-  their own.  A header whose length or checksum is wrong costs one byte: the search
-  for the next header starts at the following byte.
+  their own.  Their CMD byte is one of the manual's nine command codes (C.3), and only a
+  read or a write (01, 02) is longer than a 15-entry broadcast (Len 0x2E): a header
+  followed by anything else is no frame, whatever its checksum.  A header whose length
+  or checksum is wrong costs one byte: the search for the next header starts at the
+  following byte.
 * Stepper requests (``FF AA``, 11 bytes for the project stepper, 9 for the quad
   stepper) carry a checksum (the 8-bit sum of every byte before it) and are
-  validated the same way.  On a stream that may carry both (a simulator of a mixed
-  bus, ``motorbus decode``), both checksums decide: with 11 bytes at hand the
-  11-byte frame is taken if its checksum holds (whether or not the 9-byte one holds
-  too), else the 9-byte frame if its checksum holds.  The 11-byte frame can never
-  end in the ``FF AA`` of a next frame while the 9-byte checksum holds: a valid
-  9-byte frame sums to twice its checksum (an even number), and ``FF AA`` at bytes
-  9..10 would need it to sum to ``AA - FF = AB`` (odd).  Limit: with only 9 or 10
-  bytes at hand and the 9-byte checksum holding, the 9-byte frame is taken at once
-  (a device must not wait for bytes that never come), so an 11-byte request whose
-  byte 8 happens to equal the sum of bytes 0..7 (1 in 256) is cut short if the
-  stream pauses right after its byte 8 or 9.
+  validated the same way; their byte 3 is at most 0x0F (a command, project, step or
+  value), except after the 0x8E opcode (a repeat count).  On a stream that may carry
+  both (a simulator of a mixed bus, ``motorbus decode``), both checksums decide: with
+  11 bytes at hand the 11-byte frame is taken if its checksum holds (whether or not
+  the 9-byte one holds too), else the 9-byte frame if its checksum holds.  The
+  11-byte frame can never end in the ``FF AA`` of a next frame while the 9-byte
+  checksum holds: a valid 9-byte frame sums to twice its checksum (an even number),
+  and ``FF AA`` at bytes 9..10 would need it to sum to ``AA - FF = AB`` (odd).
+  Limit: with only 9 or 10 bytes at hand and the 9-byte checksum holding, the 9-byte
+  frame is taken at once (a device must not wait for bytes that never come), so an
+  11-byte request whose byte 8 happens to equal the sum of bytes 0..7 (1 in 256) is
+  cut short if the stream pauses right after its byte 8 or 9.
 * Stepper replies (``FF AA`` + 4 bytes, or the 226-byte project dump) carry neither
   length nor checksum (A0-04, A1-09).  Only the caller knows what it asked, so it
   tells the reassembler which reply shapes are acceptable right now with
   :meth:`Reassembler.expect`; ``expect([])`` means none is, and ``FF AA`` bytes are
   then discarded as "unexpected reply shape".  Without an expectation
-  (``expect(None)``, the default) any 6-byte ``FF AA`` frame is taken, and
-  ``FF AA 3E P 00 00`` starts a 226-byte dump.
+  (``expect(None)``, the default) any 6-byte ``FF AA`` frame whose byte 3 is at most
+  0x0F (as in every reply of both manuals) is taken, and ``FF AA 3E P 00 00`` starts a
+  226-byte dump.
 * Checksummed frames win over checksum-less ones.  A 6-byte stepper reply (or a
   stepper request, whose checksum may hold by accident) at ``p`` is refused
   ("overlaps an LA frame", one byte) if a complete, checksum-valid LA frame starts
@@ -58,7 +63,12 @@ Work per input byte is bounded whatever the junk and however the stream is read:
 search for that later frame is kept across ``feed`` calls (``valid_index.ValidIndex``:
 each candidate header is judged when first seen and again only when bytes its verdict
 depends on arrive), checksums are summed in C, and a run of discarded bytes is joined
-once.  ``tests/protocol/test_reassembler_work.py`` counts the calls per byte.
+once.  ``tests/protocol/test_reassembler_work.py`` counts the calls per byte.  And it is
+small: a header whose command byte no frame carries (the rules above) is skipped in C,
+as part of the garbage around it, by ``candidates.CandidateFinder``, so junk dense in
+header bytes costs a few nanoseconds a byte more than junk without them, not a Python
+verdict every few bytes.  Junk built to pass those rules still costs a verdict per
+header (``benchmarks/bench_reassembler.py`` measures both).
 
 Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
 in order (``ProjectFinishedMarker.raw`` is ``EE DD``), so the stream offset of an item is
@@ -67,8 +77,9 @@ event, a discarded run, or the buffer.
 
 Where it lives: this module walks the stream (the buffer between reads, the scan loop,
 the discarded runs and their counters); ``protocol/frame_judge.py`` says what lies at
-each candidate header, by the rules above; ``protocol/frames.py`` holds the items
-returned (``Frame``, ``Discarded``) and the frame sizes; ``protocol/valid_index.py`` the
+each candidate header, by the rules above; ``protocol/candidates.py`` finds the headers
+worth a verdict; ``protocol/frames.py`` holds the items returned (``Frame``,
+``Discarded``), the frame sizes and command bytes; ``protocol/valid_index.py`` the
 answers kept across reads.
 """
 
@@ -95,6 +106,7 @@ from motorbus.protocol.frame_judge import (
 )
 from motorbus.protocol.frames import (
     LA_MAX_FRAME,
+    LA_MAX_LEN,
     LA_MIN_LEN,
     Discarded,
     Frame,
@@ -124,6 +136,9 @@ __all__ = [
 #: incomplete frame (the longest being an LA frame of 260 bytes), so 1 KiB is ample;
 #: anything beyond it is discarded as overflow and counted.
 MAX_BUFFER = 1024
+
+#: Builds a NamedTuple item without its Python-level ``__new__`` (the hot path).
+_new = tuple.__new__
 
 
 class Reassembler:
@@ -159,8 +174,10 @@ class Reassembler:
         #: Says what lies at each candidate header (and keeps the valid-frame index).
         self._judge = FrameJudge(direction, self.families)
         headers = self._judge.headers
-        # The hot path (one family, one header) gets a single bytes.find per frame.
-        self._only_header = headers[0] if len(headers) == 1 else None
+        # The hot path (a stream of LA frames of one direction) takes frame after frame
+        # with one sum each, without looking for headers: from a byte that may start one.
+        la_only = len(headers) == 1 and headers[0] in (LA_REPLY_HEADER, LA_REQUEST_HEADER)
+        self._la_first = headers[0][0] if la_only else -1
 
     # -- public API -------------------------------------------------------------
 
@@ -218,44 +235,44 @@ class Reassembler:
     def _scan(self, buf: bytes, pos: int, out: list[Item], *, final: bool) -> int:
         """Parse ``buf`` from ``pos``; append items to ``out``; return where to resume."""
         n = len(buf)
-        only = self._only_header
+        la_first = self._la_first
         judge = self._judge
-        # Next known position of each header (-2 = not searched yet), so that a
-        # stream with several possible headers costs one find per frame, not four.
-        cached = [-2] * len(judge.headers)
+        parse_at = judge.parse_at
+        discard = self._discard
+        stats = self.stats
+        # The next header that may start a frame (protocol/candidates.py): headers whose
+        # command bytes no frame carries are skipped in C, as part of the garbage.
+        find = judge.finder.find
         while pos < n:
-            if only is not None:
-                if only in (LA_REPLY_HEADER, LA_REQUEST_HEADER):
-                    pos = self._scan_la_only(buf, pos, out)
-                    if pos >= n or buf.find(only, pos) < 0:
-                        break
-                p = buf.find(only, pos)
-            else:
-                p = self._next_header_cached(buf, pos, cached)
+            if buf[pos] == la_first:
+                pos = self._scan_la_only(buf, pos, out)
+                if pos >= n:
+                    break
+            p = find(buf, pos)
             if p < 0:
                 break
             if p > pos:
-                self._discard(out, buf[pos:p], "garbage")
-            state, size, item = judge.parse_at(buf, p, final)
+                discard(out, buf[pos:p], "garbage")
+            state, size, item = parse_at(buf, p, final)
             if state == COMPLETE:
                 assert item is not None
                 out.append(item)
                 if type(item) is Frame:
-                    self.stats.frames += 1
+                    stats.frames += 1
                 else:
-                    self.stats.events += 1
+                    stats.events += 1
                 pos = p + size
             elif state == INCOMPLETE:
                 later = judge.later_valid_frame(buf, p + 1)
                 if later < 0:
                     return p
-                self._discard(out, buf[p:later], "header without its frame")
+                discard(out, buf[p:later], "header without its frame")
                 pos = later
             elif state == WAIT:
                 return p
             else:
                 end = judge.unexpected_run(buf, p) if size == UNEXPECTED else p + 1
-                self._discard(out, buf[p:end], discard_reason(size))
+                discard(out, buf[p:end], discard_reason(size))
                 pos = end
         if pos >= n:
             return n
@@ -271,10 +288,10 @@ class Reassembler:
         Returns at the first position it does not settle by itself (garbage, a bad
         frame, an incomplete tail); the general loop takes over from there.
         """
-        header = self._only_header
-        assert header is not None
+        header = self._judge.headers[0]
         direction = Direction.REPLY if header == LA_REPLY_HEADER else Direction.REQUEST
         first, second = header
+        max_len = LA_MAX_LEN
         la = Family.LA
         new = tuple.__new__
         append = out.append
@@ -283,7 +300,7 @@ class Reassembler:
         while pos + 3 <= n and buf[pos] == first and buf[pos + 1] == second:
             length = buf[pos + 2]
             end = pos + length + 5
-            if end > n or length < LA_MIN_LEN:
+            if end > n or length < LA_MIN_LEN or length > max_len[buf[pos + 4]]:
                 break
             frame = buf[pos:end]
             check = frame[-1]
@@ -297,22 +314,14 @@ class Reassembler:
         self.stats.frames += count
         return pos
 
-    def _next_header_cached(self, buf: bytes, pos: int, cached: list[int]) -> int:
-        best = -1
-        for i, h in enumerate(self._judge.headers):
-            p = cached[i]
-            if p != -1 and p < pos:
-                p = buf.find(h, pos)
-                cached[i] = p
-            if p >= 0 and (best < 0 or p < best):
-                best = p
-        return best
-
     def _discard(self, out: list[Item], raw: bytes, reason: str) -> None:
         stats = self.stats
-        stats.discarded_bytes += len(raw)
-        stats.by_reason[reason] = stats.by_reason.get(reason, 0) + len(raw)
-        if out and type(out[-1]) is Discarded and out[-1].reason == reason:
+        size = len(raw)
+        stats.discarded_bytes += size
+        by_reason = stats.by_reason
+        by_reason[reason] = by_reason.get(reason, 0) + size
+        last = out[-1] if out else None
+        if type(last) is Discarded and last[1] == reason:
             # Join the run once, when it closes: appending to it here would copy the
             # whole run at every discarded byte (quadratic in the run's length).
             run = self._run
@@ -320,12 +329,12 @@ class Reassembler:
                 run[2].append(raw)
             else:
                 self._close_run()
-                self._run = (out, len(out) - 1, [out[-1].raw, raw], reason)
+                self._run = (out, len(out) - 1, [last[0], raw], reason)
         else:
             if self._run is not None:
                 self._close_run()
             stats.resyncs += 1
-            out.append(Discarded(raw, reason))
+            out.append(_new(Discarded, (raw, reason)))
 
     def _close_run(self) -> None:
         """Join the parts of the open discarded run into its item."""

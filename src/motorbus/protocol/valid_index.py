@@ -35,24 +35,22 @@ class ValidIndex:
     judged; ``valid`` lists (sorted) those that are valid now; ``due`` holds
     ``(offset, q)``: the verdict on ``q`` may change once the stream reaches ``offset``
     bytes (an LA frame's Len or its last byte arrives, or an LA frame inside a stepper
-    request completes).  ``next`` caches, per header, the next place it occurs at or
-    after ``to`` (or the offset up to which it was searched in vain).
+    request completes).  A header the candidate finder skips (``protocol/candidates.py``)
+    counts as judged: it can never be valid.
     """
 
-    __slots__ = ("due", "lo", "next", "to", "valid")
+    __slots__ = ("due", "lo", "to", "valid")
 
     def __init__(self) -> None:
         self.lo = self.to = 0
         self.valid: list[int] = []
         self.due: list[tuple[int, int]] = []
-        self.next: list[int] = [-1] * 4
 
     def restart(self, at: int) -> None:
         """Forget everything; judge again from stream offset ``at``."""
         self.lo = self.to = at
         self.valid.clear()
         self.due.clear()
-        self.next[:] = (-1, -1, -1, -1)
 
     def record(self, q: int, valid: bool, due: int) -> None:
         """Note the verdict on ``q`` and when (``due`` >= 0) to judge it again."""
