@@ -11,7 +11,8 @@ process's clock through the log header's wall-clock start).  Reported per run:
   (every device on every bus is then paused);
 * ``kill_to_first_safe_ms``: from the SIGKILL to the first;
 * ``all_safe_after_motion``: on every bus, the frames after the last target are
-  exactly the three pauses;
+  exactly the three pauses, and the simulated devices heard each (none came while a
+  device was answering: ``unheard_safe_frames`` counts those);
 * ``kill_to_guard_wake_ms``: from the SIGKILL to the guard's pidfd waking it (its
   ``MOTORBUS_GUARD_REPORT`` file);
 * ``guard_wake_to_last_write_ms``: the guard's own figure (its stderr line), from the
@@ -50,6 +51,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from motorbus import guard as guard_process
 from motorbus.guard import REPORT_ENV
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
@@ -77,7 +79,9 @@ def sim_clock_offset(log: Path) -> float:
     return started.timestamp() - (time.time() - time.monotonic())
 
 
-def requests(log: Path) -> list[tuple[float, str]]:
+def requests(log: Path) -> list[tuple[float, str, bool]]:
+    """(time, hex, heard) of every request: not heard if it came while a device was
+    answering (the simulator's ``half_duplex`` fault)."""
     out = []
     with log.open(encoding="utf-8") as fh:
         for line in fh:
@@ -85,7 +89,8 @@ def requests(log: Path) -> list[tuple[float, str]]:
                 continue
             rec = json.loads(line)
             if rec.get("direction") == "request" and "t" in rec:
-                out.append((float(rec["t"]), str(rec["hex"])))
+                heard = rec.get("fault") != "half_duplex"
+                out.append((float(rec["t"]), str(rec["hex"]), heard))
     return out
 
 
@@ -121,19 +126,22 @@ def one_run(
     safe_times: list[float] = []
     all_safe = True
     last_is_motion = 0
+    unheard = 0
     for log in logs:
         offset = sim_clock_offset(log)
-        frames = [(t + offset, h) for t, h in requests(log)]
-        last_motion = max(n for n, (_, h) in enumerate(frames) if is_motion(h))
+        frames = [(t + offset, h, heard) for t, h, heard in requests(log)]
+        last_motion = max(n for n, (_, h, _) in enumerate(frames) if is_motion(h))
         after = frames[last_motion + 1 :]
-        if sorted(h for _, h in after) != sorted(PAUSES):
+        unheard += sum(not heard for _, _, heard in after)
+        if sorted(h for _, h, _ in after) != sorted(PAUSES) or unheard:
             all_safe = False
-        safe_times += [t for t, h in after if h in PAUSES]
+        safe_times += [t for t, h, _ in after if h in PAUSES]
         last_is_motion += int(not after)
     result: dict[str, Any] = {
         "buses": n_buses,
         "guard": guard,
         "all_safe_after_motion": all_safe,
+        "unheard_safe_frames": unheard,
         "buses_left_moving": last_is_motion,
     }
     guard_ms = [float(m) for m in GUARD_SAYS.findall(err)]
@@ -184,6 +192,7 @@ def main() -> None:
                         "guard": guard,
                         "runs": len(runs),
                         "all_safe_runs": sum(r["all_safe_after_motion"] for r in runs),
+                        "unheard_safe_frames": sum(r["unheard_safe_frames"] for r in runs),
                         "runs_left_moving": sum(r["buses_left_moving"] > 0 for r in runs),
                         "kill_to_first_safe_ms": summarize(runs, "kill_to_first_safe_ms"),
                         "kill_to_last_safe_ms": summarize(runs, "kill_to_last_safe_ms"),
@@ -195,8 +204,8 @@ def main() -> None:
                     }
                 )
     header = (
-        f"{'buses':>5} {'devs':>4} {'guard':>5} {'runs':>4} {'all safe':>8} {'moving':>6} "
-        f"{'kill->last safe ms: median':>27} {'p90':>6} {'max':>6}"
+        f"{'buses':>5} {'devs':>4} {'guard':>5} {'runs':>4} {'all safe':>8} {'unheard':>7} "
+        f"{'moving':>6} {'kill->last safe ms: median':>27} {'p90':>6} {'max':>6}"
     )
     print(header)
     for row in rows:
@@ -208,7 +217,8 @@ def main() -> None:
         )
         print(
             f"{row['buses']:>5} {row['devices']:>4} {'yes' if row['guard'] else 'no':>5} "
-            f"{row['runs']:>4} {row['all_safe_runs']:>8} {row['runs_left_moving']:>6} {cells}"
+            f"{row['runs']:>4} {row['all_safe_runs']:>8} {row['unheard_safe_frames']:>7} "
+            f"{row['runs_left_moving']:>6} {cells}"
         )
     report = {
         "benchmark": "guard",
@@ -219,7 +229,9 @@ def main() -> None:
             "cpus": os.cpu_count(),
             "loadavg": os.getloadavg(),
         },
-        "frame_spacing_ms": 1.0,
+        "frame_spacing_ms": guard_process.FRAME_SPACING_S * 1e3,
+        "gap_after_reply_ms": guard_process.GAP_AFTER_REPLY_S * 1e3,
+        "host_share_ms": guard_process.HOST_SHARE_S * 1e3,
         "spin": args.spin,
         "rows": rows,
     }

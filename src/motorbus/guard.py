@@ -13,9 +13,10 @@ on the CLI commands that move things, ``guard = true`` in a bus file) that:
   options; a bus that closes cleanly (its leases ended with their safe action) is
   forgotten;
 * when the program dies with leases still held, opens those ports and writes every
-  leased device's safe frames, :data:`FRAME_SPACING_S` apart (after each frame is
-  drained to the line), then exits.  A program that ends cleanly tells it so and it
-  exits without touching anything.
+  leased device's safe frames, each once the line is quiet (a device answering the
+  program's last request, or the guard's previous frame, would not hear a frame written
+  meanwhile: the buses are half duplex; see :func:`wait_for_quiet`), then exits.  A
+  program that ends cleanly tells it so and it exits without touching anything.
 
 It runs in its own session, so a Ctrl-C to the terminal's process group does not
 reach it, and it ignores SIGINT, SIGHUP and SIGTERM (it exits by itself once the
@@ -49,6 +50,7 @@ from motorbus.errors import GuardError, LocalProtocolError
 
 __all__ = [
     "FRAME_SPACING_S",
+    "GAP_AFTER_REPLY_S",
     "Guard",
     "GuardDevice",
     "GuardPort",
@@ -57,12 +59,31 @@ __all__ = [
     "guarded",
     "start_guard",
     "stop_guard",
+    "wait_for_quiet",
 ]
 
 log = logging.getLogger("motorbus.guard")
 
 #: Pause between two safe frames on one port, after the first is drained to the line.
 FRAME_SPACING_S = 0.001
+#: Once a reply was heard, how long the line must stay silent (besides the next frame's
+#: own wire time) before the guard writes: the reply has ended.
+GAP_AFTER_REPLY_S = 0.002
+#: Longest wait for a quiet line before one frame: a line that never falls silent gets
+#: the frame anyway.
+QUIET_LIMIT_S = 0.5
+#: How often the guard looks at the line while it waits for quiet.
+QUIET_POLL_S = 0.0002
+#: Bits per byte on the line (8N1), for wire times.
+BITS_PER_BYTE = 10
+#: The host's share of a device's answer time: a USB adapter holds received bytes up to
+#: 1 ms (docs/platform.md).  Not the bus's ``host_margin``, which a loaded test machine
+#: raises to tens of milliseconds: every kill would wait that long before its first frame.
+HOST_SHARE_S = 0.002
+#: A reply length the program assumes when it tells the guard how long a device may take
+#: to answer (longer than every status and acknowledgement of the three manuals; the
+#: stepper's 226-byte project dump is the exception).
+REPLY_BYTES = 24
 #: Longest wait for a new guard process to say it watches the program.
 READY_TIMEOUT_S = 20.0
 #: Longest wait for the guard to exit after a clean exit was announced.
@@ -169,6 +190,16 @@ class GuardState:
                 raise LocalProtocolError(f"guard message: baud={baud} must be > 0", field="baud")
             devices = tuple(_device(d) for d in _field(message, "devices", list))
             options = _field(message, "options", dict)
+            quiet = options.get("quiet_s", 0.0)
+            if (
+                not isinstance(quiet, int | float)
+                or isinstance(quiet, bool)
+                or not (0 <= quiet <= QUIET_LIMIT_S)
+            ):
+                raise LocalProtocolError(
+                    f"guard message: quiet_s={quiet!r} is not allowed: 0..{QUIET_LIMIT_S} s",
+                    field="quiet_s",
+                )
             self.ports[_field(message, "bus", str)] = GuardPort(url, baud, options, devices)
         else:
             raise LocalProtocolError(
@@ -196,28 +227,76 @@ class PortResult:
     error: str | None = None
 
 
+def wire_time(nbytes: int, baud: int) -> float:
+    """Seconds ``nbytes`` take on the line at ``baud`` (8N1)."""
+    return nbytes * BITS_PER_BYTE / baud
+
+
+def wait_for_quiet(
+    ser: Any,
+    quiet: float,
+    gap: float,
+    *,
+    limit: float = QUIET_LIMIT_S,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> int:
+    """Read and drop what the line carries until it is quiet; return the bytes heard.
+
+    Quiet: nothing heard for ``quiet`` seconds (a device that was asked something
+    answers within that), or, once bytes were heard, nothing more for ``gap`` seconds
+    (the reply has ended).  At most ``limit`` seconds.  ``ser.read`` must not block
+    (the port opens with ``timeout=0``).
+    """
+    start = last = clock()
+    heard = 0
+    while True:
+        data = ser.read(4096)
+        now = clock()
+        if data:
+            heard += len(data)
+            last = now
+        if now - last >= (gap if heard else quiet) or now - start >= limit:
+            return heard
+        sleep(QUIET_POLL_S)
+
+
 def send_safe_frames(
     port: GuardPort,
     *,
     spacing: float = FRAME_SPACING_S,
     opener: Callable[[GuardPort], Any] | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
 ) -> PortResult:
-    """Open ``port`` and write its safe frames, ``spacing`` apart after each drains."""
+    """Open ``port`` and write its safe frames, ``spacing`` apart after each drains.
+
+    With ``port.options["quiet_s"]`` (the program sends it: its devices' longest
+    turnaround and reply), each frame waits for a quiet line first
+    (:func:`wait_for_quiet`): before the first, a device may still be answering the
+    program's last request; before the next, the device answers the guard's frame.
+    The frame's own wire time is added, since a pty (or a USB adapter) takes the bytes
+    at once but a half-duplex line carries them for that long.
+    """
     result = PortResult(port.url, devices=len(port.devices))
+    quiet = float(port.options.get("quiet_s", 0.0))
     try:
         ser = (opener or _open_serial)(port)
     except Exception as err:  # any failure is reported; the other ports go on
         result.error = f"cannot open {port.url}: {err}"
         return result
-    result.opened = time.monotonic()
+    result.opened = clock()
     try:
         for n, frame in enumerate(port.frames):
             if n:
-                time.sleep(spacing)
+                sleep(spacing)
+            if quiet:
+                own = wire_time(len(frame), port.baud)
+                wait_for_quiet(ser, quiet + own, GAP_AFTER_REPLY_S + own, clock=clock, sleep=sleep)
             ser.write(frame)
             ser.flush()  # tcdrain: the frame is on the line before the pause starts
             result.frames += 1
-            result.last_write = time.monotonic()
+            result.last_write = clock()
     except Exception as err:
         result.error = f"writing to {port.url} failed after {result.frames} frames: {err}"
     finally:
@@ -356,13 +435,21 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _port_of(bus: Any) -> tuple[str, int, dict[str, Any]] | None:
-    """How the guard would open ``bus``'s port, or None (an in-memory link)."""
+    """How the guard would open ``bus``'s port, or None (an in-memory link); its
+    ``quiet_s``: how long a device of the bus may take to answer a request (its
+    turnaround, a reply of :data:`REPLY_BYTES`, :data:`HOST_SHARE_S`)."""
     transport = getattr(bus, "transport", None)
     url = getattr(transport, "url", None)
     if not isinstance(url, str):
         return None
-    options = {"rs485": bool(getattr(transport, "rs485", False))}
-    return url, int(bus.baudrate), options
+    baud = int(bus.baudrate)
+    options: dict[str, Any] = {"rs485": bool(getattr(transport, "rs485", False))}
+    config = getattr(bus, "config", None)
+    if config is not None:
+        turnaround = max((config.turnaround.get(f, 0.0) for f in bus.families), default=0.0)
+        quiet = turnaround + wire_time(REPLY_BYTES, baud) + HOST_SHARE_S
+        options["quiet_s"] = min(quiet, QUIET_LIMIT_S)
+    return url, baud, options
 
 
 def _devices(snapshot: Sequence[Any]) -> tuple[GuardDevice, ...]:

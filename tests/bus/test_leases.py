@@ -275,3 +275,55 @@ def test_a_lease_grows_and_lets_devices_go_one_group_at_a_time() -> None:
     assert not lease.active
     with pytest.raises(LocalProtocolError):
         table.add(lease, ["la:5"])
+
+
+def test_own_safe_commands_replace_the_action_for_their_device_only() -> None:
+    """A project upload's lease: the clear of its project, owed from the start, paid
+    when the clear is written and answered, shown to a guard; the other devices keep
+    the lease's safe action."""
+    table = LeaseTable()
+    clear = ps.ClearProject(2)
+    lease = table.acquire(
+        "upload project 2", ["project_stepper", "la:1"], pause_for, safe_commands=[clear]
+    )
+    assert lease.own_safe == {"project_stepper"}
+    assert table.snapshot() == (
+        LeaseInfo("la:1", "upload project 2", (la.Control(1, la.ControlAction.PAUSE).encode(),)),
+        LeaseInfo("project_stepper", "upload project 2", (clear.encode(),)),
+    )
+    assert table.owed("project_stepper") == (clear,)
+    table.sent(ps.SelectProject(2, 1))  # an upload frame pays nothing
+    table.sent(ps.ClearProject(3))  # nor does another project's clear
+    assert table.owed("project_stepper") == (clear,)
+    table.sent(clear)
+    assert table.owed("project_stepper") == ()
+    assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.PAUSE)]
+
+
+def test_own_safe_commands_are_owed_until_the_lease_ends_and_hold_drops_them() -> None:
+    table = LeaseTable()
+    clear = ps.ClearProject(1)
+    lease = table.acquire("upload project 1", ["project_stepper"], pause_for, safe_commands=[clear])
+    assert table.release(lease, hold=False) == [clear]
+    lease = table.acquire("upload project 1", ["project_stepper"], pause_for, safe_commands=[clear])
+    assert table.release(lease, hold=True) == []
+    assert table.snapshot() == ()
+
+
+@pytest.mark.parametrize(
+    ("commands", "message"),
+    [
+        (["FF AA 1E"], "is not a motorbus Command"),
+        ([ps.StartProject(1)], "StartProject starts motion"),
+        ([la.Control(2, la.ControlAction.PAUSE)], "addresses la:2, which the lease does not hold"),
+        ([la.Control(255, la.ControlAction.PAUSE)], "addresses la:255 .every device"),
+    ],
+)
+def test_bad_own_safe_commands_are_refused_and_nothing_is_held(
+    commands: list[object], message: str
+) -> None:
+    table = LeaseTable()
+    with pytest.raises(LocalProtocolError, match=message) as info:
+        table.acquire("rig", ["la:1"], pause_for, safe_commands=commands)  # type: ignore[arg-type]
+    assert info.value.field == "safe_commands"
+    assert table.snapshot() == ()

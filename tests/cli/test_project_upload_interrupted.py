@@ -114,7 +114,8 @@ async def test_an_upload_refused_before_any_frame_clears_nothing() -> None:
 
     async with sim_bus([LAModel(1)], baud=115200) as (bus, _):  # no project family here
         stepper = ProjectStepper(bus)
-        with pytest.raises(LocalProtocolError, match="project_stepper command") as info:
+        refused = "is a project_stepper device; bus sim carries la"
+        with pytest.raises(LocalProtocolError, match=refused) as info:
             await stepper.upload(ten_step_project())
         assert not getattr(info.value, "__notes__", None)  # no clear was attempted
         assert bus.stats.requests == 0

@@ -61,6 +61,8 @@ def port_msg(**changes: Any) -> dict[str, Any]:
         (port_msg(baud=True), "baud"),
         (port_msg(baud=0), "baud"),
         (port_msg(devices=[{"key": "k", "owner": "o", "safe": ["zz"]}]), "safe"),
+        (port_msg(options={"quiet_s": "1"}), "quiet_s"),
+        (port_msg(options={"quiet_s": 5.0}), "quiet_s"),
     ],
 )
 def test_bad_messages_are_refused_naming_the_field(message: dict[str, Any], field: str) -> None:
@@ -103,6 +105,61 @@ def test_safe_frames_go_out_device_by_device_each_drained_before_the_next() -> N
     assert (result.frames, result.devices, result.error) == (3, 2, None)
 
 
+class TalkingPort(FakePort):
+    """A fake port on a fake clock: each write is answered ``reply_after`` later (6
+    bytes); ``pending`` comes whatever the guard writes (an answer to the program)."""
+
+    def __init__(self, pending: list[tuple[float, bytes]], reply_after: float) -> None:
+        super().__init__()
+        self.now = 0.0
+        self.pending = pending
+        self.reply_after = reply_after
+        self.writes: list[tuple[bytes, float]] = []  # (frame, ms)
+
+    def clock(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+    def read(self, size: int) -> bytes:
+        due = [b for t, b in self.pending if t <= self.now]
+        self.pending = [(t, b) for t, b in self.pending if t > self.now]
+        return b"".join(due)
+
+    def write(self, data: bytes) -> None:
+        super().write(data)
+        self.writes.append((data, self.now * 1e3))
+        self.pending.append((self.now + self.reply_after, b"\xff\xaa\x5e\x00\x00\x00"))
+
+
+def test_each_safe_frame_waits_for_a_quiet_line_on_a_half_duplex_bus() -> None:
+    """A device answering the program's last request, or the guard's previous frame,
+    does not hear a frame written meanwhile: the guard waits until the line is quiet."""
+    fake = TalkingPort([(0.010, b"\xff\xaa\x03\x08\x00\x02")], reply_after=0.007)
+    frames = (b"\x01" * 11, b"\x02" * 11)
+    port = GuardPort("/dev/ttyX", 9600, {"quiet_s": 0.040}, (GuardDevice("p", "o", frames),))
+    result = send_safe_frames(
+        port, spacing=0.001, opener=lambda p: fake, clock=fake.clock, sleep=fake.sleep
+    )
+    assert result.error is None and result.frames == 2
+    writes = fake.writes
+    own = 11 * 10 / 9600 * 1e3  # 11.5 ms on the wire
+    gap = guard_process.GAP_AFTER_REPLY_S * 1e3 + own
+    # The program's reply came at 10 ms: then a gap; the guard's reply at +7 ms: a gap.
+    assert writes[0][0] == frames[0] and 10 + gap <= writes[0][1] < 10 + gap + 0.5
+    assert writes[1][0] == frames[1]
+    assert writes[0][1] + 7 + gap <= writes[1][1] < writes[0][1] + 7 + gap + 0.5
+
+
+def test_a_silent_line_is_quiet_after_the_turnaround_time() -> None:
+    fake = TalkingPort([], reply_after=1.0)  # nothing answers in time
+    port = GuardPort("/dev/ttyX", 9600, {"quiet_s": 0.040}, (GuardDevice("p", "o", (b"\x01",)),))
+    send_safe_frames(port, opener=lambda p: fake, clock=fake.clock, sleep=fake.sleep)
+    ((frame, at),) = fake.writes
+    assert frame == b"\x01" and 40 + 10 / 9.6 <= at < 40 + 10 / 9.6 + 0.5  # quiet + own
+
+
 def test_a_port_that_does_not_open_is_reported() -> None:
     port = GuardPort("/dev/motorbus-no-such-port", 9600, {}, (GuardDevice("p", "o", (b"\x01",)),))
     result = send_safe_frames(port)
@@ -134,6 +191,16 @@ def la_sims(tmp_path: Path) -> Iterator[list[SimProcess]]:
 
 def requests(sim: SimProcess) -> list[str]:
     return [r["hex"] for r in sim.log_records() if r["direction"] == "request"]
+
+
+def unheard(sim: SimProcess) -> list[str]:
+    """Requests the simulated devices missed: they came while a device was answering
+    (half duplex), so nothing acted on them."""
+    return [
+        r["hex"]
+        for r in sim.log_records()
+        if r["direction"] == "request" and r.get("fault") == "half_duplex"
+    ]
 
 
 def kill_while_streaming(sims: list[SimProcess], *extra: str) -> str:
@@ -181,6 +248,7 @@ def test_sigkill_with_the_guard_pauses_every_device_after_the_last_motion(
         last_motion = max(n for n, h in enumerate(sent) if is_motion(h))
         assert sorted(sent[last_motion + 1 :]) == sorted(PAUSES), sent[-6:]
         assert "motorbus guard: program " in err and f"on {sim.path} (3 frames" in err
+        assert not set(PAUSES) & set(unheard(sim))  # each came once the line was quiet
 
 
 def test_sigkill_without_the_guard_leaves_motion_as_the_last_frame(
@@ -314,6 +382,9 @@ def test_sigkill_of_project_run_with_guard_stops_the_project(project_sim: SimPro
     sent = requests(project_sim)
     last_run = max(n for n, h in enumerate(sent) if h.startswith(START_PROJECT_1))
     assert sent[last_run + 1 :] == [STOP_PROJECT, MANUAL_STOP_3]
+    # The manual stop waited for the reply to the stop project: the device heard both.
+    wait_for_frames([project_sim], {MANUAL_STOP_3})
+    assert not {STOP_PROJECT, MANUAL_STOP_3} & set(unheard(project_sim))
 
 
 def test_sigkill_of_project_run_without_guard_leaves_it_running(project_sim: SimProcess) -> None:

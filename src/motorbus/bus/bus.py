@@ -472,6 +472,7 @@ class Bus(BusEngine):
         owner: str,
         safe_action: str = "pause",
         bind: bool = True,
+        safe_commands: Iterable[Command[object]] = (),
     ) -> Lease:
         """Hold ``keys`` (``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``) for
         ``owner`` from now on; nothing is sent.
@@ -491,14 +492,27 @@ class Bus(BusEngine):
             bind: make it the running task's lease (default).  ``False`` for an owner
                 that sends from elsewhere (a streamer's tick loop) and passes the lease
                 to ``submit(..., lease=...)``: the caller's own motion stays apart.
+            safe_commands: the owner's own safe end, as commands in the order to send
+                them: for each device they address they replace ``safe_action``'s
+                commands (the other devices keep those), are owed from now, are what
+                ``bus.leases`` (and so a guard process) shows, and are never rewritten
+                by the bus.  None may start motion.  ``ProjectStepper.upload`` leases
+                the controller with the clear of the project it writes (0x1E).
 
         Raises:
             LeaseConflictError: another owner's lease holds one of the devices (devices
                 moved outside any lease are taken over).
             LocalProtocolError: a bad key, owner or action, or a family the bus does
-                not carry.
+                not carry; a safe command that starts motion or addresses a device
+                not among ``keys``.
         """
-        return self._lease_keeper.lease(keys, owner, safe_action, bind=check_flag("bind", bind))
+        return self._lease_keeper.lease(
+            keys,
+            owner,
+            safe_action,
+            bind=check_flag("bind", bind),
+            safe_commands=safe_commands,
+        )
 
     @property
     def leases(self) -> tuple[LeaseInfo, ...]:

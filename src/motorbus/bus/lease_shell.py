@@ -57,7 +57,13 @@ class LeaseKeeper:
         self.owed: list[Command[object]] = []
 
     def lease(
-        self, keys: Iterable[str] | str, owner: str, safe_action: str, *, bind: bool = True
+        self,
+        keys: Iterable[str] | str,
+        owner: str,
+        safe_action: str,
+        *,
+        bind: bool = True,
+        safe_commands: Iterable[Command[object]] = (),
     ) -> Lease:
         """``Bus.lease``: check, acquire, bind to the running task."""
         action = safety.check_safe_action(safe_action)
@@ -71,7 +77,9 @@ class LeaseKeeper:
                     field="keys",
                     value=key,
                 )
-        lease = self.table.acquire(owner, keys, self._safe_for[action], safe_action=action)
+        lease = self.table.acquire(
+            owner, keys, self._safe_for[action], safe_action=action, safe_commands=safe_commands
+        )
         lease.releaser = self._release
         if bind:
             _leases.bind(lease)
@@ -90,6 +98,8 @@ class LeaseKeeper:
         motor = getattr(cmd, "motor", None)
         if motor is not None and cmd.family is Family.PROJECT_STEPPER:
             key = cmd.device_key
+            if key in lease.own_safe:
+                return  # the owner's own safe commands: never rewritten
             table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
 
     async def release_implicit(self, keys: Iterable[str] | str | None, hold: bool) -> None:

@@ -18,6 +18,11 @@ submit of a command that ``starts_motion``, and what it applies in one place, it
   expects a reply, pays it: the owner's own stop, a stream's safe action, a
   ``BusManager``'s stop, or the device's report that the motion ended (``EE DD``, a quad
   run's done reply).
+* An owner may give some devices **safe commands of its own** (``bus.lease(...,
+  safe_commands=[...])``): they replace the safe action's for the devices they address,
+  owed from the lease's start like any safe action, and the bus never rewrites them.  A
+  project upload's lease owes the clear of the project it writes (0x1E): a half-written
+  project must not look valid after the program is killed.
 * A lease ends by ``release(hold=False)``: the safe actions still owed are returned for
   the bus to send; with ``hold=True`` nothing is (the owner ends on purpose and the
   devices keep their last command).  The bus ends every lease still held when it closes,
@@ -53,6 +58,7 @@ __all__ = [
     "bind",
     "current_leases",
     "lease_for",
+    "own_safe_commands",
 ]
 
 #: A device on a bus, as ``Command.device_key`` names it.
@@ -110,6 +116,8 @@ class Lease:
         owner: the name given at acquisition.
         safe_action: ``"pause"``, ``"estop"`` or ``"hold"``.
         implicit: True for the bus's own lease (owner ``"program"``).
+        own_safe: the devices whose safe commands the owner gave (``safe_commands``);
+            the bus never rewrites them (e.g. with a motor byte learnt from motion).
     """
 
     def __init__(
@@ -126,6 +134,7 @@ class Lease:
         self.safe_action = safe_action
         self.implicit = implicit
         self.safe_for = safe_for
+        self.own_safe: frozenset[DeviceKey] = frozenset()
         self.active = True
         #: Set by the bus: sends what ``LeaseTable.release`` returns.
         self.releaser: Callable[[Lease, bool, frozenset[DeviceKey] | None], Any] | None = None
@@ -283,20 +292,36 @@ class LeaseTable:
         safe_commands_for_key: SafeCommandsForKey,
         *,
         safe_action: str = "pause",
+        safe_commands: Iterable[Command[object]] = (),
     ) -> Lease:
         """A new explicit lease of ``owner`` on ``keys``.
+
+        Args:
+            safe_commands: commands of the owner's own safe end, in order; for each
+                device they address (``device_key``) they replace what
+                ``safe_commands_for_key`` gives (see ``own_safe_commands``).
 
         Raises:
             LeaseConflictError: another explicit lease holds one of the keys (nothing
                 changes).  Keys of the implicit lease are taken over.
-            LocalProtocolError: a bad owner or key, or no key at all.
+            LocalProtocolError: a bad owner or key, or no key at all; a safe command
+                that is no command, starts motion or addresses a device not among
+                ``keys``.
         """
         owner = _check_owner(owner)
         wanted = self._wanted(keys)
         if not wanted:
             raise LocalProtocolError("a lease needs at least one device key", field="keys")
+        own = own_safe_commands(safe_commands, wanted)
         self._check_free(wanted, owner, None)
-        lease = Lease(self, owner, safe_commands_for_key, safe_action=safe_action)
+        safe_for = safe_commands_for_key
+        if own:
+
+            def safe_for(key: DeviceKey) -> tuple[Command[object], ...]:
+                return own[key] if key in own else safe_commands_for_key(key)
+
+        lease = Lease(self, owner, safe_for, safe_action=safe_action)
+        lease.own_safe = frozenset(own)
         self._hold(lease, wanted)
         return lease
 
@@ -487,6 +512,47 @@ class LeaseTable:
         if changed:
             self._changed()
         return commands
+
+
+def own_safe_commands(
+    commands: Iterable[Command[object]], keys: Iterable[DeviceKey]
+) -> dict[DeviceKey, tuple[Command[object], ...]]:
+    """An owner's own safe commands, grouped by the device each addresses (in order).
+
+    A device of ``keys`` that none addresses keeps the lease's safe action.
+
+    Raises:
+        LocalProtocolError: a safe command that is no ``Command``, that starts motion
+            (a safe end never moves anything), or whose device is not one of ``keys``
+            (``"la:255"`` is not allowed: name each actuator).
+    """
+    held = frozenset(keys)
+    own: dict[DeviceKey, tuple[Command[object], ...]] = {}
+    for cmd in commands:
+        if not isinstance(cmd, Command):
+            raise LocalProtocolError(
+                f"safe_commands: {cmd!r} is not a motorbus Command", field="safe_commands"
+            )
+        if cmd.starts_motion:
+            raise LocalProtocolError(
+                f"safe_commands: {type(cmd).__name__} starts motion: a safe end must not",
+                field="safe_commands",
+            )
+        key = cmd.device_key
+        if key in _WILDCARDS:
+            raise LocalProtocolError(
+                f"safe_commands: {type(cmd).__name__} addresses {key} (every device of "
+                "its family): give each device's own commands",
+                field="safe_commands",
+            )
+        if key not in held:
+            raise LocalProtocolError(
+                f"safe_commands: {type(cmd).__name__} addresses {key}, which the lease "
+                f"does not hold ({', '.join(sorted(held))})",
+                field="safe_commands",
+            )
+        own[key] = (*own.get(key, ()), cmd)
+    return own
 
 
 def bind(lease: Lease) -> None:

@@ -98,9 +98,10 @@ GUARD_HELP = (
 )
 
 
-def add_guard_option(parser: argparse.ArgumentParser) -> None:
-    """Add ``--guard`` to a command that moves things (``main`` starts the guard)."""
-    parser.add_argument("--guard", action="store_true", help=GUARD_HELP)
+def add_guard_option(parser: argparse.ArgumentParser, help_text: str = GUARD_HELP) -> None:
+    """Add ``--guard`` to a command that moves things, or leaves a device unsafe if it
+    is killed part way (``project upload``); ``main`` starts the guard."""
+    parser.add_argument("--guard", action="store_true", help=help_text)
 
 
 def add_bus_options(

@@ -43,7 +43,8 @@ An upload interrupted part way (Ctrl-C) clears the project on the controller (0x
 one frame more, with Ctrl-C deferred while it is sent), says how far it got
 ("project 1: upload interrupted after 12 of 28 frames; the project on the device is
 invalid ...") and exits with 130; "project read" and "project run" then refuse it
-until it is uploaded again.
+until it is uploaded again.  An upload killed outright (SIGKILL, the OOM killer) runs
+none of that: with --guard, the guard process sends that clear instead.
 """
 
 from __future__ import annotations
@@ -74,6 +75,12 @@ __all__ = [
     "run",
 ]
 
+#: ``--guard`` of ``project upload``: what the guard does for an upload.
+UPLOAD_GUARD_HELP = (
+    "start a guard process (Linux) that clears the project (0x1E) if the upload is "
+    "killed outright part way (SIGKILL, the OOM killer), so that the half-written "
+    "project is refused instead of run; see motorbus.guard"
+)
 #: ``repeat = "forever"`` is stored as 255 (A.4 0x8E).
 REPEAT_FOREVER_NAME = "forever"
 
@@ -108,6 +115,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("file", metavar="FILE.toml")
     p.add_argument("--no-verify", action="store_true", help="do not read the project back")
     p.add_argument("--no-save", action="store_true", help="do not save it to flash")
+    add_guard_option(p, UPLOAD_GUARD_HELP)
     _common(p)
     p = sub.add_parser("run", help="start project N and wait for its end (EE DD)")
     p.add_argument("number", metavar="N", type=int, help="project 1..4")

@@ -9,7 +9,9 @@ import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
+from motorbus.bus.leases import PROGRAM, Lease
 from motorbus.errors import (
+    BusClosedError,
     LeaseConflictError,
     LocalProtocolError,
     MotorbusError,
@@ -99,6 +101,25 @@ class ProjectStepper:
         .to_project()``, a verify and ``check_project`` refuse it, and ``motorbus
         project read``/``run`` exit 1.  Upload it again to use it.
 
+        A program killed outright mid-upload (SIGKILL, the OOM killer) runs none of
+        that.  So while it writes, the upload holds a lease on the controller (owner
+        ``"upload project N"``, ``bus.leases``) whose safe action is that clear: a guard
+        process (``motorbus.run(main(), guard=True)``, ``--guard``) sends it when the
+        program dies holding it.  The bus closing under the upload sends it too.  A
+        completed upload ends the lease with hold (nothing sent, before the verify);
+        one that ends part way ends it once the clear above was sent, so the clear goes
+        out once.  If the program had moved the controller outside any lease (the
+        bus's implicit lease, owner ``"program"``), the upload's lease also owes its
+        stop (0x5E, 0x0D) and hands the controller back to the implicit lease at the
+        end: the bus's close still stops it.
+
+        The upload is refused, nothing sent, while another lease holds the controller
+        (``LeaseConflictError`` naming the holder): it does not join, since a project
+        written under another owner's run (a rig's, a CLI command's) could be cleared
+        by the upload's safe end in the middle of it.  Upload before taking a lease on
+        the controller, or release it first.  While the upload writes, motion of the
+        controller from elsewhere in the program is refused the same way.
+
         Args:
             project: the project value (number 1..4, motor configuration, 1..10 steps).
             save: send 0x2E afterwards so the project survives a power cycle.
@@ -108,6 +129,7 @@ class ProjectStepper:
             The read-back dump when ``verify``, else ``None``.
 
         Raises:
+            LeaseConflictError: another lease holds the controller (nothing sent).
             asyncio.CancelledError: cancelled part way; its message names the project
                 and how far the upload got, e.g. "project 1: upload interrupted after
                 12 of 28 frames; the project on the device is invalid (cleared, 0x1E
@@ -128,10 +150,11 @@ class ProjectStepper:
         commands = ps.project_commands(project, self.motor)
         if save:
             commands.append(ps.SaveProject(project.number))
+        lease, program_held = self._upload_lease(project.number)
         done = 0
         try:
             for cmd in commands:
-                reply = await self.bus.request(cmd)
+                reply = await self._upload_frame(cmd, lease)
                 done += 1
                 echoed = getattr(reply, "project", None)
                 if isinstance(cmd, (ps.StepLoop, ps.RepeatCount)) and echoed not in (
@@ -144,14 +167,17 @@ class ProjectStepper:
                         raw=getattr(reply, "raw", b""),
                     )
         except asyncio.CancelledError as err:
-            what = await self._invalidate(project.number, done, len(commands), "interrupted")
+            what = await self._invalidate(lease, project.number, done, len(commands), "interrupted")
             raise asyncio.CancelledError(what) from err
         except (MotorbusError, OSError) as err:
             if done == 0 and isinstance(err, LocalProtocolError):
                 raise  # refused before anything was sent: the project is untouched
-            what = await self._invalidate(project.number, done, len(commands), "failed")
+            what = await self._invalidate(lease, project.number, done, len(commands), "failed")
             err.add_note(what)
             raise
+        finally:
+            # Complete, or the clear was sent (or tried) above: nothing more to send.
+            await self._end_upload_lease(lease, program_held)
         if not verify:
             return None
         dump = await self.read_project(project.number)
@@ -169,9 +195,62 @@ class ProjectStepper:
             )
         return dump
 
-    async def _invalidate(self, number: int, done: int, total: int, how: str) -> str:
+    def _upload_lease(self, number: int) -> tuple[Lease, bool]:
+        """Lease the controller for an upload of project ``number``; its safe action is
+        the clear (0x1E), after the stop if the program had moved the controller.
+        Returns the lease, and whether the implicit lease held the controller before."""
+        program_held = any(i.key == KEY and i.owner == PROGRAM for i in self.bus.leases)
+        clear = ps.ClearProject(number)
+        safe = (*self.safe_stop_commands(), clear) if program_held else (clear,)
+        lease = self.bus.lease(
+            KEY, owner=f"upload project {number}", safe_commands=safe, bind=False
+        )
+        return lease, program_held
+
+    async def _upload_frame(self, cmd: ps.ProjectStepperCommand[object], lease: Lease) -> object:
+        """Send one upload frame while the upload's lease lasts.  A bus that closes
+        ends the lease with its safe action, the clear: a frame still queued then is
+        dropped unsent (``refresh``), so that nothing of the upload follows the clear."""
+        dropped = False
+
+        def refresh() -> ps.ProjectStepperCommand[object] | None:
+            nonlocal dropped
+            dropped = not lease.active
+            return None if dropped else cmd
+
+        future = self.bus.submit(cmd, refresh=refresh) if lease.active else None
+        if future is not None:
+            try:
+                reply = await future
+            except asyncio.CancelledError:
+                future.cancel()  # queued: dropped; written: its reply still holds the bus
+                raise
+            if not dropped:
+                return reply
+        raise BusClosedError(
+            f"bus {self.bus.name} is closing: it ended the upload's lease, so "
+            f"{type(cmd).__name__} was not sent"
+        )
+
+    async def _end_upload_lease(self, lease: Lease, program_held: bool) -> None:
+        """End an upload's lease without sending anything: hold, or back to the
+        implicit lease if that held the controller before (its close stops it)."""
+        if program_held and lease.active:
+            self.bus.hand_over(lease, [KEY])
+        await lease.release(hold=True)
+
+    async def _invalidate(self, lease: Lease, number: int, done: int, total: int, how: str) -> str:
         """Clear project ``number`` after an upload ended part way; say what happened."""
         head = f"project {number}: upload {how} after {done} of {total} frames; "
+        if not lease.active:
+            # The bus ended the lease as it closed, with its safe action: the clear.
+            what = (
+                f"{head}the bus closed under it and sent the upload's safe action, the "
+                "clear (0x1E; a failure is logged): the project on the device is invalid: "
+                "upload it again"
+            )
+            log.warning("%s", what)
+            return what
         with deferred_interrupts():
             try:
                 await self.bus.request(ps.ClearProject(number), priority=Priority.EMERGENCY)
