@@ -19,6 +19,8 @@ from collections.abc import AsyncIterator, Iterator, Sequence
 from contextlib import asynccontextmanager, contextmanager
 from typing import Any
 
+import pytest
+
 from motorbus.bus.bus import Bus
 from motorbus.bus.timer import default_timer
 from motorbus.cli.bus_options import ENV_VARS
@@ -33,6 +35,8 @@ __all__ = [
     "CLI_TIMEOUT_S",
     "NO_CONFIG_DIR",
     "PACINGS",
+    "affinities",
+    "affinity_kept",
     "cli",
     "eventually",
     "json_lines",
@@ -128,3 +132,36 @@ def raw_pty(*, nonblocking_master: bool = False) -> Iterator[tuple[int, str]]:
     finally:
         os.close(master)
         os.close(slave)
+
+
+def affinities() -> dict[int, frozenset[int]]:
+    """The CPUs of every thread of this process, by thread id (Linux)."""
+    out = {}
+    for tid in map(int, os.listdir("/proc/self/task")):
+        try:
+            out[tid] = frozenset(os.sched_getaffinity(tid))
+        except ProcessLookupError:
+            continue
+    return out
+
+
+@contextmanager
+def affinity_kept() -> Iterator[frozenset[int]]:
+    """Yield the CPUs this thread may use; afterwards every thread that is still there
+    gets its CPUs back, whatever the test did (a failed pin must not leak into the
+    next test).  Skips where the process has no CPU affinity or a single CPU (a pin
+    to it could not be told from no pin)."""
+    if not hasattr(os, "sched_setaffinity") or not os.path.isdir("/proc/self/task"):
+        pytest.skip("no CPU affinity on this platform")
+    before = affinities()
+    allowed = frozenset(os.sched_getaffinity(0))
+    if len(allowed) < 2:
+        pytest.skip("this process may use one CPU only")
+    try:
+        yield allowed
+    finally:
+        for tid, cpus in before.items():
+            try:
+                os.sched_setaffinity(tid, cpus)
+            except ProcessLookupError:
+                continue

@@ -1,6 +1,7 @@
 """The dependency direction: errors <- protocol <- transport <- bus <- devices <- streaming
 <- streams <- busfile <- manager <- cli, with the simulator beside the library (protocol
-and transport only), and the tools (rig, doctor, dashboard, guard) on top.
+and transport only), the tools (rig, doctor, dashboard, guard) on top, and the bus
+file's process groups (process_groups: errors and realtime only) below the bus file.
 
 Every import between motorbus subpackages points down this list, without exception.
 """
@@ -120,9 +121,11 @@ ALLOWED: dict[str, set[str]] = {
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streaming": _LIBRARY_BASE | {"transport", "bus", "devices"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming"},
-    "busfile": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
+    "process_groups": {"errors", "realtime"},
+    "busfile": _LIBRARY_BASE
+    | {"transport", "bus", "devices", "streaming", "streams", "process_groups"},
     "manager": _LIBRARY_BASE
-    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "guard"},
+    | {"transport", "bus", "devices", "streaming", "streams", "process_groups", "busfile", "guard"},
     # Tools built on the library (never imported by it): they use it, and nothing else.
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "doctor": _LIBRARY_BASE

@@ -45,6 +45,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "motorbus.busfile": ("BusFile", "BusSpec", "default_bus_file", "load_bus_file"),
     "motorbus.manager": ("BusManager", "DeviceStop", "StopReport"),
+    "motorbus.process_groups": ("ProcessGroup",),
     "motorbus.protocol.base": ("Family",),
     "motorbus.realtime": ("RealtimeReport",),
     "motorbus.shutdown": ("install_signal_handlers", "run"),
@@ -95,6 +96,7 @@ if TYPE_CHECKING:
     from motorbus.manager import BusManager as BusManager
     from motorbus.manager import DeviceStop as DeviceStop
     from motorbus.manager import StopReport as StopReport
+    from motorbus.process_groups import ProcessGroup as ProcessGroup
     from motorbus.protocol.base import Family as Family
     from motorbus.realtime import RealtimeReport as RealtimeReport
     from motorbus.shutdown import install_signal_handlers as install_signal_handlers

@@ -14,7 +14,11 @@ A bus file (TOML)::
     name = "feeder"
     url = "socket://10.0.0.5:7012"
     baud = 9600
+    process = "feeders"           # served by the process that opens group "feeders"
     devices = ["project-stepper:motor=3", "quad-stepper"]
+
+    [process.feeders]             # optional: the group's own settings
+    cpus = [1]                    # the CPUs the group's process runs on
 
 Every key is typed and range-checked when the file is loaded, not when it is opened;
 nothing is coerced (``"false"`` is not a bool, ``2.7`` is not an integer, ``true`` is
@@ -46,7 +50,29 @@ la_stroke_mm        finite number 1..1000, the LA actuators' stroke in millimetr
 devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, ranges
                     low-high), ``project-stepper[:motor=N]`` (N a valid motor byte,
                     see ``protocol.project_stepper.check_motor``), ``quad-stepper``
+process             the process group that serves the bus: 1..32 ASCII letters,
+                    digits, ``-`` or ``_`` (default none)
 ==================  ===============================================================
+
+Process groups.  A program that opens the file for one group
+(``BusManager.from_toml(path, process="arms")``, ``motorbus dashboard --process
+arms``) opens exactly the buses whose ``process`` is that group - not the buses without
+one, which every program that opens the file without choosing a group opens, so no two
+programs open one port - and runs on the group's CPUs.  A program that chooses no group
+opens every bus and pins nothing, as before.  A bus nobody's group names is not an
+error: each program opens its own.  A group may have a table of its own:
+
+==================  ===============================================================
+``[process.NAME]``  NAME a group some ``[[bus]]`` names (a table for a group without
+                    buses is refused: it is a typo)
+cpus                list of distinct CPU numbers 0..N-1 (N: ``os.cpu_count()`` of the
+                    machine loading the file), at least one; on open, every thread of
+                    the program runs on them (:func:`motorbus.realtime.pin`; Linux),
+                    and closing the buses gives the threads their CPUs back
+==================  ===============================================================
+
+Real-time mode is not a group key: each group's program asks for it on its own
+command line (``--realtime``) or environment (``MOTORBUS_REALTIME``), as any other.
 
 A file that is not UTF-8, not TOML, or nested too deeply for the parser is refused
 with its name (and the line, where there is one).  TOML has no includes.
@@ -64,6 +90,12 @@ from typing import Any
 
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S
 from motorbus.errors import LocalProtocolError
+from motorbus.process_groups import (
+    ProcessGroup,
+    check_group_name,
+    check_group_table,
+    choose_group,
+)
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Family, check_flag, check_int
@@ -78,6 +110,8 @@ __all__ = [
     "BusFile",
     "BusSpec",
     "DeviceSpec",
+    "ProcessGroup",
+    "buses_and_groups",
     "check_distinct",
     "default_bus_file",
     "family_baud_rates",
@@ -107,6 +141,7 @@ BUS_KEYS = frozenset(
         "la_safe_action",
         "la_stroke_mm",
         "devices",
+        "process",
     }
 )
 #: Range of ``min_spacing_ms`` and ``host_margin_ms`` in a bus file, milliseconds.
@@ -307,6 +342,7 @@ def _check_fields(values: Mapping[str, Any]) -> dict[str, Any]:
         "la_stroke_mm": lambda v: (
             None if v is None else check_number("la_stroke_mm", v, 1.0, 1000.0, "mm")
         ),
+        "process": lambda v: None if v is None else check_group_name("process", v),
     }
     out = {key: checks[key](value) for key, value in values.items() if key in checks}
     if out.get("rs485") and out.get("backend") == "serialx":
@@ -343,6 +379,9 @@ class BusSpec:
     retries: int = 1
     la_safe_action: str = "pause"
     la_stroke_mm: float | None = None
+    #: The process group that serves this bus (``None``: every program that opens the
+    #: file without choosing a group).
+    process: str | None = None
 
     def __post_init__(self) -> None:
         values = {key: getattr(self, key) for key in BUS_KEYS if key != "devices"}
@@ -432,15 +471,45 @@ def check_distinct(spec: BusSpec, others: Sequence[BusSpec]) -> None:
             )
 
 
+def _groups_from_dict(data: Mapping[str, Any], specs: Sequence[BusSpec]) -> dict[str, ProcessGroup]:
+    """The process groups the buses name, each with its ``[process.NAME]`` table's keys."""
+    named: dict[str, list[str]] = {}
+    for spec in specs:
+        if spec.process is not None:
+            named.setdefault(spec.process, []).append(spec.name)
+    tables = data.get("process", {})
+    if not isinstance(tables, Mapping):
+        raise LocalProtocolError(
+            f"process={tables!r} is not allowed at the top level: a group's settings are a "
+            "[process.NAME] table (cpus = [...]); a bus names its group in its [[bus]] table",
+            field="process",
+            value=tables,
+        )
+    cpus: dict[str, frozenset[int] | None] = {}
+    for name, table in tables.items():
+        try:
+            cpus[name] = check_group_table(name, table, named)
+        except LocalProtocolError as err:
+            raise labelled(f"[process.{name}]", err) from None
+    return {name: ProcessGroup(name, tuple(buses), cpus.get(name)) for name, buses in named.items()}
+
+
 def specs_from_dict(data: Mapping[str, Any]) -> list[BusSpec]:
     """The buses of parsed TOML ``{"bus": [{...}, ...]}``; every key checked here, and
     no two buses with one name or one port."""
+    return buses_and_groups(data)[0]
+
+
+def buses_and_groups(data: Mapping[str, Any]) -> tuple[list[BusSpec], dict[str, ProcessGroup]]:
+    """The buses of parsed TOML, and the process groups they name (with their
+    ``[process.NAME]`` tables); every key of both checked here."""
     if not isinstance(data, Mapping):
         raise LocalProtocolError(f"a bus file is a table, got {data!r}", field="bus")
-    unknown = sorted(set(data) - {"bus"})
+    unknown = sorted(set(data) - {"bus", "process"})
     if unknown:
         raise LocalProtocolError(
-            f"unknown top-level keys {unknown}; allowed: ['bus'] ([[bus]] tables)",
+            f"unknown top-level keys {unknown}; allowed: ['bus', 'process'] ([[bus]] and "
+            "[process.NAME] tables)",
             field="bus",
         )
     tables = data.get("bus")
@@ -454,7 +523,7 @@ def specs_from_dict(data: Mapping[str, Any]) -> list[BusSpec]:
         except LocalProtocolError as err:
             raise labelled(f"bus {spec.name!r} (#{i + 1})", err) from None
         specs.append(spec)
-    return specs
+    return specs, _groups_from_dict(data, specs)
 
 
 @dataclass(frozen=True, slots=True)
@@ -465,9 +534,30 @@ class BusFile:
     specs: tuple[BusSpec, ...]
     #: bus name -> the keys its table sets (the rest are defaults).
     given: Mapping[str, frozenset[str]]
+    #: The process groups its buses name, in file order.
+    groups: Mapping[str, ProcessGroup] = field(default_factory=dict)
 
     def names(self) -> list[str]:
         return [s.name for s in self.specs]
+
+    def group(self, name: str) -> ProcessGroup:
+        """The process group called ``name``.
+
+        Raises:
+            LocalProtocolError: no such group (the message names the file and its groups).
+        """
+        try:
+            return choose_group(self.groups, name)
+        except LocalProtocolError as err:
+            raise labelled(str(self.path), err) from None
+
+    def specs_of(self, group: str | None) -> tuple[BusSpec, ...]:
+        """The buses the program serving ``group`` opens: that group's, or every bus for
+        ``None``."""
+        if group is None:
+            return self.specs
+        self.group(group)
+        return tuple(s for s in self.specs if s.process == group)
 
     def spec(self, name: str) -> BusSpec:
         """The bus called ``name``."""
@@ -520,12 +610,12 @@ def load_bus_file(path: str | Path) -> BusFile:
     """
     data = read_bus_toml(path)
     try:
-        specs = specs_from_dict(data)
+        specs, groups = buses_and_groups(data)
     except LocalProtocolError as err:
         raise labelled(str(path), err) from None
     tables = data["bus"]
     given = {spec.name: frozenset(table) for spec, table in zip(specs, tables, strict=True)}
-    return BusFile(Path(path), tuple(specs), given)
+    return BusFile(Path(path), tuple(specs), given, groups)
 
 
 def default_bus_file() -> Path | None:

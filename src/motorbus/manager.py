@@ -8,7 +8,9 @@ ports close: LA actuators pause (or e-stop, or hold, per bus), project steppers 
 "stop project" and their motor stopped, quad steppers "stop all".
 
 The bus file and its schema (every key, its type and range) are
-:mod:`motorbus.busfile`, which the command line reads too.
+:mod:`motorbus.busfile`, which the command line reads too.  A program that serves one
+process group of a bus file (``from_toml(path, process="arms")``) opens that group's
+buses only and, while they are open, runs on the group's CPUs.
 """
 
 from __future__ import annotations
@@ -29,17 +31,18 @@ from motorbus.bus.bus import Bus, Priority
 from motorbus.busfile import (
     BusSpec,
     DeviceSpec,
+    buses_and_groups,
     check_distinct,
     default_bus_file,
     labelled,
     load_bus_file,
     parse_devices,
-    specs_from_dict,
 )
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.process_groups import ProcessGroup, choose_group
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
 from motorbus.shutdown import deferred_interrupts
@@ -132,36 +135,59 @@ class BusManager:
         self._streamers: dict[str, Streamer] = {}
         #: Why each bus that failed in the last ``open`` failed (bus name -> error).
         self.open_errors: dict[str, Exception] = {}
+        #: The process group of the bus file this manager serves (``from_toml(...,
+        #: process=NAME)``); while its buses are open, every thread of the process runs
+        #: on the group's ``cpus``.  ``None``: no group, no pinning.
+        self.process: ProcessGroup | None = None
+        self._pinning: realtime.Pinning | None = None
 
     # -- building -----------------------------------------------------------------
 
     @classmethod
-    def from_toml(cls, path: str | Path | None = None, **kwargs: Any) -> BusManager:
+    def from_toml(
+        cls, path: str | Path | None = None, *, process: str | None = None, **kwargs: Any
+    ) -> BusManager:
         """Load a bus file (see :mod:`motorbus.busfile`); every key is checked here.
 
-        ``path`` defaults to :func:`default_bus_file` (the user's config file).
+        Args:
+            path: the bus file; default :func:`default_bus_file` (the user's config file).
+            process: serve this process group of the file: open only the buses whose
+                ``process`` is ``process`` (not the buses of no group), and on
+                :meth:`open` run every thread of the process on the group's ``cpus``
+                until :meth:`close`.  ``None``: every bus of the file, no pinning.
+            **kwargs: passed to the constructor (``safe_stop``).
 
         Raises:
-            LocalProtocolError: the file is not TOML, or a key is unknown, of the wrong
-                type or out of range (the message names the file, the bus and the key).
+            LocalProtocolError: the file is not TOML, a key is unknown, of the wrong type
+                or out of range (the message names the file, the bus or group and the
+                key), or the file has no group ``process`` (the message names its groups).
             OSError: the file cannot be read.
         """
         if path is None:
             path = default_bus_file()
             if path is None:
                 raise FileNotFoundError("no bus file given and no home directory to look in")
+        bus_file = load_bus_file(path)
         mgr = cls(**kwargs)
-        for spec in load_bus_file(path).specs:
+        mgr.process = None if process is None else bus_file.group(process)
+        for spec in bus_file.specs_of(process):
             mgr.add_spec(spec)
         return mgr
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], **kwargs: Any) -> BusManager:
-        """Build from parsed TOML: ``{"bus": [{...}, ...]}``; every key is checked here,
-        and two buses may not share a name or a port."""
+    def from_dict(
+        cls, data: Mapping[str, Any], *, process: str | None = None, **kwargs: Any
+    ) -> BusManager:
+        """Build from parsed TOML: ``{"bus": [{...}, ...], "process": {...}}``; every key
+        is checked here, and two buses may not share a name or a port.  ``process``
+        chooses a process group, as in :meth:`from_toml`."""
+        specs, groups = buses_and_groups(data)
         mgr = cls(**kwargs)
-        for spec in specs_from_dict(data):
-            mgr.add_spec(spec)
+        if process is not None:
+            mgr.process = choose_group(groups, process)
+        for spec in specs:
+            if process is None or spec.process == process:
+                mgr.add_spec(spec)
         return mgr
 
     def add_spec(self, spec: BusSpec, transport: Transport | None = None) -> None:
@@ -214,8 +240,37 @@ class BusManager:
         ``MotorbusError`` - so ``except OSError`` catches a missing port - else the first
         failure; a note on it names its bus, and the failures of the other buses are
         attached as further notes and kept in :attr:`open_errors` (bus name -> error).
+
+        If :attr:`process` gives CPUs, every thread of the process is moved onto them
+        first, before the guard starts and any port opens (so what they start runs there
+        too); :meth:`close`, or a failed open, gives the threads their CPUs back.  A set
+        the kernel refuses raises ``OSError`` naming the group, and nothing is opened.
         """
         realtime.on_bus_open()  # a bad MOTORBUS_REALTIME fails before any port opens
+        self._pin()  # before the guard and the ports: what they start runs there too
+        try:
+            await self._open_buses()
+        except BaseException:
+            self._unpin()
+            raise
+        shutdown.register_manager(self)
+
+    def _pin(self) -> None:
+        """Run every thread on the process group's CPUs (if it gives any)."""
+        group = self.process
+        if group is None or group.cpus is None or self._pinning is not None:
+            return
+        try:
+            self._pinning = realtime.pin(group.cpus)
+        except OSError as err:
+            raise OSError(err.errno, f"process group {group.name!r}: {err.strerror}") from err
+
+    def _unpin(self) -> None:
+        if self._pinning is not None:
+            self._pinning.restore()
+            self._pinning = None
+
+    async def _open_buses(self) -> None:
         if any(spec.guard for spec in self.specs.values()):
             # Before the buses open (it follows each one); a Python start-up, off the loop.
             await anyio.to_thread.run_sync(guard_process.start_guard)
@@ -261,7 +316,6 @@ class BusManager:
             with anyio.CancelScope(shield=True):
                 await self._close_buses()
             raise self._open_failure()
-        shutdown.register_manager(self)
 
     def _open_failure(self) -> Exception:
         failed = [(n, self.open_errors[n]) for n in self.specs if n in self.open_errors]
@@ -297,6 +351,7 @@ class BusManager:
                     await self.stop_all_devices()
             finally:
                 await self._close_buses()
+                self._unpin()
                 shutdown.unregister_manager(self)
 
     async def _close_buses(self) -> None:

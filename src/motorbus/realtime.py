@@ -11,6 +11,10 @@
   idle time between ticks, from :func:`idle_hook` / :func:`collect_when_idle`;
 * optionally, CPU affinity (``os.sched_setaffinity``).
 
+:func:`pin` runs every thread of the process on a set of CPUs (a bus file's
+``[process.NAME] cpus``, which ``BusManager`` applies when it opens that group's buses);
+:meth:`Pinning.restore` undoes it.
+
 What the system refuses (no ``CAP_SYS_NICE`` / ``RLIMIT_RTPRIO``, a finite
 ``RLIMIT_MEMLOCK``) is said in ONE warning line on the ``motorbus.realtime`` logger,
 with how to grant it, and the program carries on normally.  The returned
@@ -47,7 +51,9 @@ __all__ = [
     "DEFAULT_PRIORITY",
     "ENV_VAR",
     "GcPauseMonitor",
+    "Pinning",
     "RealtimeReport",
+    "check_cpus",
     "collect_when_idle",
     "disable",
     "enable",
@@ -55,6 +61,7 @@ __all__ = [
     "idle_hook",
     "on_bus_open",
     "parse_setting",
+    "pin",
     "refreeze",
     "request",
     "requested",
@@ -163,7 +170,12 @@ def _check_priority(priority: object, field_name: str = "priority") -> int:
     return priority
 
 
-def _check_cpus(cpus: Iterable[int]) -> frozenset[int]:
+def check_cpus(cpus: Iterable[int]) -> frozenset[int]:
+    """Return ``cpus`` as a set if each is a CPU number of this machine, 0..cpu_count-1.
+
+    Raises:
+        LocalProtocolError: text, an empty set, or a CPU out of range (field ``cpus``).
+    """
     if isinstance(cpus, str | bytes):
         raise LocalProtocolError(
             f"cpus={cpus!r} must be CPU numbers such as [0] or {{2, 3}}", field="cpus", value=cpus
@@ -294,6 +306,86 @@ def _set_affinity(cpus: frozenset[int], report: RealtimeReport) -> None:
     report._affinity = previous
     report.cpus = cpus
     report.applied.append(f"affinity {sorted(cpus)}")
+
+
+# -- pinning the whole process ----------------------------------------------------------
+
+
+def _thread_ids() -> list[int]:
+    """Every thread of this process (Linux: /proc/self/task), else the calling one (0)."""
+    try:
+        return sorted(int(tid) for tid in os.listdir("/proc/self/task"))
+    except OSError:
+        return [0]
+
+
+@dataclass(slots=True)
+class Pinning:
+    """What :func:`pin` changed, so that :meth:`restore` can put it back.
+
+    Attributes:
+        cpus: the CPUs every thread of the process was pinned to.
+    """
+
+    cpus: frozenset[int]
+    #: thread id -> its CPUs before the pin.
+    _before: dict[int, frozenset[int]] = field(default_factory=dict)
+    #: the calling thread's CPUs before the pin: what threads born since get back.
+    _default: frozenset[int] | None = None
+
+    def restore(self) -> None:
+        """Give every thread still on :attr:`cpus` the CPUs it had before the pin (a
+        thread started since gets the pinning thread's); one moved elsewhere since stays."""
+        if self._default is None:
+            return
+        for tid in _thread_ids():
+            try:
+                if frozenset(os.sched_getaffinity(tid)) == self.cpus:
+                    os.sched_setaffinity(tid, self._before.get(tid, self._default))
+            except ProcessLookupError:  # the thread ended meanwhile
+                continue
+        self._before.clear()
+        self._default = None
+
+
+def pin(cpus: Iterable[int]) -> Pinning:
+    """Run every thread of this process on ``cpus``; threads and processes it starts
+    later inherit them.  (``enable(cpus=...)`` pins the calling thread only.)
+
+    Returns:
+        What to undo with :meth:`Pinning.restore`.
+
+    Raises:
+        LocalProtocolError: a CPU this machine does not have (nothing is changed).
+        OSError: this platform has no CPU affinity, or the kernel refused the set (a
+            cpuset - container, cgroup, systemd ``AllowedCPUs=`` - may exclude it);
+            every thread keeps the CPUs it had.
+    """
+    cpu_set = check_cpus(cpus)
+    shown = ",".join(map(str, sorted(cpu_set)))
+    if not hasattr(os, "sched_setaffinity"):
+        raise OSError(
+            errno.ENOSYS, f"cannot run on CPUs {shown}: no CPU affinity on {sys.platform}"
+        )
+    default = frozenset(os.sched_getaffinity(0))
+    pinning = Pinning(cpu_set, _default=default)
+    try:
+        for tid in _thread_ids():
+            try:
+                before = frozenset(os.sched_getaffinity(tid))
+                os.sched_setaffinity(tid, cpu_set)
+            except ProcessLookupError:  # the thread ended meanwhile
+                continue
+            pinning._before[tid] = before
+    except OSError as err:
+        now = ",".join(map(str, sorted(default)))
+        pinning.restore()
+        raise OSError(
+            err.errno,
+            f"cannot run on CPUs {shown}: {err.strerror or err}; this process runs on CPUs "
+            f"{now}; " + _HOW_TO_GRANT["affinity"],
+        ) from err
+    return pinning
 
 
 # -- garbage collector ------------------------------------------------------------------
@@ -478,7 +570,7 @@ def enable(
             before anything is changed.
     """
     prio = DEFAULT_PRIORITY if priority is None else _check_priority(priority)
-    cpu_set = None if cpus is None else _check_cpus(cpus)
+    cpu_set = None if cpus is None else check_cpus(cpus)
     report = RealtimeReport()
     if cpu_set is not None:
         _set_affinity(cpu_set, report)

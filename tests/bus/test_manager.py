@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import os
 from pathlib import Path
 
 import pytest
@@ -12,7 +14,9 @@ from motorbus.errors import LocalProtocolError
 from motorbus.manager import BusManager, parse_devices
 from motorbus.sim.la import LAModel, PowerState
 from motorbus.sim.memory import MemorySim
+from motorbus.sim.process import SimProcess
 from motorbus.sim.quad_stepper import QuadStepperModel
+from tests.helpers import affinities, affinity_kept
 from tests.waiting import eventually
 
 
@@ -101,3 +105,100 @@ async def test_la_stroke_mm_of_a_bus_reaches_its_actuators() -> None:
             assert actuator.stroke_mm == 30.0
             await actuator.move_to_mm(15.0)
             assert (await actuator.status()).target == 1000
+
+
+# -- process groups: one program per group, pinned --------------------------------------
+
+MISSING = "/dev/motorbus-no-such-port-{}"
+
+
+def _group_file(tmp_path: Path, arm_ports: list[str], cpu: int) -> Path:
+    """Two buses of group "arms" on ``arm_ports``; a "legs" bus and a bus of no group on
+    ports that do not exist (opening either would fail the open)."""
+    path = tmp_path / "buses.toml"
+    path.write_text(
+        f"""
+[[bus]]
+name = "left"
+url = "{arm_ports[0]}"
+baud = 921600
+process = "arms"
+devices = ["la:1"]
+
+[[bus]]
+name = "spare"
+url = "{MISSING.format(1)}"
+baud = 921600
+
+[[bus]]
+name = "right"
+url = "{arm_ports[1]}"
+baud = 921600
+process = "arms"
+devices = ["la:1"]
+
+[[bus]]
+name = "hip"
+url = "{MISSING.format(2)}"
+baud = 921600
+process = "legs"
+
+[process.arms]
+cpus = [{cpu}]
+
+[process.legs]
+cpus = [0]
+""",
+        encoding="utf-8",
+    )
+    return path
+
+
+async def test_a_process_group_opens_exactly_its_buses_on_its_cpus(tmp_path: Path) -> None:
+    with (
+        affinity_kept() as allowed,
+        SimProcess(["la:1"], baud=921600) as left,
+        SimProcess(["la:1"], baud=921600) as right,
+    ):
+        cpu = max(allowed)  # one CPU of several: a pin that did not happen shows
+        mgr = BusManager.from_toml(
+            _group_file(tmp_path, [left.path, right.path], cpu), process="arms"
+        )
+        async with mgr:
+            assert list(mgr.buses) == ["left", "right"]
+            assert all(b.state is BusState.OPEN for b in mgr.buses.values())
+            assert (await mgr.la("right", 1).status()).id == 1
+            during = affinities()
+        assert set(during.values()) == {frozenset({cpu})}  # every thread, not only this one
+        assert frozenset(os.sched_getaffinity(0)) == allowed  # close gave the CPUs back
+
+
+async def test_a_cpu_set_the_kernel_refuses_opens_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def refuse(tid: int, cpus: object) -> None:
+        raise OSError(errno.EINVAL, "Invalid argument")
+
+    with affinity_kept() as allowed:
+        path = _group_file(tmp_path, [MISSING.format(3), MISSING.format(4)], max(allowed))
+        mgr = BusManager.from_toml(path, process="arms")
+        with monkeypatch.context() as patch, pytest.raises(OSError) as info:
+            patch.setattr(os, "sched_setaffinity", refuse)
+            await mgr.open()  # the ports do not exist: had it tried them, it would say so
+        assert info.value.errno == errno.EINVAL
+        assert str(info.value).startswith(
+            f"[Errno 22] process group 'arms': cannot run on CPUs {max(allowed)}: "
+            "Invalid argument; this process runs on CPUs "
+        ), str(info.value)
+        assert mgr.buses == {} and mgr.open_errors == {}
+        assert frozenset(os.sched_getaffinity(0)) == allowed
+
+
+async def test_a_failed_open_gives_the_cpus_back(tmp_path: Path) -> None:
+    with affinity_kept() as allowed, SimProcess(["la:1"], baud=921600) as left:
+        path = _group_file(tmp_path, [left.path, MISSING.format(5)], max(allowed))
+        mgr = BusManager.from_toml(path, process="arms")
+        with pytest.raises(OSError, match=MISSING.format(5)):
+            await mgr.open()
+        assert frozenset(os.sched_getaffinity(0)) == allowed
+        assert mgr.buses["left"].state is BusState.CLOSED

@@ -91,6 +91,16 @@ BAD: dict[str, list[tuple[Any, str | None]]] = {
         (NAN, None),
     ],
     "la_safe_action": [("explode", None), ("PAUSE", None), ("", None), (1, None), (True, None)],
+    "process": [
+        ("", None),
+        ("my arm", None),
+        ("arms!", None),
+        ("\u00e4rm", None),
+        ("x" * 33, None),
+        (5, None),
+        (True, None),
+        (["arms"], None),
+    ],
     "devices": [
         ("la:1", None),
         (5, None),
@@ -230,6 +240,8 @@ def test_the_brief_examples_are_refused_with_their_key_and_bus() -> None:
         ("la_stroke_mm", 1, 1.0),
         ("la_stroke_mm", 30, 30.0),
         ("la_stroke_mm", 1000, 1000.0),
+        ("process", "a", "a"),
+        ("process", "Arms_2-" + "x" * 25, "Arms_2-" + "x" * 25),
     ],
 )
 def test_boundary_values_are_accepted(key: str, value: Any, stored: Any) -> None:

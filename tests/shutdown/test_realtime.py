@@ -15,6 +15,7 @@ import os
 import subprocess
 import sys
 import textwrap
+import threading
 import weakref
 from collections.abc import Iterator
 from typing import Any
@@ -29,6 +30,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.manager import BusManager
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
+from tests.helpers import affinities, affinity_kept
 
 
 @pytest.fixture(autouse=True)
@@ -198,6 +200,82 @@ def test_bad_arguments_are_refused_before_anything_changes(
         assert info.value.field == "cpus"
     assert calls == []
     assert gc.get_freeze_count() == 0 and not realtime.gc_controlled()
+
+
+# -- pin(): every thread of the process ------------------------------------------------------
+
+
+@pytest.fixture
+def idle_thread() -> Iterator[threading.Thread]:
+    """A thread that exists before the pin and lives until the test ends."""
+    stop = threading.Event()
+    thread = threading.Thread(target=stop.wait, daemon=True)
+    thread.start()
+    yield thread
+    stop.set()
+    thread.join()
+
+
+def test_pin_moves_every_thread_and_restore_gives_each_its_cpus_back(
+    idle_thread: threading.Thread,
+) -> None:
+    with affinity_kept() as allowed:
+        cpu = max(allowed)
+        assert idle_thread.native_id is not None
+        os.sched_setaffinity(idle_thread.native_id, {min(allowed)})  # its own CPUs
+        pinning = realtime.pin([cpu])
+        assert pinning.cpus == frozenset({cpu})
+        assert set(affinities().values()) == {frozenset({cpu})}
+        stop = threading.Event()
+        born = threading.Thread(target=stop.wait, daemon=True)  # started while pinned
+        born.start()
+        try:
+            assert born.native_id is not None
+            assert os.sched_getaffinity(born.native_id) == {cpu}  # inherited
+            pinning.restore()
+            assert os.sched_getaffinity(0) == allowed
+            assert os.sched_getaffinity(idle_thread.native_id) == {min(allowed)}
+            assert os.sched_getaffinity(born.native_id) == allowed  # the pinner's CPUs
+        finally:
+            stop.set()
+            born.join()
+
+
+def test_restore_leaves_a_thread_moved_since_the_pin(idle_thread: threading.Thread) -> None:
+    with affinity_kept() as allowed:
+        assert idle_thread.native_id is not None
+        pinning = realtime.pin([max(allowed)])
+        os.sched_setaffinity(idle_thread.native_id, {min(allowed)})  # someone else's choice
+        pinning.restore()
+        assert os.sched_getaffinity(idle_thread.native_id) == {min(allowed)}
+        assert os.sched_getaffinity(0) == allowed
+        pinning.restore()  # twice is harmless
+        assert os.sched_getaffinity(0) == allowed
+
+
+def test_a_refused_pin_leaves_every_thread_where_it_was(
+    idle_thread: threading.Thread, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    real = os.sched_setaffinity
+    with affinity_kept() as allowed:
+        before = affinities()
+        calls: list[int] = []
+
+        def second_refused(tid: int, cpus: Any) -> None:
+            calls.append(tid)
+            if len(calls) == 2 and frozenset(cpus) != allowed:
+                raise OSError(errno.EINVAL, "Invalid argument")
+            real(tid, cpus)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(os, "sched_setaffinity", second_refused)
+            with pytest.raises(OSError, match=r"cannot run on CPUs \d: Invalid argument"):
+                realtime.pin([max(allowed)])
+        assert len(calls) >= 3  # one moved, one refused, the moved one put back
+        assert affinities() == before
+        with pytest.raises(LocalProtocolError, match="cpus"):
+            realtime.pin([(os.cpu_count() or 1)])
+        assert affinities() == before
 
 
 # -- garbage-collector control ---------------------------------------------------------------
