@@ -17,16 +17,20 @@ import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from motorbus.cli.bus_options import open_bus, resolve_port
-from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, build_parser
+from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, build_parser
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol.base import Family
 from motorbus.sim.bus import SimBus
 from motorbus.sim.la import LAModel
+from motorbus.sim.process import SimProcess
 from motorbus.transport.serial import SerialTransport
-from tests.helpers import cli, json_lines
+from tests.helpers import affinities, affinity_kept, cli, json_lines
 
 LA_BAUD = 921600
 #: How often the echoing device looks for host bytes, seconds.
@@ -202,3 +206,115 @@ def test_monitor_and_capture_on_a_held_port_point_at_a_tap(held: str, command: l
     assert r.returncode == EXIT_FAILURE
     assert f"is in use by PID {os.getpid()} (" in r.stderr, r.stderr
     assert "tap" in r.stderr and "poll_status=True" in r.stderr, r.stderr
+
+
+# -- --process: one process group of the bus file, on its CPUs -------------------------------
+
+MISSING = "/dev/motorbus-no-such-port-{}"
+
+
+def group_file(tmp_path: Path, arm: str, cpu: int) -> Path:
+    """Group "arms": bus "arm" on ``arm``; group "legs": buses "hip" and "knee", and a bus
+    of no group, all on ports that do not exist (opening one fails the command)."""
+    path = tmp_path / "groups.toml"
+    path.write_text(
+        f"""
+[[bus]]
+name = "spare"
+url = "{MISSING.format(1)}"
+baud = {LA_BAUD}
+
+[[bus]]
+name = "arm"
+url = "{arm}"
+baud = {LA_BAUD}
+process = "arms"
+devices = ["la:1"]
+
+[[bus]]
+name = "hip"
+url = "{MISSING.format(2)}"
+baud = {LA_BAUD}
+process = "legs"
+
+[[bus]]
+name = "knee"
+url = "{MISSING.format(3)}"
+baud = {LA_BAUD}
+process = "legs"
+
+[process.arms]
+cpus = [{cpu}]
+""",
+        encoding="utf-8",
+    )
+    return path
+
+
+def test_bus_file_process_chooses_among_the_groups_buses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "no-config"))
+    path = group_file(tmp_path, "/dev/motorbus-arm", 0)
+
+    def parse(*extra: str) -> Any:
+        return build_parser().parse_args(["stream", "t.csv", "--bus-file", str(path), *extra])
+
+    args = parse("--process", "arms")  # the group's only bus: no --bus needed
+    assert resolve_port(args) == "/dev/motorbus-arm"
+    assert args.process_group.cpus == frozenset({0})
+    args = parse("--process", "legs", "--bus", "knee")
+    assert resolve_port(args) == MISSING.format(3)
+    with pytest.raises(UsageError) as info:
+        resolve_port(parse("--process", "legs"))
+    assert str(info.value) == (
+        f"process group legs of {path} has 2 buses: choose one with --bus hip|knee"
+    )
+    with pytest.raises(UsageError) as info:
+        resolve_port(parse("--process", "legs", "--bus", "arm"))
+    assert str(info.value) == (
+        f"--bus arm: process group legs of {path} has no such bus: choose one of hip, knee"
+    )
+    with pytest.raises(LocalProtocolError) as info:
+        resolve_port(parse("--process", "hands"))
+    assert str(info.value) == (
+        f"{path}: process='hands' is not a process group of this file: choose one of arms, legs"
+    )
+    args = build_parser().parse_args(["stream", "t.csv", "--port", "/dev/x", "--process", "a"])
+    with pytest.raises(UsageError, match="--process a: no bus file: give --bus-file"):
+        resolve_port(args)
+
+
+async def test_bus_file_process_runs_the_command_on_the_groups_cpus(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "no-config"))
+    with affinity_kept() as allowed, SimProcess(["la:1"], baud=LA_BAUD) as sim:
+        cpu = max(allowed)
+        path = group_file(tmp_path, sim.path, cpu)
+        args = build_parser().parse_args(
+            ["monitor", "--bus-file", str(path), "--process", "arms", "--ids", "1"]
+        )
+        async with open_bus(args, [Family.LA]) as bus:
+            assert bus.transport.url == sim.path
+            assert set(affinities().values()) == {frozenset({cpu})}
+            assert (await InspireLA(bus, 1).status()).id == 1
+        assert frozenset(os.sched_getaffinity(0)) == allowed
+
+
+def test_bus_file_process_on_the_command_line(tmp_path: Path) -> None:
+    with SimProcess(["la:1"], baud=LA_BAUD) as sim:
+        path = group_file(tmp_path, sim.path, 0)
+        r = cli("monitor", "--bus-file", str(path), "--process", "arms", "--ids", "1",
+                "--count", "1", "--json")  # fmt: skip
+        assert r.returncode == EXIT_OK, r.stderr
+        assert [s["id"] for s in json_lines(r.stdout)[0]["statuses"]] == [1]
+    r = cli("monitor", "--bus-file", str(path), "--process", "hands", "--count", "1")
+    assert r.returncode == EXIT_USAGE
+    assert r.stderr.strip() == (
+        f"motorbus monitor: {path}: process='hands' is not a process group of this file: "
+        "choose one of arms, legs"
+    )
+    r = cli("monitor", "--listen", "--port", "/dev/x", "--process", "arms")
+    assert r.returncode == EXIT_USAGE
+    assert "--process goes with a monitor that drives its bus, not --listen" in r.stderr

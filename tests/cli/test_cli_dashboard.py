@@ -44,9 +44,12 @@ def _env() -> dict[str, str]:
 
 
 @asynccontextmanager
-async def dashboard(sim: SimProcess | None, *extra: str) -> AsyncIterator[str]:
+async def dashboard(
+    sim: SimProcess | None, *extra: str, pids: list[int] | None = None
+) -> AsyncIterator[str]:
     """Run ``motorbus dashboard`` (on the simulator's pty, if given); yield the URL it
-    printed.  On the way out it gets SIGTERM, and must end with status 0."""
+    printed (and append its process ID to ``pids``).  On the way out it gets SIGTERM, and
+    must end with status 0."""
     port = ["--port", sim.path, "--ids", "1-3"] if sim is not None else []
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "motorbus", "dashboard", *port,
@@ -54,6 +57,8 @@ async def dashboard(sim: SimProcess | None, *extra: str) -> AsyncIterator[str]:
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=_env(),
     )  # fmt: skip
     assert proc.stdout is not None and proc.stderr is not None
+    if pids is not None:
+        pids.append(proc.pid)
     try:
         line = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
         if not line:
@@ -338,6 +343,39 @@ async def test_every_bus_of_a_bus_file_with_its_keys(tmp_path: Path) -> None:
         names = [f["name"] for f in sim_frames(feeder, "request")]
         assert names.count("ReadProject") == 4
         assert {"StopProject", "ManualStop", "StopAll"} <= set(names)
+
+
+async def test_a_bus_file_process_group_is_served_on_its_cpus(tmp_path: Path) -> None:
+    allowed = os.sched_getaffinity(0)
+    if len(allowed) < 2:
+        pytest.skip("this process may use one CPU only: a pin could not be seen")
+    cpu = max(allowed)
+    missing = "/dev/motorbus-no-such-port"  # any bus but the group's fails the dashboard
+    with SimProcess(["la:1"], baud=921600) as arm:
+        buses = tmp_path / "buses.toml"
+        buses.write_text(
+            f'[[bus]]\nname = "spare"\nurl = "{missing}-1"\nbaud = 921600\n'
+            f'[[bus]]\nname = "arm"\nurl = "{arm.path}"\nbaud = 921600\nprocess = "arms"\n'
+            'devices = ["la:1"]\n'
+            f'[[bus]]\nname = "hip"\nurl = "{missing}-2"\nbaud = 921600\nprocess = "legs"\n'
+            f"[process.arms]\ncpus = [{cpu}]\n"
+        )
+        pids: list[int] = []
+        async with dashboard(None, "--bus-file", str(buses), "--process", "arms", pids=pids) as url:
+            state = await asyncio.to_thread(get_json, url + "api/state")
+            assert [b["name"] for b in state["buses"]] == ["arm"]
+            tasks = Path(f"/proc/{pids[0]}/task")
+            cpus = {frozenset(os.sched_getaffinity(int(t.name))) for t in tasks.iterdir()}
+            assert cpus == {frozenset({cpu})}  # every thread of the dashboard
+    r = cli("dashboard", "--bus-file", str(buses), "--process", "hands")
+    assert r.returncode == 2
+    assert r.stderr.strip() == (
+        f"motorbus dashboard: {buses}: process='hands' is not a process group of this "
+        "file: choose one of arms, legs"
+    )
+    r = cli("dashboard", "--port", missing, "--process", "arms")
+    assert r.returncode == 2
+    assert "--process chooses buses of the bus file; --port names one" in r.stderr
 
 
 async def test_listening_beyond_loopback_needs_the_printed_token(sim: SimProcess) -> None:

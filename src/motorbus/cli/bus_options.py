@@ -13,6 +13,11 @@ with the file, the bus, the key, the value and what is allowed), and the chosen 
 opens with every key its table sets: ``rs485``, ``remove_echo``, ``low_latency``,
 ``share``, ``min_spacing_ms``, ``host_margin_ms``, ``retries``.  Input is checked
 before the port opens, so bad input never puts a byte on the wire.
+
+The commands that serve buses for a while (``stream``, ``monitor``, ``dashboard``) also
+take ``--process NAME``: the bus is chosen among that process group's buses (the only
+one needs no ``--bus``), and the command runs on the group's ``cpus`` while its bus is
+open (:mod:`motorbus.process_groups`).
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from motorbus import (
     Bus,
     Transport,
     open_transport,
+    realtime,
 )
 from motorbus.cli.main import UsageError
 from motorbus.cli.output import add_json_option
@@ -39,7 +45,7 @@ from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
 
 if TYPE_CHECKING:
-    from motorbus import BusSpec
+    from motorbus import BusSpec, ProcessGroup
 
 __all__ = [
     "BACKEND_ENV",
@@ -53,6 +59,7 @@ __all__ = [
     "STEPPER_BAUD",
     "add_bus_options",
     "add_guard_option",
+    "add_process_option",
     "available_ports",
     "bus_timing",
     "chosen_bus",
@@ -89,6 +96,8 @@ CLI_HOST_MARGIN_S = 0.050
 #: and the keys its table sets.
 _SPEC_ATTR = "bus_spec"
 _GIVEN_ATTR = "bus_keys"
+#: ... and the process group ``--process`` chose (a ``ProcessGroup``).
+_GROUP_ATTR = "process_group"
 
 
 GUARD_HELP = (
@@ -102,6 +111,16 @@ def add_guard_option(parser: argparse.ArgumentParser, help_text: str = GUARD_HEL
     """Add ``--guard`` to a command that moves things, or leaves a device unsafe if it
     is killed part way (``project upload``); ``main`` starts the guard."""
     parser.add_argument("--guard", action="store_true", help=help_text)
+
+
+def add_process_option(parser: argparse.ArgumentParser) -> None:
+    """Add ``--process NAME``: serve a process group of the bus file, on its CPUs."""
+    parser.add_argument(
+        "--process",
+        metavar="NAME",
+        help="the process group of the bus file to serve: its buses only ([[bus]] process = "
+        "NAME), and run on its CPUs ([process.NAME] cpus) while they are open",
+    )
 
 
 def add_bus_options(
@@ -169,7 +188,8 @@ def chosen_bus(
     """
     explicit = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     name = getattr(args, "bus", None) or os.environ.get(BUS_ENV)
-    if not explicit and port_given and not name:
+    process = getattr(args, "process", None)
+    if not explicit and port_given and not name and not process:
         return None
     # The bus file reader (tomllib, every family's checks) only when a file may apply:
     # ``motorbus la status 1 --port P`` starts without it.
@@ -181,26 +201,31 @@ def chosen_bus(
     if path is None or not path.is_file():
         if explicit:
             raise UsageError(f"--bus-file {path}: no such file")
-        if name:
-            raise UsageError(
-                f"--bus {name}: no bus file: give --bus-file or create {_USER_FILE_HINT}"
-            )
+        for option, value in (("--bus", name), ("--process", process)):
+            if value:
+                raise UsageError(
+                    f"{option} {value}: no bus file: give --bus-file or create {_USER_FILE_HINT}"
+                )
         return None  # the default user file is optional
     try:
         bus_file = load_bus_file(path)
     except OSError as err:
         raise UsageError(f"{path}: cannot read: {_one_line(err)}") from err
     names = bus_file.names()
+    among = f"{path} has"
+    if process:
+        group = bus_file.group(process)  # no such group: exit 2, naming the groups
+        setattr(args, _GROUP_ATTR, group)
+        names = list(group.buses)
+        among = f"process group {process} of {path} has"
     if name:
         if name not in names:
-            raise UsageError(
-                f"--bus {name}: {path} has no such bus: choose one of {', '.join(names)}"
-            )
+            raise UsageError(f"--bus {name}: {among} no such bus: choose one of {', '.join(names)}")
         spec = bus_file.spec(name)
     elif len(names) == 1:
-        spec = bus_file.specs[0]
-    elif explicit:
-        raise UsageError(f"{path} has {len(names)} buses: choose one with --bus {'|'.join(names)}")
+        spec = bus_file.spec(names[0])
+    elif explicit or process:
+        raise UsageError(f"{among} {len(names)} buses: choose one with --bus {'|'.join(names)}")
     else:
         return None  # a user file with several buses only applies when one is named
     return spec, bus_file.given[spec.name]
@@ -311,9 +336,33 @@ async def open_bus(
     Raises:
         UsageError: see :func:`open_port`.
         PortInUseError: another program holds the port (the message names it).
-        OSError: the port cannot be opened (the message names it).
+        OSError: the port cannot be opened (the message names it), or the kernel
+            refused the CPUs of the ``--process`` group (the message names the group).
     """
     transport = open_port(args)
+    pinning = _pin(getattr(args, _GROUP_ATTR, None))  # before the bus opens, as BusManager
+    try:
+        async with _opened_bus(args, transport, families, host_margin) as bus:
+            yield bus
+    finally:
+        if pinning is not None:
+            pinning.restore()
+
+
+def _pin(group: ProcessGroup | None) -> realtime.Pinning | None:
+    """Run on the CPUs of the group ``--process`` chose, if it gives any."""
+    if group is None or group.cpus is None:
+        return None
+    try:
+        return realtime.pin(group.cpus)
+    except OSError as err:
+        raise OSError(err.errno, f"--process {group.name}: {err.strerror}") from err
+
+
+@asynccontextmanager
+async def _opened_bus(
+    args: argparse.Namespace, transport: Transport, families: Iterable[Family], host_margin: float
+) -> AsyncIterator[Bus]:
     bus = Bus(
         transport,
         name=transport.url,

@@ -4,6 +4,7 @@ Examples::
 
     motorbus dashboard --port /dev/ttyUSB0 --ids 1-3
     motorbus dashboard --bus-file buses.toml --control
+    motorbus dashboard --bus-file buses.toml --process arms   # one group, on its CPUs
     motorbus dashboard --port /dev/ttyUSB0 --listen 0.0.0.0:8765   # prints a token URL
 
 Needs the dashboard extra: pip install 'motorbus[dashboard]'.  On start it prints the
@@ -14,7 +15,8 @@ work, clear fault, move-to inside --window).  It listens on 127.0.0.1 unless --l
 says otherwise; then every request needs the random token printed in the URL.
 
 Without --bus-file it watches one port (--ids, else --devices la:1-3,quad-stepper...,
-else a scan); with --bus-file every bus of the file (or --bus NAME), every key honoured.
+else a scan); with --bus-file every bus of the file (or --bus NAME), every key honoured;
+with --process NAME only that process group's buses, and it runs on the group's CPUs.
 --record DIR writes each bus's frame log (motorbus replay reads it) and plots.csv.
 Ctrl-C or SIGTERM ends it (exit code 0) after pausing what it moved.
 """
@@ -30,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from motorbus import BusManager, Family, scan
+from motorbus import BusManager, Family, default_bus_file, scan
 from motorbus import run as run_safely
 from motorbus.cli.bus_options import (
     BUS_FILE_ENV,
@@ -38,6 +40,7 @@ from motorbus.cli.bus_options import (
     LA_BAUD,
     PORT_ENV,
     add_bus_options,
+    add_process_option,
     resolve_port,
 )
 from motorbus.cli.ids import parse_ids
@@ -92,6 +95,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--record", metavar="DIR", help="record frame logs and plots.csv into DIR")
     p.add_argument("--push-hz", type=float, default=10.0, help="page updates a second (10)")
     add_bus_options(p, default_baud=LA_BAUD, json_option=False)
+    add_process_option(p)
     p.set_defaults(func=run)
 
 
@@ -162,18 +166,26 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
     """The buses to watch and, per bus, the LA IDs (``None``: scan for them)."""
     port_given = bool(getattr(args, "port", None) or os.environ.get(PORT_ENV))
     bus_file = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
+    if args.process and port_given:
+        raise UsageError("--process chooses buses of the bus file; --port names one: give one")
+    if args.process and not bus_file:
+        bus_file = default_bus_file()
+        if bus_file is None or not bus_file.is_file():
+            raise UsageError(f"--process {args.process}: no bus file: give --bus-file")
     if bus_file and not port_given:
         if args.ids or args.devices:
             raise UsageError("--ids and --devices go with --port; the bus file lists devices")
-        loaded = BusManager.from_toml(bus_file, safe_stop=False)
+        loaded = BusManager.from_toml(bus_file, safe_stop=False, process=args.process)
         manager = BusManager(safe_stop=False)
+        manager.process = loaded.process  # --process: its CPUs while the buses are open
         for name, spec in loaded.specs.items():
             if args.bus and name != args.bus:
                 continue
             manager.add_spec(spec)
         if not manager.specs:
+            among = f"process group {args.process} of " if args.process else ""
             raise UsageError(
-                f"--bus {args.bus}: {bus_file} has no such bus: "
+                f"--bus {args.bus}: {among}{bus_file} has no such bus: "
                 f"choose one of {', '.join(loaded.specs)}"
             )
     else:

@@ -21,6 +21,9 @@ plot shows the last refreshes that fit its width.
 actuator sent (``--family`` for a stepper bus; ``--seconds`` ends it)::
 
     motorbus monitor --listen --port /tmp/ttyLA.tap
+
+With ``--bus-file F --process NAME`` the bus is one of that process group's (its only
+one needs no ``--bus``), and the monitor runs on the group's CPUs.
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from typing import Any
 
 from motorbus import Bus, InspireLA, scan
 from motorbus.cli import listen, plot
-from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
+from motorbus.cli.bus_options import LA_BAUD, add_bus_options, add_process_option, open_bus
 from motorbus.cli.capture import FAMILY_BAUD
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
@@ -90,6 +93,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--seconds", type=float, help="with --listen: stop after this long")
     add_bus_options(p, default_baud=LA_BAUD)
+    add_process_option(p)
     p.set_defaults(func=run)
 
 
@@ -106,6 +110,8 @@ def run(args: argparse.Namespace) -> int:
     if args.listen:
         if args.plot is not None:
             raise UsageError("--plot does not go with --listen")
+        if args.process is not None:
+            raise UsageError("--process goes with a monitor that drives its bus, not --listen")
         check_seconds("--seconds", args.seconds, 1e-3)
         family = Family(args.family or Family.LA.value)
         args._default_baud = FAMILY_BAUD[family]

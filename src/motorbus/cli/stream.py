@@ -41,6 +41,9 @@ it, each actuator gets a 0x20 frame and answers with its status.  Live statistic
 summary to standard output (JSON with --json).  Skipped ticks (targets never sent)
 or unanswered feedback make the exit code 1, and standard error says which.
 Ctrl-C stops the stream and pauses the actuators (exit code 130).
+
+With --bus-file F --process NAME the bus is one of that process group's (its only one
+needs no --bus), and the stream runs on the CPUs the group's [process.NAME] table gives.
 """
 
 from __future__ import annotations
@@ -62,7 +65,13 @@ from motorbus import (
     SafeAction,
     Streamer,
 )
-from motorbus.cli.bus_options import LA_BAUD, add_bus_options, add_guard_option, open_bus
+from motorbus.cli.bus_options import (
+    LA_BAUD,
+    add_bus_options,
+    add_guard_option,
+    add_process_option,
+    open_bus,
+)
 from motorbus.cli.ids import check_ids, parse_ids
 from motorbus.cli.output import plural, print_json
 from motorbus.cli.values import check_seconds
@@ -136,6 +145,7 @@ def register(subparsers: Any) -> None:
         f"(default {DEFAULT_RAMP_S:g}; 0 = no ramp)",
     )
     add_bus_options(p, default_baud=LA_BAUD)
+    add_process_option(p)
     add_guard_option(p)
     p.set_defaults(func=run)
 
