@@ -54,13 +54,13 @@ process             the process group that serves the bus: 1..32 ASCII letters,
                     digits, ``-`` or ``_`` (default none)
 ==================  ===============================================================
 
-Process groups.  A program that opens the file for one group
-(``BusManager.from_toml(path, process="arms")``, ``motorbus dashboard --process
-arms``) opens exactly the buses whose ``process`` is that group - not the buses without
-one, which every program that opens the file without choosing a group opens, so no two
-programs open one port - and runs on the group's CPUs.  A program that chooses no group
-opens every bus and pins nothing, as before.  A bus nobody's group names is not an
-error: each program opens its own.  A group may have a table of its own:
+Process groups.  ``process = "arms"`` puts a bus in group ``arms``.  A program that
+chooses that group (``BusManager.from_toml(path, process="arms")``, ``motorbus
+dashboard --process arms``) opens exactly the group's buses and runs on the group's
+CPUs.  A bus without ``process`` is opened only by the programs that choose no group;
+those open every bus of the file and pin nothing, as before.  So two group programs
+never open one port, and a bus that no running program serves is not an error.  A
+group may have a table of its own:
 
 ==================  ===============================================================
 ``[process.NAME]``  NAME a group some ``[[bus]]`` names (a table for a group without
