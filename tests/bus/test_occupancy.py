@@ -6,9 +6,18 @@ reply 22; LA turnaround 800 us (manual 3.4.2); spacing 1 ms; host margin 2 ms.
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
-from motorbus.bus.occupancy import BusTiming, command_occupancy, occupancy, reply_slack
+from motorbus.bus.bus import Bus
+from motorbus.bus.occupancy import (
+    BusTiming,
+    OccupancyTable,
+    command_occupancy,
+    occupancy,
+    reply_slack,
+)
 from motorbus.bus.options import DEFAULT_TURNAROUND
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
@@ -64,3 +73,34 @@ def test_reply_slack_is_the_shortest_turnaround_plus_the_margin() -> None:
     assert la_only == pytest.approx(DEFAULT_TURNAROUND[Family.LA] + 2e-3)
     assert reply_slack(t) == pytest.approx(min(DEFAULT_TURNAROUND.values()) + 2e-3)
     assert reply_slack(t) <= la_only
+
+
+def test_the_table_answers_as_command_occupancy_for_every_shape() -> None:
+    """A bus remembers occupancies per frame shape; every answer is the function's."""
+    t = timing(115200)
+    table = OccupancyTable(t)
+    cmds = [
+        la.Control(1, la.ControlAction.QUERY_STATUS),
+        la.Control(2, la.ControlAction.QUERY_STATUS),  # same shape: the same answer
+        la.Follow(3, 700, True),
+        la.Broadcast(la.BroadcastMode.FOLLOW, ((1, 5), (2, 6))),
+        la.Broadcast(la.BroadcastMode.FOLLOW, tuple((i, 5) for i in range(1, 16))),
+    ]
+    for cmd in cmds * 2:
+        assert table.of(cmd) == command_occupancy(t, cmd)
+        assert table.of(cmd, len(cmd.encode())) == command_occupancy(t, cmd)
+    assert len(table._known) == 4
+
+
+def test_a_bus_config_is_frozen_so_its_costs_cannot_go_stale() -> None:
+    from motorbus.transport.memory import memory_pair
+
+    transport, _ = memory_pair(baudrate=115200)
+    bus = Bus(transport, families=[Family.LA], host_margin=0.004)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        bus.config.host_margin = 0.0  # type: ignore[misc]
+    with pytest.raises(TypeError):
+        bus.config.turnaround[Family.LA] = 0.0  # type: ignore[index]
+    assert bus.timing == BusTiming(115200, 1e-3, 0.004, bus.config.turnaround)
+    query = la.Control(1, la.ControlAction.QUERY_STATUS)
+    assert bus.occupancy(query) == command_occupancy(bus.timing, query)

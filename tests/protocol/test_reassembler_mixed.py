@@ -398,9 +398,7 @@ def test_seeded_streams_count_the_excluded_case_and_recover_the_rest() -> None:
     commands = sorted(LA_COMMANDS)
 
     def la_body() -> bytes:
-        return bytes((rng.randrange(256), rng.choice(commands))) + rng.randbytes(
-            rng.randint(1, 22)
-        )
+        return bytes((rng.randrange(256), rng.choice(commands))) + rng.randbytes(rng.randint(1, 22))
 
     def stray() -> bytes:
         return bytes(

@@ -52,7 +52,7 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Iterable, Mapping
-from types import TracebackType
+from types import MappingProxyType, TracebackType
 from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
@@ -60,7 +60,7 @@ from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refres
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
-from motorbus.bus.occupancy import BusTiming, Occupancy, command_occupancy, reply_slack
+from motorbus.bus.occupancy import BusTiming, Occupancy, OccupancyTable, reply_slack
 from motorbus.bus.options import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
 from motorbus.bus.options import DEFAULT_LATE_GUARD_S as DEFAULT_LATE_GUARD_S
 from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
@@ -157,13 +157,17 @@ class Bus(BusEngine):
         config = BusConfig(
             min_spacing=min_spacing,
             host_margin=host_margin,
-            turnaround={**DEFAULT_TURNAROUND, **(turnaround or {})},
+            turnaround=MappingProxyType({**DEFAULT_TURNAROUND, **(turnaround or {})}),
             retries=retries,
             late_guard=late_guard,
             reconnect=reconnect,
             wire_floor=wire_floor,
         )
         super().__init__(transport, name or transport.url, frozenset(families), config, timer)
+        # The config is frozen and a transport keeps its baud: the costs are fixed.
+        self._occupancies = OccupancyTable(
+            BusTiming(transport.baudrate, min_spacing, host_margin, config.turnaround)
+        )
         self._close_hooks: list[Callable[[], Awaitable[None]]] = []
         self._close_task: asyncio.Future[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -306,15 +310,14 @@ class Bus(BusEngine):
     @property
     def timing(self) -> BusTiming:
         """The facts this bus's frame costs depend on: baud, spacing, margin, turnarounds."""
-        cfg = self.config
-        return BusTiming(self.baudrate, cfg.min_spacing, cfg.host_margin, cfg.turnaround)
+        return self._occupancies.timing
 
     def occupancy(self, cmd: Command[object], request_size: int | None = None) -> Occupancy:
         """How long ``cmd`` and its reply hold this bus (``motorbus.bus.occupancy``).
 
         ``request_size`` saves re-encoding when the caller has the bytes already.
         """
-        return command_occupancy(self.timing, cmd, request_size)
+        return self._occupancies.of(cmd, request_size)
 
     def reply_budget(self, cmd: Command[object], request_size: int | None = None) -> float:
         """Seconds from the completed write of ``cmd`` to its reply deadline.

@@ -37,7 +37,14 @@ from dataclasses import dataclass
 
 from motorbus.protocol.base import Command, Family, wire_time
 
-__all__ = ["BusTiming", "Occupancy", "command_occupancy", "occupancy", "reply_slack"]
+__all__ = [
+    "BusTiming",
+    "Occupancy",
+    "OccupancyTable",
+    "command_occupancy",
+    "occupancy",
+    "reply_slack",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,18 +110,49 @@ def occupancy(
     )
 
 
+def _shape(cmd: Command[object], request_bytes: int | None) -> tuple[Family, int, int]:
+    """What ``cmd``'s occupancy depends on: family, request bytes, longest reply bytes."""
+    lengths = cmd.reply_lengths()
+    return (
+        cmd.family,
+        len(cmd.encode()) if request_bytes is None else request_bytes,
+        max(lengths) if lengths else 0,
+    )
+
+
 def command_occupancy(
     timing: BusTiming, cmd: Command[object], request_bytes: int | None = None
 ) -> Occupancy:
     """The occupancy of ``cmd``; ``request_bytes`` saves re-encoding when the caller
     has the bytes already."""
-    lengths = cmd.reply_lengths()
-    return occupancy(
-        timing,
-        cmd.family,
-        request_bytes=len(cmd.encode()) if request_bytes is None else request_bytes,
-        reply_bytes=max(lengths) if lengths else 0,
-    )
+    family, request, reply = _shape(cmd, request_bytes)
+    return occupancy(timing, family, request_bytes=request, reply_bytes=reply)
+
+
+class OccupancyTable:
+    """``command_occupancy`` on one bus's timing, remembered per shape of frame (family,
+    request and reply sizes): a bus asks for every frame it queues, and a bus sends few
+    shapes."""
+
+    #: Shapes remembered at most (a bus with more starts over: far beyond the manuals).
+    SHAPES_MAX = 1024
+
+    def __init__(self, timing: BusTiming) -> None:
+        self.timing = timing
+        self._known: dict[tuple[Family, int, int], Occupancy] = {}
+
+    def of(self, cmd: Command[object], request_bytes: int | None = None) -> Occupancy:
+        """The occupancy of ``cmd`` (as ``command_occupancy``)."""
+        shape = _shape(cmd, request_bytes)
+        known = self._known.get(shape)
+        if known is None:
+            if len(self._known) >= self.SHAPES_MAX:
+                self._known.clear()
+            family, request, reply = shape
+            known = self._known[shape] = occupancy(
+                self.timing, family, request_bytes=request, reply_bytes=reply
+            )
+        return known
 
 
 def reply_slack(timing: BusTiming, families: Iterable[Family] | None = None) -> float:

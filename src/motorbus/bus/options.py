@@ -11,6 +11,7 @@ from __future__ import annotations
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 from motorbus.bus.schedule import Priority
 from motorbus.errors import LocalProtocolError
@@ -46,13 +47,19 @@ DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 
 DEFAULT_LATE_GUARD_S = 20e-3
 
 
-@dataclass(slots=True)
+@dataclass(frozen=True, slots=True)
 class BusConfig:
-    """Timing policy of one bus (all durations in seconds)."""
+    """Timing policy of one bus (all durations in seconds).
+
+    Frozen: ``Bus`` checks every value when it is built and derives its frame costs
+    from them once (``Bus.timing``); give a bus other timing by building another.
+    """
 
     min_spacing: float = MIN_SPACING_S
     host_margin: float = DEFAULT_HOST_MARGIN_S
-    turnaround: dict[Family, float] = field(default_factory=lambda: dict(DEFAULT_TURNAROUND))
+    turnaround: Mapping[Family, float] = field(
+        default_factory=lambda: MappingProxyType(dict(DEFAULT_TURNAROUND))
+    )
     retries: int = 1
     late_guard: float = DEFAULT_LATE_GUARD_S
     reconnect: bool = True

@@ -411,23 +411,28 @@ class TimerfdTimer(Timer):
     machine (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine,
     whose cores sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
 
-    The lead is what the recent wake-ups need, no more: the 99th percentile of the last
-    ``LATENESS_SAMPLES`` wake-ups' lateness, less the ``tolerance`` a deadline may be
-    late (50 us by default), at most ``spin_lead`` (500 us).  A machine whose wake-ups
-    are prompt (a busy one, or a real-time thread) spins not at all; an idle one spins
-    what its sleeping cores cost.  Wake-ups later than ``spin_lead + tolerance`` are left
-    out of the percentile: no spin can make up for a thread that was not running.
-    ``spin_lead=0`` (or ``MOTORBUS_TIMER_SPIN_US=0``) turns spinning off;
-    ``MOTORBUS_TIMER_TOLERANCE_US`` sets the tolerance.
+    The lead is what the recent wake-ups need: the 99th percentile of the last
+    ``LATENESS_SAMPLES`` wake-ups' lateness, less a tolerance a deadline may be late
+    (``MOTORBUS_TIMER_TOLERANCE_US``, 0 by default), at least ``LEAD_MIN_S`` (60 us, a
+    margin for the wake-ups the recent ones did not show;
+    ``MOTORBUS_TIMER_LEAD_MIN_US``) and at most ``spin_lead`` (500 us).  A machine
+    whose wake-ups are prompt (a busy one, a real-time thread) spins little; an idle
+    one spins what its sleeping cores cost.  Wake-ups later than ``spin_lead +
+    tolerance`` are left out of the percentile: no spin can make up for a thread that
+    was not running.  ``spin_lead=0`` (or ``MOTORBUS_TIMER_SPIN_US=0``) turns spinning
+    off.
     """
 
     name = "timerfd"
     #: The longest the fd fires before a deadline, to spin the rest (seconds).
     SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
     #: How late a precise deadline may run, to save spinning (seconds).
-    TOLERANCE_S = float(os.environ.get("MOTORBUS_TIMER_TOLERANCE_US", "50")) * 1e-6
+    TOLERANCE_S = float(os.environ.get("MOTORBUS_TIMER_TOLERANCE_US", "0")) * 1e-6
     #: A wake-up before a deadline by less than this still spins (float rounding).
     SPIN_LEAD_MIN_S = 60e-6
+    #: The least lead while spinning is on: a margin over the percentile, for the
+    #: wake-ups the last few hundred did not show.
+    LEAD_MIN_S = float(os.environ.get("MOTORBUS_TIMER_LEAD_MIN_US", "60")) * 1e-6
     #: Recent wake-ups whose lateness sets the lead, and how often it is recomputed.
     LATENESS_SAMPLES = 256
     LEAD_EVERY = 32
@@ -489,7 +494,8 @@ class TimerfdTimer(Timer):
         if self._noted % self.LEAD_EVERY == 0:
             ordered = sorted(samples)
             quantile = ordered[min(len(ordered) - 1, int(self.LEAD_QUANTILE * len(ordered)))]
-            self._lead = min(self._spin_lead, max(0.0, quantile - self.TOLERANCE_S))
+            lead = max(self.LEAD_MIN_S, quantile - self.TOLERANCE_S)
+            self._lead = min(self._spin_lead, lead)
 
     @property
     def lead(self) -> float:
