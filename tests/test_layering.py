@@ -115,7 +115,7 @@ ALLOWED: dict[str, set[str]] = {
     "validation": {"errors", "protocol"},
     "realtime": {"errors"},
     "shutdown": {"errors", "guard"},
-    "guard": {"errors"},
+    "guard": {"errors", "protocol"},
     "transport": {"errors", "protocol", "validation"},
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},

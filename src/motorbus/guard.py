@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from typing import IO, Any
 
 from motorbus.errors import GuardError, LocalProtocolError
+from motorbus.protocol.base import wire_time
 
 __all__ = [
     "FRAME_SPACING_S",
@@ -74,8 +75,6 @@ GAP_AFTER_REPLY_S = 0.002
 QUIET_LIMIT_S = 0.5
 #: How often the guard looks at the line while it waits for quiet.
 QUIET_POLL_S = 0.0002
-#: Bits per byte on the line (8N1), for wire times.
-BITS_PER_BYTE = 10
 #: The host's share of a device's answer time: a USB adapter holds received bytes up to
 #: 1 ms (docs/platform.md).  Not the bus's ``host_margin``, which a loaded test machine
 #: raises to tens of milliseconds: every kill would wait that long before its first frame.
@@ -225,11 +224,6 @@ class PortResult:
     opened: float | None = None
     last_write: float | None = None
     error: str | None = None
-
-
-def wire_time(nbytes: int, baud: int) -> float:
-    """Seconds ``nbytes`` take on the line at ``baud`` (8N1)."""
-    return nbytes * BITS_PER_BYTE / baud
 
 
 def wait_for_quiet(
@@ -436,19 +430,18 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _port_of(bus: Any) -> tuple[str, int, dict[str, Any]] | None:
     """How the guard would open ``bus``'s port, or None (an in-memory link); its
-    ``quiet_s``: how long a device of the bus may take to answer a request (its
-    turnaround, a reply of :data:`REPLY_BYTES`, :data:`HOST_SHARE_S`)."""
+    ``quiet_s``: how long a device of the bus may take to answer a request
+    (``bus.answer_window`` for a reply of :data:`REPLY_BYTES`, plus
+    :data:`HOST_SHARE_S`)."""
     transport = getattr(bus, "transport", None)
     url = getattr(transport, "url", None)
     if not isinstance(url, str):
         return None
     baud = int(bus.baudrate)
     options: dict[str, Any] = {"rs485": bool(getattr(transport, "rs485", False))}
-    config = getattr(bus, "config", None)
-    if config is not None:
-        turnaround = max((config.turnaround.get(f, 0.0) for f in bus.families), default=0.0)
-        quiet = turnaround + wire_time(REPLY_BYTES, baud) + HOST_SHARE_S
-        options["quiet_s"] = min(quiet, QUIET_LIMIT_S)
+    window = getattr(bus, "answer_window", None)
+    if window is not None:
+        options["quiet_s"] = min(window(REPLY_BYTES) + HOST_SHARE_S, QUIET_LIMIT_S)
     return url, baud, options
 
 

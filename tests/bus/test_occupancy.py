@@ -14,6 +14,7 @@ from motorbus.bus.bus import Bus
 from motorbus.bus.occupancy import (
     BusTiming,
     OccupancyTable,
+    answer_window,
     command_occupancy,
     occupancy,
     reply_slack,
@@ -104,3 +105,10 @@ def test_a_bus_config_is_frozen_so_its_costs_cannot_go_stale() -> None:
     assert bus.timing == BusTiming(115200, 1e-3, 0.004, bus.config.turnaround)
     query = la.Control(1, la.ControlAction.QUERY_STATUS)
     assert bus.occupancy(query) == command_occupancy(bus.timing, query)
+
+
+def test_answer_window_is_the_longest_turnaround_plus_the_reply_on_the_wire() -> None:
+    t = BusTiming(9600, 1e-3, 2e-3, {Family.LA: 800e-6, Family.PROJECT_STEPPER: 5e-3})
+    # 24 bytes at 9600 bit/s: 25 ms; the project stepper's 5 ms turnaround is the longest.
+    assert answer_window(t, [Family.LA], 24) == pytest.approx(800e-6 + 0.025)
+    assert answer_window(t, [Family.LA, Family.PROJECT_STEPPER], 24) == pytest.approx(0.030)

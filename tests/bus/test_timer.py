@@ -279,30 +279,21 @@ def test_timerfd_counts_its_wakeups_and_spin_and_tells_the_wake_observer(
 
 
 def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
-    """The spin lead is the recent wake-ups' p99 lateness less the tolerance, within
-    [LEAD_MIN_S, spin_lead]; a wake-up too late for any spin to help is left out."""
+    """The spin lead is twice the recent worst wake-up lateness, decaying, within
+    [SPIN_LEAD_MIN_S, spin_lead]; with spinning off it is 0."""
     if not timerfd_available():
         pytest.skip("no timerfd on this platform")
-    tolerance, least = TimerfdTimer.TOLERANCE_S, TimerfdTimer.LEAD_MIN_S
 
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=500e-6)
         assert timer.lead == 500e-6  # cautious before anything was measured
-        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
-            timer._note_lateness(20e-6)  # prompt wake-ups: the least lead
-        assert timer.lead == pytest.approx(max(least, 20e-6 - tolerance))
-        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
-            timer._note_lateness(300e-6)
-        assert timer.lead == pytest.approx(max(least, 300e-6 - tolerance))
-        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
-            timer._note_lateness(5e-3)  # not running at all: spinning cannot help
-        assert timer.lead == pytest.approx(max(least, 300e-6 - tolerance))
-        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
-            timer._note_lateness(500e-6 + tolerance)  # just within what a spin can make up
-        assert timer.lead == pytest.approx(500e-6)
+        timer._wake_late = 100e-6
+        assert timer.lead == pytest.approx(200e-6)
+        timer._wake_late = 10e-6  # prompt wake-ups: the least lead
+        assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S
+        timer._wake_late = 2e-3  # very late ones: never more than spin_lead
+        assert timer.lead == 500e-6
         off = TimerfdTimer(spin_lead=0.0)
-        for _ in range(TimerfdTimer.LATENESS_SAMPLES):
-            off._note_lateness(300e-6)
         assert off.lead == 0.0
         timer.close()
         off.close()

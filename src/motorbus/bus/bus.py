@@ -60,7 +60,13 @@ from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refres
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
-from motorbus.bus.occupancy import BusTiming, Occupancy, OccupancyTable, reply_slack
+from motorbus.bus.occupancy import (
+    BusTiming,
+    Occupancy,
+    OccupancyTable,
+    answer_window,
+    reply_slack,
+)
 from motorbus.bus.options import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
 from motorbus.bus.options import DEFAULT_LATE_GUARD_S as DEFAULT_LATE_GUARD_S
 from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
@@ -318,6 +324,11 @@ class Bus(BusEngine):
         ``request_size`` saves re-encoding when the caller has the bytes already.
         """
         return self._occupancies.of(cmd, request_size)
+
+    def answer_window(self, reply_bytes: int) -> float:
+        """How long after a request ends a device of this bus may still be answering
+        with ``reply_bytes`` bytes (``motorbus.bus.occupancy.answer_window``)."""
+        return answer_window(self.timing, self.families, reply_bytes)
 
     def reply_budget(self, cmd: Command[object], request_size: int | None = None) -> float:
         """Seconds from the completed write of ``cmd`` to its reply deadline.

@@ -41,6 +41,7 @@ __all__ = [
     "BusTiming",
     "Occupancy",
     "OccupancyTable",
+    "answer_window",
     "command_occupancy",
     "occupancy",
     "reply_slack",
@@ -164,3 +165,12 @@ def reply_slack(timing: BusTiming, families: Iterable[Family] | None = None) -> 
         timing.turnaround.values() if families is None else [timing.turnaround[f] for f in families]
     )
     return min(chosen) + timing.host_margin
+
+
+def answer_window(timing: BusTiming, families: Iterable[Family], reply_bytes: int) -> float:
+    """From the end of a request until a device of ``families`` has finished answering
+    with ``reply_bytes`` bytes at the latest: the longest turnaround plus the reply's
+    wire time.  Until then a half-duplex line may still be busy (the guard waits this
+    long for a quiet line before each safe frame)."""
+    turnaround = max((timing.turnaround[f] for f in families), default=0.0)
+    return turnaround + wire_time(reply_bytes, timing.baud)

@@ -405,39 +405,29 @@ def _deadline_ns(deadline: float) -> int:
 class TimerfdTimer(Timer):
     """Linux timer: one ``timerfd`` on absolute ``CLOCK_MONOTONIC`` deadlines.
 
-    The fd is armed ``lead`` seconds before the earliest pending precise deadline and
+    The fd is armed ``spin_lead`` seconds before the earliest pending deadline and
     watched with ``loop.add_reader``; the wake-up then spins on the clock for the rest.
-    A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 on a busy
-    machine (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine,
-    whose cores sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
-
-    The lead is what the recent wake-ups need: the 99th percentile of the last
-    ``LATENESS_SAMPLES`` wake-ups' lateness, less a tolerance a deadline may be late
-    (``MOTORBUS_TIMER_TOLERANCE_US``, 0 by default), at least ``LEAD_MIN_S`` (60 us, a
-    margin for the wake-ups the recent ones did not show;
-    ``MOTORBUS_TIMER_LEAD_MIN_US``) and at most ``spin_lead`` (500 us).  A machine
-    whose wake-ups are prompt (a busy one, a real-time thread) spins little; an idle
-    one spins what its sleeping cores cost.  Wake-ups later than ``spin_lead +
-    tolerance`` are left out of the percentile: no spin can make up for a thread that
-    was not running.  ``spin_lead=0`` (or ``MOTORBUS_TIMER_SPIN_US=0``) turns spinning
-    off.
+    A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
+    (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
+    sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
+    Spinning the last part (a lead of 60-500 us that follows recent wake-up lateness)
+    makes a deadline fire within ~25 us at p99, never early, for at most the lead in CPU
+    per wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
+    environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
+    ``wakeups`` and ``spin_seconds`` count what that costs.
     """
 
     name = "timerfd"
     #: The longest the fd fires before a deadline, to spin the rest (seconds).
     SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
-    #: How late a precise deadline may run, to save spinning (seconds).
-    TOLERANCE_S = float(os.environ.get("MOTORBUS_TIMER_TOLERANCE_US", "0")) * 1e-6
-    #: A wake-up before a deadline by less than this still spins (float rounding).
+    #: The shortest lead, whatever the recent wake-ups did.
     SPIN_LEAD_MIN_S = 60e-6
-    #: The least lead while spinning is on: a margin over the percentile, for the
-    #: wake-ups the last few hundred did not show.
-    LEAD_MIN_S = float(os.environ.get("MOTORBUS_TIMER_LEAD_MIN_US", "60")) * 1e-6
-    #: Recent wake-ups whose lateness sets the lead, and how often it is recomputed.
-    LATENESS_SAMPLES = 256
-    LEAD_EVERY = 32
-    #: The share of recent wake-ups the lead is to bring within the tolerance.
-    LEAD_QUANTILE = 0.99
+    #: The lead follows twice the recent worst wake-up lateness, which decays by this
+    #: factor a wake-up: a busy machine wakes promptly and spins little, an idle one
+    #: (deep C-states) wakes late and gets the full lead.  (A lead of the recent p99
+    #: lateness instead spent as much CPU here and let p99 tick jitter grow from
+    #: 150-170 to 185-190 us: bench_late_ticks.py, 2026-12-02.)
+    LATENESS_DECAY = 0.98
 
     def __init__(
         self, loop: asyncio.AbstractEventLoop | None = None, *, spin_lead: float | None = None
@@ -449,9 +439,7 @@ class TimerfdTimer(Timer):
         """
         super().__init__(loop or asyncio.get_running_loop())
         self._spin_lead = self.SPIN_LEAD_S if spin_lead is None else spin_lead
-        self._lead = self._spin_lead  # cautious until the wake-ups have been measured
-        self._lateness: list[float] = []  # a ring of the recent wake-ups' lateness
-        self._noted = 0
+        self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
         self._api = _api()
         self._fd = self._api.create()
         # Closes the fd if the timer is dropped without close() (its loop went away).
@@ -479,28 +467,14 @@ class TimerfdTimer(Timer):
             self._armed_ns = ns
 
     def _current_lead(self) -> float:
-        return self._lead
-
-    def _note_lateness(self, late: float) -> None:
-        """Keep ``late`` among the recent wake-ups; every ``LEAD_EVERY``, a new lead."""
-        if not self._spin_lead or late > self._spin_lead + self.TOLERANCE_S:
-            return  # a thread that was not running: no spin makes up for it
-        samples = self._lateness
-        if len(samples) < self.LATENESS_SAMPLES:
-            samples.append(late)
-        else:
-            samples[self._noted % self.LATENESS_SAMPLES] = late
-        self._noted += 1
-        if self._noted % self.LEAD_EVERY == 0:
-            ordered = sorted(samples)
-            quantile = ordered[min(len(ordered) - 1, int(self.LEAD_QUANTILE * len(ordered)))]
-            lead = max(self.LEAD_MIN_S, quantile - self.TOLERANCE_S)
-            self._lead = min(self._spin_lead, lead)
+        if not self._spin_lead:
+            return 0.0
+        return min(self._spin_lead, max(self.SPIN_LEAD_MIN_S, 2 * self._wake_late))
 
     @property
     def lead(self) -> float:
         """How long before a precise deadline the fd fires now, to spin the rest (s)."""
-        return self._lead
+        return self._current_lead()
 
     def _disarm(self) -> None:
         if self._armed_ns:
@@ -523,7 +497,7 @@ class TimerfdTimer(Timer):
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         if self._armed_ns:
-            self._note_lateness(woke - armed)
+            self._wake_late = max(woke - armed, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
         self.wakeups += 1
         spun_until = woke
