@@ -37,6 +37,15 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from bench_load import (  # README's stream, set up as the load benchmark sets it up
+    BAUD,
+    BROADCAST_BYTES,
+    FRAME_SIZES,
+    N_ACTUATORS,
+    PERIOD_S,
+    go_realtime,
+    trajectory,
+)
 from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
 from late_ticks import CAUSES, TickRecords, attribute, summarise
 from motorbus.bus.timer import TimerfdTimer, default_timer
@@ -46,16 +55,6 @@ from motorbus.sim.process import SimProcess
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "late_ticks.json"
-PERIOD_S = 0.010
-N_ACTUATORS = 15
-BAUD = 921600
-RT_PRIORITY = 50
-BROADCAST_BYTES = len(
-    la.split_broadcast(la.BroadcastMode.FOLLOW, dict.fromkeys(range(1, N_ACTUATORS + 1), 1000))[
-        0
-    ].encode()
-)
-FRAME_SIZES = (len(la.Control(1, la.ControlAction.QUERY_STATUS).encode()), BROADCAST_BYTES)
 GOAL_QUIET_MAX_US = 1000.0
 GOAL_RT_MAX_US = 500.0
 #: Longest a child run may take beyond its planned length.
@@ -67,13 +66,6 @@ KERNEL_KEYS = (
     "late_ticks",
     "missed_ticks",
 )
-
-
-def trajectory(t: float) -> list[float]:
-    return [
-        1000 + 600 * math.sin(2 * math.pi * 0.5 * t + 2 * math.pi * i / N_ACTUATORS)
-        for i in range(N_ACTUATORS)
-    ]
 
 
 class TimedSelector(selectors.DefaultSelector):
@@ -117,15 +109,6 @@ class Recorder:
 
     def close(self) -> None:
         os.close(self._schedstat)
-
-
-def go_realtime() -> str:
-    """Put this process under SCHED_FIFO through motorbus.realtime; say how."""
-    from motorbus import realtime
-
-    realtime.enable(RT_PRIORITY)
-    policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
-    return "motorbus.realtime.enable()" if policy == os.SCHED_FIFO else f"policy {policy}"
 
 
 async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
