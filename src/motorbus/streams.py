@@ -565,14 +565,20 @@ class Streamer:
         # position by _position, so the frames are built without re-checking.
         entries = [(s, pair) for s, targets in parts for pair in targets.items()]
         chunks = [entries[i : i + step] for i in range(0, len(entries), step)]
+        # Built and encoded now, ahead of the deadline (both are kept while every stream
+        # of a frame still sends): at the deadline only the checks and the write are left.
+        builders = [broadcast_builder(chunk) for chunk in chunks]
+        for build in builders:
+            frame = build()
+            if frame is not None:
+                frame.encode()
 
         def fire() -> None:
             if fired.done():
                 return
             futures = []
             try:
-                for chunk in chunks:
-                    build = broadcast_builder(chunk)
+                for build in builders:
                     first = build()
                     if first is None:
                         continue

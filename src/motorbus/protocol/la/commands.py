@@ -480,6 +480,9 @@ class Broadcast(LACommand[None]):
 
     mode: BroadcastMode
     entries: tuple[tuple[int, int], ...]
+    #: The encoded frame, kept by the first ``encode()`` (a stream encodes its tick's
+    #: frame ahead of the deadline, so that only the write is left at the deadline).
+    _raw: bytes | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         check_choice("mode", self.mode, [int(m) for m in BroadcastMode], "F2 position, F3 follow")
@@ -516,6 +519,7 @@ class Broadcast(LACommand[None]):
         obj = object.__new__(cls)
         object.__setattr__(obj, "mode", mode)
         object.__setattr__(obj, "entries", entries)
+        object.__setattr__(obj, "_raw", None)
         return obj
 
     @property
@@ -530,6 +534,8 @@ class Broadcast(LACommand[None]):
 
     def encode(self) -> bytes:
         """Return ``55 AA (1+3N) FF F2|F3 {ID PosL PosH}... CS``."""
+        if self._raw is not None:
+            return self._raw
         # Streams encode one of these per tick and bus: one bytes() call, no loop.
         body = bytes(
             (
@@ -538,7 +544,9 @@ class Broadcast(LACommand[None]):
                 *(b for ident, pos in self.entries for b in (ident, pos & 0xFF, pos >> 8)),
             )
         )
-        return build_frame(LA_REQUEST_HEADER, body)
+        raw = build_frame(LA_REQUEST_HEADER, body)
+        object.__setattr__(self, "_raw", raw)
+        return raw
 
     def reply_lengths(self) -> tuple[int, ...]:
         """``()``: nothing answers a broadcast."""
