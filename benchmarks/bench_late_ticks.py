@@ -43,6 +43,7 @@ from bench_load import (  # README's stream, set up as the load benchmark sets i
     FRAME_SIZES,
     N_ACTUATORS,
     PERIOD_S,
+    cpu_hogs,
     go_realtime,
     trajectory,
 )
@@ -193,20 +194,12 @@ def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> i
 
 
 def one_run(args: argparse.Namespace, k: int, tmp: Path) -> dict[str, Any]:
-    hog = [sys.executable, "-c", "while True: pass"]
     out = tmp / f"run{k}.json"
-    with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD) as sim:
-        hogs = [subprocess.Popen(hog) for _ in range(args.hogs)]
-        try:
-            cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(args.seconds)]
-            cmd += ["--threshold-us", str(args.threshold_us), "--out", str(out)]
-            cmd += ["--realtime"] if args.realtime else []
-            subprocess.run(cmd, check=True, timeout=args.seconds + CHILD_SLACK_S)
-        finally:
-            for h in hogs:
-                h.kill()
-            for h in hogs:
-                h.wait()
+    with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD) as sim, cpu_hogs(args.hogs):
+        cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(args.seconds)]
+        cmd += ["--threshold-us", str(args.threshold_us), "--out", str(out)]
+        cmd += ["--realtime"] if args.realtime else []
+        subprocess.run(cmd, check=True, timeout=args.seconds + CHILD_SLACK_S)
     report: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))
     return report
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -34,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -152,21 +154,26 @@ def child(path: str, seconds: float, rt: bool, out: Path) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def cpu_hogs(count: int) -> Iterator[None]:
+    """``count`` ``while True: pass`` processes for the length of the block."""
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(count)]
+    try:
+        yield
+    finally:
+        for h in hogs:
+            h.kill()
+        for h in hogs:
+            h.wait()
+
+
 def run_mode(rt: bool, seconds: float, tmp: Path) -> dict[str, Any]:
     """One run: simulator, two hogs, the bus child; its report."""
-    hog = [sys.executable, "-c", "while True: pass"]
     out = tmp / f"{'rt' if rt else 'plain'}.json"
-    with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD) as sim:
-        hogs = [subprocess.Popen(hog) for _ in range(HOGS)]
-        try:
-            cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(seconds)]
-            cmd += ["--out", str(out)] + (["--rt"] if rt else [])
-            subprocess.run(cmd, check=True, timeout=seconds + CHILD_SLACK_S)
-        finally:
-            for h in hogs:
-                h.kill()
-            for h in hogs:
-                h.wait()
+    with SimProcess([f"la:1-{N_ACTUATORS}"], baud=BAUD) as sim, cpu_hogs(HOGS):
+        cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(seconds)]
+        cmd += ["--out", str(out)] + (["--rt"] if rt else [])
+        subprocess.run(cmd, check=True, timeout=seconds + CHILD_SLACK_S)
     report: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))
     return report
 
