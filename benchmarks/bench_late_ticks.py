@@ -48,7 +48,7 @@ from bench_load import (  # README's stream, set up as the load benchmark sets i
     trajectory,
 )
 from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
-from late_ticks import CAUSES, TickRecords, attribute, summarise
+from late_ticks import CAUSES, LateTick, TickRecords, attribute, summarise
 from motorbus.bus.timer import TimerfdTimer, default_timer
 from motorbus.manager import BusManager
 from motorbus.protocol import la
@@ -226,8 +226,6 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="motorbus-late-") as tmp_name:
         runs = [one_run(args, k, Path(tmp_name)) for k in range(args.runs)]
     late = [t for r in runs for t in r.pop("late")]
-    from late_ticks import LateTick
-
     causes = summarise([LateTick(**t) for t in late])
     goal_max = GOAL_RT_MAX_US if args.realtime and args.hogs else GOAL_QUIET_MAX_US
     maxes = [r["tick_jitter_max_us"] for r in runs]
