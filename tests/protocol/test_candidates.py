@@ -10,10 +10,11 @@ replies and dumps) is still cut whole, in every set-up that may carry it.
 
 from __future__ import annotations
 
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from motorbus.protocol import la
+from motorbus.protocol import la, quad_stepper
 from motorbus.protocol.base import (
     FF_AA,
     LA_REPLY_HEADER,
@@ -24,17 +25,25 @@ from motorbus.protocol.base import (
     Family,
     FrameShape,
 )
-from motorbus.protocol.candidates import FF_ANY, FF_REPLY, FF_REQUEST, CandidateFinder
+from motorbus.protocol.candidates import (
+    FF_ANY,
+    FF_REPLY,
+    FF_REQUEST,
+    FF_REQUEST_ONLY,
+    CandidateFinder,
+)
 from motorbus.protocol.frame_judge import COMPLETE, INVALID, FrameJudge
 from motorbus.protocol.frames import (
     LA_ANY_LENGTH_COMMANDS,
     LA_COMMANDS,
     LA_SHORT_MAX_LEN,
+    PROJECT_B9_MAX,
+    QUAD_ADDRESSES,
     STEPPER_B3_MAX,
     STEPPER_FREE_B3_OPCODE,
 )
 from motorbus.protocol.la.wire import MAX_TABLE_BYTES
-from motorbus.protocol.project_stepper.wire import MOTOR_COMMANDS, OP_REPEAT
+from motorbus.protocol.project_stepper.wire import MAX_STEPS, MOTOR_COMMANDS, OP_REPEAT
 from motorbus.protocol.reassembler import Frame, Reassembler
 from tests.protocol.test_la import commands as la_commands
 from tests.protocol.test_project_stepper import commands as project_commands
@@ -49,6 +58,7 @@ SETUPS = [
     (Direction.REPLY, ALL),
     (Direction.REQUEST, (Family.LA,)),
     (Direction.REQUEST, (Family.PROJECT_STEPPER,)),
+    (Direction.REQUEST, (Family.QUAD_STEPPER,)),
     (Direction.REQUEST, ALL),
     (None, (Family.LA,)),
     (None, ALL),
@@ -82,6 +92,13 @@ def test_the_command_bytes_are_the_manuals() -> None:
     assert la.STATUS_LEN_BYTE <= LA_SHORT_MAX_LEN
     assert STEPPER_FREE_B3_OPCODE == OP_REPEAT
     assert max(MOTOR_COMMANDS) == STEPPER_B3_MAX
+    assert PROJECT_B9_MAX == MAX_STEPS
+    assert {
+        *quad_stepper.MOTORS,
+        quad_stepper.ADDRESS_ALL,
+        quad_stepper.ADDRESS_IO,
+        quad_stepper.ADDRESS_SAVE,
+    } == QUAD_ADDRESSES
 
 
 # -- every frame of the manuals is cut whole -----------------------------------------------
@@ -168,7 +185,11 @@ def test_every_stepper_reply_is_a_frame_with_or_without_an_expectation(
 # -- the prefilter, the judge and the C marks agree ----------------------------------------
 
 #: Bytes the rules look at, and any byte.
-SPECIAL = [0xAA, 0x55, 0xFF, 0xEE, 0xDD, 0x8E, 0x00, 0x03, 0x0F, 0x10, 0x2E, 0x2F, *LA_COMMANDS]
+SPECIAL = [
+    *(0xAA, 0x55, 0xFF, 0xEE, 0xDD, 0x8E, 0x00, 0x03, 0x0A, 0x0B, 0x0F, 0x10, 0x2E, 0x2F),
+    *LA_COMMANDS,
+    *QUAD_ADDRESSES,
+]
 junk = st.lists(
     st.one_of(
         st.sampled_from(SPECIAL),
@@ -187,6 +208,14 @@ headed = st.one_of(
         rule_bytes,
     ),
     st.builds(lambda b2, b3: FF_AA + bytes((b2, b3)), rule_bytes, rule_bytes),
+    # Up to byte 9 (a project request's step) with the bytes between as they come.
+    st.builds(
+        lambda b2, b3, middle, b9: FF_AA + bytes((b2, b3)) + middle + bytes((b9,)),
+        rule_bytes,
+        rule_bytes,
+        st.binary(min_size=5, max_size=5),
+        rule_bytes,
+    ),
 )
 pieces = st.one_of(
     junk,
@@ -257,17 +286,81 @@ def test_a_skipped_header_is_refused_whatever_follows(
             (LA_REPLY_HEADER, LA_REQUEST_HEADER, FF_AA),
         ]
     ),
-    rule=st.sampled_from([FF_ANY, FF_REPLY, FF_REQUEST]),
+    rule=st.sampled_from([FF_ANY, FF_REPLY, FF_REQUEST, FF_REQUEST_ONLY]),
+    steppers=st.sampled_from([(True, True), (True, False), (False, True)]),
 )
 def test_the_c_marks_are_the_python_check(
-    buf: bytes, headers: tuple[bytes, ...], rule: int
+    buf: bytes, headers: tuple[bytes, ...], rule: int, steppers: tuple[bool, bool]
 ) -> None:
-    finder = CandidateFinder(headers, rule)
-    marks = finder.marks(buf)
-    assert len(marks) == len(buf)
-    for p in range(len(buf)):
-        expected = buf[p : p + 2] in headers and finder.passes(buf, p)
-        assert marks[p] == expected, (buf.hex(" "), p)
+    quad, project = steppers
+    finder = CandidateFinder(headers, rule, quad=quad, project=project)
+    expected = bytes(buf[p : p + 2] in headers and finder.passes(buf, p) for p in range(len(buf)))
+    assert finder.marks_in_c(buf) == expected, buf.hex(" ")
+    table = finder._anchor_table()
+    if table is None:
+        assert rule == FF_ANY and FF_AA in headers  # no anchor: marked in C throughout
+    else:
+        # The anchors, however dense: the marks are the same whichever way they come.
+        assert finder.marks_from_anchors(buf, buf.translate(table)) == expected, buf.hex(" ")
+    assert finder.marks(buf) == expected
+
+
+@pytest.mark.parametrize("rule", [FF_REPLY, FF_REQUEST, FF_REQUEST_ONLY])
+@pytest.mark.parametrize("steppers", [(True, True), (True, False), (False, True)])
+def test_marks_agree_on_headers_whose_rule_bytes_are_at_the_end(
+    rule: int, steppers: tuple[bool, bool]
+) -> None:
+    # Each cut leaves a header near the end: its rule bytes there or still due.
+    headers = (LA_REPLY_HEADER, LA_REQUEST_HEADER, FF_AA)
+    finder = CandidateFinder(headers, rule, quad=steppers[0], project=steppers[1])
+    table = finder._anchor_table()
+    assert table is not None
+    for frame in (
+        "ffaa001000",
+        "ffaa000500",
+        "ffaa8e2000",
+        "ffaa050500000000000b",  # byte 2 no quad address, byte 9 no step
+        "ffaa030500000000000b",  # byte 2 a quad address
+        "ffaa050500000000000a",  # byte 9 a step
+        "aa55300303",
+        "aa55300101",
+        "55aa2f0021",
+    ):
+        whole = bytes.fromhex(frame)
+        for cut in range(2, len(whole) + 1):
+            buf = b"\x10\x33" + whole[:cut]
+            expected = bytes(
+                buf[p : p + 2] in headers and finder.passes(buf, p) for p in range(len(buf))
+            )
+            assert finder.marks_in_c(buf) == expected, buf.hex(" ")
+            assert finder.marks_from_anchors(buf, buf.translate(table)) == expected, buf.hex(" ")
+
+
+def test_marks_come_from_the_anchors_only_while_they_are_sparse() -> None:
+    calls: list[str] = []
+
+    class Counting(CandidateFinder):
+        __slots__ = ()
+
+        def marks_from_anchors(
+            self, buf: bytes, anchors: bytes, most: int | None = None
+        ) -> bytearray | None:
+            marks = super().marks_from_anchors(buf, anchors, most)
+            calls.append("anchors" if marks is not None else "too many anchors")
+            return marks
+
+        def marks_in_c(self, buf: bytes) -> bytes:
+            calls.append("c")
+            return super().marks_in_c(buf)
+
+    finder = Counting((LA_REPLY_HEADER,), FF_REPLY)
+    sparse = b"\xaa\x55" * 200 + b"\x01"  # headers everywhere, one CMD byte
+    dense = b"\xaa\x55\x01\x01" * 100  # a CMD byte every other byte: seen at once
+    dense_later = sparse + dense  # seen once the check has spent its budget
+    assert finder.marks(sparse) == finder.marks_in_c(sparse)
+    assert finder.marks(dense) == finder.marks_in_c(dense)
+    assert finder.marks(dense_later) == finder.marks_in_c(dense_later)
+    assert calls == ["anchors", "c", "c", "c", "too many anchors", "c", "c"]
 
 
 @settings(max_examples=200, deadline=None)

@@ -16,7 +16,7 @@ from hypothesis import assume, event, given, settings
 from hypothesis import strategies as st
 
 from motorbus.protocol.base import Direction, Family, FrameShape, parse_hex, sum8
-from motorbus.protocol.frames import LA_COMMANDS
+from motorbus.protocol.frames import LA_COMMANDS, QUAD_ADDRESSES
 from motorbus.protocol.reassembler import (
     Discarded,
     Frame,
@@ -122,15 +122,17 @@ def test_a_later_valid_frame_proves_the_inner_header_garbage() -> None:
 
 
 def _request_hiding_an_la_frame(size: int) -> tuple[bytes, bytes]:
-    """``FF AA b2 03`` + an LA request, with the ``b2`` that makes the ``size``-byte checksum
-    hold (byte 3 of a request is at most 0x0F, so the LA frame starts at byte 4)."""
-    # FF AA b2 03 55 AA Len ID CMD IDX PosL PosH CS: the stepper checksum is byte size - 1.
+    """``FF AA b2 03 b4 00`` + an LA request, with the ``b2`` and ``b4`` that make the
+    ``size``-byte checksum hold.  Everything else fits a request too: byte 3 at most 0x0F,
+    byte 2 a quad address, byte 9 (the LA frame's ID, 1) a project step."""
+    # FF AA b2 03 b4 00 55 AA Len ID CMD IDX PosL PosH CS: the checksum is byte size - 1.
     frame = la(b"\x55\xaa", bytes([0x01, 0x19, 0x37, 0xE8, 0x03]))
-    for b2 in range(256):
-        stream = bytes([0xFF, 0xAA, b2, 0x03]) + frame
-        if sum8(stream[: size - 1]) == stream[size - 1]:
-            return stream, frame
-    raise AssertionError("no byte 2 makes the stepper checksum hold")
+    for b2 in sorted(QUAD_ADDRESSES):
+        for b4 in range(256):
+            stream = bytes([0xFF, 0xAA, b2, 0x03, b4, 0x00]) + frame
+            if sum8(stream[: size - 1]) == stream[size - 1]:
+                return stream, frame
+    raise AssertionError("no byte 2 and 4 make the stepper checksum hold")
 
 
 @pytest.mark.parametrize(
@@ -196,8 +198,10 @@ def test_a_dump_not_expected_is_not_taken() -> None:
 # -- 3. both request checksums decide 9 from 11 bytes --------------------------------------
 
 
-def _project_request_with_quad_checksum() -> bytes:
-    head = parse_hex("FF AA 6E 01 01 00 00 00")
+def _project_request_with_quad_checksum(b2: int = 0x6E) -> bytes:
+    """A project request (select project 1, or with ``b2`` = 3 motor 3's subdivision)
+    whose byte 8 is the 9-byte checksum."""
+    head = bytes([0xFF, 0xAA, b2]) + parse_hex("01 01 00 00 00")
     return with_checksum(head + bytes([sum8(head), 0x00]))
 
 
@@ -234,20 +238,37 @@ def test_a_project_request_paused_after_byte_8_waits_when_the_9_byte_sum_fails()
 
 
 def test_documented_limit_a_pause_after_byte_8_cuts_the_look_alike_short() -> None:
-    # The module docstring's limit: 9 bytes at hand and the 9-byte checksum holds.
-    req = _project_request_with_quad_checksum()
+    # The module docstring's limit: 9 bytes at hand, the 9-byte checksum holds, and
+    # byte 2 (motor 3) is a quad address too.
+    req = _project_request_with_quad_checksum(0x03)
     r = Reassembler(direction=Direction.REQUEST)
     assert r.feed(req[:9]) == [Frame(Family.QUAD_STEPPER, Direction.REQUEST, req[:9])]
+
+
+def test_a_pause_after_byte_8_waits_when_byte_2_is_no_quad_address() -> None:
+    req = _project_request_with_quad_checksum(0x6E)  # an opcode: no quad request
+    r = Reassembler(direction=Direction.REQUEST)
+    assert r.feed(req[:9]) == []
+    assert r.feed(req[9:]) == [Frame(Family.PROJECT_STEPPER, Direction.REQUEST, req)]
+
+
+def test_a_candidate_neither_stepper_can_send_is_no_request() -> None:
+    # Byte 2 no quad address and byte 9 no step: refused before any checksum is summed.
+    req = with_checksum(parse_hex("FF AA 6E 01 01 00 00 00 00 0B"))
+    r = Reassembler(direction=Direction.REQUEST)
+    assert r.feed(req) + r.end_of_stream() == [Discarded(req, "garbage")]
 
 
 def test_any_valid_9_byte_request_followed_by_a_next_frame_is_cut_at_9_bytes() -> None:
     # Bytes 9..10 are the next frame's FF AA, so the 11-byte checksum cannot hold as well
     # (module docstring): the 9-byte frame is never swallowed, whatever its content (with
-    # a byte 3 that a request may carry, at most 0x0F).
+    # an address in byte 2 and a byte 3 that a request may carry, at most 0x0F).
     rng = random.Random(11)
     r = Reassembler(direction=Direction.REQUEST)
+    addresses = sorted(QUAD_ADDRESSES)
     for _ in range(2000):
         body = bytearray(rng.randbytes(6))
+        body[0] = rng.choice(addresses)
         body[1] &= 0x0F
         nine = with_checksum(b"\xff\xaa" + body)
         assert frames_of(r.feed(nine + READ_PROJECT_REQUEST)) == [nine, READ_PROJECT_REQUEST]

@@ -12,7 +12,7 @@ import math
 import numbers
 import operator
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import ClassVar, Generic, NamedTuple, TypeVar
 
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
@@ -226,11 +226,23 @@ class FrameShape:
 
     length: int
     pattern: tuple[frozenset[int] | None, ...]
+    #: ``pattern`` without its ``None`` entries: (position, allowed values), in order.
+    _checks: tuple[tuple[int, frozenset[int]], ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        checks = tuple((i, a) for i, a in enumerate(self.pattern) if a is not None)
+        object.__setattr__(self, "_checks", checks)
 
     def matches(self, raw: bytes | bytearray | memoryview) -> bool:
         """Return True if the first ``len(raw)`` bytes fit this shape (a prefix may match)."""
-        for i, allowed in enumerate(self.pattern[: len(raw)]):
-            if allowed is not None and raw[i] not in allowed:
+        return self.matches_at(raw, 0, len(raw))
+
+    def matches_at(self, buf: bytes | bytearray | memoryview, p: int, avail: int) -> bool:
+        """``matches`` for the ``avail`` bytes of ``buf`` from ``p``, without copying them."""
+        for i, allowed in self._checks:
+            if i >= avail:
+                return True
+            if buf[p + i] not in allowed:
                 return False
         return True
 

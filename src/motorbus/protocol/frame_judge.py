@@ -34,12 +34,20 @@ from motorbus.protocol.base import (
     FrameShape,
     ProjectFinishedMarker,
 )
-from motorbus.protocol.candidates import FF_ANY, FF_REPLY, FF_REQUEST, CandidateFinder
+from motorbus.protocol.candidates import (
+    FF_ANY,
+    FF_REPLY,
+    FF_REQUEST,
+    FF_REQUEST_ONLY,
+    CandidateFinder,
+)
 from motorbus.protocol.frames import (
     LA_MAX_LEN,
     LA_MIN_LEN,
+    PROJECT_B9_MAX,
     PROJECT_DUMP_SIZE,
     PROJECT_REQUEST_SIZE,
+    QUAD_ADDRESSES,
     QUAD_REQUEST_SIZE,
     STEPPER_B3_MAX,
     STEPPER_FREE_B3_OPCODE,
@@ -159,7 +167,7 @@ class FrameJudge:
         self._valid_headers = tuple(valid_headers)
         self._project = project
         self._quad = quad
-        self.finder = CandidateFinder(self.headers, self._ff_rule())
+        self.finder = CandidateFinder(self.headers, self._ff_rule(), quad=quad, project=project)
 
     @property
     def expected(self) -> tuple[FrameShape, ...] | None:
@@ -174,7 +182,7 @@ class FrameJudge:
     def _ff_rule(self) -> int:
         """What an ``FF AA`` header must show to be a candidate (``protocol/candidates.py``)."""
         if self.direction is Direction.REQUEST:
-            return FF_REQUEST
+            return FF_REQUEST_ONLY
         if self._expected is not None:
             return FF_ANY  # the shapes decide, and a refusal has its reason
         # The default reply rule is the request rule without its 0x8E exception.
@@ -223,18 +231,24 @@ class FrameJudge:
 
         With both families possible, the two checksums decide (see the module
         docstring); a candidate is refused if a checksum-valid LA frame starts inside it,
-        or if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``).
+        if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``), or if it
+        is neither a quad request (byte 2 an address, ``frames.QUAD_ADDRESSES``) nor a
+        project one (byte 9 a step, ``frames.PROJECT_B9_MAX``).
         """
         if avail >= 4 and buf[p + 3] > STEPPER_B3_MAX and buf[p + 2] != STEPPER_FREE_B3_OPCODE:
             return INVALID, _BAD_COMMAND, None
+        quad = self._quad and (avail < 3 or buf[p + 2] in QUAD_ADDRESSES)
+        project = self._project and (avail < 10 or buf[p + 9] <= PROJECT_B9_MAX)
+        if not (quad or project):
+            return INVALID, _BAD_COMMAND, None
         quad_ok = (
-            self._quad
+            quad
             and avail >= QUAD_REQUEST_SIZE
             and sum8_at(buf, p, p + QUAD_REQUEST_SIZE - 1) == buf[p + QUAD_REQUEST_SIZE - 1]
         )
         candidates: list[tuple[int, Family]] = []
         waiting = False
-        if self._project:
+        if project:
             end = p + PROJECT_REQUEST_SIZE
             if avail < PROJECT_REQUEST_SIZE:
                 waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
@@ -244,7 +258,7 @@ class FrameJudge:
                 candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
         if quad_ok:
             candidates.append((QUAD_REQUEST_SIZE, Family.QUAD_STEPPER))
-        elif self._quad and avail < QUAD_REQUEST_SIZE:
+        elif quad and avail < QUAD_REQUEST_SIZE:
             waiting = True
         refused = False
         for size, family in candidates:
@@ -264,10 +278,9 @@ class FrameJudge:
         shapes = self._expected
         if shapes is None:
             shapes = (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if self._project else (_ANY_STEPPER_REPLY,)
-        head = buf[p : p + min(avail, 8)]
         refused = False
         for shape in shapes:  # in order of preference: the first fitting shape wins
-            if not shape.matches(head):
+            if not shape.matches_at(buf, p, avail):
                 continue
             size = shape.length
             if avail < len(shape.pattern) or avail < size:
@@ -306,6 +319,8 @@ class FrameJudge:
         if not headers:
             return _CLEAR
         last = p + size - 1  # the last byte at which an inner frame may start
+        if buf.find(0x55, p + 1, last + 2) < 0:
+            return _CLEAR  # both LA headers hold a 0x55: one search rules them out
         hold = False
         for header in headers:
             q = buf.find(header, p + 1, last + 2)

@@ -25,8 +25,10 @@ __all__ = [
     "LA_MAX_LEN",
     "LA_MIN_LEN",
     "LA_SHORT_MAX_LEN",
+    "PROJECT_B9_MAX",
     "PROJECT_DUMP_SIZE",
     "PROJECT_REQUEST_SIZE",
+    "QUAD_ADDRESSES",
     "QUAD_REQUEST_SIZE",
     "STEPPER_B3_MAX",
     "STEPPER_FREE_B3_OPCODE",
@@ -70,6 +72,11 @@ STEPPER_B3_MAX = 0x0F
 #: ... but for one request: the project stepper's 0x8E, whose byte 3 is the repeat count
 #: 0..255 (its reply, ``8E P 00 00``, keeps the rule).
 STEPPER_FREE_B3_OPCODE = 0x8E
+#: Byte 9 of every project request is the step, 1..10, or 00 (doc 000 A.2, A.4).
+PROJECT_B9_MAX = 0x0A
+#: Byte 2 of every quad request is an address: motor 1..4, 0x09 all motors, 0x00 I/O
+#: (the LEDs) or 0xBC save (doc 001 B.2).
+QUAD_ADDRESSES = frozenset((0x00, 0x01, 0x02, 0x03, 0x04, 0x09, 0xBC))
 
 
 class Frame(NamedTuple):

@@ -16,7 +16,10 @@ How each family is framed
 * Stepper requests (``FF AA``, 11 bytes for the project stepper, 9 for the quad
   stepper) carry a checksum (the 8-bit sum of every byte before it) and are
   validated the same way; their byte 3 is at most 0x0F (a command, project, step or
-  value), except after the 0x8E opcode (a repeat count).  On a stream that may carry
+  value), except after the 0x8E opcode (a repeat count).  A quad request's byte 2 is
+  an address (motor 1..4, 09 all, 00 I/O, BC save) and a project request's byte 9 a
+  step (1..10) or 00: a candidate that can be neither is no request, whatever its
+  checksums.  On a stream that may carry
   both (a simulator of a mixed bus, ``motorbus decode``), both checksums decide: with
   11 bytes at hand the 11-byte frame is taken if its checksum holds (whether or not
   the 9-byte one holds too), else the 9-byte frame if its checksum holds.  The
@@ -25,8 +28,9 @@ How each family is framed
   and ``FF AA`` at bytes 9..10 would need it to sum to ``AA - FF = AB`` (odd).
   Limit: with only 9 or 10 bytes at hand and the 9-byte checksum holding, the 9-byte
   frame is taken at once (a device must not wait for bytes that never come), so an
-  11-byte request whose byte 8 happens to equal the sum of bytes 0..7 (1 in 256) is
-  cut short if the stream pauses right after its byte 8 or 9.
+  11-byte request whose byte 2 is also a quad address and whose byte 8 happens to
+  equal the sum of bytes 0..7 (1 in 256) is cut short if the stream pauses right
+  after its byte 8 or 9.
 * Stepper replies (``FF AA`` + 4 bytes, or the 226-byte project dump) carry neither
   length nor checksum (A0-04, A1-09).  Only the caller knows what it asked, so it
   tells the reassembler which reply shapes are acceptable right now with
@@ -178,6 +182,7 @@ class Reassembler:
         # with one sum each, without looking for headers: from a byte that may start one.
         la_only = len(headers) == 1 and headers[0] in (LA_REPLY_HEADER, LA_REQUEST_HEADER)
         self._la_first = headers[0][0] if la_only else -1
+        self._la_second = headers[0][1] if la_only else -1
 
     # -- public API -------------------------------------------------------------
 
@@ -236,6 +241,7 @@ class Reassembler:
         """Parse ``buf`` from ``pos``; append items to ``out``; return where to resume."""
         n = len(buf)
         la_first = self._la_first
+        la_second = self._la_second
         judge = self._judge
         parse_at = judge.parse_at
         discard = self._discard
@@ -244,7 +250,7 @@ class Reassembler:
         # command bytes no frame carries are skipped in C, as part of the garbage.
         find = judge.finder.find
         while pos < n:
-            if buf[pos] == la_first:
+            if buf[pos] == la_first and pos + 1 < n and buf[pos + 1] == la_second:
                 pos = self._scan_la_only(buf, pos, out)
                 if pos >= n:
                     break
