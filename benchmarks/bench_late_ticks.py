@@ -33,6 +33,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from array import array
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -69,17 +70,40 @@ KERNEL_KEYS = (
 )
 
 
+class Columns:
+    """Rows of floats kept in ``array('d')`` columns: no object per row.
+
+    A list of tuples would add a GC-tracked tuple per tick that lives for the whole run,
+    and the garbage collector's full passes over them (longer as the run goes on) were
+    themselves late ticks: the instrument disturbing what it measures.
+    """
+
+    def __init__(self, width: int) -> None:
+        self.columns = [array("d") for _ in range(width)]
+
+    def add(self, *row: float) -> None:
+        for column, value in zip(self.columns, row, strict=True):
+            column.append(value)
+
+    def rows(self) -> list[Any]:
+        """The rows, as tuples of floats (built after the run)."""
+        return list(zip(*self.columns, strict=True))
+
+    def __len__(self) -> int:
+        return len(self.columns[0])
+
+
 class TimedSelector(selectors.DefaultSelector):
     """The loop's selector, noting when each ``select`` was entered and returned."""
 
-    def __init__(self, log: list[tuple[float, float]]) -> None:
+    def __init__(self, log: Columns) -> None:
         super().__init__()
         self.log = log
 
     def select(self, timeout: float | None = None) -> list[Any]:
         entered = time.monotonic()
         ready = super().select(timeout)
-        self.log.append((entered, time.monotonic()))
+        self.log.add(entered, time.monotonic())
         return ready
 
 
@@ -87,10 +111,12 @@ class Recorder:
     """Everything the attribution needs, recorded in the bus process."""
 
     def __init__(self) -> None:
-        self.selects: list[tuple[float, float]] = []
-        self.wakeups: list[tuple[float, float, float]] = []
-        self.collections: list[tuple[float, float]] = []
-        self.runqueue: list[tuple[float, float]] = []
+        self.selects = Columns(2)
+        self.wakeups = Columns(3)
+        self.collections = Columns(2)
+        #: Per collection: its generation (0, 1, 2), in the order of ``collections``.
+        self.generations = array("b")
+        self.runqueue = Columns(2)
         self._gc_start = 0.0
         self._schedstat = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
 
@@ -98,12 +124,13 @@ class Recorder:
         if phase == "start":
             self._gc_start = time.monotonic()
         else:
-            self.collections.append((self._gc_start, time.monotonic()))
+            self.collections.add(self._gc_start, time.monotonic())
+            self.generations.append(int(info.get("generation", 2)))
 
     def on_write(self, cmd: object, at: float) -> None:
         if isinstance(cmd, la.Broadcast):
             wait_ns = int(os.pread(self._schedstat, 100, 0).split()[1])
-            self.runqueue.append((at, wait_ns / 1e9))
+            self.runqueue.add(at, wait_ns / 1e9)
 
     def on_reply(self, *args: object) -> None:
         pass
@@ -115,7 +142,7 @@ class Recorder:
 async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
     timer = default_timer()
     if isinstance(timer, TimerfdTimer):
-        timer.wake_observer = lambda armed, woke, spun: rec.wakeups.append((armed, woke, spun))
+        timer.wake_observer = rec.wakeups.add
     mgr = BusManager(safe_stop=False)
     mgr.add_bus("late", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
     async with mgr:
@@ -181,14 +208,23 @@ def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> i
         records = TickRecords(
             deadlines=[origin + k * PERIOD_S for k in range(n)],
             writes=writes,
-            wakeups=rec.wakeups,
-            selects=rec.selects,
-            collections=rec.collections,
-            runqueue=rec.runqueue,
+            wakeups=rec.wakeups.rows(),
+            selects=rec.selects.rows(),
+            collections=rec.collections.rows(),
+            runqueue=rec.runqueue.rows(),
         )
         late = [t.as_dict() for t in attribute(records, threshold)]
     result["late"] = late
     result["gc_collections"] = len(rec.collections)
+    starts, stops = rec.collections.columns
+    pauses = list(zip(rec.generations, starts, stops, strict=True))
+    result["gc_by_generation"] = {
+        str(g): {
+            "count": sum(1 for x, _, _ in pauses if x == g),
+            "max_us": round(1e6 * max((b - a for x, a, b in pauses if x == g), default=0.0), 1),
+        }
+        for g in (0, 1, 2)
+    }
     out.write_text(json.dumps(result) + "\n", encoding="utf-8")
     return 0
 
@@ -273,6 +309,15 @@ def main() -> int:
             f"{r['gc_collections']:>5}{spin * 1e3 if spin else 0:>9.1f}"
             f"{r['cpu_us_per_tick']:>13}"
         )
+    gens = [r.get("gc_by_generation", {}) for r in runs]
+    print(
+        "gc pauses (all runs): "
+        + ", ".join(
+            f"gen {g}: {sum(x.get(g, {}).get('count', 0) for x in gens)}"
+            f" (max {max((x.get(g, {}).get('max_us', 0.0) for x in gens), default=0.0):.0f} us)"
+            for g in ("0", "1", "2")
+        )
+    )
     print(f"\nticks later than {args.threshold_us:.0f} us at the kernel, by cause:")
     print(f"{'cause':24}{'ticks':>7}{'worst us':>10}")
     for cause in CAUSES:
