@@ -464,13 +464,19 @@ class Bus(BusEngine):
             refresh=refresh,
             after_write=occ.after_write,
         )
-        if start_by is not None:
-            job.start_by = float(start_by)
-            job.expiry = self.timer.call_at(
-                job.start_by, lambda: self._drop_unsent(job), precise=False
-            )
-        self._schedule.push(job)
-        self._pump()  # an idle bus sends right here
+        timer = self.timer
+        # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
+        timer.hold_arming()
+        try:
+            if start_by is not None:
+                job.start_by = float(start_by)
+                job.expiry = timer.call_at(
+                    job.start_by, lambda: self._drop_unsent(job), precise=False
+                )
+            self._schedule.push(job)
+            self._pump()  # an idle bus sends right here
+        finally:
+            timer.release_arming()
         return job.future
 
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:

@@ -382,7 +382,16 @@ class BusEngine:
     # -- reader ------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
-        now = self.timer.now()
+        timer = self.timer
+        # A reply cancels its deadline and the freed bus schedules its next write: the
+        # timer is re-armed once, after both.
+        timer.hold_arming()
+        try:
+            self._read(data, timer.now())
+        finally:
+            timer.release_arming()
+
+    def _read(self, data: bytes, now: float) -> None:
         stats = self.stats
         stats.bytes_in += len(data)
         reassembler = self._reassembler
