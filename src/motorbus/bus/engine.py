@@ -29,7 +29,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from motorbus.bus.events import (
     BusStateChanged,
@@ -39,20 +39,28 @@ from motorbus.bus.events import (
     QuadDone,
 )
 from motorbus.bus.lease_shell import LeaseKeeper
-from motorbus.bus.leases import LeaseTable
+from motorbus.bus.leases import Lease, LeaseTable
 from motorbus.bus.matching import DoneWatch, Matcher, TimedOut, Verdict
 from motorbus.bus.occupancy import Occupancy
 from motorbus.bus.options import BusConfig
 from motorbus.bus.schedule import Job, Priority, Scheduler, Wait
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle
-from motorbus.errors import BusClosedError, NotSentError, RemoteProtocolError, ReplyTimeoutError
+from motorbus.errors import (
+    BusClosedError,
+    LocalProtocolError,
+    NotSentError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, FaultState, FrameShape, format_hex
 from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from motorbus.transport.base import Transport
 
-__all__ = ["BusEngine", "BusJob", "BusObserver", "BusState", "Refresh"]
+__all__ = ["BusEngine", "BusJob", "BusObserver", "BusState", "PreparedSubmit", "Refresh"]
+
+R = TypeVar("R")
 
 log = logging.getLogger("motorbus.bus")
 
@@ -102,6 +110,41 @@ class BusJob(Job):
 
     def gone(self) -> bool:
         return self.future.done()
+
+
+class PreparedSubmit(Generic[R]):
+    """A ``submit`` checked and built ahead of its moment (``Bus.prepare``)."""
+
+    __slots__ = ("_send", "job", "lease", "lease_version", "sent")
+
+    def __init__(
+        self,
+        send: Callable[[PreparedSubmit[R]], asyncio.Future[R]],
+        job: BusJob,
+        lease: Lease | None,
+        lease_version: int,
+    ) -> None:
+        self._send = send
+        self.job = job
+        self.lease = lease
+        #: The lease table's version when its rule was checked (-1: check again).
+        self.lease_version = lease_version
+        self.sent = False
+
+    def send(self) -> asyncio.Future[R]:
+        """Queue it now (an idle bus writes it before this returns); once only.
+
+        Returns the future of its decoded reply, as ``Bus.submit`` does.
+
+        Raises:
+            BusClosedError: the bus is no longer open, or is closing (motion).
+            LeaseConflictError: a lease changed since and another owner holds a device.
+            LocalProtocolError: it was sent already.
+        """
+        if self.sent:
+            raise LocalProtocolError("a prepared submission is sent once", field="prepared")
+        self.sent = True
+        return self._send(self)
 
 
 class BusEngine:

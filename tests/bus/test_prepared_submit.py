@@ -1,0 +1,123 @@
+"""``Bus.prepare``: a submission checked and built ahead of its deadline, sent later.
+
+What is checked ahead must still hold when it is sent: a lease that changed in between
+is checked again, a bus that closed refuses it, and the frame's ``refresh`` still
+decides at the moment of the write; nothing is written before ``send()``, and a
+prepared submission is sent once.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+from motorbus.bus.bus import Bus, Priority
+from motorbus.errors import BusClosedError, LeaseConflictError, LocalProtocolError
+from motorbus.protocol import la
+from motorbus.protocol.base import Command
+from motorbus.sim.la import LAModel
+from tests.helpers import sim_bus
+
+
+class Written:
+    """A bus observer that keeps what the bus wrote."""
+
+    def __init__(self) -> None:
+        self.frames: list[bytes] = []
+
+    def on_write(self, cmd: Command[object], at: float) -> None:
+        self.frames.append(cmd.encode())
+
+    def on_reply(
+        self, cmd: Command[object], value: Any, written_at: float, replied_at: float
+    ) -> None:
+        pass
+
+
+def follow(*ids: int) -> la.Broadcast:
+    return la.Broadcast(la.BroadcastMode.FOLLOW, tuple((i, 500 + i) for i in ids))
+
+
+def watch(bus: Bus) -> Written:
+    written = Written()
+    bus.add_observer(written)
+    return written
+
+
+async def test_nothing_is_written_before_send_and_a_send_happens_once() -> None:
+    async with sim_bus([LAModel(1), LAModel(2)]) as (bus, _):
+        written = watch(bus)
+        lease = bus.lease(["la:1", "la:2"], owner="stream", bind=False)
+        frame = follow(1, 2)
+        ready = bus.prepare(frame, priority=Priority.HIGH, reserved=True, lease=lease)
+        assert written.frames == []
+        assert await ready.send() is None  # a broadcast: no reply
+        assert written.frames == [frame.encode()]
+        with pytest.raises(LocalProtocolError, match="sent once"):
+            ready.send()
+        assert written.frames == [frame.encode()]
+        await lease.release(hold=True)
+
+
+async def test_a_lease_taken_over_before_send_refuses_it_with_nothing_written() -> None:
+    async with sim_bus([LAModel(1), LAModel(2)]) as (bus, _):
+        written = watch(bus)
+        stream = bus.lease(["la:1", "la:2"], owner="stream", bind=False)
+        ready = bus.prepare(follow(1, 2), reserved=True, lease=stream)
+        # Before the deadline: the stream lets go, and another owner takes la:2.
+        await stream.release(hold=True)
+        rig = bus.lease(["la:2"], owner="rig", bind=False)
+        with pytest.raises(LeaseConflictError, match="la:2 is leased by 'rig'"):
+            ready.send()
+        assert written.frames == []
+        await rig.release(hold=True)
+
+
+async def test_the_lease_rule_is_checked_again_for_the_frame_as_refreshed() -> None:
+    async with sim_bus([LAModel(1), LAModel(2)]) as (bus, _):
+        written = watch(bus)
+        stream = bus.lease(["la:1", "la:2"], owner="stream", bind=False)
+        wanted: list[la.Broadcast | None] = [follow(1, 2)]
+        ready = bus.prepare(follow(1, 2), reserved=True, lease=stream, refresh=lambda: wanted[0])
+        # la:2 leaves the stream (its entry is no longer wanted) and gets another owner:
+        # the frame as it is now names only la:1, which the stream still holds.
+        await stream.release(hold=True, keys=["la:2"])
+        rig = bus.lease(["la:2"], owner="rig", bind=False)
+        wanted[0] = follow(1)
+        await ready.send()
+        assert written.frames == [follow(1).encode()]
+        await rig.release(hold=True)
+        await stream.release(hold=True)
+
+
+async def test_a_refresh_that_no_longer_wants_the_frame_drops_it_unsent() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _):
+        written = watch(bus)
+        ready = bus.prepare(follow(1), reserved=True, refresh=lambda: None)
+        assert await ready.send() is None
+        assert written.frames == []
+        assert bus.stats.dropped_by_refresh == 1
+
+
+async def test_a_bus_closed_before_send_refuses_it() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _):
+        written = watch(bus)
+        ready = bus.prepare(follow(1), reserved=True)
+    with pytest.raises(BusClosedError):
+        ready.send()
+    assert follow(1).encode() not in written.frames
+
+
+async def test_prepare_refuses_what_submit_refuses() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _):
+        with pytest.raises(LocalProtocolError, match="cmd must be a motorbus Command"):
+            bus.prepare(b"\x55\xaa")  # type: ignore[arg-type]
+        with pytest.raises(LocalProtocolError, match="retries"):
+            bus.prepare(follow(1), retries=-1)
+        rig = bus.lease(["la:1"], owner="rig", bind=False)
+        other = bus.lease(["la:2"], owner="other", bind=False)
+        with pytest.raises(LeaseConflictError):
+            bus.prepare(follow(1), lease=other)
+        await rig.release(hold=True)
+        await other.release(hold=True)
