@@ -200,8 +200,9 @@ def broadcast_builder(
 ) -> Callable[[], la.Broadcast | None]:
     """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
 
-    While every stream of the chunk still sends, the frame built first is reused (it is
-    built once a tick, at the deadline, on the hot path).
+    While every stream of the chunk still sends, the frame built first is reused: it is
+    built when the tick is prepared, and at the deadline and at the write the call is
+    only the check.
     """
     streams = tuple({s: None for s, _ in chunk})
     built: list[la.Broadcast] = []
