@@ -8,12 +8,19 @@ prepared submission is sent once.
 
 from __future__ import annotations
 
+import asyncio
+import threading
 from typing import Any
 
 import pytest
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.errors import BusClosedError, LeaseConflictError, LocalProtocolError
+from motorbus.errors import (
+    BusClosedError,
+    LeaseConflictError,
+    LocalProtocolError,
+    WrongLoopError,
+)
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
 from motorbus.sim.la import LAModel
@@ -52,7 +59,7 @@ async def test_nothing_is_written_before_send_and_a_send_happens_once() -> None:
         frame = follow(1, 2)
         ready = bus.prepare(frame, priority=Priority.HIGH, reserved=True, lease=lease)
         assert written.frames == []
-        assert await ready.send() is None  # a broadcast: no reply
+        await ready.send()  # a broadcast: no reply
         assert written.frames == [frame.encode()]
         with pytest.raises(LocalProtocolError, match="sent once"):
             ready.send()
@@ -95,7 +102,7 @@ async def test_a_refresh_that_no_longer_wants_the_frame_drops_it_unsent() -> Non
     async with sim_bus([LAModel(1)]) as (bus, _):
         written = watch(bus)
         ready = bus.prepare(follow(1), reserved=True, refresh=lambda: None)
-        assert await ready.send() is None
+        await ready.send()  # resolves, with nothing written
         assert written.frames == []
         assert bus.stats.dropped_by_refresh == 1
 
@@ -121,3 +128,22 @@ async def test_prepare_refuses_what_submit_refuses() -> None:
             bus.prepare(follow(1), lease=other)
         await rig.release(hold=True)
         await other.release(hold=True)
+
+
+async def test_a_send_from_another_event_loop_is_refused_with_nothing_written() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _):
+        written = watch(bus)
+        ready = bus.prepare(follow(1), reserved=True)
+        raised: list[BaseException] = []
+
+        async def elsewhere() -> None:
+            try:
+                ready.send()
+            except BaseException as err:
+                raised.append(err)
+
+        thread = threading.Thread(target=asyncio.run, args=(elsewhere(),))
+        thread.start()
+        await asyncio.get_running_loop().run_in_executor(None, thread.join)
+        assert [type(e) for e in raised] == [WrongLoopError]
+        assert written.frames == []

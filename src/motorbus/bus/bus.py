@@ -56,13 +56,7 @@ from types import MappingProxyType, TracebackType
 from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
-from motorbus.bus.engine import (
-    BusEngine,
-    BusJob,
-    BusObserver,
-    BusState,
-    Refresh,
-)
+from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refresh
 from motorbus.bus.engine import PreparedSubmit as PreparedSubmit
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
@@ -466,12 +460,7 @@ class Bus(BusEngine):
             raise self._closing_error(cmd)
         loop = asyncio.get_running_loop()
         if loop is not self._loop:
-            raise WrongLoopError(
-                f"bus {self.name} was opened on another event loop (thread) than the one "
-                f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
-                "in this loop, or run the call on the bus's loop "
-                "(asyncio.run_coroutine_threadsafe)"
-            )
+            raise self._wrong_loop_error(cmd)
         if moves:
             self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
@@ -524,6 +513,14 @@ class Bus(BusEngine):
         valid = lease is not None and lease.table is table and lease.active
         return PreparedSubmit(self._send_prepared, job, lease, table.version if valid else -1)
 
+    def _wrong_loop_error(self, cmd: Command[object]) -> WrongLoopError:
+        return WrongLoopError(
+            f"bus {self.name} was opened on another event loop (thread) than the one "
+            f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
+            "in this loop, or run the call on the bus's loop "
+            "(asyncio.run_coroutine_threadsafe)"
+        )
+
     def _closing_error(self, cmd: Command[object]) -> BusClosedError:
         # The bus is closing: its safe stops are going out, and no motion may follow
         # them (a target after a pause resumes an LA).
@@ -538,6 +535,8 @@ class Bus(BusEngine):
         cmd = job.cmd
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        if asyncio.get_running_loop() is not self._loop:
+            raise self._wrong_loop_error(cmd)
         if cmd.starts_motion:
             if self._stopping:
                 raise self._closing_error(cmd)
