@@ -19,6 +19,7 @@ from motorbus.errors import (
     BusClosedError,
     LeaseConflictError,
     LocalProtocolError,
+    ReplyTimeoutError,
     WrongLoopError,
 )
 from motorbus.protocol import la
@@ -147,3 +148,37 @@ async def test_a_send_from_another_event_loop_is_refused_with_nothing_written() 
         await asyncio.get_running_loop().run_in_executor(None, thread.join)
         assert [type(e) for e in raised] == [WrongLoopError]
         assert written.frames == []
+
+
+class Timed(Written):
+    """Also keeps when each write returned (the bus clock)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.at: list[float] = []
+
+    def on_write(self, cmd: Command[object], at: float) -> None:
+        super().on_write(cmd, at)
+        self.at.append(at)
+
+
+async def test_a_prepared_frame_keeps_the_spacing_and_waits_for_an_owed_reply() -> None:
+    async with sim_bus([LAModel(1), LAModel(2)]) as (bus, _):
+        written = Timed()
+        bus.add_observer(written)
+        # Right after a write: the spacing from it still runs.
+        await bus.submit(follow(1))
+        spaced = bus.prepare(follow(1, 2), reserved=True)
+        await spaced.send()
+        assert written.at[1] - written.at[0] >= bus.config.min_spacing
+        # A reply owed (from la:3, which is silent) after the spacing has run: the
+        # prepared frame waits until the reply's deadline, never written while it is owed.
+        silent = la.Control(3, la.ControlAction.QUERY_STATUS)
+        asked = bus.submit(silent, retries=0)
+        await asyncio.sleep(2 * bus.config.min_spacing)
+        owed = bus.prepare(follow(2), reserved=True)
+        sent = owed.send()
+        assert not sent.done()
+        await sent
+        assert asked.done() and isinstance(asked.exception(), ReplyTimeoutError)
+        assert written.frames[-2:] == [silent.encode(), follow(2).encode()]

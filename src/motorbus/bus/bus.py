@@ -545,25 +545,8 @@ class Bus(BusEngine):
                 fresh = cmd if job.refresh is None else job.refresh()
                 if fresh is not None:
                     self._lease_keeper.claim(fresh, prepared.lease)
-        self._queue(job, None)
+        self._send_or_queue(job)
         return job.future
-
-    def _queue(self, job: BusJob, start_by: float | None) -> None:
-        """Queue a checked job (with its ``start_by`` expiry) and pump."""
-        job.seq = self._schedule.next_seq()
-        timer = self.timer
-        # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
-        timer.hold_arming()
-        try:
-            if start_by is not None:
-                job.start_by = float(start_by)
-                job.expiry = timer.call_at(
-                    job.start_by, lambda: self._drop_unsent(job), precise=False
-                )
-            self._schedule.push(job)
-            self._pump()  # an idle bus sends right here
-        finally:
-            timer.release_arming()
 
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply (broadcast, 0x03, 0x19), paced like any other."""
