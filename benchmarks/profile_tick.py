@@ -3,8 +3,10 @@
 Streams 15 actuators at 10 ms (one 0xF3 broadcast a tick, ``poll_status=True``) over a
 real pty to ``motorbus sim`` in a child process for ``--seconds``, under cProfile, and
 prints the functions that take the most CPU, in microseconds per tick (self time and
-cumulative), plus the process CPU per tick measured without the profiler in the same
-run.  Writes ``benchmarks/results/profile_tick.json``.
+cumulative), plus, measured without the profiler in the same run, the process CPU per
+tick and how long after each tick's deadline the bus called the transport's ``write``
+with the tick's frame (the Python work at the deadline; the kernel's own view of the
+write is ``bench_late_ticks.py``'s).  Writes ``benchmarks/results/profile_tick.json``.
 
 Usage: ``python benchmarks/profile_tick.py [--seconds 5] [--top 25] [--out PATH]``
 """
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import bisect
 import cProfile
 import json
 import math
@@ -29,8 +32,24 @@ PERIOD_S = 0.01
 IDS = range(1, 16)
 
 
+def percentile(values: list[float], p: float) -> float:
+    """Nearest-rank percentile of ``values`` (0 when empty)."""
+    if not values:
+        return 0.0
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(len(ordered) * p / 100) - 1)]
+
+
 async def stream(path: str, seconds: float) -> dict[str, Any]:
     transport = motorbus.open_transport(path, baudrate=921600)
+    writes: list[float] = []  # when the bus called write(), time.monotonic()
+    write = transport.write
+
+    def timed_write(data: bytes) -> None:
+        writes.append(time.monotonic())
+        write(data)
+
+    transport.write = timed_write  # type: ignore[method-assign]
     async with motorbus.Bus(transport, families=[motorbus.Family.LA]) as bus:
         actuators = [motorbus.InspireLA(bus, i) for i in IDS]
         for a in actuators:
@@ -44,12 +63,23 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
         await s.wait()
         cpu = time.process_time() - cpu0
         n = max(1, s.stats.ticks)
+        # The first write at or after each tick's deadline is its frame (the polls of a
+        # tick come after it, and end a millisecond before the next deadline).
+        after_deadline = []
+        for k in range(s.next_tick):
+            due = s.origin + k * s.period
+            i = bisect.bisect_left(writes, due)
+            if i < len(writes) and writes[i] - due < s.period:
+                after_deadline.append(writes[i] - due)
         return {
             "ticks": s.stats.ticks,
             "cpu_s": cpu,
             # The timer's share: how often it woke the loop, how long it spun.
             "timer_wakeups_per_tick": (getattr(timer, "wakeups", 0) - wake0) / n,
             "timer_spin_us_per_tick": 1e6 * (getattr(timer, "spin_seconds", 0.0) - spin0) / n,
+            "write_after_deadline_us": {
+                f"p{p}": 1e6 * percentile(after_deadline, p) for p in (50, 90, 99)
+            },
             "stats": s.stats.as_dict(),
         }
 
@@ -85,6 +115,11 @@ def main() -> int:
         f"({plain['ticks']} ticks, {plain['cpu_s']:.2f} s CPU); timer: "
         f"{plain['timer_wakeups_per_tick']:.2f} wake-ups and "
         f"{plain['timer_spin_us_per_tick']:.0f} us of spin a tick"
+    )
+    late = plain["write_after_deadline_us"]
+    print(
+        f"tick frame's write() called after the deadline: p50 {late['p50']:.0f} us, "
+        f"p90 {late['p90']:.0f} us, p99 {late['p99']:.0f} us"
     )
     print(f"{'self us/tick':>12} {'cum us/tick':>12} {'calls/tick':>10}  function")
     for r in rows[: args.top]:

@@ -55,11 +55,11 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from motorbus import realtime
-from motorbus.bus.bus import Bus, BusState, Priority
+from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
@@ -78,6 +78,7 @@ from motorbus.streaming.model import (
     broadcast_builder,
     check_follow_options,
     hold_flag,
+    status_query,
     while_sending,
 )
 from motorbus.streaming.stream import Stream, StreamGap
@@ -565,22 +566,38 @@ class Streamer:
         # position by _position, so the frames are built without re-checking.
         entries = [(s, pair) for s, targets in parts for pair in targets.items()]
         chunks = [entries[i : i + step] for i in range(0, len(entries), step)]
-        # Built and encoded now, ahead of the deadline (both are kept while every stream
-        # of a frame still sends): at the deadline only the checks and the write are left.
+        # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
+        # deadline (all kept while every stream of a frame still sends, and the leases
+        # do not change): at the deadline only the cheap re-checks and the write are
+        # left.  The frame is rebuilt then only if a stream stopped since.
         builders = [broadcast_builder(chunk) for chunk in chunks]
+        prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
         for build in builders:
             frame = build()
+            ready = None
             if frame is not None:
-                frame.encode()
+                # Refused now (the port away, a lease): submitted at the deadline instead.
+                with contextlib.suppress(MotorbusError):
+                    ready = self.bus.prepare(
+                        frame,
+                        priority=Priority.HIGH,
+                        reserved=True,
+                        refresh=build,
+                        lease=self.lease,
+                    )
+            prepared.append((build, ready))
 
         def fire() -> None:
             if fired.done():
                 return
             futures = []
             try:
-                for build in builders:
+                for build, ready in prepared:
                     first = build()
                     if first is None:
+                        continue
+                    if ready is not None and first is ready.job.cmd:
+                        futures.append(ready.send())
                         continue
                     futures.append(
                         self.bus.submit(
@@ -626,7 +643,7 @@ class Streamer:
         if not pollers or not self.streams:
             return
         timer = self.bus.timer
-        poll = self.bus.occupancy(la.Control(1, la.ControlAction.QUERY_STATUS))
+        poll = self.bus.occupancy(status_query(1))
         next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
         # A poll starts only if even its timeout, and the spacing after it, would end
         # before the next tick.
@@ -642,7 +659,7 @@ class Streamer:
                 ident = s.poll_id
                 try:
                     status = await self.bus.submit(
-                        la.Control(ident, la.ControlAction.QUERY_STATUS),
+                        status_query(ident),
                         retries=0,
                         priority=Priority.BACKGROUND,
                         start_by=start_by,

@@ -66,6 +66,14 @@ class RecordingClock:
         """Delegate to the inner timer."""
         return self.inner.call_at(deadline, callback, precise=precise)
 
+    def hold_arming(self) -> None:
+        """Delegate to the inner timer."""
+        self.inner.hold_arming()
+
+    def release_arming(self) -> None:
+        """Delegate to the inner timer."""
+        self.inner.release_arming()
+
 
 @dataclass
 class Trace:

@@ -322,3 +322,59 @@ def test_cancelling_the_earliest_callback_rearms_instead_of_waking_for_nothing(
         timer.close()
 
     run(loop_factory, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_a_hold_rearms_once_at_its_release_and_callbacks_stay_on_time(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Deadlines scheduled and cancelled inside ``hold_arming`` (a reply that frees the
+    bus and schedules the next write) re-arm the timerfd once, at the release, for the
+    earliest deadline then; callbacks scheduled inside callbacks likewise.  Nothing runs
+    early or is lost, and a cancelled deadline does not wake the loop."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        armed: list[int] = []
+        real = timer._api.set_absolute_ns
+        monkeypatch.setattr(
+            timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
+        )
+        fired: list[tuple[str, float, float]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def fire(name: str, deadline: float) -> Callable[[], None]:
+            def callback() -> None:
+                fired.append((name, deadline, timer.now()))
+                if name == "last" and not done.done():
+                    done.set_result(None)
+
+            return callback
+
+        now = timer.now()
+        timer.hold_arming()
+        dropped = timer.call_at(now + 0.001, fire("dropped", now + 0.001))
+        first = now + 0.004
+        timer.call_at(first, fire("first", first))
+        timer.call_at(now + 0.002, fire("second", now + 0.002))
+        dropped.cancel()
+        assert armed == []  # nothing armed while held
+        timer.release_arming()
+        assert len(armed) == 1  # one re-arm, for the earliest deadline left
+        assert armed[0] / 1e9 == pytest.approx(now + 0.002, abs=1e-6)
+
+        # Inside a callback: what it schedules and cancels re-arms once, after it.
+        def chain() -> None:
+            t = timer.now()
+            timer.call_at(t + 0.003, fire("last", t + 0.003))
+            timer.call_at(t + 0.001, fire("gone", t + 0.001)).cancel()
+
+        timer.call_at(now + 0.005, chain)
+        await done
+        assert [name for name, _, _ in fired] == ["second", "first", "last"]
+        assert all(ran >= deadline for _, deadline, ran in fired)
+        timer.close()
+
+    run(loop_factory, main())

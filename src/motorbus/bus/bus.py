@@ -57,6 +57,7 @@ from typing import Any, TypeVar
 
 from motorbus import realtime, shutdown
 from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refresh
+from motorbus.bus.engine import PreparedSubmit as PreparedSubmit
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
 from motorbus.bus.leases import Lease, LeaseInfo
@@ -407,6 +408,33 @@ class Bus(BusEngine):
             LeaseConflictError: ``cmd`` starts motion of a device another owner holds.
             WrongLoopError: called from another event loop than the bus was opened on.
         """
+        job = self._checked_job(
+            cmd,
+            timeout,
+            retries,
+            priority,
+            start_by,
+            reserved=reserved,
+            refresh=refresh,
+            lease=lease,
+        )
+        self._queue(job, start_by)
+        return job.future
+
+    def _checked_job(
+        self,
+        cmd: Command[R],
+        timeout: float | None,
+        retries: int | None,
+        priority: Priority,
+        start_by: float | None,
+        *,
+        reserved: bool,
+        refresh: Refresh | None,
+        lease: Lease | None,
+    ) -> BusJob:
+        """Check a submission (``submit``'s errors, in its order), claim its lease and
+        build its job, not yet queued."""
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
                 f"cmd must be a motorbus Command, got {type(cmd).__name__}", field="cmd"
@@ -429,20 +457,10 @@ class Bus(BusEngine):
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
         moves = cmd.starts_motion
         if self._stopping and moves:
-            # The bus is closing: its safe stops are going out, and no motion may
-            # follow them (a target after a pause resumes an LA).
-            raise BusClosedError(
-                f"bus {self.name} is closing: {type(cmd).__name__} to {cmd.device_key} "
-                "refused (nothing sent); the devices are being stopped"
-            )
+            raise self._closing_error(cmd)
         loop = asyncio.get_running_loop()
         if loop is not self._loop:
-            raise WrongLoopError(
-                f"bus {self.name} was opened on another event loop (thread) than the one "
-                f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
-                "in this loop, or run the call on the bus's loop "
-                "(asyncio.run_coroutine_threadsafe)"
-            )
+            raise self._wrong_loop_error(cmd)
         if moves:
             self._lease_keeper.claim(cmd, lease)
         raw = cmd.encode()
@@ -456,7 +474,7 @@ class Bus(BusEngine):
             raw=raw,
             future=loop.create_future(),
             priority=int(priority),
-            seq=self._schedule.next_seq(),
+            seq=0,  # set when queued
             timeout=budget,
             retries_left=n_retries,
             key=cmd.device_key,
@@ -464,13 +482,70 @@ class Bus(BusEngine):
             refresh=refresh,
             after_write=occ.after_write,
         )
-        if start_by is not None:
-            job.start_by = float(start_by)
-            job.expiry = self.timer.call_at(
-                job.start_by, lambda: self._drop_unsent(job), precise=False
-            )
-        self._schedule.push(job)
-        self._pump()  # an idle bus sends right here
+        return job
+
+    def prepare(
+        self,
+        cmd: Command[R],
+        *,
+        timeout: float | None = None,
+        retries: int | None = None,
+        priority: Priority = Priority.NORMAL,
+        reserved: bool = False,
+        refresh: Refresh | None = None,
+        lease: Lease | None = None,
+    ) -> PreparedSubmit[R]:
+        """Check and build a ``submit`` ahead of the moment it must be sent.
+
+        Everything ``submit`` does before queueing is done now (checks, the lease rule,
+        encoding, the job); ``PreparedSubmit.send()``, called at the deadline (from a
+        timer callback: the stream ticks), only re-checks what may have changed since
+        (the bus still open and not closing; the lease rule again if any lease changed)
+        and queues it.  A ``refresh`` still runs at the moment of the write.  Arguments
+        and errors as for ``submit`` (without ``start_by``).
+        """
+        job = self._checked_job(
+            cmd, timeout, retries, priority, None, reserved=reserved, refresh=refresh, lease=lease
+        )
+        table = self._leases
+        # The lease rule holds until the table changes, for a lease given here: one
+        # taken from the running task would depend on the task that sends.
+        valid = lease is not None and lease.table is table and lease.active
+        return PreparedSubmit(self._send_prepared, job, lease, table.version if valid else -1)
+
+    def _wrong_loop_error(self, cmd: Command[object]) -> WrongLoopError:
+        return WrongLoopError(
+            f"bus {self.name} was opened on another event loop (thread) than the one "
+            f"sending {type(cmd).__name__} to {cmd.device_key}: nothing sent; open a bus "
+            "in this loop, or run the call on the bus's loop "
+            "(asyncio.run_coroutine_threadsafe)"
+        )
+
+    def _closing_error(self, cmd: Command[object]) -> BusClosedError:
+        # The bus is closing: its safe stops are going out, and no motion may follow
+        # them (a target after a pause resumes an LA).
+        return BusClosedError(
+            f"bus {self.name} is closing: {type(cmd).__name__} to {cmd.device_key} "
+            "refused (nothing sent); the devices are being stopped"
+        )
+
+    def _send_prepared(self, prepared: PreparedSubmit[Any]) -> asyncio.Future[Any]:
+        """``PreparedSubmit.send``: the cheap re-checks, then queue (see ``prepare``)."""
+        job = prepared.job
+        cmd = job.cmd
+        if self.state is not BusState.OPEN:
+            raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        if asyncio.get_running_loop() is not self._loop:
+            raise self._wrong_loop_error(cmd)
+        if cmd.starts_motion:
+            if self._stopping:
+                raise self._closing_error(cmd)
+            if prepared.lease_version != self._leases.version:
+                # A lease changed since: the rule again, for the frame as it is now.
+                fresh = cmd if job.refresh is None else job.refresh()
+                if fresh is not None:
+                    self._lease_keeper.claim(fresh, prepared.lease)
+        self._send_or_queue(job)
         return job.future
 
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:

@@ -29,7 +29,7 @@ import logging
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Generic, Protocol, TypeVar
 
 from motorbus.bus.events import (
     BusStateChanged,
@@ -39,20 +39,28 @@ from motorbus.bus.events import (
     QuadDone,
 )
 from motorbus.bus.lease_shell import LeaseKeeper
-from motorbus.bus.leases import LeaseTable
+from motorbus.bus.leases import Lease, LeaseTable
 from motorbus.bus.matching import DoneWatch, Matcher, TimedOut, Verdict
 from motorbus.bus.occupancy import Occupancy
 from motorbus.bus.options import BusConfig
 from motorbus.bus.schedule import Job, Priority, Scheduler, Wait
 from motorbus.bus.stats import BusStats
 from motorbus.bus.timer import Timer, TimerHandle
-from motorbus.errors import BusClosedError, NotSentError, RemoteProtocolError, ReplyTimeoutError
+from motorbus.errors import (
+    BusClosedError,
+    LocalProtocolError,
+    NotSentError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, FaultState, FrameShape, format_hex
 from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
 from motorbus.transport.base import Transport
 
-__all__ = ["BusEngine", "BusJob", "BusObserver", "BusState", "Refresh"]
+__all__ = ["BusEngine", "BusJob", "BusObserver", "BusState", "PreparedSubmit", "Refresh"]
+
+R = TypeVar("R")
 
 log = logging.getLogger("motorbus.bus")
 
@@ -102,6 +110,41 @@ class BusJob(Job):
 
     def gone(self) -> bool:
         return self.future.done()
+
+
+class PreparedSubmit(Generic[R]):
+    """A ``submit`` checked and built ahead of its moment (``Bus.prepare``)."""
+
+    __slots__ = ("_send", "job", "lease", "lease_version", "sent")
+
+    def __init__(
+        self,
+        send: Callable[[PreparedSubmit[R]], asyncio.Future[R]],
+        job: BusJob,
+        lease: Lease | None,
+        lease_version: int,
+    ) -> None:
+        self._send = send
+        self.job = job
+        self.lease = lease
+        #: The lease table's version when its rule was checked (-1: check again).
+        self.lease_version = lease_version
+        self.sent = False
+
+    def send(self) -> asyncio.Future[R]:
+        """Queue it now (an idle bus writes it before this returns); once only.
+
+        Returns the future of its decoded reply, as ``Bus.submit`` does.
+
+        Raises:
+            BusClosedError: the bus is no longer open, or is closing (motion).
+            LeaseConflictError: a lease changed since and another owner holds a device.
+            LocalProtocolError: it was sent already.
+        """
+        if self.sent:
+            raise LocalProtocolError("a prepared submission is sent once", field="prepared")
+        self.sent = True
+        return self._send(self)
 
 
 class BusEngine:
@@ -198,6 +241,47 @@ class BusEngine:
         finally:
             self._pumping = False
 
+    def _queue(self, job: BusJob, start_by: float | None) -> None:
+        """Queue a checked job (with its ``start_by`` expiry) and pump."""
+        job.seq = self._schedule.next_seq()
+        timer = self.timer
+        # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
+        timer.hold_arming()
+        try:
+            if start_by is not None:
+                job.start_by = float(start_by)
+                job.expiry = timer.call_at(
+                    job.start_by, lambda: self._drop_unsent(job), precise=False
+                )
+            self._schedule.push(job)
+            self._pump()  # an idle bus sends right here
+        finally:
+            timer.release_arming()
+
+    def _send_or_queue(self, job: BusJob) -> None:
+        """Write ``job`` now if the bus is idle and its rules allow it, else queue it:
+        what ``_queue`` and ``_pump`` decide for it, with the queue left out when it is
+        empty (a prepared stream tick at its deadline: ``Bus.prepare``)."""
+        schedule, timer = self._schedule, self.timer
+        if schedule.heap or self._matcher.pending is not None or self._pumping:
+            self._queue(job, None)
+            return
+        job.seq = schedule.next_seq()
+        timer.hold_arming()
+        try:
+            now = timer.now()
+            if schedule.start_at(job, now) > now:  # the scheduler's rule, as in _pump
+                schedule.push(job)
+            else:
+                self._pumping = True
+                try:
+                    self._transmit(job)
+                finally:
+                    self._pumping = False
+            self._pump()
+        finally:
+            timer.release_arming()
+
     def _pump_later(self, start: float, *, precise: bool = True) -> None:
         handle = self._pump_handle
         if handle is not None:
@@ -267,11 +351,6 @@ class BusEngine:
                 job.after_write = self.occupancy(fresh, len(job.raw)).after_write
         cmd = job.cmd
         job.attempts += 1
-        stats = self.stats
-        stats.requests += 1
-        stats.bytes_out += len(job.raw)
-        device = stats.device(job.key)
-        device.requests += 1
         expects = cmd.expects_reply
         if expects:
             # Bytes the OS already holds came before this write, whenever the loop gets
@@ -281,8 +360,6 @@ class BusEngine:
             # the reassembler holds or has consumed so far came before it.
             job.rx_mark = self._rx_total
             self._matcher.sent(job)
-        else:
-            stats.no_reply_frames += 1
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
         timer = self.timer
@@ -290,9 +367,12 @@ class BusEngine:
         try:
             self.transport.write(job.raw)
         except BusClosedError as err:
+            self._count_sent(job, expects)
             self._finish(job, err)
             return
         after = timer.now()
+        # Counted after the write, which then follows the frame's deadline sooner.
+        self._count_sent(job, expects)
         # Spacing counts from the completed write (module docstring).
         self._schedule.wrote(job, before, after)
         job.tx_time = after
@@ -307,6 +387,14 @@ class BusEngine:
             job.handle = timer.call_at(job.deadline, self._on_deadline)
         elif not job.future.done():
             job.future.set_result(None)
+
+    def _count_sent(self, job: BusJob, expects: bool) -> None:
+        stats = self.stats
+        stats.requests += 1
+        stats.bytes_out += len(job.raw)
+        stats.device(job.key).requests += 1
+        if not expects:
+            stats.no_reply_frames += 1
 
     def _expect_shapes(self, shapes: tuple[FrameShape, ...]) -> None:
         """The matcher's shapes changed: tell the reassembler (``Matcher.update_shapes``)."""
@@ -382,7 +470,16 @@ class BusEngine:
     # -- reader ------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
-        now = self.timer.now()
+        timer = self.timer
+        # A reply cancels its deadline and the freed bus schedules its next write: the
+        # timer is re-armed once, after both.
+        timer.hold_arming()
+        try:
+            self._read(data, timer.now())
+        finally:
+            timer.release_arming()
+
+    def _read(self, data: bytes, now: float) -> None:
         stats = self.stats
         stats.bytes_in += len(data)
         reassembler = self._reassembler

@@ -206,6 +206,9 @@ class LeaseTable:
         self._seen: set[DeviceKey] = set()
         self._program: Lease | None = None
         self._listeners: list[Callable[[tuple[LeaseInfo, ...]], None]] = []
+        #: Counts every change of who holds what (and of the keys seen, which a
+        #: wildcard stands for): a claim checked at one version holds at the same one.
+        self.version = 0
 
     # -- reading ---------------------------------------------------------------------
 
@@ -251,6 +254,7 @@ class LeaseTable:
             self._listeners.remove(fn)
 
     def _changed(self) -> None:
+        self.version += 1
         if self._listeners:
             snap = self.snapshot()
             for fn in list(self._listeners):
@@ -261,11 +265,18 @@ class LeaseTable:
     def note(self, key: DeviceKey) -> None:
         """Remember that ``key`` answered on the bus, or was moved by name (what
         ``"la:255"`` stands for: not every ID a scan asked)."""
-        self._seen.add(key)
+        seen = self._seen
+        if key not in seen:
+            seen.add(key)
+            self.version += 1
 
     def note_all(self, keys: Iterable[DeviceKey]) -> None:
         """``note`` each of ``keys``."""
-        self._seen.update(keys)
+        seen = self._seen
+        before = len(seen)
+        seen.update(keys)
+        if len(seen) != before:
+            self.version += 1
 
     def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:
         """``keys`` with each wildcard (``"la:255"``) replaced by the family's devices

@@ -127,6 +127,12 @@ class Timer(abc.ABC):
         self._heap: list[tuple[float, int, TimerHandle]] = []
         self._seq = itertools.count()
         self._cancelled_in_heap = 0
+        # While above 0 (callbacks running, or a caller's hold_arming()), changes to the
+        # earliest deadline are only noted, and the wake-up source is re-armed once at the
+        # end: a reply callback that cancels a deadline and schedules the next write, or
+        # a wake-up whose callbacks cancel and schedule several, costs one re-arm.
+        self._holds = 0
+        self._rearm_due = False
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
@@ -173,8 +179,29 @@ class Timer(abc.ABC):
         handle = TimerHandle(self, deadline, callback, precise)
         heapq.heappush(self._heap, (deadline, next(self._seq), handle))
         if self._heap[0][2] is handle:
-            self._arm(deadline)
+            if self._holds:
+                self._rearm_due = True
+            else:
+                self._arm(deadline)
         return handle
+
+    def hold_arming(self) -> None:
+        """Defer re-arming the wake-up source until the matching :meth:`release_arming`.
+
+        For a callback that cancels and schedules several deadlines in a row (a reply
+        that frees the bus and schedules the next write): the source is re-armed once,
+        at the release, for the earliest deadline then.  Holds nest.  No callback runs
+        early because of a hold; one can only run late if the loop gets to sleep before
+        the release, so call both from the same callback (``try``/``finally``).
+        """
+        self._holds += 1
+
+    def release_arming(self) -> None:
+        """End a :meth:`hold_arming`; the last release re-arms if anything changed."""
+        self._holds -= 1
+        if not self._holds and self._rearm_due and not self._closed:
+            self._rearm_due = False
+            self._rearm()
 
     async def sleep_until(self, deadline: float, *, precise: bool = True) -> None:
         """Sleep until ``now() >= deadline``; cancel-safe (the wake-up is unscheduled).
@@ -234,16 +261,25 @@ class Timer(abc.ABC):
         heap = self._heap
         loop = self.loop
         now = self.now()
-        while heap and heap[0][0] <= now:
-            _, _, handle = heapq.heappop(heap)
-            if handle.cancelled():
-                self._cancelled_in_heap -= 1
-                continue
-            handle._run(loop)
-            if self._closed:
-                return
-            now = self.now()
-        self._rearm()
+        # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
+        self._holds += 1
+        try:
+            while heap and heap[0][0] <= now:
+                _, _, handle = heapq.heappop(heap)
+                if handle.cancelled():
+                    self._cancelled_in_heap -= 1
+                    continue
+                handle._run(loop)
+                if self._closed:
+                    return
+                now = self.now()
+        finally:
+            self._holds -= 1
+        if self._holds:
+            self._rearm_due = True  # woken inside a caller's hold: its release re-arms
+        else:
+            self._rearm_due = False
+            self._rearm()
 
     def _rearm(self) -> None:
         heap = self._heap
@@ -265,11 +301,18 @@ class Timer(abc.ABC):
             heapq.heapify(heap)
             self._cancelled_in_heap = 0
             if not self._closed:
-                self._rearm()
+                self._rearm_soon()
         elif heap and heap[0][2] is handle and not self._closed:
             # The wake-up was armed for this one (a reply deadline, when the reply came):
             # arm it for the next instead of waking up for nothing (a syscall against
             # a wake-up, which costs a hundred times more on a VM).
+            self._rearm_soon()
+
+    def _rearm_soon(self) -> None:
+        """Re-arm now, or at the end of the current hold."""
+        if self._holds:
+            self._rearm_due = True
+        else:
             self._rearm()
 
 

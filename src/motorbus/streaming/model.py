@@ -7,6 +7,7 @@ is started, before anything is sent.
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -31,6 +32,7 @@ __all__ = [
     "broadcast_builder",
     "check_follow_options",
     "hold_flag",
+    "status_query",
     "while_sending",
 ]
 
@@ -198,8 +200,9 @@ def broadcast_builder(
 ) -> Callable[[], la.Broadcast | None]:
     """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
 
-    While every stream of the chunk still sends, the frame built first is reused (it is
-    built once a tick, at the deadline, on the hot path).
+    While every stream of the chunk still sends, the frame built first is reused: it is
+    built when the tick is prepared, and at the deadline and at the write the call is
+    only the check.
     """
     streams = tuple({s: None for s, _ in chunk})
     built: list[la.Broadcast] = []
@@ -217,3 +220,10 @@ def broadcast_builder(
         return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
 
     return build
+
+
+@functools.cache
+def status_query(ident: int) -> la.Control:
+    """The status query of LA ``ident``, made (and checked) once: polls ask it every tick,
+    and a command is an immutable value."""
+    return la.Control(ident, la.ControlAction.QUERY_STATUS)
