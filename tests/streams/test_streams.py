@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import itertools
 import math
 
@@ -39,6 +40,35 @@ async def test_fifteen_actuators_one_broadcast_per_tick(pacing: Pacing) -> None:
         for i, model in enumerate(models):
             got = [target for _, cmd, target in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
             assert got == [row[i] for row in rows]
+        await streamer.close()
+
+
+async def test_a_starting_stream_collects_the_young_generations_first() -> None:
+    # The set-up's young objects would cost the collector's first pass mid-stream; the
+    # start does that pass instead, once: a stream joining a running one does not.
+    collected: list[int] = []
+
+    def note(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            collected.append(info["generation"])
+
+    async with sim_bus([LAModel(1), LAModel(2)]) as (bus, _):
+        streamer = Streamer(bus)
+        was_enabled = gc.isenabled()
+        gc.disable()  # only the collections asked for explicitly are seen
+        gc.callbacks.append(note)
+        try:
+            first = streamer.follow([InspireLA(bus, 1)], [[1000]] * 50, period=0.01)
+            started = list(collected)
+            collected.clear()
+            second = streamer.follow([InspireLA(bus, 2)], [[1000]] * 5, period=0.01)
+        finally:
+            gc.callbacks.remove(note)
+            if was_enabled:
+                gc.enable()
+        assert started == [1]
+        assert collected == []
+        await asyncio.wait_for(asyncio.gather(first.wait(), second.wait()), 5)
         await streamer.close()
 
 
