@@ -19,7 +19,7 @@ __version__ = "0.1.0"
 #: and tests/test_public_api.py checks that the ``TYPE_CHECKING`` imports below (which
 #: type checkers read) name exactly these.
 _EXPORTS: dict[str, tuple[str, ...]] = {
-    "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "Priority"),
+    "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "PreparedSubmit", "Priority"),
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
     "motorbus.bus.leases": ("Lease", "LeaseInfo"),
     "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
@@ -58,6 +58,7 @@ if TYPE_CHECKING:
     from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
     from motorbus.bus.bus import Bus as Bus
     from motorbus.bus.bus import BusState as BusState
+    from motorbus.bus.bus import PreparedSubmit as PreparedSubmit
     from motorbus.bus.bus import Priority as Priority
     from motorbus.bus.events import BusStateChanged as BusStateChanged
     from motorbus.bus.events import FaultChanged as FaultChanged

@@ -40,7 +40,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, Priority, Transport
+from motorbus import BACKENDS, DEFAULT_BACKEND, Bus, PreparedSubmit, Priority, Transport
 from motorbus.cli.bus_options import CLI_HOST_MARGIN_S, LA_BAUD, add_guard_option, open_port
 from motorbus.cli.capture import FAMILY_BAUD
 from motorbus.cli.logformat import (
@@ -522,15 +522,21 @@ class _Sender:
             self._check_done()
             return
         deadline, item = entry
-        self._cancel = self.bus.timer.call_at(deadline, lambda: self._fire(item)).cancel
+        try:
+            # Checked and built now, so that at the deadline only the write is left (as a
+            # stream tick is). No retries: a replay sends what was recorded, once.
+            prepared = self.bus.prepare(item.cmd, retries=0, priority=item.priority)
+        except MotorbusError as err:
+            self._done.set_exception(err)
+            return
+        self._cancel = self.bus.timer.call_at(deadline, lambda: self._fire(prepared)).cancel
 
-    def _fire(self, item: _Planned) -> None:
+    def _fire(self, prepared: PreparedSubmit[Any]) -> None:
         self._cancel = None
         if self._done.done():
             return
         try:
-            # No retries: a replay sends what was recorded, once.
-            future = self.bus.submit(item.cmd, retries=0, priority=item.priority)
+            future = prepared.send()
         except MotorbusError as err:
             self._done.set_exception(err)
             return
