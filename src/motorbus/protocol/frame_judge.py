@@ -167,6 +167,10 @@ class FrameJudge:
         self._valid_headers = tuple(valid_headers)
         self._project = project
         self._quad = quad
+        #: The reply shapes without an expectation, in order of preference.
+        self._default_shapes = (
+            (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if project else (_ANY_STEPPER_REPLY,)
+        )
         self.finder = CandidateFinder(self.headers, self._ff_rule(), quad=quad, project=project)
 
     @property
@@ -277,7 +281,7 @@ class FrameJudge:
     ) -> tuple[int, int, Item | None]:
         shapes = self._expected
         if shapes is None:
-            shapes = (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if self._project else (_ANY_STEPPER_REPLY,)
+            shapes = self._default_shapes
         refused = False
         for shape in shapes:  # in order of preference: the first fitting shape wins
             if not shape.matches_at(buf, p, avail):
@@ -351,16 +355,15 @@ class FrameJudge:
         return end
 
     def _stepper_family(self, raw: bytes) -> Family:
-        if not self._quad:
-            return Family.PROJECT_STEPPER
-        if not self._project:
-            return Family.QUAD_STEPPER
-        # Both possible (motorbus decode without --family): the only telling bytes
-        # are the address values each controller alone uses (A0-05).
-        b2, b3 = raw[2], raw[3]
-        if b2 in _QUAD_ONLY_ADDRESSES or (b2 == 0 and b3 == 0x09):
-            return Family.QUAD_STEPPER
-        return Family.PROJECT_STEPPER
+        if self._project:
+            if not self._quad:
+                return Family.PROJECT_STEPPER
+            # Both possible (motorbus decode without --family): the only telling bytes
+            # are the address values each controller alone uses (A0-05).
+            b2 = raw[2]
+            if b2 not in _QUAD_ONLY_ADDRESSES and (b2 or raw[3] != 0x09):
+                return Family.PROJECT_STEPPER
+        return Family.QUAD_STEPPER
 
     def later_valid_frame(self, buf: bytes, start: int) -> int:
         """Position of the first complete checksum-valid frame at or after ``start``, or -1.
