@@ -172,6 +172,14 @@ class RecordingClock:
 
         return inner.call_at(deadline, run, precise=precise)
 
+    def hold_arming(self) -> None:
+        """Delegate to the inner timer (the bus batches its re-arming through these)."""
+        self.inner.hold_arming()
+
+    def release_arming(self) -> None:
+        """Delegate to the inner timer."""
+        self.inner.release_arming()
+
 
 def record_tx(bus: Bus, clock: RecordingClock, into: list[float]) -> None:
     """Append the bus's clock reading to ``into`` at every frame it writes."""
