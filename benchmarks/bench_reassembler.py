@@ -215,10 +215,11 @@ def dense_junk(size: int, pair: tuple[int, int], rng: random.Random) -> bytes:
 
 def project_requests(size: int, rng: random.Random) -> bytes:
     """About ``size`` bytes of valid 11-byte project stepper requests: motor commands
-    (01..0F, to motor bytes 1..4) with random parameter bytes."""
+    (01..0F, to motor bytes 1..4) with random parameter bytes and a step (0..10)."""
     out = bytearray()
     while len(out) < size:
-        body = bytes((0xFF, 0xAA, rng.randint(1, 4), rng.randint(1, 0x0F), *rng.randbytes(6)))
+        motor, cmd, step = rng.randint(1, 4), rng.randint(1, 0x0F), rng.randint(0, 10)
+        body = bytes((0xFF, 0xAA, motor, cmd, *rng.randbytes(5), step))
         out += body + bytes((sum8(body),))
     return bytes(out)
 

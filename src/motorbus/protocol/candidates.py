@@ -256,8 +256,12 @@ class CandidateFinder:
                 or buf[p + 3] <= STEPPER_B3_MAX
                 or self._ff_rule == FF_ANY
                 or (self._ff_rule >= FF_REQUEST and buf[p + 2] == STEPPER_FREE_B3_OPCODE)
-            ) and (self._ff_rule != FF_REQUEST_ONLY or self.request_fits(buf, p)):
-                return p
+            ) and (
+                self._ff_rule != FF_REQUEST_ONLY
+                or (self._quad and (p + 2 >= n or buf[p + 2] in QUAD_ADDRESSES))
+                or (self._project and (p + 9 >= n or buf[p + 9] <= PROJECT_B9_MAX))
+            ):
+                return p  # ``request_fits``, inline: every request of a simulator
             self._misses += 1
             if self._misses >= DENSE_AFTER:
                 marks = self._marks = self._all_marks(buf)
