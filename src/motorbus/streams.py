@@ -79,7 +79,6 @@ from motorbus.streaming.model import (
     broadcast_builder,
     check_follow_options,
     hold_flag,
-    status_query,
     while_sending,
 )
 from motorbus.streaming.stream import Stream, StreamGap
@@ -649,7 +648,7 @@ class Streamer:
         if not pollers or not self.streams:
             return
         timer = self.bus.timer
-        poll = self.bus.occupancy(status_query(1))
+        poll = self.bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
         next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
         # A poll starts only if even its timeout, and the spacing after it, would end
         # before the next tick.
@@ -665,7 +664,7 @@ class Streamer:
                 ident = s.poll_id
                 try:
                     status = await self.bus.submit(
-                        status_query(ident),
+                        la.control_frame(ident, la.ControlAction.QUERY_STATUS),
                         retries=0,
                         priority=Priority.BACKGROUND,
                         start_by=start_by,

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
@@ -122,7 +121,7 @@ class InspireLA:
         await self.bus.release([self.key], hold=hold)
 
     async def _control(self, action: la.ControlAction, priority: Priority) -> la.Status:
-        status = await self.bus.request(_control_frame(self.id, action), priority=priority)
+        status = await self.bus.request(la.control_frame(self.id, action), priority=priority)
         return status
 
     # -- motion -----------------------------------------------------------------
@@ -683,10 +682,3 @@ async def _ask_all(
                 future.cancel()  # the scan was cancelled or failed: drop the rest
             elif not future.cancelled():
                 future.exception()  # retrieved: no "never retrieved" warning
-
-
-@functools.cache
-def _control_frame(ident: int, action: la.ControlAction) -> la.Control:
-    """A control frame, made (and checked) once: status queries go out every tick, and
-    a command is an immutable value."""
-    return la.Control(ident, action)

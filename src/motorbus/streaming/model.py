@@ -7,7 +7,6 @@ is started, before anything is sent.
 from __future__ import annotations
 
 import enum
-import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
@@ -32,7 +31,6 @@ __all__ = [
     "broadcast_builder",
     "check_follow_options",
     "hold_flag",
-    "status_query",
     "while_sending",
 ]
 
@@ -220,10 +218,3 @@ def broadcast_builder(
         return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
 
     return build
-
-
-@functools.cache
-def status_query(ident: int) -> la.Control:
-    """The status query of LA ``ident``, made (and checked) once: polls ask it every tick,
-    and a command is an immutable value."""
-    return la.Control(ident, la.ControlAction.QUERY_STATUS)

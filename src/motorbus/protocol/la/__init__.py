@@ -53,6 +53,9 @@ from motorbus.protocol.la.commands import (
     WriteTable as WriteTable,
 )
 from motorbus.protocol.la.commands import (
+    control_frame as control_frame,
+)
+from motorbus.protocol.la.commands import (
     split_broadcast as split_broadcast,
 )
 from motorbus.protocol.la.decode import (
@@ -231,6 +234,7 @@ __all__ = [
     "WriteRegister",
     "WriteTable",
     "build_frame",
+    "control_frame",
     "decode_reply",
     "decode_request",
     "decode_status",

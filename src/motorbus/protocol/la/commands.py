@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -465,6 +466,13 @@ class Control(LACommand[Status]):
             RemoteProtocolError: ``raw`` is not a reply to this request.
         """
         return self._decode_checked_status(bytes(raw))
+
+
+@functools.cache
+def control_frame(ident: int, action: ControlAction) -> Control:
+    """``Control(ident, action)``, made (and checked) once per pair: a command is an
+    immutable value, and status queries go out every tick (polls, ``status()``)."""
+    return Control(ident, action)
 
 
 @dataclass(frozen=True, slots=True)
