@@ -268,7 +268,8 @@ def send_safe_frames(
     With ``port.options["quiet_s"]`` (the program sends it: its devices' longest
     turnaround and reply), each frame waits for a quiet line first
     (:func:`wait_for_quiet`): before the first, a device may still be answering the
-    program's last request; before the next, the device answers the guard's frame.
+    program's last request; before the next, the device answers the guard's frame;
+    and before the port closes, the device answers the last one.
     The frame's own wire time is added, since a pty (or a USB adapter) takes the bytes
     at once but a half-duplex line carries them for that long.
     """
@@ -291,6 +292,12 @@ def send_safe_frames(
             ser.flush()  # tcdrain: the frame is on the line before the pause starts
             result.frames += 1
             result.last_write = clock()
+        if quiet and port.frames:
+            # Close only once the last frame's answer is over: a ``socket://`` port
+            # (ser2net) cannot drain to the line, and its close must not overtake the
+            # frame on its way to the device.
+            own = wire_time(len(port.frames[-1]), port.baud)
+            wait_for_quiet(ser, quiet + own, GAP_AFTER_REPLY_S + own, clock=clock, sleep=sleep)
     except Exception as err:
         result.error = f"writing to {port.url} failed after {result.frames} frames: {err}"
     finally:
