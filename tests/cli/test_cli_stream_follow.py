@@ -4,6 +4,7 @@ exit code 1, and pauses them at the end."""
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import pytest
@@ -40,10 +41,23 @@ def positions(sim: SimProcess) -> list[int]:
     return [d["position"] for d in json_lines(r.stdout)]
 
 
+def wait_until_at(sim: SimProcess, position: int) -> None:
+    """Poll until both actuators report ``position`` (``la move`` returns as the motion
+    starts, and the simulated actuators take a while to get there)."""
+    deadline = time.monotonic() + 30.0  # a hang guard, not a timing assertion
+    while (now := positions(sim)) != [position, position]:
+        assert time.monotonic() < deadline, now
+        time.sleep(0.05)
+
+
 def test_stream_enables_estopped_actuators_follows_and_pauses_at_the_end(tmp_path: Path) -> None:
     with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "frames.jsonl") as sim:
         assert cli("la", "move", "1", "1000", "--port", sim.path).returncode == 0
         assert cli("la", "move", "2", "1000", "--port", sim.path).returncode == 0
+        # E-stopped where the rows start (--ramp 0): a stream that enables them must
+        # take both out along the rows.  E-stopped on the way, la:2 could be too far
+        # from the rows to get past 1010 in their 0.4 s, enabled or not.
+        wait_until_at(sim, 1000)
         assert cli("la", "estop", "1-2", "--port", sim.path).returncode == 0
         csv_file = write_csv(tmp_path / "out.csv", 40)
         r = cli("stream", str(csv_file), "--ramp", "0", "--json", "--port", sim.path)
