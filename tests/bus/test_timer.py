@@ -301,6 +301,32 @@ def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
     run(asyncio.new_event_loop, main())
 
 
+def test_one_very_late_wake_up_raises_the_lead_once_not_for_hundreds_of_wake_ups() -> None:
+    """A wake-up far later than any lead covers (the loop was busy) counts as no more
+    than half the longest lead: the next prompt wake-ups bring the lead down at once,
+    where an unclipped 30 ms sample held it at its maximum for ~250 wake-ups."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    def wake(timer: TimerfdTimer, late: float) -> None:
+        timer._armed_ns = int((timer.now() - late) * 1e9)  # as if armed `late` ago
+        timer._on_expiry()
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=500e-6)
+        for _ in range(200):
+            wake(timer, 0.0)
+        assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S  # settled on prompt wake-ups
+        wake(timer, 30e-3)
+        assert timer.lead == 500e-6  # cautious after the outlier ...
+        for _ in range(20):
+            wake(timer, 0.0)
+        assert timer.lead < 0.7 * 500e-6  # ... but only briefly
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_cancelling_the_earliest_callback_rearms_instead_of_waking_for_nothing(
     loop_factory: Callable[[], asyncio.AbstractEventLoop],
