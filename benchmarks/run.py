@@ -54,6 +54,8 @@ from bench_cpu import KEEPS_UP_TICKS_SENT_PCT
 from bench_late_ticks import GOAL_QUIET_MAX_US as GOAL_LATE_MAX_US
 from bench_load import GOAL_RT_MAX_US, GOAL_RT_P99_US
 from bench_reassembler import GOAL_DECODED_PER_S, GOAL_FRAMES_PER_S, GOAL_RATIO_VS_PYMODBUS
+from bench_startup import COMMANDS as STARTUP_COMMANDS
+from bench_startup import GOAL_S as GOAL_STARTUP_S
 from kernel_clock import LATE_S
 from late_ticks import CAUSES as LATE_CAUSES
 
@@ -80,6 +82,15 @@ CPU_BUSES_FULL = (1, 16, 32, 64, 128)
 #: bench_late_ticks.py in the full run: the issue's goal is three 60 s runs.
 LATE_TICKS_RUNS_FULL = 3
 LATE_TICKS_SECONDS_FULL = 60.0
+#: bench_startup.py in the full run: runs per command (``--quick`` keeps the script's 3).
+#: This tree only: a "before" tree needs a git ref, which a report of what is here does
+#: not.
+STARTUP_RUNS_FULL = 7
+#: The commands with a start-up goal (issue 23), as results.json names them.
+STARTUP_GOAL_COMMANDS = {
+    "version": "motorbus --version",
+    "la_status": "motorbus la status 1 --port PTY",
+}
 #: Runs of a step that exits with an error (see run_step).
 STEP_ATTEMPTS = 2
 #: The bus's 1 ms minimum spacing between commands: the ceiling of the command rate.
@@ -405,6 +416,8 @@ def plan(quick: bool, backends: Sequence[str], loops: Sequence[str]) -> list[Ste
         f"{LATE_TICKS_SECONDS_FULL:g}",
     )
     steps.append(Step("late_ticks", "bench_late_ticks.py", late_args, samples=False))
+    startup_args = q or ("--runs", str(STARTUP_RUNS_FULL))
+    steps.append(Step("startup", "bench_startup.py", (*startup_args, "--no-before"), samples=False))
     return steps
 
 
@@ -534,6 +547,28 @@ def late_ticks_results(late: Mapping[str, Any] | None) -> dict[str, Any]:
     }
 
 
+def startup_results(startup: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The ``startup`` section: each command's wall time (this tree), the floor, and the
+    medians the goals read."""
+    startup = startup or {}
+    after = (startup.get("trees") or {}).get("after") or {}
+    floor = startup.get("floor") or {}
+    out: dict[str, Any] = {
+        "runs": startup.get("runs"),
+        "bytecode": startup.get("bytecode"),
+        "load_avg_start": startup.get("loadavg_start"),
+        "floor_min_s": floor.get("min_s"),
+        "floor_median_s": floor.get("median_s"),
+        "commands": {
+            name: pick(after.get(name), ("min_s", "median_s", "median_above_floor_s"))
+            for name in STARTUP_COMMANDS
+        },
+    }
+    for key, name in STARTUP_GOAL_COMMANDS.items():
+        out[f"{key}_median_s"] = (after.get(name) or {}).get("median_s")
+    return out
+
+
 def machine_info() -> dict[str, Any]:
     """This machine: platform string, Python version, CPU count, load average now."""
     return {
@@ -560,7 +595,7 @@ def build_results(
     Args:
         reports: each script's JSON report, keyed by step name (``reassembler``,
             ``bus-<backend>-<loop>``, ``stream``, ``timer``, ``load``, ``cpu``,
-            ``late_ticks``); a missing one gives nulls.
+            ``late_ticks``, ``startup``); a missing one gives nulls.
         quick: whether the scripts ran with ``--quick``.
         date: ISO 8601 UTC time the run started.
         machine: :func:`machine_info` taken at the start.
@@ -666,6 +701,7 @@ def build_results(
         "load": load_out,
         "cpu": cpu_out,
         "late_ticks": late_ticks_results(late),
+        "startup": startup_results(reports.get("startup")),
         "goals": {},
         "runs": dict(runs),
         "errors": errors,
@@ -786,6 +822,8 @@ GOALS = (
         "<=",
         GOAL_LATE_MAX_US,
     ),
+    Goal("startup.version_le_0.3s", "startup.version_median_s", "<=", GOAL_STARTUP_S),
+    Goal("startup.la_status_le_0.3s", "startup.la_status_median_s", "<=", GOAL_STARTUP_S),
 )
 
 
@@ -1439,6 +1477,46 @@ def timer_table(results: Mapping[str, Any]) -> list[str]:
     return table(header, rows)
 
 
+def startup_table(results: Mapping[str, Any]) -> list[str]:
+    """bench_startup.py's figures: min and median per command, against the floor."""
+    s = results.get("startup", {})
+
+    def ms(seconds: Any) -> Any:
+        return None if seconds is None else 1000 * seconds
+
+    goal_names = set(STARTUP_GOAL_COMMANDS.values())
+    rows = [
+        [
+            "`python -c pass` (the floor)",
+            fmt(ms(s.get("floor_min_s")), "ms"),
+            fmt(ms(s.get("floor_median_s")), "ms"),
+            "-",
+            "-",
+        ]
+    ]
+    for name, c in (s.get("commands") or {}).items():
+        median = c.get("median_s")
+        goal = f"<= {GOAL_STARTUP_S:g} s" if name in goal_names else "-"
+        if name in goal_names and median is not None:
+            goal += f": {met_text(median <= GOAL_STARTUP_S)}"
+        rows.append(
+            [
+                f"`{name}`",
+                fmt(ms(c.get("min_s")), "ms"),
+                fmt(ms(median), "ms"),
+                fmt(ms(c.get("median_above_floor_s")), "ms"),
+                goal,
+            ]
+        )
+    return [
+        *table(("command", "min", "median", "median above the floor", "goal"), rows),
+        "",
+        f"`bench_startup.py`, this tree, {fmt(s.get('runs'))} runs a command, bytecode "
+        f"{s.get('bytecode')}, load average at start {s.get('load_avg_start')}; "
+        "`la status` asks a simulator on a pty.",
+    ]
+
+
 def render_report(results: Mapping[str, Any]) -> str:
     """report.md for ``results`` (a :func:`build_results` document)."""
     m = results.get("machine", {})
@@ -1522,6 +1600,8 @@ def render_report(results: Mapping[str, Any]) -> str:
     lines += ["", "## CPU per bus-tick against a minimal asyncio loop (same writes)", ""]
     lines += cpu_table(results)
     lines += ["", *cpu_notes(results)]
+    lines += ["", "## Command-line start-up: wall time of a fresh process", ""]
+    lines += startup_table(results)
     lines += ["", "## Timer sources: lateness of periodic absolute deadlines", ""]
     lines += timer_table(results)
     lines += ["", "p99 ratio: the timer's p99 over `asyncio.sleep`'s p99, same loop and period."]

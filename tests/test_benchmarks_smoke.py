@@ -56,6 +56,33 @@ def bus_report(rtt_us: float, backend: str = "fast", loop: str = "asyncio") -> d
     }
 
 
+def startup_report() -> dict[str, Any]:
+    """bench_startup.py --no-before's JSON, cut down: the floor and the "after" tree."""
+
+    def times(median_s: float) -> dict[str, float]:
+        return {
+            "min_s": median_s - 0.002,
+            "median_s": median_s,
+            "max_s": median_s + 0.01,
+            "median_above_floor_s": median_s - 0.01,
+        }
+
+    return {
+        "floor": {"command": "python -c pass", **times(0.01)},
+        "trees": {
+            "after": {
+                "motorbus --version": times(0.028),
+                "motorbus --help": times(0.029),
+                "motorbus la status --help": times(0.087),
+                "motorbus la status 1 --port PTY": times(0.35),
+            }
+        },
+        "runs": 3,
+        "bytecode": "cached",
+        "loadavg_start": [0.1, 0.1, 0.05],
+    }
+
+
 def fake_reports() -> dict[str, Any]:
     return {
         "reassembler": {
@@ -68,6 +95,7 @@ def fake_reports() -> dict[str, Any]:
             "goals": {"every_undamaged_frame_found": True},
             "pymodbus": {"version": "3.16.1"},
         },
+        "startup": startup_report(),
         "bus-fast-asyncio": bus_report(1000.0),
         "bus-serialx-asyncio": bus_report(1200.0, backend="serialx"),
         "bus-fast-uvloop": bus_report(900.0, loop="uvloop"),
@@ -218,9 +246,10 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
         "load",
         "cpu",
         "late_ticks",
+        "startup",
     ]
     assert all("--quick" in s.args for s in steps if s.script != "bench_timer.py")
-    assert steps[-1].command(Path("/x/raw"))[1:] == [
+    assert steps[-2].command(Path("/x/raw"))[1:] == [
         str(run.HERE / "bench_late_ticks.py"),
         "--quick",
         "--out",
@@ -253,6 +282,9 @@ def test_plan_runs_every_benchmark_once_with_quick() -> None:
     # Its runs, each with its start-up (simulator, perf), fit in a step's time.
     args = full["late_ticks"].args
     assert int(args[1]) * float(args[3]) <= run.STEP_TIMEOUT_S / 2
+    # Start-up of this tree only (a report says what is here, not a comparison).
+    assert full["startup"].args == ("--runs", "7", "--no-before")
+    assert steps[-1].args == ("--quick", "--no-before")
 
 
 def test_results_have_every_documented_key() -> None:
@@ -296,6 +328,10 @@ def test_results_have_every_documented_key() -> None:
         "late_ticks.seconds",
         "late_ticks.threshold_us",
         "late_ticks.load_avg_before",
+        "startup.floor_median_s",
+        "startup.commands",
+        "startup.version_median_s",
+        "startup.la_status_median_s",
         "machine.platform",
         "machine.python",
         "machine.cpus",
@@ -333,6 +369,12 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
     assert r["late_ticks"]["runs"] == []
     assert r["late_ticks"]["kernel_max_us"] is None
     assert r["late_ticks"]["attributed_ticks"] is None
+    assert r["startup"]["version_median_s"] is None
+    assert r["startup"]["commands"]["motorbus --version"] == {
+        "min_s": None,
+        "median_s": None,
+        "median_above_floor_s": None,
+    }
     assert r["late_ticks"]["causes"] == {
         c: {"ticks": None, "worst_us": None} for c in run.LATE_CAUSES
     }
@@ -373,6 +415,8 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
         ("stream.no_drift", -150.0, False),  # |drift| counts, not its sign
         ("scaling.32_buses_cpu_lt_50pct", None, None),  # 32 buses not run in quick mode
         ("late_ticks.kernel_max_le_1000us_every_run", 3447.1, False),  # one run of two
+        ("startup.version_le_0.3s", 0.028, True),  # the median, not the best run
+        ("startup.la_status_le_0.3s", 0.35, False),
     ],
 )
 def test_goals(name: str, value: Any, met: bool | None) -> None:
@@ -468,6 +512,11 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "| mixed: smallest start gap (µs) | 998 | 87 |" in text
     assert "- load (real-time): kernel clock not measured: perf is not installed" in text
     assert "- polls against a prompt device: pending: no pacing option" in text
+    # start-up: each command against the floor, the goal on the two that have one
+    assert "| `python -c pass` (the floor) | 8 ms | 10 ms | - | - |" in text
+    assert "| `motorbus --version` | 26 ms | 28 ms | 18 ms | <= 0.3 s: met |" in text
+    assert "| `motorbus la status --help` | 85 ms | 87 ms | 77 ms | - |" in text
+    assert "| 348 ms | 350 ms | 340 ms | <= 0.3 s: **NOT MET** |" in text
     assert "| 32 | 36 % | 30 % | 1.20 | 1.20 | 9,600 / 9,600 | 100.0 % |" in text
     assert "| 128 | 99 % | 90 % | 1.10 | 2.20 | 19,200 / 38,400 | 50.0 % |" in text
     assert "| 3 | **no: fell behind** |" in text
