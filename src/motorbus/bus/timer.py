@@ -467,7 +467,8 @@ class TimerfdTimer(Timer):
     SPIN_LEAD_MIN_S = 60e-6
     #: The lead follows twice the recent worst wake-up lateness, which decays by this
     #: factor a wake-up: a busy machine wakes promptly and spins little, an idle one
-    #: (deep C-states) wakes late and gets the full lead.  (A lead of the recent p99
+    #: (deep C-states) wakes late and gets the full lead.  A wake-up later than the
+    #: longest lead covers counts as half of it (``_on_expiry``).  (A lead of the recent p99
     #: lateness instead spent as much CPU here and let p99 tick jitter grow from
     #: 150-170 to 185-190 us: bench_late_ticks.py, 2026-12-02.)
     LATENESS_DECAY = 0.98
