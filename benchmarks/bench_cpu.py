@@ -13,6 +13,9 @@ ptys (one ``pty_recorder.py --answer`` process answers every bus at once):
   timeouts, no spacing rule: the least a program can do for the same writes.
 
 CPU is this process's user + system time over the run's wall time (100 % = one core).
+``spin_percent`` is the part of ours that the bus timer spent spinning before precise
+deadlines (its ``spin_seconds``; 0 where the timer does not spin): what the tick
+precision costs, apart from the Python that does the work.
 Goals (issue 23): ours / minimal <= 1.5 at 1, 16 and 32 buses, and 32 buses under 35 %
 of a core.  Larger counts (``run.py`` adds 128) show where one core saturates: this
 process has one thread, so it never uses more than one core; past that point it sends
@@ -195,6 +198,13 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
                     failed[0] += 1
                 k += 1
 
+        # Every bus of one loop shares the loop's timer; counted once each all the same.
+        timers = list({id(t): t for t in (mgr.bus(name).timer for name in names)}.values())
+
+        def spun() -> float:
+            return sum(getattr(t, "spin_seconds", 0.0) for t in timers)
+
+        spin0 = spun()
         wall0, cpu0 = time.monotonic(), cpu_seconds()
         end[0] = max(s.origin for s in streams) + seconds + PERIOD_S
         tasks = [
@@ -207,12 +217,14 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
             *(s.wait() for s in streams), *tasks, return_exceptions=True
         )
         wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
+        spin = spun() - spin0
         errors = [o for o in outcomes if isinstance(o, BaseException)]
         for err in errors:
             if not isinstance(err, MotorbusError):
                 raise err
         return {
             "cpu_percent": 100 * cpu / wall,
+            "spin_percent": 100 * spin / wall,
             "ticks": sum(s.stats.ticks for s in streams),
             "polls": polls[0] + failed[0],
             "replies": polls[0],
@@ -273,6 +285,7 @@ def main() -> int:
         for k in (
             "buses",
             "cpu_percent",
+            "spin_percent",
             "minimal_cpu_percent",
             "ratio",
             "ratio_per_tick",
@@ -301,6 +314,7 @@ def main() -> int:
             ratio = mine["cpu_percent"] / base["cpu_percent"] if base["cpu_percent"] else math.nan
             rows["buses"].append(n)
             rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
+            rows["spin_percent"].append(round(mine["spin_percent"], 1))
             rows["minimal_cpu_percent"].append(round(base["cpu_percent"], 1))
             rows["ratio"].append(round(ratio, 2) if math.isfinite(ratio) else None)
             # The same per tick sent: differs from ``ratio`` once ours falls behind.
@@ -318,7 +332,8 @@ def main() -> int:
             rows["stream_errors"].append(mine["stream_errors"])
             rows["keeps_up"].append(keeps_up)
             print(
-                f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} %, minimal "
+                f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} % (spin "
+                f"{mine['spin_percent']:4.1f} %), minimal "
                 f"{base['cpu_percent']:5.1f} %, ratio {ratio:.2f}; ticks {mine['ticks']} / "
                 f"{base['ticks']} ({sent_pct:.1f} % sent), replies {mine['replies']} / "
                 f"{base['replies']}; {'keeps up' if keeps_up else 'FALLS BEHIND'}",

@@ -215,7 +215,8 @@ def plot_timer_lateness(timer_samples: Mapping[str, Any] | None, path: Path) -> 
 
 
 def plot_cpu(cpu: Mapping[str, Any], path: Path) -> Path | None:
-    """CPU % of one core against bus count: motorbus and the minimal loop, the goals.
+    """CPU % of one core against bus count: motorbus (and its timer's spin), the minimal
+    loop, the goal.
 
     Args:
         cpu: the ``cpu`` section of results.json (bench_cpu.py).
@@ -228,6 +229,7 @@ def plot_cpu(cpu: Mapping[str, Any], path: Path) -> Path | None:
     ax = fig.add_subplot()
     for key, label, style in (
         ("cpu_percent", "motorbus", "o-"),
+        ("spin_percent", "motorbus: of which timer spin", "^:"),
         ("minimal_cpu_percent", "minimal asyncio loop", "s--"),
     ):
         values = cpu.get(key) or []

@@ -172,6 +172,7 @@ LOAD_KEYS = (
 CPU_KEYS = (
     "buses",
     "cpu_percent",
+    "spin_percent",
     "minimal_cpu_percent",
     "ratio",
     "ratio_per_tick",
@@ -1309,6 +1310,7 @@ def cpu_table(results: Mapping[str, Any]) -> list[str]:
             [
                 str(buses),
                 fmt(at("cpu_percent"), "%"),
+                fmt(at("spin_percent"), "%"),
                 fmt(at("minimal_cpu_percent"), "%"),
                 fmt(at("ratio")),
                 fmt(at("ratio_per_tick")),
@@ -1324,6 +1326,7 @@ def cpu_table(results: Mapping[str, Any]) -> list[str]:
     header = (
         "buses",
         "ours (one core = 100 %)",
+        "of which timer spin",
         "minimal loop",
         "ratio",
         "ratio per tick sent",
