@@ -198,7 +198,7 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
                     failed[0] += 1
                 k += 1
 
-        # Every bus of one loop shares the loop's timer; counted once each all the same.
+        # The buses of one loop share its timer: each distinct timer is counted once.
         timers = list({id(t): t for t in (mgr.bus(name).timer for name in names)}.values())
 
         def spun() -> float:

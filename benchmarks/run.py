@@ -82,9 +82,9 @@ CPU_BUSES_FULL = (1, 16, 32, 64, 128)
 #: bench_late_ticks.py in the full run: the issue's goal is three 60 s runs.
 LATE_TICKS_RUNS_FULL = 3
 LATE_TICKS_SECONDS_FULL = 60.0
-#: bench_startup.py in the full run: runs per command (``--quick`` keeps the script's 3).
-#: This tree only: a "before" tree needs a git ref, which a report of what is here does
-#: not.
+#: bench_startup.py in the full run: runs per command (``--quick`` keeps the script's 3),
+#: on this tree only (``--no-before``): the report says what is here, and a before/after
+#: comparison is the script's own job (``--before-ref``).
 STARTUP_RUNS_FULL = 7
 #: The commands with a start-up goal (issue 23), as results.json names them.
 STARTUP_GOAL_COMMANDS = {
@@ -93,6 +93,14 @@ STARTUP_GOAL_COMMANDS = {
 }
 #: Runs of a step that exits with an error (see run_step).
 STEP_ATTEMPTS = 2
+#: The machine probe taken before each step (:func:`machine_probe`).  The load average
+#: does not say how fast a shared VM is: two full runs 28 minutes apart (2026-12-03, load
+#: average under 0.6 both times, the same code) measured the minimal loop of bench_cpu.py
+#: at 13 % and 21 % of a core for the same work at 32 buses, and ours at 36 % and 70 %.
+PROBE_LOOP_ITERATIONS = 200_000
+PROBE_LOOP_REPEATS = 5
+PROBE_SLEEPS = 200
+PROBE_SLEEP_S = 0.001
 #: The bus's 1 ms minimum spacing between commands: the ceiling of the command rate.
 SPACING_US = 1000.0
 IDEAL_COMMANDS_PER_S = 1e6 / SPACING_US
@@ -422,6 +430,30 @@ def plan(quick: bool, backends: Sequence[str], loops: Sequence[str]) -> list[Ste
     return steps
 
 
+def machine_probe() -> dict[str, float]:
+    """How fast this machine is right now, by two fixed workloads (about 0.3 s).
+
+    Returns:
+        ``loop_ms``: the best of :data:`PROBE_LOOP_REPEATS` runs of a fixed pure-Python
+        loop (the interpreter's speed: other tenants' load on the host, CPU frequency);
+        ``wakeup_cpu_us``: this process's CPU time per ``time.sleep`` of 1 ms, over
+        :data:`PROBE_SLEEPS` of them (what each timer wake-up costs, the cost a bus pays
+        several times a tick).
+    """
+    best = math.inf
+    for _ in range(PROBE_LOOP_REPEATS):
+        t0 = time.perf_counter()
+        total = 0
+        for i in range(PROBE_LOOP_ITERATIONS):
+            total += i * i
+        best = min(best, time.perf_counter() - t0)
+    cpu0 = time.process_time()
+    for _ in range(PROBE_SLEEPS):
+        time.sleep(PROBE_SLEEP_S)
+    wakeup = (time.process_time() - cpu0) / PROBE_SLEEPS
+    return {"loop_ms": round(best * 1e3, 2), "wakeup_cpu_us": round(wakeup * 1e6, 1)}
+
+
 def run_step(step: Step, out: Path) -> dict[str, Any]:
     """Run one step, its output going to ``out/logs/<name>.log``.
 
@@ -432,8 +464,9 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
     Returns:
         ``command``, ``returncode`` of the last attempt (None on timeout), ``attempts``,
         ``failed_attempts`` (exit statuses of the attempts before), ``seconds`` (wall
-        time, all attempts), ``load_avg_1min`` (just before the first attempt) and ``log``
-        (path relative to ``out``).
+        time, all attempts), ``load_avg_1min`` (just before the first attempt), ``probe``
+        (:func:`machine_probe`, just before the first attempt) and ``log`` (path relative
+        to ``out``).
     """
     raw_dir, log_dir = out / "raw", out / "logs"
     raw_dir.mkdir(parents=True, exist_ok=True)
@@ -441,6 +474,7 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
     cmd = step.command(raw_dir)
     log = log_dir / f"{step.name}.log"
     load = os.getloadavg()[0]
+    probe = machine_probe()
     print(f"-- {step.name}: {' '.join(cmd[1:])}", flush=True)
     t0 = time.monotonic()
     returncode: int | None = None
@@ -469,6 +503,7 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
         "failed_attempts": failed,
         "seconds": round(seconds, 1),
         "load_avg_1min": round(load, 2),
+        "probe": probe,
         "log": str(log.relative_to(out)),
     }
 
@@ -1618,12 +1653,31 @@ def render_report(results: Mapping[str, Any]) -> str:
             name,
             fmt(run.get("seconds"), "s"),
             fmt(run.get("load_avg_1min")),
+            fmt((run.get("probe") or {}).get("loop_ms"), "ms"),
+            fmt((run.get("probe") or {}).get("wakeup_cpu_us"), "µs"),
             "timeout" if run.get("returncode") is None else str(run.get("returncode")),
             fmt(run.get("attempts")),
         ]
         for name, run in results.get("runs", {}).items()
     ]
-    lines += table(("step", "wall time", "load avg before", "exit status", "attempts"), run_rows)
+    header = (
+        "step",
+        "wall time",
+        "load avg before",
+        "probe: fixed loop",
+        "probe: CPU per wake-up",
+        "exit status",
+        "attempts",
+    )
+    lines += table(header, run_rows)
+    lines += [
+        "",
+        "The probe runs just before each step (`machine_probe`): the best of "
+        f"{PROBE_LOOP_REPEATS} runs of a fixed Python loop, and this process's CPU per "
+        f"`time.sleep({PROBE_SLEEP_S:g})`.  Two runs of the same code on a shared VM can "
+        "differ by far more than their load averages suggest: compare the probes between "
+        "runs before comparing their figures.",
+    ]
     errors = results.get("errors") or []
     if errors:
         lines += ["", "## Errors and retries", ""] + [f"- {e}" for e in errors]

@@ -217,6 +217,7 @@ RUNS = {
         "returncode": 1,
         "seconds": 1.0,
         "load_avg_1min": 0.5,
+        "probe": {"loop_ms": 6.25, "wakeup_cpu_us": 21.0},
         "log": "logs/bus-pyserial-asyncio-asyncio.log",
     }
 }
@@ -516,6 +517,8 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "- polls against a prompt device: pending: no pacing option" in text
     # CPU: ours, the part of it the timer spent spinning, the minimal loop, the ratio
     assert "| 16 | 20 % | 5 % | 15 % | 1.33 | 1.33 |" in text
+    # each step's machine probe beside its load average
+    assert "| bus-pyserial-asyncio-asyncio | 1 s | 0.50 | 6.25 ms | 21 µs | 1 | n/a |" in text
     # start-up: each command against the floor, the goal on the two that have one
     assert "| `python -c pass` (the floor) | 8 ms | 10 ms | - | - |" in text
     assert "| `motorbus --version` | 26 ms | 28 ms | 18 ms | <= 0.3 s: met |" in text
@@ -595,3 +598,10 @@ def test_plots_are_written(tmp_path: Path) -> None:
     assert plots == {"scaling": "scaling.png", "cpu": "cpu.png"}
     assert set(skipped) == {"tick_jitter", "rtt_cdf", "timer_lateness"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cpu.png", "scaling.png"]
+
+
+def test_machine_probe_measures_a_loop_and_a_wake_up() -> None:
+    probe = run.machine_probe()
+    assert set(probe) == {"loop_ms", "wakeup_cpu_us"}
+    assert probe["loop_ms"] > 0
+    assert math.isfinite(probe["wakeup_cpu_us"]) and probe["wakeup_cpu_us"] >= 0

@@ -541,9 +541,10 @@ class TimerfdTimer(Timer):
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         if self._armed_ns:
-            # Clipped at what the longest lead covers: a wake-up later than that (the
-            # loop was busy, or the thread descheduled) is no reason to spin longer, and
-            # unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
+            # Clipped at half the longest lead, which already asks for that lead: a
+            # wake-up later than that (the loop was busy, the thread descheduled) is no
+            # reason to spin longer.  Unclipped, one 30 ms outlier held the lead at its
+            # maximum for ~250 wake-ups.
             late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
