@@ -13,6 +13,11 @@ ptys (one ``pty_recorder.py --answer`` process answers every bus at once):
   timeouts, no spacing rule: the least a program can do for the same writes.
 
 CPU is this process's user + system time over the run's wall time (100 % = one core).
+Each case runs in ``--rounds`` rounds of ``seconds / rounds``, the two loops taking turns
+(the minimal loop first in even rounds, ours first in odd ones), and each side's CPU is
+its total over its total wall time: a slow spell of a shared machine then falls on both
+alike (run one after the other, 10 s each, the ratio at 16 buses moved from 2.6 to 3.7
+between full runs of the same code).  ``round_ratios`` keeps each round's own ratio.
 ``spin_percent`` is the part of ours that the bus timer spent spinning before precise
 deadlines (its ``spin_seconds``; 0 where the timer does not spin): what the tick
 precision costs, apart from the Python that does the work.
@@ -27,8 +32,8 @@ other load share the machine's cores).  ``ratio_per_tick`` divides each side's C
 the ticks it sent: the same as ``ratio`` while ours keeps up, the honest figure once it
 does not.
 
-    python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--buses 1,16,32,64]
-        [--out PATH]
+    python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--rounds 5]
+        [--buses 1,16,32,64] [--out PATH]
 """
 
 from __future__ import annotations
@@ -154,6 +159,8 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
         os.close(fd)
     return {
         "cpu_percent": 100 * cpu / wall,
+        "cpu_s": cpu,
+        "wall_s": wall,
         "ticks": counts["ticks"],
         "polls": counts["polls"],
         "replies": sum(received) // REPLY_BYTES,
@@ -225,6 +232,9 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
         return {
             "cpu_percent": 100 * cpu / wall,
             "spin_percent": 100 * spin / wall,
+            "cpu_s": cpu,
+            "wall_s": wall,
+            "spin_s": spin,
             "ticks": sum(s.stats.ticks for s in streams),
             "polls": polls[0] + failed[0],
             "replies": polls[0],
@@ -254,6 +264,22 @@ class Responder:
         self.proc.wait(30)
 
 
+def combine(rounds: list[dict[str, Any]]) -> dict[str, Any]:
+    """One side's rounds as one run: counts summed, CPU % over the total wall time, the
+    first error kept."""
+    wall = sum(r["wall_s"] for r in rounds)
+    out: dict[str, Any] = {
+        "cpu_percent": 100 * sum(r["cpu_s"] for r in rounds) / wall,
+        "first_error": next((r["first_error"] for r in rounds if r.get("first_error")), None),
+    }
+    if "spin_s" in rounds[0]:
+        out["spin_percent"] = 100 * sum(r["spin_s"] for r in rounds) / wall
+    for key in ("ticks", "polls", "replies", "late_ticks", "skipped_ticks", "stream_errors"):
+        if key in rounds[0]:
+            out[key] = sum(r[key] for r in rounds)
+    return out
+
+
 def max_buses_keeping_up(buses: list[int], kept_up: list[bool]) -> int:
     """The largest count up to which ours kept up with every measured count; 0 if it did
     not with the smallest."""
@@ -269,17 +295,23 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seconds", type=float, default=10.0, help="run length per case")
     parser.add_argument("--buses", default="1,16,32,64")
-    parser.add_argument("--quick", action="store_true", help="2 s per case")
+    parser.add_argument(
+        "--rounds", type=int, default=5, help="turns of the two loops per case (>= 1)"
+    )
+    parser.add_argument("--quick", action="store_true", help="2 s per case, 2 rounds")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
     if args.quick:
         args.seconds = 2.0
+        args.rounds = 2
     try:
         counts = [int(x) for x in args.buses.split(",") if x]
     except ValueError:
         parser.error(f"--buses must be comma-separated integers, got {args.buses!r}")
     if args.seconds <= 0 or not counts or min(counts) < 1:
         parser.error("--seconds must be > 0 and --buses list counts >= 1")
+    if args.rounds < 1:
+        parser.error(f"--rounds must be >= 1, got {args.rounds}")
     rows: dict[str, list[Any]] = {
         k: []
         for k in (
@@ -298,19 +330,40 @@ def main() -> int:
             "ticks_sent_pct",
             "stream_errors",
             "keeps_up",
+            "round_ratios",
         )
     }
     raise_fd_limit(max(counts))
     ticks_per_bus = round(args.seconds / PERIOD_S)
-    print(f"CPU per bus-tick, {args.seconds:.0f} s per case, {PERIOD_S * 1e3:.0f} ms ticks")
+    print(
+        f"CPU per bus-tick, {args.seconds:g} s per case in {args.rounds} rounds, "
+        f"{PERIOD_S * 1e3:.0f} ms ticks"
+    )
     with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
         for n in counts:
             responder = Responder(n, Path(tmp) / f"cpu{n}.json")
+            bases: list[dict[str, Any]] = []
+            mines: list[dict[str, Any]] = []
             try:
-                base = asyncio.run(minimal(responder.paths, args.seconds))
-                mine = asyncio.run(ours(responder.paths, args.seconds))
+                for r in range(args.rounds):
+                    seconds = args.seconds / args.rounds
+                    if r % 2 == 0:
+                        bases.append(asyncio.run(minimal(responder.paths, seconds)))
+                        mines.append(asyncio.run(ours(responder.paths, seconds)))
+                    else:
+                        mines.append(asyncio.run(ours(responder.paths, seconds)))
+                        bases.append(asyncio.run(minimal(responder.paths, seconds)))
             finally:
                 responder.stop()
+            base, mine = combine(bases), combine(mines)
+            rows["round_ratios"].append(
+                [
+                    round(m["cpu_s"] / m["wall_s"] / (b["cpu_s"] / b["wall_s"]), 2)
+                    if b["cpu_s"] > 0
+                    else None
+                    for b, m in zip(bases, mines, strict=True)
+                ]
+            )
             ratio = mine["cpu_percent"] / base["cpu_percent"] if base["cpu_percent"] else math.nan
             rows["buses"].append(n)
             rows["cpu_percent"].append(round(mine["cpu_percent"], 1))

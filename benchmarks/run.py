@@ -193,6 +193,7 @@ CPU_KEYS = (
     "ticks_sent_pct",
     "stream_errors",
     "keeps_up",
+    "round_ratios",
 )
 #: Figures of each run of bench_late_ticks.py (kernel clock unless said).
 LATE_RUN_KEYS = (
@@ -1330,6 +1331,15 @@ def load_table(results: Mapping[str, Any]) -> list[str]:
     return table(("figure (kernel clock; µs)", "plain", "real-time"), rows)
 
 
+def spread(values: Any) -> str:
+    """``min-max`` of a list of figures (``n/a`` when none): the rounds of one case."""
+    finite = [v for v in values or [] if isinstance(v, int | float)]
+    if not finite:
+        return "n/a"
+    low, high = min(finite), max(finite)
+    return fmt(low) if low == high else f"{fmt(low)}-{fmt(high)}"
+
+
 def cpu_table(results: Mapping[str, Any]) -> list[str]:
     """CPU per bus count: ours, the minimal loop, the ratio."""
     c = results.get("cpu", {})
@@ -1348,6 +1358,7 @@ def cpu_table(results: Mapping[str, Any]) -> list[str]:
                 fmt(at("spin_percent"), "%"),
                 fmt(at("minimal_cpu_percent"), "%"),
                 fmt(at("ratio")),
+                spread(at("round_ratios")),
                 fmt(at("ratio_per_tick")),
                 f"{fmt(at('ticks'))} / {fmt(at('minimal_ticks'))}",
                 # One decimal: 99.9 % sent must not read as 100 %.
@@ -1364,6 +1375,7 @@ def cpu_table(results: Mapping[str, Any]) -> list[str]:
         "of which timer spin",
         "minimal loop",
         "ratio",
+        "ratio by round",
         "ratio per tick sent",
         "ticks ours / minimal",
         "ours: ticks sent",

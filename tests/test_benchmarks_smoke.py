@@ -146,6 +146,7 @@ def fake_reports() -> dict[str, Any]:
             "buses": [1, 16, 32, 64, 128],
             "cpu_percent": [2.0, 20.0, 36.0, 70.0, 99.0],
             "spin_percent": [0.9, 5.0, 9.0, 3.0, 0.0],
+            "round_ratios": [[2.0], [1.2, 1.5], [1.2, 1.2], [], [1.0, None]],
             "minimal_cpu_percent": [1.0, 15.0, 30.0, 60.0, 90.0],
             "ratio": [2.0, 1.33, 1.2, 1.17, 1.1],
             "ratio_per_tick": [2.0, 1.33, 1.2, 1.17, 2.2],
@@ -516,7 +517,8 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "- load (real-time): kernel clock not measured: perf is not installed" in text
     assert "- polls against a prompt device: pending: no pacing option" in text
     # CPU: ours, the part of it the timer spent spinning, the minimal loop, the ratio
-    assert "| 16 | 20 % | 5 % | 15 % | 1.33 | 1.33 |" in text
+    # ... and the spread of the ratio over the rounds in which the two loops took turns
+    assert "| 16 | 20 % | 5 % | 15 % | 1.33 | 1.20-1.50 | 1.33 |" in text
     # each step's machine probe beside its load average
     assert "| bus-pyserial-asyncio-asyncio | 1 s | 0.50 | 6.25 ms | 21 µs | 1 | n/a |" in text
     # start-up: each command against the floor, the goal on the two that have one
@@ -524,8 +526,8 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "| `motorbus --version` | 26 ms | 28 ms | 18 ms | <= 0.3 s: met |" in text
     assert "| `motorbus la status --help` | 85 ms | 87 ms | 77 ms | - |" in text
     assert "| 348 ms | 350 ms | 340 ms | <= 0.3 s: **NOT MET** |" in text
-    assert "| 32 | 36 % | 9 % | 30 % | 1.20 | 1.20 | 9,600 / 9,600 | 100.0 % |" in text
-    assert "| 128 | 99 % | 0 % | 90 % | 1.10 | 2.20 | 19,200 / 38,400 | 50.0 % |" in text
+    assert "| 32 | 36 % | 9 % | 30 % | 1.20 | 1.20 | 1.20 | 9,600 / 9,600 | 100.0 % |" in text
+    assert "| 128 | 99 % | 0 % | 90 % | 1.10 | 1 | 2.20 | 19,200 / 38,400 | 50.0 % |" in text
     assert "| 3 | **no: fell behind** |" in text
     assert "| 19,200 / 19,200 | 99.9 % |" in text  # not rounded up to 100 %
     assert (
