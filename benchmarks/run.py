@@ -455,6 +455,24 @@ def machine_probe() -> dict[str, float]:
     return {"loop_ms": round(best * 1e3, 2), "wakeup_cpu_us": round(wakeup * 1e6, 1)}
 
 
+def steal_seconds() -> float | None:
+    """CPU time the hypervisor gave to others, all CPUs, since boot (s; ``/proc/stat``'s
+    "steal" column); None where not available."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def steal_percent(before: float | None, after: float | None, wall_s: float) -> float | None:
+    """Steal over a step as a share of the CPU time the machine's CPUs had in it (%)."""
+    if before is None or after is None or wall_s <= 0:
+        return None
+    return round(100 * (after - before) / (wall_s * (os.cpu_count() or 1)), 2)
+
+
 def run_step(step: Step, out: Path) -> dict[str, Any]:
     """Run one step, its output going to ``out/logs/<name>.log``.
 
@@ -466,8 +484,9 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
         ``command``, ``returncode`` of the last attempt (None on timeout), ``attempts``,
         ``failed_attempts`` (exit statuses of the attempts before), ``seconds`` (wall
         time, all attempts), ``load_avg_1min`` (just before the first attempt), ``probe``
-        (:func:`machine_probe`, just before the first attempt) and ``log`` (path relative
-        to ``out``).
+        (:func:`machine_probe`, just before the first attempt), ``steal_percent`` (the
+        hypervisor's steal over the step, :func:`steal_percent`) and ``log`` (path
+        relative to ``out``).
     """
     raw_dir, log_dir = out / "raw", out / "logs"
     raw_dir.mkdir(parents=True, exist_ok=True)
@@ -476,6 +495,7 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
     log = log_dir / f"{step.name}.log"
     load = os.getloadavg()[0]
     probe = machine_probe()
+    steal0 = steal_seconds()
     print(f"-- {step.name}: {' '.join(cmd[1:])}", flush=True)
     t0 = time.monotonic()
     returncode: int | None = None
@@ -495,6 +515,7 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
             failed.append(returncode)
             print(f"   attempt {attempt} failed ({returncode}), running it again", flush=True)
     seconds = time.monotonic() - t0
+    stolen = steal_percent(steal0, steal_seconds(), seconds)
     status = "ok" if returncode == 0 else f"FAILED ({returncode}), see {log}"
     print(f"   {seconds:.1f} s, {status}", flush=True)
     return {
@@ -505,6 +526,7 @@ def run_step(step: Step, out: Path) -> dict[str, Any]:
         "seconds": round(seconds, 1),
         "load_avg_1min": round(load, 2),
         "probe": probe,
+        "steal_percent": stolen,
         "log": str(log.relative_to(out)),
     }
 
@@ -1667,6 +1689,7 @@ def render_report(results: Mapping[str, Any]) -> str:
             fmt(run.get("load_avg_1min")),
             fmt((run.get("probe") or {}).get("loop_ms"), "ms"),
             fmt((run.get("probe") or {}).get("wakeup_cpu_us"), "µs"),
+            fmt(run.get("steal_percent"), "%"),
             "timeout" if run.get("returncode") is None else str(run.get("returncode")),
             fmt(run.get("attempts")),
         ]
@@ -1678,6 +1701,7 @@ def render_report(results: Mapping[str, Any]) -> str:
         "load avg before",
         "probe: fixed loop",
         "probe: CPU per wake-up",
+        "steal during the step",
         "exit status",
         "attempts",
     )
@@ -1686,9 +1710,11 @@ def render_report(results: Mapping[str, Any]) -> str:
         "",
         "The probe runs just before each step (`machine_probe`): the best of "
         f"{PROBE_LOOP_REPEATS} runs of a fixed Python loop, and this process's CPU per "
-        f"`time.sleep({PROBE_SLEEP_S:g})`.  Two runs of the same code on a shared VM can "
-        "differ by far more than their load averages suggest: compare the probes between "
-        "runs before comparing their figures.",
+        f"`time.sleep({PROBE_SLEEP_S:g})`.  Steal is the CPU time the hypervisor gave to "
+        "other guests during the step (`/proc/stat`), as a share of all this machine's "
+        "CPU time in it.  Two runs of the same code on a shared VM can differ by far more "
+        "than their load averages suggest: compare these between runs before comparing "
+        "their figures.",
     ]
     errors = results.get("errors") or []
     if errors:

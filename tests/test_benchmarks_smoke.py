@@ -219,6 +219,7 @@ RUNS = {
         "seconds": 1.0,
         "load_avg_1min": 0.5,
         "probe": {"loop_ms": 6.25, "wakeup_cpu_us": 21.0},
+        "steal_percent": 12.5,
         "log": "logs/bus-pyserial-asyncio-asyncio.log",
     }
 }
@@ -520,7 +521,9 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     # ... and the spread of the ratio over the rounds in which the two loops took turns
     assert "| 16 | 20 % | 5 % | 15 % | 1.33 | 1.20-1.50 | 1.33 |" in text
     # each step's machine probe beside its load average
-    assert "| bus-pyserial-asyncio-asyncio | 1 s | 0.50 | 6.25 ms | 21 µs | 1 | n/a |" in text
+    assert (
+        "| bus-pyserial-asyncio-asyncio | 1 s | 0.50 | 6.25 ms | 21 µs | 12 % | 1 | n/a |" in text
+    )
     # start-up: each command against the floor, the goal on the two that have one
     assert "| `python -c pass` (the floor) | 8 ms | 10 ms | - | - |" in text
     assert "| `motorbus --version` | 26 ms | 28 ms | 18 ms | <= 0.3 s: met |" in text
@@ -607,3 +610,12 @@ def test_machine_probe_measures_a_loop_and_a_wake_up() -> None:
     assert set(probe) == {"loop_ms", "wakeup_cpu_us"}
     assert probe["loop_ms"] > 0
     assert math.isfinite(probe["wakeup_cpu_us"]) and probe["wakeup_cpu_us"] >= 0
+
+
+def test_steal_is_a_share_of_the_machines_cpu_time() -> None:
+    cpus = run.os.cpu_count() or 1
+    assert run.steal_percent(10.0, 10.0 + cpus, 4.0) == 25.0  # a quarter of 4 s x cpus
+    assert run.steal_percent(None, 3.0, 4.0) is None  # no /proc/stat: not measured
+    assert run.steal_percent(1.0, 2.0, 0.0) is None
+    now = run.steal_seconds()
+    assert now is None or now >= 0
