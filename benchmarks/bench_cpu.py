@@ -358,9 +358,7 @@ def main() -> int:
             base, mine = combine(bases), combine(mines)
             rows["round_ratios"].append(
                 [
-                    round(m["cpu_s"] / m["wall_s"] / (b["cpu_s"] / b["wall_s"]), 2)
-                    if b["cpu_s"] > 0
-                    else None
+                    round(m["cpu_percent"] / b["cpu_percent"], 2) if b["cpu_percent"] else None
                     for b, m in zip(bases, mines, strict=True)
                 ]
             )

@@ -605,6 +605,12 @@ def test_plots_are_written(tmp_path: Path) -> None:
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cpu.png", "scaling.png"]
 
 
+def test_every_start_up_goal_of_bench_startup_has_a_results_key() -> None:
+    assert set(run.STARTUP_GOAL_KEYS) == set(run.STARTUP_GOALS)
+    goals = {g.figure for g in run.GOALS if g.name.startswith("startup.")}
+    assert goals == {f"startup.{k}_median_s" for k in run.STARTUP_GOAL_KEYS.values()}
+
+
 def test_machine_probe_measures_a_loop_and_a_wake_up() -> None:
     probe = run.machine_probe()
     assert set(probe) == {"loop_ms", "wakeup_cpu_us"}
