@@ -240,6 +240,9 @@ async def test_after_an_outage_the_stream_ramps_from_the_read_positions(
                 assert max(steps[:5]) <= math.ceil(step) + 1, after[:6]
             assert stream.error is None and not stream.done
             await stream.stop()
+            # Stopped after the reconnect, with the bus still open: the pause comes last.
+            for i in ids:
+                assert frames.of(i)[-1] == PAUSE, f"la:{i} last received {frames.of(i)[-3:]}"
     finally:
         loop.set_exception_handler(None)
     assert not [c for c in handled if "Fatal" in str(c.get("message"))], handled
