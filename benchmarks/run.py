@@ -99,6 +99,9 @@ STEP_ATTEMPTS = 2
 #: does not say how fast a shared VM is: two full runs 28 minutes apart (2026-12-03, load
 #: average under 0.6 both times, the same code) measured the minimal loop of bench_cpu.py
 #: at 13 % and 21 % of a core for the same work at 32 buses, and ours at 36 % and 70 %.
+#: The probe did not find that cause: two runs later it was normal (6.4 ms, 24 us) before
+#: a CPU step as slow as that.  It rules out the simplest causes (a slow interpreter,
+#: costly wake-ups), not every one.
 PROBE_LOOP_ITERATIONS = 200_000
 PROBE_LOOP_REPEATS = 5
 PROBE_SLEEPS = 200
