@@ -42,6 +42,7 @@ from typing import Any, cast
 
 from motorbus.errors import BusClosedError, LocalProtocolError, PortInUseError
 from motorbus.protocol.base import check_flag
+from motorbus.transport import direct_io
 from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
 from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
 from motorbus.validation import check_baud
@@ -331,7 +332,7 @@ class SerialTransport(CountingTransport):
         #: ``drain_input``'s reader and fd, looked up once per opened backend transport
         #: (every request calls it: no attribute walk and fileno() call each time).
         self._drain_for: object = None
-        self._drain_with: tuple[Callable[[], None] | None, int | None] = (None, None)
+        self._drain_with: tuple[Callable[[], None] | None, Any] = (None, None)
         self._adapter: _Adapter | None = None
         self._on_data: DataCallback | None = None
         self._on_lost: LostCallback | None = None
@@ -394,6 +395,8 @@ class SerialTransport(CountingTransport):
         if self.backend == "serialx" and hasattr(transport, "max_size"):
             transport.max_size = SERIALX_MAX_READ
         pyserial = transport.get_extra_info("serial")
+        if self.backend == "fast" and is_device_path(self.url):
+            direct_io.install(pyserial)  # one syscall a read and a write
         if self.rs485:
             self._set_rs485(pyserial)
         tty_name = usb_serial_name(self.url)
@@ -458,23 +461,21 @@ class SerialTransport(CountingTransport):
 
         All three backends read through ``_read_ready``, the callback the loop runs when
         the port is readable (it delivers to ``on_data`` and reports a lost port as
-        usual).  It is called only while ``select`` says the port is readable (a raw
-        tty read with nothing to read returns 0 bytes, which a backend takes for a hang
+        usual).  It is called only while ``poll`` says the port is readable (a raw
+        tty read with nothing to read returns 0 bytes, which pyserial takes for a hang
         up), at most ``DRAIN_READS_MAX`` times.
         """
         transport = self._transport
         if self._drain_for is not transport:
             self._drain_for = transport
-            self._drain_with = (getattr(transport, "_read_ready", None), _readable_fd(transport))
-        read_ready, fd = self._drain_with
-        if read_ready is None or fd is None:
+            self._drain_with = (getattr(transport, "_read_ready", None), _poller(transport))
+        read_ready, poller = self._drain_with
+        if read_ready is None or poller is None:
             return
         for _ in range(DRAIN_READS_MAX):
-            try:
-                readable, _, _ = select.select([fd], [], [], 0)
-            except (OSError, ValueError):
-                return
-            if not readable or self._transport is not transport:
+            ready = poller.poll(0)
+            # POLLNVAL: the fd was closed under us (select raised EBADF here).
+            if not ready or ready[0][1] & select.POLLNVAL or self._transport is not transport:
                 return
             read_ready()
 
@@ -515,6 +516,18 @@ class SerialTransport(CountingTransport):
         _log.debug("%s: port lost: %r", self.url, exc)
         if on_lost is not None:
             on_lost(exc)
+
+
+def _poller(transport: object) -> Any:
+    """A ``select.poll`` object watching ``transport``'s fd for input, or None if the
+    backend does not tell its fd (one object per opened port: ``poll(0)`` is then one
+    syscall a request, cheaper than building ``select``'s fd sets each time)."""
+    fd = _readable_fd(transport)
+    if fd is None:
+        return None
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    return poller
 
 
 def _readable_fd(transport: object) -> int | None:
