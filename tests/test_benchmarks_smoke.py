@@ -625,3 +625,30 @@ def test_steal_is_a_share_of_the_machines_cpu_time() -> None:
     assert run.steal_percent(1.0, 2.0, 0.0) is None
     now = run.steal_seconds()
     assert now is None or now >= 0
+
+
+def test_ab_pairs_alternate_and_are_summarised_pair_by_pair() -> None:
+    import ab_cpu
+
+    assert [ab_cpu.order(i) for i in range(3)] == [
+        ("before", "after"),
+        ("after", "before"),
+        ("before", "after"),
+    ]
+    # Pair 2 is a slow spell on both sides: its ratio, not its level, counts.
+    s = ab_cpu.paired_summary([10.0, 10.0, 20.0], [9.0, 11.0, 16.0])
+    assert s["ratios"] == [0.9, 1.1, 0.8]
+    assert s["median_ratio"] == 0.9
+    assert s["after_won"] == 2 and s["pairs"] == 3
+    assert s["before_median"] == 10.0 and s["after_median"] == 11.0
+    with pytest.raises(ValueError):
+        ab_cpu.paired_summary([1.0], [])
+
+
+def test_ab_exports_a_revision_of_this_checkout(tmp_path: Path) -> None:
+    import ab_cpu
+
+    if not (ab_cpu.REPO / ".git").exists():
+        pytest.skip("not a git checkout (an sdist)")
+    src = ab_cpu.export_rev("HEAD", tmp_path)
+    assert (src / "motorbus" / "__init__.py").is_file()

@@ -1,0 +1,178 @@
+"""A/B of two motorbus source trees: CPU per bus-tick, in alternating pairs.
+
+On this shared VM the same code's CPU moves by up to 2x within minutes (README's
+four-run table), so "before" and "after" measured one after the other say little about a
+change of a few per cent.  This runs ``bench_cpu.py``'s ``ours`` workload (a follow
+stream and a status poll per bus and 10 ms tick, on ptys a responder answers) from two
+trees in pairs, each run a fresh process with ``PYTHONPATH`` on its tree, the order
+alternating from pair to pair (before first in even pairs).  A pair's two runs are
+seconds apart, so a slow spell falls on both: the figure is the median of the pairs'
+after/before CPU ratios, with how many pairs the after side won.
+
+The "before" tree is a git revision of this checkout (``--before-rev``, exported with
+``git archive``) or a directory holding the ``motorbus`` package (``--before``); the
+"after" tree is this checkout's ``src`` unless ``--after`` names another.  The workload
+is this checkout's ``bench_cpu.py``, whatever the trees.
+
+    python benchmarks/ab_cpu.py --before-rev HEAD~1 [--buses 1,16,32] [--seconds 2]
+        [--pairs 8] [--out PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+RESULTS = HERE / "results" / "ab_cpu.json"
+#: What a child run reports (``bench_cpu.ours``'s keys).
+CHILD_KEYS = ("cpu_percent", "spin_percent", "ticks", "replies", "stream_errors")
+
+
+def order(pair: int) -> tuple[str, str]:
+    """Which side runs first in ``pair``: before in even pairs, after in odd ones."""
+    return ("before", "after") if pair % 2 == 0 else ("after", "before")
+
+
+def paired_summary(before: list[float], after: list[float]) -> dict[str, Any]:
+    """The after/before ratio of each pair, their median, and the pairs after won."""
+    if len(before) != len(after) or not before:
+        raise ValueError("need as many after runs as before runs, at least one")
+    ratios = [a / b for b, a in zip(before, after, strict=True) if b > 0]
+    return {
+        "before_median": round(statistics.median(before), 2),
+        "after_median": round(statistics.median(after), 2),
+        "ratios": [round(r, 3) for r in ratios],
+        "median_ratio": round(statistics.median(ratios), 3) if ratios else None,
+        "after_won": sum(1 for r in ratios if r < 1),
+        "pairs": len(ratios),
+    }
+
+
+def export_rev(rev: str, dest: Path) -> Path:
+    """``src`` of git revision ``rev`` of this checkout, exported under ``dest``."""
+    archive = subprocess.run(
+        ["git", "-C", str(REPO), "archive", rev, "src"], check=True, capture_output=True
+    )
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
+    return dest / "src"
+
+
+def run_child(tree: Path, buses: int, seconds: float) -> dict[str, Any]:
+    """One ``ours`` run with ``motorbus`` imported from ``tree``."""
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    proc = subprocess.run(
+        [sys.executable, __file__, "--child", str(buses), str(seconds)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120 + 4 * seconds,
+    )
+    if proc.returncode:
+        raise SystemExit(f"a run from {tree} failed:\n{proc.stderr[-2000:]}")
+    result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def child(buses: int, seconds: float) -> None:
+    import asyncio
+
+    sys.path.insert(0, str(HERE))
+    import bench_cpu
+    import motorbus
+
+    bench_cpu.raise_fd_limit(buses)
+    with tempfile.TemporaryDirectory(prefix="motorbus-ab-") as tmp:
+        responder = bench_cpu.Responder(buses, Path(tmp) / "rec.json")
+        try:
+            res = asyncio.run(bench_cpu.ours(responder.paths, seconds))
+        finally:
+            responder.stop()
+    out = {k: res[k] for k in CHILD_KEYS}
+    out["motorbus"] = str(Path(motorbus.__file__).resolve().parent)
+    print(json.dumps(out))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    side = parser.add_mutually_exclusive_group()
+    side.add_argument("--before-rev", help="git revision of this checkout (e.g. HEAD~1)")
+    side.add_argument("--before", type=Path, help="a directory holding the motorbus package")
+    parser.add_argument("--after", type=Path, default=REPO / "src")
+    parser.add_argument("--buses", default="1,16,32")
+    parser.add_argument("--seconds", type=float, default=2.0, help="length of each run")
+    parser.add_argument("--pairs", type=int, default=8)
+    parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(int(args.child[0]), float(args.child[1]))
+        return 0
+    if args.before is None and args.before_rev is None:
+        parser.error("give --before-rev REV or --before DIR")
+    try:
+        counts = [int(x) for x in args.buses.split(",") if x]
+    except ValueError:
+        parser.error(f"--buses must be comma-separated integers, got {args.buses!r}")
+    if not counts or min(counts) < 1 or args.seconds <= 0 or args.pairs < 1:
+        parser.error("--buses counts >= 1, --seconds > 0 and --pairs >= 1")
+    with tempfile.TemporaryDirectory(prefix="motorbus-ab-tree-") as tmp:
+        before = export_rev(args.before_rev, Path(tmp)) if args.before_rev else args.before
+        trees = {"before": before.resolve(), "after": args.after.resolve()}
+        for name, tree in trees.items():
+            if not (tree / "motorbus" / "__init__.py").is_file():
+                parser.error(f"the {name} tree {tree} holds no motorbus package")
+        print(
+            f"ours, {args.seconds:g} s runs, {args.pairs} pairs a count, alternating; "
+            f"before = {args.before_rev or before}, after = {args.after}"
+        )
+        cases = []
+        for n in counts:
+            runs: dict[str, list[dict[str, Any]]] = {"before": [], "after": []}
+            for pair in range(args.pairs):
+                for name in order(pair):
+                    runs[name].append(run_child(trees[name], n, args.seconds))
+            summary = paired_summary(
+                [r["cpu_percent"] for r in runs["before"]],
+                [r["cpu_percent"] for r in runs["after"]],
+            )
+            cases.append({"buses": n, **summary, "runs": runs})
+            print(
+                f"  {n:3d} buses: CPU median before {summary['before_median']:5.1f} %, after "
+                f"{summary['after_median']:5.1f} %; paired after/before median "
+                f"{summary['median_ratio']}, after lower in {summary['after_won']} of "
+                f"{summary['pairs']} pairs",
+                flush=True,
+            )
+    result = {
+        "before": args.before_rev or str(args.before),
+        "after": str(args.after),
+        "seconds": args.seconds,
+        "pairs": args.pairs,
+        "cases": cases,
+        "machine": {
+            "platform": platform.platform(),
+            "python": sys.version.split()[0],
+            "cpus": os.cpu_count(),
+            "load_avg": [round(x, 2) for x in os.getloadavg()],
+        },
+        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+    }
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
