@@ -3,9 +3,9 @@
 pyserial's ``Serial.read`` asks ``select`` before every ``os.read`` and builds a
 ``Timeout``, a ``bytearray`` and a copy; its non-blocking ``write`` retries ``os.write``
 in a busy loop while the output buffer is full.  The ``"fast"`` backend calls both once
-per chunk and per frame, so on a bus that streams and polls they were about a tenth of
-the process's CPU (``benchmarks/bench_cpu.py``).  :func:`install` gives one opened port
-replacements with pyserial's contract, minus that work:
+per chunk and per frame: one syscall each instead took 7-10 % off the CPU of buses that
+stream and poll (``benchmarks/ab_cpu.py``, benchmarks/README.md).  :func:`install` gives
+one opened port replacements with pyserial's contract, minus that work:
 
 * ``read(size)``: one ``os.read``.  A raw tty read with nothing to read returns no bytes
   (``VMIN = 0``), as a hung-up one does, so an empty read asks ``poll`` which of the two
