@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -35,6 +34,10 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
 RESULTS = HERE / "results" / "ab_cpu.json"
+sys.path.insert(0, str(HERE))
+
+import bench_cpu  # noqa: E402  (the workload)
+
 #: What a child run reports (``bench_cpu.ours``'s keys).
 CHILD_KEYS = ("cpu_percent", "spin_percent", "ticks", "replies", "stream_errors")
 
@@ -87,8 +90,6 @@ def run_child(tree: Path, buses: int, seconds: float) -> dict[str, Any]:
 def child(buses: int, seconds: float) -> None:
     import asyncio
 
-    sys.path.insert(0, str(HERE))
-    import bench_cpu
     import motorbus
 
     bench_cpu.raise_fd_limit(buses)
@@ -154,18 +155,15 @@ def main() -> int:
                 f"{summary['pairs']} pairs",
                 flush=True,
             )
+    from run import machine_info  # (the parent only: run imports every benchmark)
+
     result = {
         "before": args.before_rev or str(args.before),
         "after": str(args.after),
         "seconds": args.seconds,
         "pairs": args.pairs,
         "cases": cases,
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-            "load_avg": [round(x, 2) for x in os.getloadavg()],
-        },
+        "machine": machine_info(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -86,6 +86,7 @@ def trajectory(t: float) -> list[float]:
 
 def go_realtime() -> str:
     """Put this process under SCHED_FIFO; return how (or raise OSError)."""
+    realtime: Any
     try:
         from motorbus import realtime
     except ImportError:
