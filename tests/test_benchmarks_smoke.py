@@ -20,6 +20,8 @@ sys.path.insert(0, str(BENCHMARKS))
 import bench_cpu  # noqa: E402
 import report_plots  # noqa: E402
 import run  # noqa: E402
+import run_report  # noqa: E402
+import run_results  # noqa: E402
 
 DATE = "2026-01-02T03:04:05+00:00"
 MACHINE = {"platform": "Linux-test", "python": "3.11.7", "cpus": 2, "load_avg": [0.5, 0.4, 0.3]}
@@ -226,7 +228,7 @@ RUNS = {
 
 
 def build(reports: dict[str, Any] | None = None) -> dict[str, Any]:
-    return run.build_results(
+    return run_results.build_results(
         fake_reports() if reports is None else reports,
         quick=True,
         date=DATE,
@@ -341,7 +343,7 @@ def test_results_have_every_documented_key() -> None:
         "machine.python",
         "machine.cpus",
     ):
-        assert run.lookup(r, key) is not None, key
+        assert run_results.lookup(r, key) is not None, key
     assert (r["backend"], r["event_loop"], r["timer_source"]) == ("fast", "asyncio", "TimerfdTimer")
     assert r["bus"]["backends"]["serialx"]["rtt_p50_us"] == 1200.0
     assert r["bus"]["backends"]["pyserial-asyncio"]["status"] == "failed"
@@ -352,9 +354,9 @@ def test_results_have_every_documented_key() -> None:
     assert late["kernel_max_us"] == 3447.1  # the worst run's
     assert late["attributed_ticks"] == 5
     assert [run_["tick_jitter_max_us"] for run_ in late["runs"]] == [900.0, 3447.1]
-    assert set(late["runs"][0]) == set(run.LATE_RUN_KEYS)  # "origin" left out
+    assert set(late["runs"][0]) == set(run_results.LATE_RUN_KEYS)  # "origin" left out
     assert late["runs"][0]["timer_wakeups"] is None  # absent: null, not missing
-    assert list(late["causes"]) == list(run.LATE_CAUSES)
+    assert list(late["causes"]) == list(run_results.LATE_CAUSES)
     assert late["causes"]["machine: run queue"] == {"ticks": 4, "worst_us": 3447.1}
     assert r["errors"] == [
         "bus-pyserial-asyncio-asyncio: exit status 1 (timeout if null), "
@@ -381,12 +383,12 @@ def test_missing_reports_give_nulls_not_missing_keys() -> None:
         "median_above_floor_s": None,
     }
     assert r["late_ticks"]["causes"] == {
-        c: {"ticks": None, "worst_us": None} for c in run.LATE_CAUSES
+        c: {"ticks": None, "worst_us": None} for c in run_results.LATE_CAUSES
     }
     assert r["load"]["rt"]["tick_jitter_p99_us"] is None
     assert r["bus"]["backends"]["fast"]["status"] == "failed"
     assert all(g["met"] is None for g in r["goals"].values())
-    text = run.render_report(r)
+    text = run_report.render_report(r)
     assert "n/a" in text
     assert "## Late ticks, attributed: 0 run(s) of n/a" in text
     assert "| `gc` | n/a | n/a |" in text
@@ -461,7 +463,7 @@ def test_where_one_core_saturates_is_the_first_count_ours_falls_behind_at() -> N
     assert bench_cpu.max_buses_keeping_up(buses, [False] * 5) == 0
     reports = fake_reports()
     reports["cpu"]["max_buses_keeping_up"] = 0
-    assert "ours fell behind already at **1 bus**" in run.render_report(build(reports))
+    assert "ours fell behind already at **1 bus**" in run_report.render_report(build(reports))
 
 
 def test_late_tick_goal_needs_every_run_measured() -> None:
@@ -475,11 +477,12 @@ def test_late_tick_goal_needs_every_run_measured() -> None:
     r = build(reports)
     assert r["late_ticks"]["kernel_max_us"] is None
     assert r["goals"]["late_ticks.kernel_max_le_1000us_every_run"]["met"] is None
-    assert "- run 2: kernel clock not measured: perf is not installed" in run.render_report(r)
+    report = run_report.render_report(r)
+    assert "- run 2: kernel clock not measured: perf is not installed" in report
 
 
 def test_report_shows_ratios_goals_and_machine() -> None:
-    text = run.render_report(build())
+    text = run_report.render_report(build())
     assert text.startswith("# motorbus benchmark report\n")
     assert "Linux-test, 2 CPUs, Python 3.11.7" in text
     assert DATE in text
@@ -509,7 +512,7 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     assert "- not measured: `scaling.32_buses_cpu_lt_50pct`" in text
     states = ("- met: ", "- **NOT MET**: ", "- not measured: ")
     goal_lines = [line for line in text.splitlines() if line.startswith(states)]
-    assert len(goal_lines) == len(run.GOALS)
+    assert len(goal_lines) == len(run_results.GOALS)
     # serialx RTT 1200 vs its minimal client 800, and vs fast 1000
     assert "| serialx | ok | TimerfdTimer | 1,200 µs | 2,400 µs | 800 µs | 1.50 | 1.20 |" in text
     assert "| 16 | n/a | n/a | 400 µs | n/a | n/a |" in text
@@ -564,7 +567,7 @@ def test_report_shows_ratios_goals_and_machine() -> None:
     ],
 )
 def test_fmt(value: Any, unit: str, text: str) -> None:
-    assert run.fmt(value, unit) == text
+    assert run_report.fmt(value, unit) == text
 
 
 def test_plots_are_written(tmp_path: Path) -> None:
@@ -606,9 +609,9 @@ def test_plots_are_written(tmp_path: Path) -> None:
 
 
 def test_every_start_up_goal_of_bench_startup_has_a_results_key() -> None:
-    assert set(run.STARTUP_GOAL_KEYS) == set(run.STARTUP_GOALS)
-    goals = {g.figure for g in run.GOALS if g.name.startswith("startup.")}
-    assert goals == {f"startup.{k}_median_s" for k in run.STARTUP_GOAL_KEYS.values()}
+    assert set(run_results.STARTUP_GOAL_KEYS) == set(run_results.STARTUP_GOALS)
+    goals = {g.figure for g in run_results.GOALS if g.name.startswith("startup.")}
+    assert goals == {f"startup.{k}_median_s" for k in run_results.STARTUP_GOAL_KEYS.values()}
 
 
 def test_machine_probe_measures_a_loop_and_a_wake_up() -> None:
