@@ -7,7 +7,9 @@ stream and a status poll per bus and 10 ms tick, on ptys a responder answers) fr
 trees in pairs, each run a fresh process with ``PYTHONPATH`` on its tree, the order
 alternating from pair to pair (before first in even pairs).  A pair's two runs are
 seconds apart, so a slow spell falls on both: the figure is the median of the pairs'
-after/before CPU ratios, with how many pairs the after side won.
+after/before CPU ratios, with how many pairs the after side won.  Beside it, each side's
+median timer spin and tick p99 (the lateness of the tick writes of all its streams, the
+bus's own view): what a CPU saving must not cost.
 
 The "before" tree is a git revision of this checkout (``--before-rev``, exported with
 ``git archive``) or a directory holding the ``motorbus`` package (``--before``); the
@@ -39,7 +41,15 @@ sys.path.insert(0, str(HERE))
 import bench_cpu  # noqa: E402  (the workload)
 
 #: What a child run reports (``bench_cpu.ours``'s keys).
-CHILD_KEYS = ("cpu_percent", "spin_percent", "ticks", "replies", "stream_errors")
+CHILD_KEYS = (
+    "cpu_percent",
+    "spin_percent",
+    "ticks",
+    "replies",
+    "stream_errors",
+    "tick_p99_us",
+    "tick_max_us",
+)
 
 
 def order(pair: int) -> tuple[str, str]:
@@ -60,6 +70,12 @@ def paired_summary(before: list[float], after: list[float]) -> dict[str, Any]:
         "after_won": sum(1 for r in ratios if r < 1),
         "pairs": len(ratios),
     }
+
+
+def median_of(runs: list[dict[str, Any]], key: str) -> float | None:
+    """The median of ``key`` over the runs that report it, rounded; None if none does."""
+    values = [r[key] for r in runs if r.get(key) is not None]
+    return round(statistics.median(values), 1) if values else None
 
 
 def export_rev(rev: str, dest: Path) -> Path:
@@ -147,15 +163,19 @@ def main() -> int:
                 [r["cpu_percent"] for r in runs["before"]],
                 [r["cpu_percent"] for r in runs["after"]],
             )
-            cases.append({"buses": n, **summary, "runs": runs})
+            precision = {side: median_of(runs[side], "tick_p99_us") for side in runs}
+            spin = {side: median_of(runs[side], "spin_percent") for side in runs}
+            case = {"buses": n, **summary, "tick_p99_us": precision, "spin_percent": spin}
+            cases.append({**case, "runs": runs})
             print(
                 f"  {n:3d} buses: CPU median before {summary['before_median']:5.1f} %, after "
                 f"{summary['after_median']:5.1f} %; paired after/before median "
                 f"{summary['median_ratio']}, after lower in {summary['after_won']} of "
-                f"{summary['pairs']} pairs",
+                f"{summary['pairs']} pairs; spin {spin['before']} / {spin['after']} %; "
+                f"tick p99 (bus's view) {precision['before']} / {precision['after']} us",
                 flush=True,
             )
-    from run import machine_info  # (the parent only: run imports every benchmark)
+    from run_results import machine_info  # (the parent only: it imports every benchmark)
 
     result = {
         "before": args.before_rev or str(args.before),
