@@ -655,3 +655,17 @@ def test_ab_exports_a_revision_of_this_checkout(tmp_path: Path) -> None:
         pytest.skip("not a git checkout (an sdist)")
     src = ab_cpu.export_rev("HEAD", tmp_path)
     assert (src / "motorbus" / "__init__.py").is_file()
+
+
+def test_cpu_tick_lateness_is_taken_over_every_stream_at_once() -> None:
+    from motorbus.bus.stats import LatencyHistogram
+
+    quick, slow, empty = LatencyHistogram(), LatencyHistogram(), LatencyHistogram()
+    for _ in range(99):
+        quick.record(10e-6)
+    slow.record(5e-3)  # one stream's slow first tick: not the p99 of all 100 ticks
+    m = bench_cpu.merged([quick, slow, empty])
+    assert m.count == 100 and m.max == 5e-3 and m.min == 10e-6
+    assert m.percentile(99) == pytest.approx(10e-6, rel=0.01)
+    assert m.percentile(100) == 5e-3
+    assert bench_cpu.merged([]).count == 0
