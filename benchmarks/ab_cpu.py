@@ -17,7 +17,11 @@ The "before" tree is a git revision of this checkout (``--before-rev``, exported
 is this checkout's ``bench_cpu.py``, whatever the trees.
 
     python benchmarks/ab_cpu.py --before-rev HEAD~1 [--buses 1,16,32] [--seconds 2]
-        [--pairs 8] [--out PATH]
+        [--pairs 8] [--kernel] [--out PATH]
+
+``--kernel`` runs each run under ``perf`` (``kernel_clock.py``, root) and adds the worst
+bus's tick p99 on the kernel's clock: the instrument that shares none of the bus's
+assumptions.
 """
 
 from __future__ import annotations
@@ -87,11 +91,12 @@ def export_rev(rev: str, dest: Path) -> Path:
     return dest / "src"
 
 
-def run_child(tree: Path, buses: int, seconds: float) -> dict[str, Any]:
-    """One ``ours`` run with ``motorbus`` imported from ``tree``."""
+def run_child(tree: Path, buses: int, seconds: float, kernel: bool = False) -> dict[str, Any]:
+    """One ``ours`` run with ``motorbus`` imported from ``tree`` (under ``perf`` if
+    ``kernel``)."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     proc = subprocess.run(
-        [sys.executable, __file__, "--child", str(buses), str(seconds)],
+        [sys.executable, __file__, "--child", str(buses), str(seconds), str(int(kernel))],
         env=env,
         capture_output=True,
         text=True,
@@ -103,19 +108,26 @@ def run_child(tree: Path, buses: int, seconds: float) -> dict[str, Any]:
     return result
 
 
-def child(buses: int, seconds: float) -> None:
+def child(buses: int, seconds: float, kernel: bool) -> None:
     import asyncio
+    import contextlib
 
     import motorbus
+    from kernel_clock import KernelWriteTrace, worst_tick_figures
 
     bench_cpu.raise_fd_limit(buses)
+    trace = KernelWriteTrace()
     with tempfile.TemporaryDirectory(prefix="motorbus-ab-") as tmp:
         responder = bench_cpu.Responder(buses, Path(tmp) / "rec.json")
         try:
-            res = asyncio.run(bench_cpu.ours(responder.paths, seconds))
+            with trace if kernel else contextlib.nullcontext():
+                res = asyncio.run(bench_cpu.ours(responder.paths, seconds))
         finally:
             responder.stop()
     out = {k: res[k] for k in CHILD_KEYS}
+    if kernel:  # the worst bus's tick writes on the kernel's clock (kernel_clock.py)
+        tick_bytes = len(bench_cpu.broadcast_bytes(0.0))
+        out.update(worst_tick_figures(trace, tick_bytes, bench_cpu.PERIOD_S))
     out["motorbus"] = str(Path(motorbus.__file__).resolve().parent)
     print(json.dumps(out))
 
@@ -129,11 +141,16 @@ def main() -> int:
     parser.add_argument("--buses", default="1,16,32")
     parser.add_argument("--seconds", type=float, default=2.0, help="length of each run")
     parser.add_argument("--pairs", type=int, default=8)
+    parser.add_argument(
+        "--kernel",
+        action="store_true",
+        help="also time each run's tick writes on the kernel's clock (perf, as root)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
+    parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child(int(args.child[0]), float(args.child[1]))
+        child(int(args.child[0]), float(args.child[1]), args.child[2] == "1")
         return 0
     if args.before is None and args.before_rev is None:
         parser.error("give --before-rev REV or --before DIR")
@@ -158,7 +175,7 @@ def main() -> int:
             runs: dict[str, list[dict[str, Any]]] = {"before": [], "after": []}
             for pair in range(args.pairs):
                 for name in order(pair):
-                    runs[name].append(run_child(trees[name], n, args.seconds))
+                    runs[name].append(run_child(trees[name], n, args.seconds, args.kernel))
             summary = paired_summary(
                 [r["cpu_percent"] for r in runs["before"]],
                 [r["cpu_percent"] for r in runs["after"]],
@@ -166,6 +183,10 @@ def main() -> int:
             precision = {side: median_of(runs[side], "tick_p99_us") for side in runs}
             spin = {side: median_of(runs[side], "spin_percent") for side in runs}
             case = {"buses": n, **summary, "tick_p99_us": precision, "spin_percent": spin}
+            if args.kernel:
+                case["kernel_tick_jitter_p99_us"] = {
+                    side: median_of(runs[side], "kernel_tick_jitter_p99_us") for side in runs
+                }
             cases.append({**case, "runs": runs})
             print(
                 f"  {n:3d} buses: CPU median before {summary['before_median']:5.1f} %, after "
@@ -175,6 +196,11 @@ def main() -> int:
                 f"tick p99 (bus's view) {precision['before']} / {precision['after']} us",
                 flush=True,
             )
+            if args.kernel:
+                k = case["kernel_tick_jitter_p99_us"]
+                print(
+                    f"        worst bus's tick p99, kernel clock: {k['before']} / {k['after']} us"
+                )
     from run_results import machine_info  # (the parent only: it imports every benchmark)
 
     result = {
