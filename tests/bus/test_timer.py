@@ -301,6 +301,41 @@ def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
     run(asyncio.new_event_loop, main())
 
 
+def _wake_up(timer: TimerfdTimer, late: float, *, precise: bool = True) -> None:
+    """Run the timerfd's expiry as if it had been armed exactly ``late`` ago (its clock
+    held still meanwhile: a busy test machine adds no lateness of its own)."""
+    now = timer.now()
+    timer._armed_ns = round((now - late) * 1e9)
+    timer._armed_precise = precise
+    timer.now = lambda: now  # type: ignore[method-assign]
+    try:
+        timer._on_expiry()
+    finally:
+        del timer.now
+
+
+def test_the_lead_follows_the_wake_ups_of_precise_deadlines_only() -> None:
+    """A plain deadline (a poll's sleep, a reply timeout) wakes up wherever the loop is
+    busy: its lateness says nothing of what a precise deadline needs, and must not keep
+    the lead (and the spin) up."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=500e-6)
+        for _ in range(200):
+            _wake_up(timer, 0.0)
+        settled = timer.lead
+        for _ in range(50):
+            _wake_up(timer, 200e-6, precise=False)
+        assert timer.lead == settled == TimerfdTimer.SPIN_LEAD_MIN_S
+        _wake_up(timer, 200e-6)  # a precise one that late does raise it
+        assert timer.lead == pytest.approx(400e-6)
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
 def test_one_very_late_wake_up_raises_the_lead_once_not_for_hundreds_of_wake_ups() -> None:
     """A wake-up far later than any lead covers (the loop was busy) counts as no more
     than half the longest lead: the next prompt wake-ups bring the lead down at once,
@@ -308,19 +343,15 @@ def test_one_very_late_wake_up_raises_the_lead_once_not_for_hundreds_of_wake_ups
     if not timerfd_available():
         pytest.skip("no timerfd on this platform")
 
-    def wake(timer: TimerfdTimer, late: float) -> None:
-        timer._armed_ns = int((timer.now() - late) * 1e9)  # as if armed `late` ago
-        timer._on_expiry()
-
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=500e-6)
         for _ in range(200):
-            wake(timer, 0.0)
+            _wake_up(timer, 0.0)
         assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S  # settled on prompt wake-ups
-        wake(timer, 30e-3)
+        _wake_up(timer, 30e-3)
         assert timer.lead == 500e-6  # cautious after the outlier ...
         for _ in range(20):
-            wake(timer, 0.0)
+            _wake_up(timer, 0.0)
         assert timer.lead < 0.7 * 500e-6  # ... but only briefly
         timer.close()
 

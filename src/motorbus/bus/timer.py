@@ -453,9 +453,10 @@ class TimerfdTimer(Timer):
     A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
     (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
     sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
-    Spinning the last part (a lead of 60-500 us that follows recent wake-up lateness)
-    makes a deadline fire within ~25 us at p99, never early, for at most the lead in CPU
-    per wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
+    Spinning the last part (a lead of 60-500 us that follows the recent lateness of
+    precise deadlines' wake-ups) makes a deadline fire within ~25 us at p99, never
+    early, for at most the lead in CPU per wake-up (bench_wakeups.py: timer callback
+    lateness).  ``spin_lead=0``, or the
     environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
     ``wakeups`` and ``spin_seconds`` count what that costs.
     """
@@ -465,10 +466,13 @@ class TimerfdTimer(Timer):
     SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
     #: The shortest lead, whatever the recent wake-ups did.
     SPIN_LEAD_MIN_S = 60e-6
-    #: The lead follows twice the recent worst wake-up lateness, which decays by this
-    #: factor a wake-up: a busy machine wakes promptly and spins little, an idle one
-    #: (deep C-states) wakes late and gets the full lead.  A wake-up later than the
-    #: longest lead covers counts as half of it (``_on_expiry``).  (A lead of the recent p99
+    #: The lead follows twice the recent worst lateness of the wake-ups armed for a
+    #: precise deadline, which decays by this factor a wake-up: a busy machine wakes
+    #: promptly and spins little, an idle one (deep C-states) wakes late and gets the
+    #: full lead.  A wake-up later than the longest lead covers counts as half of it
+    #: (``_on_expiry``).  Counting the plain deadlines' wake-ups too (polls' sleeps, which
+    #: land where the loop is busy) held the lead near its maximum with 32 buses: 16 %
+    #: of a core spun, 6 % without them (benchmarks/README.md).  (A lead of the recent p99
     #: lateness instead spent as much CPU here and let p99 tick jitter grow from
     #: 150-170 to 185-190 us: bench_late_ticks.py, 2026-12-02.)
     LATENESS_DECAY = 0.98
@@ -489,6 +493,8 @@ class TimerfdTimer(Timer):
         # Closes the fd if the timer is dropped without close() (its loop went away).
         self._finalizer = weakref.finalize(self, os.close, self._fd)
         self._armed_ns = 0
+        #: Whether the fd is armed for a precise deadline (the lead follows only those).
+        self._armed_precise = False
         self._reading = False
         #: Wake-ups of the fd, and the CPU they spent spinning (seconds): the price of
         #: precision, read by ``benchmarks/profile_tick.py`` and ``bench_late_ticks.py``.
@@ -504,11 +510,13 @@ class TimerfdTimer(Timer):
             self.loop.add_reader(self._fd, self._on_expiry)
             self._reading = True
         heap = self._heap
-        lead = self._current_lead() if heap and heap[0][2].precise else 0.0
+        precise = bool(heap) and heap[0][2].precise
+        lead = self._current_lead() if precise else 0.0
         ns = _deadline_ns(deadline - lead)
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
+            self._armed_precise = precise
 
     def _current_lead(self) -> float:
         if not self._spin_lead:
@@ -540,7 +548,10 @@ class TimerfdTimer(Timer):
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
-        if self._armed_ns:
+        if self._armed_ns and self._armed_precise:
+            # Only the wake-ups the lead is for: one armed for a plain deadline (a poll's
+            # sleep, a reply timeout) lands wherever the loop happens to be busy, and
+            # with many buses those kept the lead at its maximum for the precise ones.
             # Clipped at half the longest lead, which already asks for that lead: a
             # wake-up later than that (the loop was busy, the thread descheduled) is no
             # reason to spin longer.  Unclipped, one 30 ms outlier held the lead at its
