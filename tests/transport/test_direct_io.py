@@ -113,9 +113,15 @@ def test_only_a_local_posix_port_qualifies() -> None:
 async def test_the_fast_backend_delivers_a_frame_the_full_port_held_back_once_it_drains(
     pty: Pty,  # noqa: F811
 ) -> None:
+    """A port whose device stopped reading holds its frame back, not the event loop:
+    another port on the loop goes on (pyserial's own write spun until the port drained)."""
     t = SerialTransport(pty.path, baudrate=921600, backend="fast")
     host = Recorder()
     await t.open(host.on_data, host.on_lost)
+    other_pty = Pty()
+    other = SerialTransport(other_pty.path, baudrate=921600, backend="fast")
+    other_host = Recorder()
+    await other.open(other_host.on_data, other_host.on_lost)
     try:
         port = t._transport.get_extra_info("serial")  # type: ignore[union-attr]
         assert port.read.__module__ == direct_io.__name__  # the default backend uses it
@@ -128,13 +134,19 @@ async def test_the_fast_backend_delivers_a_frame_the_full_port_held_back_once_it
             except BlockingIOError:
                 break
         t.write(b"\x55\xaa\x7e")  # held by the backend, not lost and not spun on
+        other.write(b"\x55\xaa\x01")  # meanwhile, another bus of the loop talks
+        assert await other_pty.read(3) == b"\x55\xaa\x01"
+        other_pty.write(b"\xaa\x55\x01")
+        await other_host.wait_for(lambda: other_host.received == b"\xaa\x55\x01")
         got = await pty.read(sent + 3)  # the device reads again
         assert got.endswith(b"\x55\xaa\x7e") and len(got) == sent + 3
         pty.write(b"\xaa\x55")
         await host.wait_for(lambda: host.received == b"\xaa\x55")
-        assert host.lost == []
+        assert host.lost == [] and other_host.lost == []
     finally:
         await t.close()
+        await other.close()
+        other_pty.close()
 
 
 @pytest.mark.parametrize("backend", ["pyserial-asyncio", "serialx"])

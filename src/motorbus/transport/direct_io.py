@@ -2,10 +2,11 @@
 
 pyserial's ``Serial.read`` asks ``select`` before every ``os.read`` and builds a
 ``Timeout``, a ``bytearray`` and a copy; its non-blocking ``write`` retries ``os.write``
-in a busy loop while the output buffer is full.  The ``"fast"`` backend calls both once
-per chunk and per frame: one syscall each instead took 7-10 % off the CPU of buses that
-stream and poll (``benchmarks/ab_cpu.py``, benchmarks/README.md).  :func:`install` gives
-one opened port replacements with pyserial's contract, minus that work:
+in a busy loop while the output buffer is full, which holds the event loop, and every
+bus on it, until the port drains (a device that stopped reading, an adapter that
+stalls).  The ``"fast"`` backend calls both once per chunk and per frame.  :func:`install`
+gives one opened port replacements with pyserial's contract, minus that work (the CPU it
+saves is small: benchmarks/README.md, ``ab_cpu.py``):
 
 * ``read(size)``: one ``os.read``.  A raw tty read with nothing to read returns no bytes
   (``VMIN = 0``), as a hung-up one does, so an empty read asks ``poll`` which of the two
