@@ -315,9 +315,9 @@ def _wake_up(timer: TimerfdTimer, late: float, *, precise: bool = True) -> None:
 
 
 def test_the_lead_follows_the_wake_ups_of_precise_deadlines_only() -> None:
-    """A plain deadline (a poll's sleep, a reply timeout) wakes up wherever the loop is
-    busy: its lateness says nothing of what a precise deadline needs, and must not keep
-    the lead (and the spin) up."""
+    """A plain deadline (a task's ``sleep_until(precise=False)``, a frame's ``start_by``)
+    wakes up wherever the loop is busy: its lateness says nothing of what a precise
+    deadline needs, and must not keep the lead (and the spin) up."""
     if not timerfd_available():
         pytest.skip("no timerfd on this platform")
 

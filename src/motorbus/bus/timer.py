@@ -456,8 +456,8 @@ class TimerfdTimer(Timer):
     Spinning the last part (a lead of 60-500 us that follows the recent lateness of
     precise deadlines' wake-ups) makes a deadline fire within ~25 us at p99, never
     early, for at most the lead in CPU per wake-up (bench_wakeups.py: timer callback
-    lateness).  ``spin_lead=0``, or the
-    environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
+    lateness).  ``spin_lead=0``, or the environment variable
+    ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
     ``wakeups`` and ``spin_seconds`` count what that costs.
     """
 
@@ -470,8 +470,8 @@ class TimerfdTimer(Timer):
     #: precise deadline, which decays by this factor a wake-up: a busy machine wakes
     #: promptly and spins little, an idle one (deep C-states) wakes late and gets the
     #: full lead.  A wake-up later than the longest lead covers counts as half of it
-    #: (``_on_expiry``).  Counting the plain deadlines' wake-ups too (polls' sleeps, which
-    #: land where the loop is busy) held the lead near its maximum with 32 buses: 16 %
+    #: (``_on_expiry``).  Counting the plain deadlines' wake-ups too (a poll task's sleep,
+    #: which lands where the loop is busy) held the lead near its maximum with 32 buses: 16 %
     #: of a core spun, 6 % without them (benchmarks/README.md).  (A lead of the recent p99
     #: lateness instead spent as much CPU here and let p99 tick jitter grow from
     #: 150-170 to 185-190 us: bench_late_ticks.py, 2026-12-02.)
@@ -549,9 +549,10 @@ class TimerfdTimer(Timer):
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         if self._armed_ns and self._armed_precise:
-            # Only the wake-ups the lead is for: one armed for a plain deadline (a poll's
-            # sleep, a reply timeout) lands wherever the loop happens to be busy, and
-            # with many buses those kept the lead at its maximum for the precise ones.
+            # Only the wake-ups the lead is for: one armed for a plain deadline (a task's
+            # sleep_until(precise=False), a queued frame's start_by) lands wherever the
+            # loop happens to be busy, and with many buses those kept the lead at its
+            # maximum for the precise ones.
             # Clipped at half the longest lead, which already asks for that lead: a
             # wake-up later than that (the loop was busy, the thread descheduled) is no
             # reason to spin longer.  Unclipped, one 30 ms outlier held the lead at its
