@@ -314,6 +314,15 @@ def _wake_up(timer: TimerfdTimer, late: float, *, precise: bool = True) -> None:
         del timer.now
 
 
+def _settled_timer() -> TimerfdTimer:
+    """A timer (500 us longest lead) after 200 prompt wake-ups: at its shortest lead."""
+    timer = TimerfdTimer(spin_lead=500e-6)
+    for _ in range(200):
+        _wake_up(timer, 0.0)
+    assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S
+    return timer
+
+
 def test_the_lead_follows_the_wake_ups_of_precise_deadlines_only() -> None:
     """A plain deadline (a task's ``sleep_until(precise=False)``, a frame's ``start_by``)
     wakes up wherever the loop is busy: its lateness says nothing of what a precise
@@ -322,13 +331,10 @@ def test_the_lead_follows_the_wake_ups_of_precise_deadlines_only() -> None:
         pytest.skip("no timerfd on this platform")
 
     async def main() -> None:
-        timer = TimerfdTimer(spin_lead=500e-6)
-        for _ in range(200):
-            _wake_up(timer, 0.0)
-        settled = timer.lead
+        timer = _settled_timer()
         for _ in range(50):
             _wake_up(timer, 200e-6, precise=False)
-        assert timer.lead == settled == TimerfdTimer.SPIN_LEAD_MIN_S
+        assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S
         _wake_up(timer, 200e-6)  # a precise one that late does raise it
         assert timer.lead == pytest.approx(400e-6)
         timer.close()
@@ -344,10 +350,7 @@ def test_one_very_late_wake_up_raises_the_lead_once_not_for_hundreds_of_wake_ups
         pytest.skip("no timerfd on this platform")
 
     async def main() -> None:
-        timer = TimerfdTimer(spin_lead=500e-6)
-        for _ in range(200):
-            _wake_up(timer, 0.0)
-        assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S  # settled on prompt wake-ups
+        timer = _settled_timer()
         _wake_up(timer, 30e-3)
         assert timer.lead == 500e-6  # cautious after the outlier ...
         for _ in range(20):
