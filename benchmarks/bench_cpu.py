@@ -85,6 +85,26 @@ FDS_PER_BUS = 2
 FDS_SPARE = 64
 #: Start-up room before the first tick.
 LEAD_S = 0.05
+#: The per-bus-count lists of cpu.json, one entry per ``--buses`` count (run.py publishes
+#: them all under ``cpu.*``).
+ROW_KEYS = (
+    "buses",
+    "cpu_percent",
+    "spin_percent",
+    "minimal_cpu_percent",
+    "ratio",
+    "ratio_per_tick",
+    "ticks",
+    "minimal_ticks",
+    "replies",
+    "minimal_replies",
+    "late_ticks",
+    "skipped_ticks",
+    "ticks_sent_pct",
+    "stream_errors",
+    "keeps_up",
+    "round_ratios",
+)
 
 
 def cpu_seconds() -> float:
@@ -105,7 +125,8 @@ def raise_fd_limit(buses: int) -> None:
 def merged(histograms: list[Any]) -> Any:
     """One ``LatencyHistogram`` of every sample of ``histograms`` (each stream keeps its
     own): the p99 over all ticks, where one stream's p99 of a short run is its slowest
-    few ticks (its start-up)."""
+    few ticks (its start-up).  Here, not a method of the histogram: ``ab_cpu.py`` runs
+    this workload against older trees, whose histogram has no such method."""
     out = type(histograms[0])() if histograms else LatencyHistogram()
     for h in histograms:
         if not h.count:
@@ -336,27 +357,7 @@ def main() -> int:
         parser.error("--seconds must be > 0 and --buses list counts >= 1")
     if args.rounds < 1:
         parser.error(f"--rounds must be >= 1, got {args.rounds}")
-    rows: dict[str, list[Any]] = {
-        k: []
-        for k in (
-            "buses",
-            "cpu_percent",
-            "spin_percent",
-            "minimal_cpu_percent",
-            "ratio",
-            "ratio_per_tick",
-            "ticks",
-            "minimal_ticks",
-            "replies",
-            "minimal_replies",
-            "late_ticks",
-            "skipped_ticks",
-            "ticks_sent_pct",
-            "stream_errors",
-            "keeps_up",
-            "round_ratios",
-        )
-    }
+    rows: dict[str, list[Any]] = {k: [] for k in ROW_KEYS}
     raise_fd_limit(max(counts))
     ticks_per_bus = round(args.seconds / PERIOD_S)
     print(

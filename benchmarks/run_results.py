@@ -29,6 +29,7 @@ from bench_bus import (
 from bench_cpu import GOAL_32_CPU_PERCENT as GOAL_CPU_32_PERCENT
 from bench_cpu import GOAL_RATIO as GOAL_CPU_RATIO
 from bench_cpu import GOAL_RATIO_BUSES as CPU_GOAL_RATIO_BUSES
+from bench_cpu import ROW_KEYS as CPU_KEYS
 from bench_late_ticks import GOAL_QUIET_MAX_US as GOAL_LATE_MAX_US
 from bench_load import GOAL_RT_MAX_US, GOAL_RT_P99_US
 from bench_reassembler import GOAL_DECODED_PER_S, GOAL_FRAMES_PER_S, GOAL_RATIO_VS_PYMODBUS
@@ -137,24 +138,6 @@ LOAD_KEYS = (
     "host_skipped",
     "polls",
     "poll_timeouts",
-)
-CPU_KEYS = (
-    "buses",
-    "cpu_percent",
-    "spin_percent",
-    "minimal_cpu_percent",
-    "ratio",
-    "ratio_per_tick",
-    "ticks",
-    "minimal_ticks",
-    "replies",
-    "minimal_replies",
-    "late_ticks",
-    "skipped_ticks",
-    "ticks_sent_pct",
-    "stream_errors",
-    "keeps_up",
-    "round_ratios",
 )
 #: Figures of each run of bench_late_ticks.py (kernel clock unless said).
 LATE_RUN_KEYS = (
