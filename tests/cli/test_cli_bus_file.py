@@ -22,6 +22,7 @@ from typing import Any
 import pytest
 
 from motorbus.cli.bus_options import open_bus, resolve_port
+from motorbus.cli.dashboard import _manager as dashboard_manager
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, EXIT_USAGE, build_parser
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, UsageError
@@ -164,6 +165,21 @@ async def test_a_bus_file_without_timing_keys_keeps_the_cli_margin(
         assert bus.config.host_margin == pytest.approx(0.050)  # CLI_HOST_MARGIN_S
         assert (bus.config.min_spacing, bus.config.retries) == (pytest.approx(0.001), 1)
         assert bus.transport.share is False  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize(("keys", "margin_ms"), [({}, 50.0), ({"host_margin_ms": 7.5}, 7.5)])
+def test_the_dashboard_opens_a_bus_file_with_the_margin_every_command_uses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, keys: dict[str, Any], margin_ms: float
+) -> None:
+    # The dashboard opens every bus of the file itself: the same rule as open_bus, the
+    # table's margin if it sets one, else the command line's (not the library's 2 ms,
+    # which timed out a move on a loaded machine).
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "no-config"))
+    path = bus_file(tmp_path, "/dev/motorbus-never-opened", **keys)
+    args = build_parser().parse_args(["dashboard", "--bus-file", str(path)])
+    manager, wanted = dashboard_manager(args)
+    assert manager.specs["arm"].host_margin_ms == pytest.approx(margin_ms)
+    assert wanted == {"arm": None}  # no devices listed: the dashboard scans for them
 
 
 # -- a port another program holds ------------------------------------------------------------

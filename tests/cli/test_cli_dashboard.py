@@ -331,7 +331,8 @@ async def test_every_bus_of_a_bus_file_with_its_keys(tmp_path: Path) -> None:
             assert [d["id"] for d in a["la"]] == [1, 2] and f["la"] == []
             assert f["quad"] == {"axes": {}, "last_done": None}
             move = {"bus": "arm", "id": 1, "position": 600, "confirm": True}
-            assert (await asyncio.to_thread(get_json, url + "api/move", move))["results"][0]["ok"]
+            moved = await asyncio.to_thread(get_json, url + "api/move", move)
+            assert moved["results"][0]["ok"], moved["results"][0]["error"]
             stop = await asyncio.to_thread(get_json, url + "api/pause", {"bus": "feeder"})
             assert [r["command"] for r in stop["results"]] == [
                 "StopProject", "ManualStop", "StopAll"

@@ -23,6 +23,7 @@ open (:mod:`motorbus.process_groups`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import re
 from collections.abc import AsyncIterator, Iterable
@@ -302,17 +303,29 @@ def open_port(args: argparse.Namespace, *, url: str | None = None) -> Transport:
         raise UsageError(f"--backend {args.backend} is not installed: {err}") from err
 
 
+def with_cli_margin(
+    spec: BusSpec, given: frozenset[str], host_margin: float = CLI_HOST_MARGIN_S
+) -> BusSpec:
+    """``spec`` as a command line tool opens it: with its table's ``host_margin_ms`` if
+    the table sets one, else with ``host_margin`` (seconds; ``CLI_HOST_MARGIN_S``), not
+    the library's default.  ``given``: the keys the table set (``BusFile.given``)."""
+    if "host_margin_ms" in given:
+        return spec
+    return dataclasses.replace(spec, host_margin_ms=host_margin * 1e3)
+
+
 def bus_timing(args: argparse.Namespace, host_margin: float) -> dict[str, Any]:
     """The ``Bus`` timing options: the chosen bus file table's ``min_spacing_ms`` and
-    ``retries`` (their defaults are the library's), and its ``host_margin_ms`` if it
-    sets one, else ``host_margin`` (seconds)."""
+    ``retries`` (their defaults are the library's), and its host margin as
+    :func:`with_cli_margin` decides it, with ``host_margin`` (seconds)."""
     spec, given = _spec(args)
     if spec is None:
         return {"host_margin": host_margin}
+    spec = with_cli_margin(spec, given, host_margin)
     return {
         "min_spacing": spec.min_spacing_ms / 1e3,
         "retries": spec.retries,
-        "host_margin": spec.host_margin_ms / 1e3 if "host_margin_ms" in given else host_margin,
+        "host_margin": spec.host_margin_ms / 1e3,
     }
 
 

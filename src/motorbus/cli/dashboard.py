@@ -32,7 +32,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from motorbus import BusManager, Family, default_bus_file, scan
+from motorbus import BusManager, Family, default_bus_file, load_bus_file, scan
 from motorbus import run as run_safely
 from motorbus.cli.bus_options import (
     BUS_FILE_ENV,
@@ -42,6 +42,7 @@ from motorbus.cli.bus_options import (
     add_bus_options,
     add_process_option,
     resolve_port,
+    with_cli_margin,
 )
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.scan import SCAN_TIMEOUT_S
@@ -175,18 +176,21 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
     if bus_file and not port_given:
         if args.ids or args.devices:
             raise UsageError("--ids and --devices go with --port; the bus file lists devices")
-        loaded = BusManager.from_toml(bus_file, safe_stop=False, process=args.process)
+        loaded = load_bus_file(bus_file)
         manager = BusManager(safe_stop=False)
-        manager.process = loaded.process  # --process: its CPUs while the buses are open
-        for name, spec in loaded.specs.items():
-            if args.bus and name != args.bus:
+        # --process: its CPUs while the buses are open.
+        manager.process = None if args.process is None else loaded.group(args.process)
+        specs = loaded.specs_of(args.process)
+        for spec in specs:
+            if args.bus and spec.name != args.bus:
                 continue
-            manager.add_spec(spec)
+            # As every command: the table's host margin if it sets one, else the CLI's.
+            manager.add_spec(with_cli_margin(spec, loaded.given[spec.name]))
         if not manager.specs:
             among = f"process group {args.process} of " if args.process else ""
             raise UsageError(
                 f"--bus {args.bus}: {among}{bus_file} has no such bus: "
-                f"choose one of {', '.join(loaded.specs)}"
+                f"choose one of {', '.join(s.name for s in specs)}"
             )
     else:
         url = resolve_port(args)
