@@ -9,7 +9,8 @@ Two kinds of program:
 
 * ``examples/safe_stream.py``: a ``BusManager`` under ``motorbus.run`` (the helper an
   application installs in one line): SIGINT once, twice 3 ms apart, three times,
-  SIGTERM and SIGHUP all end with the safe stop, "stopped safely" and status 0.
+  SIGTERM and SIGHUP all end with the safe stop, "stopped safely" and status 0 (or, when
+  a repeated signal arrives only once the stop is over, that signal's status);
 * a plain ``Bus`` + ``Streamer`` program under a bare ``asyncio.run``, which installs
   nothing: SIGINT (once, and twice 3 ms apart) and SIGTERM still stop the stream safely
   (the bus's close hook, and motorbus's own SIGTERM guard while a bus is open);
@@ -100,9 +101,14 @@ def test_bus_manager_program_stops_safely(
         proc = start_example(sim.path, "--safe-action", "pause")
         send((proc, sig), times, gap_s)
         status, out, err = finish(proc)
-    assert status == 0, (out, err)
-    assert "stopped safely" in out
-    assert "Traceback" not in err
+    assert "stopped safely" in out, (status, out, err)
+    # Unless a repeated signal, sent late by a test process descheduled on a loaded
+    # machine, arrived once the safe stop was over and motorbus.run had given the signals
+    # back: it then ends the finished program as it would any Python program ("stopped
+    # safely" above was printed before, from the stop's own report).
+    if not (status == -sig and times > 1):
+        assert status == 0, (out, err)
+        assert "Traceback" not in err
     assert_safe_action_after_last_broadcast(
         received_frames(sim.log_records()), la.ControlAction.PAUSE
     )
