@@ -65,8 +65,14 @@ async def test_many_buses_stream_and_stop_safely() -> None:
         MemorySim.start([quad], baud=115200, timer=timer) as quad_sim,
     ):
         mgr = BusManager()
+        # Tests assert behaviour, not speed: a loaded machine's margin (tests/helpers.py).
         mgr.add_bus(
-            "arm", "memory://arm", baud=921600, devices=["la:1-2"], transport=arm_sim.transport
+            "arm",
+            "memory://arm",
+            baud=921600,
+            devices=["la:1-2"],
+            transport=arm_sim.transport,
+            host_margin_ms=50,
         )
         mgr.add_bus(
             "feeder",
@@ -74,6 +80,7 @@ async def test_many_buses_stream_and_stop_safely() -> None:
             baud=115200,
             devices=["quad-stepper"],
             transport=quad_sim.transport,
+            host_margin_ms=50,
         )
         async with mgr:
             assert all(b.state is BusState.OPEN for b in mgr.buses.values())
@@ -99,6 +106,7 @@ async def test_la_stroke_mm_of_a_bus_reaches_its_actuators() -> None:
             devices=["la:1"],
             transport=sim.transport,
             la_stroke_mm=30,
+            host_margin_ms=50,  # the move's reply, on a loaded machine
         )
         async with mgr:
             actuator = mgr.la("arm", 1)
