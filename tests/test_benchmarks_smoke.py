@@ -669,3 +669,40 @@ def test_cpu_tick_lateness_is_taken_over_every_stream_at_once() -> None:
     assert m.percentile(99) == pytest.approx(10e-6, rel=0.01)
     assert m.percentile(100) == 5e-3
     assert bench_cpu.merged([]).count == 0
+
+
+def test_the_three_cpu_sides_take_turns_and_ratios_are_taken_pair_by_pair() -> None:
+    import bench_cpu_tasks as tasks
+
+    assert [tasks.rotation(k)[0] for k in range(4)] == ["minimal", "tasks", "ours", "minimal"]
+    assert all(sorted(tasks.rotation(k)) == sorted(tasks.SIDES) for k in range(3))
+
+    def pair(minimal: float, with_tasks: float, ours: float) -> dict[str, dict[str, Any]]:
+        return {
+            "minimal": {"cpu_percent": minimal},
+            "tasks": {"cpu_percent": with_tasks},
+            "ours": {"cpu_percent": ours},
+        }
+
+    # The second pair is a slow spell on every side: its ratios, not its levels, count.
+    s = tasks.summarise([pair(10, 15, 30), pair(20, 30, 50), pair(10, 12, 24)])
+    assert s["ours_over_minimal"] == 2.5 and s["ours_over_minimal_range"] == [2.4, 3.0]
+    assert s["tasks_over_minimal"] == 1.5 and s["ours_over_tasks"] == 2.0
+    assert s["minimal_cpu_percent"] == 10 and s["ours_cpu_percent"] == 30
+
+
+def test_the_task_loop_does_the_minimal_loops_work(tmp_path: Path) -> None:
+    import asyncio
+
+    import bench_cpu_tasks as tasks
+
+    responder = bench_cpu.Responder(2, tmp_path / "rec.json")
+    try:
+        out = asyncio.run(tasks.tasks_loop(responder.paths, 0.2))
+    finally:
+        responder.stop()
+    # 20 ticks of 10 ms per bus, each answered poll counted once (a reply may miss its
+    # 5 ms on a loaded machine: counted as not answered, never twice).
+    assert out["ticks"] == 2 * 20
+    assert 0 < out["replies"] <= out["ticks"]
+    assert out["cpu_percent"] > 0
