@@ -29,7 +29,6 @@ import asyncio
 import contextlib
 import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -45,6 +44,7 @@ RESULTS = HERE / "results" / "cpu_tasks.json"
 sys.path.insert(0, str(HERE))
 
 import bench_cpu  # noqa: E402  (the workload, the minimal loop and ours)
+import run_results  # noqa: E402  (machine_info)
 from bench_cpu import LEAD_S, PERIOD_S, REPLY_BYTES  # noqa: E402
 from motorbus.protocol import la  # noqa: E402
 
@@ -200,12 +200,7 @@ def main() -> int:
     result = {
         "rows": rows,
         "seconds": args.seconds,
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-            "load_avg": [round(x, 2) for x in os.getloadavg()],
-        },
+        "machine": run_results.machine_info(),
         "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
