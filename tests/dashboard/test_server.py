@@ -174,7 +174,7 @@ async def test_with_control_a_bus_estop_reaches_every_actuator() -> None:
         assert r.status == 200
         results = (await r.json())["results"]
         assert [x["device"] for x in results] == ["la:1", "la:2", "la:3"]
-        assert all(x["ok"] for x in results)
+        assert all(x["ok"] for x in results), results
         sent = rig.requests()
         for i in IDS:
             assert frame(i, la.ControlAction.ESTOP) in sent
