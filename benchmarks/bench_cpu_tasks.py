@@ -59,9 +59,11 @@ RATIOS = (
 )
 
 
-async def tasks_loop(paths: list[str], seconds: float) -> dict[str, Any]:
+async def tasks_loop(
+    paths: list[str], seconds: float, reply_timeout: float = REPLY_TIMEOUT_S
+) -> dict[str, Any]:
     """The work of ``bench_cpu.minimal`` written with a stream and a poll task per bus
-    (see the module docstring); CPU %, ticks, replies."""
+    (see the module docstring); CPU %, ticks, replies (those in by ``reply_timeout``)."""
     loop = asyncio.get_running_loop()
     fds = []
     for path in paths:
@@ -107,7 +109,7 @@ async def tasks_loop(paths: list[str], seconds: float) -> dict[str, Any]:
             reply = waiting[i] = loop.create_future()
             os.write(fds[i], queries[k % len(queries)])
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(reply, REPLY_TIMEOUT_S)
+                await asyncio.wait_for(reply, reply_timeout)
                 counts["replies"] += 1
             waiting[i] = None
             k += 1
