@@ -17,7 +17,7 @@ The "before" tree is a git revision of this checkout (``--before-rev``, exported
 is this checkout's ``bench_cpu.py``, whatever the trees.
 
     python benchmarks/ab_cpu.py --before-rev HEAD~1 [--buses 1,16,32] [--seconds 2]
-        [--pairs 8] [--kernel] [--out PATH]
+        [--pairs 8] [--polls tick|shared] [--kernel] [--out PATH]
 
 ``--kernel`` runs each run under ``perf`` (``kernel_clock.py``, root) and adds the worst
 bus's tick p99 on the kernel's clock: the instrument that shares none of the bus's
@@ -91,12 +91,22 @@ def export_rev(rev: str, dest: Path) -> Path:
     return dest / "src"
 
 
-def run_child(tree: Path, buses: int, seconds: float, kernel: bool = False) -> dict[str, Any]:
+def run_child(
+    tree: Path, buses: int, seconds: float, kernel: bool = False, polls: str = "tick"
+) -> dict[str, Any]:
     """One ``ours`` run with ``motorbus`` imported from ``tree`` (under ``perf`` if
-    ``kernel``)."""
+    ``kernel``; ``polls`` as ``bench_cpu.ours``'s)."""
     env = dict(os.environ, PYTHONPATH=str(tree))
     proc = subprocess.run(
-        [sys.executable, __file__, "--child", str(buses), str(seconds), str(int(kernel))],
+        [
+            sys.executable,
+            __file__,
+            "--child",
+            str(buses),
+            str(seconds),
+            str(int(kernel)),
+            polls,
+        ],
         env=env,
         capture_output=True,
         text=True,
@@ -108,7 +118,7 @@ def run_child(tree: Path, buses: int, seconds: float, kernel: bool = False) -> d
     return result
 
 
-def child(buses: int, seconds: float, kernel: bool) -> None:
+def child(buses: int, seconds: float, kernel: bool, polls: str) -> None:
     import asyncio
     import contextlib
 
@@ -121,7 +131,7 @@ def child(buses: int, seconds: float, kernel: bool) -> None:
         responder = bench_cpu.Responder(buses, Path(tmp) / "rec.json")
         try:
             with trace if kernel else contextlib.nullcontext():
-                res = asyncio.run(bench_cpu.ours(responder.paths, seconds))
+                res = asyncio.run(bench_cpu.ours(responder.paths, seconds, polls))
         finally:
             responder.stop()
     out = {k: res[k] for k in CHILD_KEYS}
@@ -146,11 +156,17 @@ def main() -> int:
         action="store_true",
         help="also time each run's tick writes on the kernel's clock (perf, as root)",
     )
+    parser.add_argument(
+        "--polls",
+        choices=bench_cpu.POLL_PHASES,
+        default="tick",
+        help="where the poll tasks ask for a status (bench_cpu.py --polls)",
+    )
     parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        child(int(args.child[0]), float(args.child[1]), args.child[2] == "1")
+        child(int(args.child[0]), float(args.child[1]), args.child[2] == "1", args.child[3])
         return 0
     if args.before is None and args.before_rev is None:
         parser.error("give --before-rev REV or --before DIR")
@@ -167,7 +183,8 @@ def main() -> int:
             if not (tree / "motorbus" / "__init__.py").is_file():
                 parser.error(f"the {name} tree {tree} holds no motorbus package")
         print(
-            f"ours, {args.seconds:g} s runs, {args.pairs} pairs a count, alternating; "
+            f"ours (polls: {args.polls}), {args.seconds:g} s runs, {args.pairs} pairs a count, "
+            "alternating; "
             f"before = {args.before_rev or before}, after = {args.after}"
         )
         cases = []
@@ -175,7 +192,9 @@ def main() -> int:
             runs: dict[str, list[dict[str, Any]]] = {"before": [], "after": []}
             for pair in range(args.pairs):
                 for name in order(pair):
-                    runs[name].append(run_child(trees[name], n, args.seconds, args.kernel))
+                    runs[name].append(
+                        run_child(trees[name], n, args.seconds, args.kernel, args.polls)
+                    )
             summary = paired_summary(
                 [r["cpu_percent"] for r in runs["before"]],
                 [r["cpu_percent"] for r in runs["after"]],
@@ -207,6 +226,7 @@ def main() -> int:
         "before": args.before_rev or str(args.before),
         "after": str(args.after),
         "seconds": args.seconds,
+        "polls": args.polls,
         "pairs": args.pairs,
         "cases": cases,
         "machine": machine_info(),

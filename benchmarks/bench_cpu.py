@@ -33,7 +33,7 @@ the ticks it sent: the same as ``ratio`` while ours keeps up, the honest figure 
 does not.
 
     python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--rounds 5]
-        [--buses 1,16,32,64] [--out PATH]
+        [--buses 1,16,32,64] [--polls tick|shared] [--out PATH]
 """
 
 from __future__ import annotations
@@ -207,8 +207,20 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
     }
 
 
-async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
-    """motorbus doing the same work; CPU %, ticks, polls, replies."""
+#: Where ``ours``'s poll tasks ask for a status: ``tick``, 3 ms after their own bus's tick
+#: (the polls stay clear of the ticks); ``shared``, every bus's poll task on one clock
+#: started with the run, as a user's own poll loop is, whatever the streams' phases (the
+#: polls of all buses come in one burst, which lands on some buses' ticks).
+POLL_PHASES = ("tick", "shared")
+
+
+async def ours(paths: list[str], seconds: float, polls: str = "tick") -> dict[str, Any]:
+    """motorbus doing the same work; CPU %, ticks, polls, replies.
+
+    ``polls`` is one of ``POLL_PHASES``.
+    """
+    if polls not in POLL_PHASES:
+        raise ValueError(f"polls must be one of {', '.join(POLL_PHASES)}, got {polls!r}")
     mgr = BusManager(safe_stop=False)
     for i, path in enumerate(paths):
         mgr.add_bus(f"bus{i}", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
@@ -254,8 +266,9 @@ async def ours(paths: list[str], seconds: float) -> dict[str, Any]:
         spin0 = spun()
         wall0, cpu0 = time.monotonic(), cpu_seconds()
         end[0] = max(s.origin for s in streams) + seconds + PERIOD_S
+        shared = min(s.origin for s in streams)
         tasks = [
-            asyncio.create_task(poller(name, s.origin))
+            asyncio.create_task(poller(name, s.origin if polls == "tick" else shared))
             for name, s in zip(names, streams, strict=True)
         ]
         # A saturated loop falls behind and a stream may end with a gap: that is a figure
@@ -343,6 +356,12 @@ def main() -> int:
     parser.add_argument(
         "--rounds", type=int, default=5, help="turns of the two loops per case (>= 1)"
     )
+    parser.add_argument(
+        "--polls",
+        choices=POLL_PHASES,
+        default="tick",
+        help="ours's polls: 3 ms after each bus's tick, or on one clock for every bus",
+    )
     parser.add_argument("--quick", action="store_true", help="2 s per case, 2 rounds")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -362,7 +381,7 @@ def main() -> int:
     ticks_per_bus = round(args.seconds / PERIOD_S)
     print(
         f"CPU per bus-tick, {args.seconds:g} s per case in {args.rounds} rounds, "
-        f"{PERIOD_S * 1e3:.0f} ms ticks"
+        f"{PERIOD_S * 1e3:.0f} ms ticks, ours's polls: {args.polls}"
     )
     with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
         for n in counts:
@@ -374,9 +393,9 @@ def main() -> int:
                     seconds = args.seconds / args.rounds
                     if r % 2 == 0:
                         bases.append(asyncio.run(minimal(responder.paths, seconds)))
-                        mines.append(asyncio.run(ours(responder.paths, seconds)))
+                        mines.append(asyncio.run(ours(responder.paths, seconds, args.polls)))
                     else:
-                        mines.append(asyncio.run(ours(responder.paths, seconds)))
+                        mines.append(asyncio.run(ours(responder.paths, seconds, args.polls)))
                         bases.append(asyncio.run(minimal(responder.paths, seconds)))
             finally:
                 responder.stop()
@@ -430,6 +449,7 @@ def main() -> int:
         "max_buses_keeping_up": max_buses_keeping_up(rows["buses"], rows["keeps_up"]),
         "cpu_percent_at_32": None if at32 is None else rows["cpu_percent"][at32],
         "seconds": args.seconds,
+        "polls": args.polls,
         "machine": {
             "platform": platform.platform(),
             "python": sys.version.split()[0],

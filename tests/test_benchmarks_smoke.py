@@ -705,3 +705,20 @@ def test_the_task_loop_does_the_minimal_loops_work(tmp_path: Path) -> None:
     assert out["ticks"] == 2 * 20  # 20 ticks of 10 ms per bus, none skipped
     assert out["replies"] == out["ticks"]  # a poll a tick, each reply counted once
     assert out["cpu_percent"] > 0
+
+
+def test_ours_polls_on_one_clock_for_every_bus_when_asked(tmp_path: Path) -> None:
+    """``--polls shared``: the same work (a tick and a poll per bus and 10 ms), the polls
+    of every bus on one clock; an unknown phase is refused before anything runs."""
+    import asyncio
+
+    with pytest.raises(ValueError, match="polls must be one of tick, shared"):
+        asyncio.run(bench_cpu.ours([], 0.1, polls="sometimes"))
+    responder = bench_cpu.Responder(2, tmp_path / "rec.json")
+    try:
+        out = asyncio.run(bench_cpu.ours(responder.paths, 0.3, polls="shared"))
+    finally:
+        responder.stop()
+    assert out["stream_errors"] == 0
+    assert out["ticks"] > 0 and out["polls"] > 0
+    assert out["replies"] <= out["polls"]
