@@ -10,6 +10,7 @@ import asyncio
 import gc
 import random
 import sys
+import time
 import weakref
 from collections.abc import Awaitable, Callable
 from typing import Any
@@ -303,8 +304,9 @@ def test_timerfd_lead_follows_the_recent_wake_ups() -> None:
 
 def _wake_up(timer: TimerfdTimer, late: float, *, precise: bool = True) -> None:
     """Run the timerfd's expiry as if it had been armed exactly ``late`` ago (its clock
-    held still meanwhile: a busy test machine adds no lateness of its own)."""
-    now = timer.now()
+    held still meanwhile: a busy test machine adds no lateness of its own).  The clock is
+    read past the timer: its own ``now()`` notes the loop as busy (``_seen``)."""
+    now = time.monotonic()
     timer._armed_ns = round((now - late) * 1e9)
     timer._armed_precise = precise
     timer.now = lambda: now  # type: ignore[method-assign]
@@ -337,6 +339,44 @@ def test_the_lead_follows_the_wake_ups_of_precise_deadlines_only() -> None:
         assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S
         _wake_up(timer, 200e-6)  # a precise one that late does raise it
         assert timer.lead == pytest.approx(400e-6)
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+def test_a_wake_up_that_waited_for_the_loop_is_late_only_from_when_the_loop_was_free() -> None:
+    """The timerfd expired while the loop ran motorbus's work (another bus's reply, a
+    stream's task: they read the timer's clock); the wake-up waited for that work, which
+    a longer lead would not have shortened.  Its lateness counts from the last clock
+    reading before it, so it does not raise the lead; a wake-up as late with the loop
+    idle since the arming does."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = _settled_timer()
+        for _ in range(20):
+            timer._seen = time.monotonic() - 5e-6  # busy until 5 us before the wake-up
+            _wake_up(timer, 300e-6)
+        assert timer.lead == TimerfdTimer.SPIN_LEAD_MIN_S
+        timer._seen = time.monotonic() - 1.0  # idle since long before the arming
+        _wake_up(timer, 200e-6)
+        assert timer.lead == pytest.approx(400e-6)
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+def test_the_timers_clock_notes_that_the_loop_was_busy() -> None:
+    """Every ``now()`` of a timerfd timer is a moment the loop ran motorbus's work."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=500e-6)
+        before = timer._seen
+        t = timer.now()
+        assert timer._seen == t > before
         timer.close()
 
     run(asyncio.new_event_loop, main())

@@ -454,10 +454,10 @@ class TimerfdTimer(Timer):
     (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
     sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
     Spinning the last part (a lead of 60-500 us that follows the recent lateness of
-    precise deadlines' wake-ups) makes a deadline fire within ~25 us at p99, never
-    early, for at most the lead in CPU per wake-up (bench_wakeups.py: timer callback
-    lateness).  ``spin_lead=0``, or the environment variable
-    ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
+    precise deadlines' wake-ups, counted from when the loop was free to run them) makes
+    a deadline fire within ~25 us at p99, never early, for at most the lead in CPU per
+    wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
+    environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
     ``wakeups`` and ``spin_seconds`` count what that costs.
     """
 
@@ -504,6 +504,14 @@ class TimerfdTimer(Timer):
         #: seconds; ``armed`` is 0.0 for a wake-up nobody armed): for tools that find out
         #: why a deadline was late.  Keep it short; it runs before the due callbacks.
         self.wake_observer: Callable[[float, float, float], None] | None = None
+        #: The latest clock reading handed out: the loop was running our code then.
+        self._seen = 0.0
+
+    def now(self) -> float:
+        """Return the current time (``time.monotonic()``), and note that the loop was
+        busy with motorbus's work at it (see ``_on_expiry``)."""
+        self._seen = t = time.monotonic()
+        return t
 
     def _arm(self, deadline: float) -> None:
         if not self._reading:
@@ -541,6 +549,7 @@ class TimerfdTimer(Timer):
         self._finalizer()
 
     def _on_expiry(self) -> None:
+        busy_until = self._seen  # before now() below moves it
         # Nothing to read after a spurious wake-up or a re-arm that followed the expiry.
         with contextlib.suppress(BlockingIOError):
             os.read(self._fd, _EXPIRY_COUNT_SIZE)
@@ -557,7 +566,14 @@ class TimerfdTimer(Timer):
             # wake-up later than that (the loop was busy, the thread descheduled) is no
             # reason to spin longer.  Unclipped, one 30 ms outlier held the lead at its
             # maximum for ~250 wake-ups.
-            late = min(woke - armed, self._spin_lead / 2)
+            # Counted from the later of the armed time and the last moment the loop was
+            # seen running motorbus's work (a reply of another bus, a stream's task): a
+            # wake-up that waited for the loop is late by the loop's work, not by the
+            # kernel's, and a longer lead would not have made it earlier.  Counted from
+            # the armed time alone, that work held the lead near its maximum with 16
+            # buses, polls and ticks apart: a third of the process's CPU spun
+            # (benchmarks/README.md, "Spin lead").
+            late = min(woke - max(armed, busy_until), self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
         self.wakeups += 1
