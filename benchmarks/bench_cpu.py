@@ -33,7 +33,7 @@ the ticks it sent: the same as ``ratio`` while ours keeps up, the honest figure 
 does not.
 
     python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--rounds 5]
-        [--buses 1,16,32,64] [--polls tick|shared] [--out PATH]
+        [--buses 1,16,32,64] [--polls tick|shared] [--phase-groups N] [--out PATH]
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ import os
 import platform
 import resource
 import signal
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -58,6 +59,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from motorbus import manager
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
 from motorbus.manager import BusManager
@@ -91,6 +93,7 @@ ROW_KEYS = (
     "buses",
     "cpu_percent",
     "spin_percent",
+    "tick_p99_us",
     "minimal_cpu_percent",
     "ratio",
     "ratio_per_tick",
@@ -214,13 +217,31 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
 POLL_PHASES = ("tick", "shared")
 
 
-async def ours(paths: list[str], seconds: float, polls: str = "tick") -> dict[str, Any]:
+async def ours(
+    paths: list[str], seconds: float, polls: str = "tick", phase_groups: int | None = None
+) -> dict[str, Any]:
     """motorbus doing the same work; CPU %, ticks, polls, replies.
 
-    ``polls`` is one of ``POLL_PHASES``.
+    ``polls`` is one of ``POLL_PHASES``.  ``phase_groups`` replaces the manager's
+    ``PHASE_GROUPS`` for this run (an experiment: how many tick phases the buses are
+    spread over, each with its own wake-ups; None keeps the library's).
     """
     if polls not in POLL_PHASES:
         raise ValueError(f"polls must be one of {', '.join(POLL_PHASES)}, got {polls!r}")
+    if phase_groups is not None and (
+        isinstance(phase_groups, bool) or not isinstance(phase_groups, int) or phase_groups < 1
+    ):
+        raise ValueError(f"phase_groups must be an integer >= 1, got {phase_groups!r}")
+    library_groups = manager.PHASE_GROUPS
+    if phase_groups is not None:
+        manager.PHASE_GROUPS = phase_groups
+    try:
+        return await _ours(paths, seconds, polls)
+    finally:
+        manager.PHASE_GROUPS = library_groups
+
+
+async def _ours(paths: list[str], seconds: float, polls: str) -> dict[str, Any]:
     mgr = BusManager(safe_stop=False)
     for i, path in enumerate(paths):
         mgr.add_bus(f"bus{i}", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
@@ -299,6 +320,8 @@ async def ours(paths: list[str], seconds: float, polls: str = "tick") -> dict[st
             "late_ticks": sum(s.stats.late for s in streams),
             "skipped_ticks": sum(s.stats.skipped for s in streams),
             "stream_errors": len(errors),
+            # How many distinct tick phases the buses were spread over (phase_groups).
+            "tick_phases": len({mgr.streamer(name).phase for name in names}),
             "first_error": str(errors[0]) if errors else None,
         }
 
@@ -335,6 +358,9 @@ def combine(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     for key in ("ticks", "polls", "replies", "late_ticks", "skipped_ticks", "stream_errors"):
         if key in rounds[0]:
             out[key] = sum(r[key] for r in rounds)
+    p99s = [r["tick_p99_us"] for r in rounds if r.get("tick_p99_us") is not None]
+    if p99s:  # percentiles do not add up: the median round's
+        out["tick_p99_us"] = statistics.median(p99s)
     return out
 
 
@@ -362,6 +388,13 @@ def main() -> int:
         default="tick",
         help="ours's polls: 3 ms after each bus's tick, or on one clock for every bus",
     )
+    parser.add_argument(
+        "--phase-groups",
+        type=int,
+        default=None,
+        help="spread ours's buses over this many tick phases (default: the library's "
+        f"{manager.PHASE_GROUPS})",
+    )
     parser.add_argument("--quick", action="store_true", help="2 s per case, 2 rounds")
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args()
@@ -376,12 +409,15 @@ def main() -> int:
         parser.error("--seconds must be > 0 and --buses list counts >= 1")
     if args.rounds < 1:
         parser.error(f"--rounds must be >= 1, got {args.rounds}")
+    if args.phase_groups is not None and args.phase_groups < 1:
+        parser.error(f"--phase-groups must be >= 1, got {args.phase_groups}")
+    groups = manager.PHASE_GROUPS if args.phase_groups is None else args.phase_groups
     rows: dict[str, list[Any]] = {k: [] for k in ROW_KEYS}
     raise_fd_limit(max(counts))
     ticks_per_bus = round(args.seconds / PERIOD_S)
     print(
         f"CPU per bus-tick, {args.seconds:g} s per case in {args.rounds} rounds, "
-        f"{PERIOD_S * 1e3:.0f} ms ticks, ours's polls: {args.polls}"
+        f"{PERIOD_S * 1e3:.0f} ms ticks, ours's polls: {args.polls}, phase groups: {groups}"
     )
     with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
         for n in counts:
@@ -393,9 +429,17 @@ def main() -> int:
                     seconds = args.seconds / args.rounds
                     if r % 2 == 0:
                         bases.append(asyncio.run(minimal(responder.paths, seconds)))
-                        mines.append(asyncio.run(ours(responder.paths, seconds, args.polls)))
+                        mines.append(
+                            asyncio.run(
+                                ours(responder.paths, seconds, args.polls, args.phase_groups)
+                            )
+                        )
                     else:
-                        mines.append(asyncio.run(ours(responder.paths, seconds, args.polls)))
+                        mines.append(
+                            asyncio.run(
+                                ours(responder.paths, seconds, args.polls, args.phase_groups)
+                            )
+                        )
                         bases.append(asyncio.run(minimal(responder.paths, seconds)))
             finally:
                 responder.stop()
@@ -410,6 +454,8 @@ def main() -> int:
             rows["buses"].append(n)
             rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
             rows["spin_percent"].append(round(mine["spin_percent"], 1))
+            p99 = mine.get("tick_p99_us")
+            rows["tick_p99_us"].append(None if p99 is None else round(p99))
             rows["minimal_cpu_percent"].append(round(base["cpu_percent"], 1))
             rows["ratio"].append(round(ratio, 2) if math.isfinite(ratio) else None)
             # The same per tick sent: differs from ``ratio`` once ours falls behind.
@@ -431,7 +477,8 @@ def main() -> int:
                 f"{mine['spin_percent']:4.1f} %), minimal "
                 f"{base['cpu_percent']:5.1f} %, ratio {ratio:.2f}; ticks {mine['ticks']} / "
                 f"{base['ticks']} ({sent_pct:.1f} % sent), replies {mine['replies']} / "
-                f"{base['replies']}; {'keeps up' if keeps_up else 'FALLS BEHIND'}",
+                f"{base['replies']}; tick p99 (ours's view) {rows['tick_p99_us'][-1]} us; "
+                f"{'keeps up' if keeps_up else 'FALLS BEHIND'}",
                 flush=True,
             )
             if mine["first_error"]:
@@ -450,6 +497,7 @@ def main() -> int:
         "cpu_percent_at_32": None if at32 is None else rows["cpu_percent"][at32],
         "seconds": args.seconds,
         "polls": args.polls,
+        "phase_groups": groups,
         "machine": {
             "platform": platform.platform(),
             "python": sys.version.split()[0],

@@ -722,3 +722,38 @@ def test_ours_polls_on_one_clock_for_every_bus_when_asked(tmp_path: Path) -> Non
     assert out["stream_errors"] == 0
     assert out["ticks"] > 0 and out["polls"] > 0
     assert out["replies"] <= out["polls"]
+
+
+def test_ours_spreads_the_buses_over_the_phase_groups_asked_then_restores_the_librarys(
+    tmp_path: Path,
+) -> None:
+    """``--phase-groups``: the run uses that many tick phases; the library's constant is
+    back afterwards, and a count below 1 is refused before anything runs."""
+    import asyncio
+
+    from motorbus import manager
+
+    library = manager.PHASE_GROUPS
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="phase_groups must be an integer >= 1"):
+            asyncio.run(bench_cpu.ours([], 0.1, phase_groups=bad))  # type: ignore[arg-type]
+    responder = bench_cpu.Responder(3, tmp_path / "rec.json")
+    try:
+        one = asyncio.run(bench_cpu.ours(responder.paths, 0.2, phase_groups=1))
+        three = asyncio.run(bench_cpu.ours(responder.paths, 0.2, phase_groups=3))
+    finally:
+        responder.stop()
+    assert library == manager.PHASE_GROUPS
+    assert (one["tick_phases"], three["tick_phases"]) == (1, 3)
+    out = one
+    assert out["stream_errors"] == 0 and out["ticks"] > 0
+    assert (
+        bench_cpu.combine(
+            [
+                {**out, "tick_p99_us": 100.0},
+                {**out, "tick_p99_us": 300.0},
+                {**out, "tick_p99_us": 200.0},
+            ]
+        )["tick_p99_us"]
+        == 200.0
+    )
