@@ -569,10 +569,11 @@ class TimerfdTimer(Timer):
             # Counted from the later of the armed time and the last moment the loop was
             # seen running motorbus's work (a reply of another bus, a stream's task): a
             # wake-up that waited for the loop is late by the loop's work, not by the
-            # kernel's, and a longer lead would not have made it earlier.  Counted from
-            # the armed time alone, that work held the lead near its maximum with 16
-            # buses, polls and ticks apart: a third of the process's CPU spun
-            # (benchmarks/README.md, "Spin lead").
+            # kernel's; only a lead longer than that work would have helped, at that
+            # much spin on every wake-up.  Counted from the armed time alone, that work
+            # held the lead near its maximum with 16 buses whose polls land on other
+            # buses' ticks: a third of the process's CPU spun (benchmarks/README.md,
+            # "Spin lead").
             late = min(woke - max(armed, busy_until), self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
