@@ -557,24 +557,27 @@ class TimerfdTimer(Timer):
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
-        if self._armed_ns and self._armed_precise:
-            # Only the wake-ups the lead is for: one armed for a plain deadline (a task's
-            # sleep_until(precise=False), a queued frame's start_by) lands wherever the
-            # loop happens to be busy, and with many buses those kept the lead at its
-            # maximum for the precise ones.
-            # Clipped at half the longest lead, which already asks for that lead: a
-            # wake-up later than that (the loop was busy, the thread descheduled) is no
-            # reason to spin longer.  Unclipped, one 30 ms outlier held the lead at its
-            # maximum for ~250 wake-ups.
-            # Counted from the later of the armed time and the last moment the loop was
-            # seen running motorbus's work (a reply of another bus, a stream's task): a
-            # wake-up that waited for the loop is late by the loop's work, not by the
-            # kernel's; only a lead longer than that work would have helped, at that
-            # much spin on every wake-up.  Counted from the armed time alone, that work
-            # held the lead near its maximum with 16 buses whose polls land on other
-            # buses' ticks: a third of the process's CPU spun (benchmarks/README.md,
-            # "Spin lead").
-            late = min(woke - max(armed, busy_until), self._spin_lead / 2)
+        # The lead is for the kernel's part of a wake-up's lateness, so it follows only
+        # the wake-ups that show it:
+        # * armed for a precise deadline: one armed for a plain deadline (a task's
+        #   sleep_until(precise=False), a queued frame's start_by) lands wherever the
+        #   loop happens to be busy, and with many buses those kept the lead at its
+        #   maximum for the precise ones;
+        # * with the loop idle from the arming on: if motorbus's work ran after the fd
+        #   was armed (the timer's clock was read: a reply of another bus, a stream's
+        #   task), the wake-up may have waited for that work, and its lateness is the
+        #   loop's, not the kernel's.  Counted anyway, those held the lead near its
+        #   maximum with 16 buses whose polls land on other buses' ticks: a third of
+        #   the process's CPU spun (benchmarks/README.md, "Spin lead").  Nor may their
+        #   promptness lower the lead: a reply handled just after the arming is the
+        #   usual case of a bus that waits out its 1 ms spacing, and decaying the lead
+        #   on those let the next, idle wake-ups come late (fewer commands a second,
+        #   late reply deadlines).
+        # Clipped at half the longest lead, which already asks for that lead: a wake-up
+        # later than that (the thread descheduled) is no reason to spin longer.
+        # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
+        if self._armed_ns and self._armed_precise and busy_until <= armed:
+            late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
         self.wakeups += 1
