@@ -757,3 +757,20 @@ def test_ours_spreads_the_buses_over_the_phase_groups_asked_then_restores_the_li
         )["tick_p99_us"]
         == 200.0
     )
+
+
+def test_bench_pieces_times_every_piece_it_labels(caplog: pytest.LogCaptureFixture) -> None:
+    """Each labelled piece is measured (the timerfd's only where there is one), in
+    microseconds above zero, and the bus it used closed without a safe stop owed."""
+    import asyncio
+
+    import bench_pieces
+    from motorbus.bus.timer import timerfd_available
+
+    figures = asyncio.run(bench_pieces.measure(number=20, repeat=1))
+    expected = set(bench_pieces.LABELS)
+    if not timerfd_available():
+        expected -= {k for k in expected if k.startswith("settime_")}
+    assert expected <= set(figures)
+    assert all(figures[k] > 0 for k in expected)
+    assert not [r for r in caplog.records if "safe action" in r.getMessage()]
