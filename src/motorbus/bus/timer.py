@@ -454,7 +454,7 @@ class TimerfdTimer(Timer):
     (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
     sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
     Spinning the last part (a lead of 60-500 us that follows the recent lateness of
-    precise deadlines' wake-ups, counted from when the loop was free to run them) makes
+    precise deadlines' wake-ups that the loop's own work did not hold up) makes
     a deadline fire within ~25 us at p99, never early, for at most the lead in CPU per
     wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
     environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
@@ -570,9 +570,9 @@ class TimerfdTimer(Timer):
         #   maximum with 16 buses whose polls land on other buses' ticks: a third of
         #   the process's CPU spun (benchmarks/README.md, "Spin lead").  Nor may their
         #   promptness lower the lead: a reply handled just after the arming is the
-        #   usual case of a bus that waits out its 1 ms spacing, and decaying the lead
-        #   on those let the next, idle wake-ups come late (fewer commands a second,
-        #   late reply deadlines).
+        #   usual case of a bus that waits out its 1 ms spacing, and a run of those
+        #   could wear the lead down to its floor, where the next idle wake-up comes
+        #   after its deadline.
         # Clipped at half the longest lead, which already asks for that lead: a wake-up
         # later than that (the thread descheduled) is no reason to spin longer.
         # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
