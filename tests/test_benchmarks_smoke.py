@@ -717,8 +717,12 @@ def test_ours_polls_on_one_clock_for_every_bus_when_asked(tmp_path: Path) -> Non
     responder = bench_cpu.Responder(2, tmp_path / "rec.json")
     try:
         out = asyncio.run(bench_cpu.ours(responder.paths, 0.3, polls="shared"))
+        apart = asyncio.run(bench_cpu.ours(responder.paths, 0.3, polls="tick"))
     finally:
         responder.stop()
+    # Two buses in two tick phases: each poll task on its own bus's clock, or on one.
+    assert (apart["tick_phases"], apart["poll_clocks"]) == (2, 2)
+    assert (out["tick_phases"], out["poll_clocks"]) == (2, 1)
     assert out["stream_errors"] == 0
     assert out["ticks"] > 0 and out["polls"] > 0
     assert out["replies"] <= out["polls"]
