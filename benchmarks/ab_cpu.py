@@ -33,7 +33,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -43,6 +42,7 @@ RESULTS = HERE / "results" / "ab_cpu.json"
 sys.path.insert(0, str(HERE))
 
 import bench_cpu  # noqa: E402  (the workload)
+from report_file import write_report  # noqa: E402
 
 #: What a child run reports (``bench_cpu.ours``'s keys).
 CHILD_KEYS = (
@@ -220,8 +220,6 @@ def main() -> int:
                 print(
                     f"        worst bus's tick p99, kernel clock: {k['before']} / {k['after']} us"
                 )
-    from run_results import machine_info  # (the parent only: it imports every benchmark)
-
     result = {
         "before": args.before_rev or str(args.before),
         "after": str(args.after),
@@ -229,12 +227,8 @@ def main() -> int:
         "polls": args.polls,
         "pairs": args.pairs,
         "cases": cases,
-        "machine": machine_info(),
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

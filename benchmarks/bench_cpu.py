@@ -41,11 +41,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import json
 import math
 import operator
 import os
-import platform
 import resource
 import signal
 import statistics
@@ -55,7 +53,6 @@ import tempfile
 import time
 import tty
 from array import array
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +61,7 @@ from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
 from motorbus.manager import BusManager
 from motorbus.protocol import la
+from report_file import write_report
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "cpu.json"
@@ -501,13 +499,6 @@ def main() -> int:
         "seconds": args.seconds,
         "polls": args.polls,
         "phase_groups": groups,
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-            "load_avg": [round(x, 2) for x in os.getloadavg()],
-        },
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     print(f"largest bus count ours keeps up with: {result['max_buses_keeping_up']}")
     result["goals"] = {
@@ -518,9 +509,7 @@ def main() -> int:
     }
     for name, ok in result["goals"].items():
         print(f"goal {name:24} {'not measured' if ok is None else 'met' if ok else 'NOT met'}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

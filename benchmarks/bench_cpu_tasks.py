@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
-import json
 import os
 import statistics
 import sys
@@ -35,7 +34,6 @@ import tempfile
 import time
 import tty
 from collections.abc import Callable, Coroutine
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -44,9 +42,9 @@ RESULTS = HERE / "results" / "cpu_tasks.json"
 sys.path.insert(0, str(HERE))
 
 import bench_cpu  # noqa: E402  (the workload, the minimal loop and ours)
-import run_results  # noqa: E402  (machine_info)
 from bench_cpu import LEAD_S, PERIOD_S, REPLY_BYTES  # noqa: E402
 from motorbus.protocol import la  # noqa: E402
+from report_file import write_report  # noqa: E402
 
 #: How long the poll task waits for a reply before it goes on (the bus's budget is less).
 REPLY_TIMEOUT_S = 0.005
@@ -199,15 +197,7 @@ def main() -> int:
                 f"| {cell('ours_over_minimal')} | {cell('ours_over_tasks')} |",
                 flush=True,
             )
-    result = {
-        "rows": rows,
-        "seconds": args.seconds,
-        "machine": run_results.machine_info(),
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, {"rows": rows, "seconds": args.seconds})
     return 0
 
 

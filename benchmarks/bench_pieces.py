@@ -27,13 +27,11 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import sys
 import time
 import timeit
 from collections.abc import Callable
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -47,6 +45,9 @@ from motorbus.transport.memory import memory_pair
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "pieces.json"
 sys.path.insert(0, str(HERE))
+
+from report_file import write_report  # noqa: E402
+
 N_ACTUATORS = 15
 NEAR_S = 200e-6
 
@@ -187,18 +188,7 @@ def main() -> int:
     for key, label in LABELS.items():
         if key in figures:
             print(f"  {label:62s} {figures[key]:7.2f} us")
-    from run_results import machine_info  # imports every benchmark: only when run
-
-    result = {
-        **figures,
-        "number": args.number,
-        "repeat": args.repeat,
-        "machine": machine_info(),
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, {**figures, "number": args.number, "repeat": args.repeat})
     return 0
 
 

@@ -41,6 +41,7 @@ from typing import Any
 from bench_bus import (
     BACKEND_MODULES,
 )
+from report_file import machine_info
 from run_report import fmt, met_text, render_report
 from run_results import (
     ALL_BACKENDS,
@@ -55,7 +56,6 @@ from run_results import (
     bus_step_name,
     load_json,
     load_raw,
-    machine_info,
 )
 
 HERE = Path(__file__).resolve().parent

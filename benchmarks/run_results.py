@@ -9,9 +9,6 @@ from __future__ import annotations
 import json
 import math
 import operator
-import os
-import platform
-import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -387,16 +384,6 @@ def startup_results(startup: Mapping[str, Any] | None) -> dict[str, Any]:
     for name in STARTUP_GOALS:
         out[f"{STARTUP_GOAL_KEYS[name]}_median_s"] = (after.get(name) or {}).get("median_s")
     return out
-
-
-def machine_info() -> dict[str, Any]:
-    """This machine: platform string, Python version, CPU count, load average now."""
-    return {
-        "platform": platform.platform(),
-        "python": sys.version.split()[0],
-        "cpus": os.cpu_count(),
-        "load_avg": [round(x, 2) for x in os.getloadavg()],
-    }
 
 
 def build_results(
