@@ -15,6 +15,10 @@ with ``motorbus.protocol.la`` as ``bench_cpu.py``'s minimal loop does) with
   ``time.monotonic()`` to the deadline: the floor of jitter, at full CPU cost for
   the last stretch of every tick.
 
+``polled_timerfd_loop`` runs the last two with ``bench_cpu.py``'s heavier work (a status
+query after each tick, its reply read) on many buses spread over tick phases as
+``BusManager`` spreads them: baselines (b) and (c) of its CPU ratios.
+
 Every loop returns this process's CPU seconds from its first tick's lead-in to its
 last tick (the event loop already running, ports open), the wall seconds and the ticks
 written; the tick times are measured from outside (``kernel_clock.py``: the
@@ -43,6 +47,8 @@ BASELINES = ("sleep", "timerfd", "timerfd_spin")
 SPIN_S = 0.0005
 #: Start-up room before the first tick.
 LEAD_S = 0.05
+#: How long ``polled_timerfd_loop`` waits after its run for replies still on their way.
+REPLY_GRACE_S = 1.0
 
 _CLOCK_MONOTONIC = 1
 _TFD_TIMER_ABSTIME = 1
@@ -194,6 +200,128 @@ async def _timerfd_loop(
         for timer in timers:
             loop.remove_reader(timer.fd)
             timer.close()
+
+
+@dataclass(frozen=True)
+class PolledWork:
+    """``bench_cpu.py``'s work per bus and tick: a broadcast, then a status query.
+
+    Attributes:
+        frame: the tick's frame, ``frame(k)`` for tick ``k`` (built for each bus, each
+            tick, as a bus's stream does).
+        queries: the query frames, one per tick, round-robin.
+        reply_size: bytes of one reply (replies are counted as bytes read / this).
+        period: tick period, seconds.
+        poll_offset: how long after its bus's tick a query is written, seconds.
+        phases: the tick phases the buses are spread over: bus ``i`` ticks
+            ``(i % phases) * period / phases`` into each period, as ``BusManager``
+            spreads its buses, and the buses of a phase share one wake-up.
+    """
+
+    frame: Callable[[int], bytes]
+    queries: Sequence[bytes]
+    reply_size: int
+    period: float
+    poll_offset: float
+    phases: int
+
+
+async def polled_timerfd_loop(
+    paths: Sequence[str], work: PolledWork, seconds: float, *, spin: float
+) -> dict[str, Any]:
+    """``work`` on ``paths`` by hand: baselines (b) and (c) with many buses and queries.
+
+    One timerfd per tick phase, armed in turn at the phase's tick (``spin`` early and
+    then a busy-wait to the deadline, when ``spin`` > 0: baseline (c)) and at its
+    queries, ``poll_offset`` later (no busy-wait: queries need no precision here, as in
+    ``bench_cpu.py``'s other loops).  Each pty's ``add_reader`` callback reads replies.
+    No framing, no matching, no timeouts, no spacing rule.
+
+    Returns:
+        ``cpu_percent``, ``cpu_s``, ``wall_s``, ``ticks``, ``polls`` and ``replies``,
+        counted as ``bench_cpu.minimal`` counts them.
+    """
+    loop = asyncio.get_running_loop()
+    fds = _open_raw(paths)
+    phases = max(1, min(work.phases, len(fds)))
+    groups = [fds[g::phases] for g in range(phases)]
+    timers = [_Timerfd() for _ in groups]  # set-up (libc look-up), not counted
+    received = [0] * len(fds)
+    ticks = max(1, round(seconds / work.period))
+    counts = {"ticks": 0, "polls": 0}
+    done = loop.create_future()
+    left = [phases]
+    # Phase g's step s: tick s // 2 when s is even, that tick's queries when s is odd.
+    steps = [0] * phases
+    origin = time.monotonic() + LEAD_S  # the loop's clock is time.monotonic on Linux
+
+    def due(g: int, s: int) -> float:
+        k, polls = divmod(s, 2)
+        return origin + g * work.period / phases + k * work.period + polls * work.poll_offset
+
+    def on_readable(i: int) -> None:
+        with contextlib.suppress(BlockingIOError):
+            received[i] += len(os.read(fds[i], 4096))
+
+    def on_expiry(g: int) -> None:
+        timer = timers[g]
+        with contextlib.suppress(BlockingIOError):
+            os.read(timer.fd, 8)
+        s = steps[g]
+        k, polls = divmod(s, 2)
+        if polls:
+            query = work.queries[k % len(work.queries)]
+            for fd in groups[g]:
+                _write(fd, query)
+            counts["polls"] += len(groups[g])
+        else:
+            if spin:
+                deadline = due(g, s)
+                while time.monotonic() < deadline:
+                    pass
+            for fd in groups[g]:
+                _write(fd, work.frame(k))
+            counts["ticks"] += len(groups[g])
+        steps[g] = s = s + 1
+        if s < 2 * ticks:
+            timer.arm(due(g, s) - (spin if s % 2 == 0 else 0.0))
+        else:
+            loop.remove_reader(timer.fd)
+            left[0] -= 1
+            if left[0] == 0:
+                done.set_result(None)
+
+    for i, fd in enumerate(fds):
+        loop.add_reader(fd, on_readable, i)
+    wall0, cpu0 = time.monotonic(), _cpu_seconds()
+    for g, timer in enumerate(timers):
+        loop.add_reader(timer.fd, on_expiry, g)
+        timer.arm(due(g, 0) - spin)
+    try:
+        await done
+        await asyncio.sleep(work.poll_offset)  # the last replies, as the other loops wait
+        wall, cpu = time.monotonic() - wall0, _cpu_seconds() - cpu0
+        # Replies a loaded machine delivers later still count (not their CPU): a reply
+        # count short of the polls then means lost replies, not a slow responder.
+        owed = counts["polls"] * work.reply_size
+        give_up = time.monotonic() + REPLY_GRACE_S
+        while sum(received) < owed and time.monotonic() < give_up:
+            await asyncio.sleep(0.005)
+    finally:
+        for timer in timers:
+            loop.remove_reader(timer.fd)
+            timer.close()
+        for fd in fds:
+            loop.remove_reader(fd)
+            os.close(fd)
+    return {
+        "cpu_percent": 100 * cpu / wall,
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "ticks": counts["ticks"],
+        "polls": counts["polls"],
+        "replies": sum(received) // work.reply_size,
+    }
 
 
 def run_baseline(

@@ -1,4 +1,4 @@
-"""CPU per bus-tick: motorbus against a hand-written minimal asyncio loop, same work.
+"""CPU per bus-tick: motorbus against hand-written loops doing the same work.
 
 The work per bus and per 10 ms tick: one 0xF3 follow broadcast of 15 entries (targets
 from a trajectory, encoded every tick) and one LA status query (IDs round-robin) whose
@@ -7,30 +7,42 @@ ptys (one ``pty_recorder.py --answer`` process answers every bus at once):
 
 * ``ours``: ``BusManager`` buses, a ``Streamer.follow`` per bus and a task per bus that
   awaits ``InspireLA.status()`` once a tick (3 ms after the tick, on the bus's timer);
-* ``minimal``: one event loop, ``loop.call_at`` per tick and bus that ``os.write``s the
-  broadcast, a second ``call_at`` 1.5 ms later that writes the query, and an
-  ``add_reader`` callback per pty that reads replies.  No framing, no matching, no
-  timeouts, no spacing rule: the least a program can do for the same writes.
+* ``timerfd`` (issue 23's baseline (b), the floor): ``baselines.polled_timerfd_loop``,
+  one timerfd per tick phase (the buses spread over ours's phases, so the same wake-ups)
+  that ``os.write``s each bus's broadcast at its tick and its query 3 ms later, and an
+  ``add_reader`` callback per pty that reads replies;
+* ``timerfd_spin`` (baseline (c), the precision floor): the same, armed
+  ``baselines.SPIN_S`` before each tick and busy-waiting the rest;
+* ``minimal``: one event loop, ``loop.call_at`` per tick and bus (each bus on a phase of
+  its own) that ``os.write``s the broadcast, a second ``call_at`` 1.5 ms later that writes
+  the query, and an ``add_reader`` callback per pty that reads replies.
+
+None of the baselines frames, matches, times out or keeps a spacing rule: the least a
+program can do for the same writes.
 
 CPU is this process's user + system time over the run's wall time (100 % = one core).
-Each case runs in ``--rounds`` rounds of ``seconds / rounds``, the two loops taking turns
-(the minimal loop first in even rounds, ours first in odd ones), and each side's CPU is
-its total over its total wall time: a slow spell of a shared machine then falls on both
-alike (run one after the other, 10 s each, the ratio at 16 buses moved from 2.6 to 3.7
-between full runs of the same code).  ``round_ratios`` keeps each round's own ratio.
+Each case runs in ``--rounds`` rounds of ``seconds / rounds``, the four loops taking turns
+(each goes first in its round, ``turn_order``), and each side's CPU is its total over
+its total wall time: a slow spell of a shared machine then falls on all alike (run one
+after the other, 10 s each, the ratio at 16 buses moved from 2.6 to 3.7 between full
+runs of the same code).  ``round_ratios_timerfd`` and ``round_ratios`` keep each round's
+own ratio to (b) and to the minimal loop.
 ``spin_percent`` is the part of ours that the bus timer spent spinning before precise
 deadlines (its ``spin_seconds``; 0 where the timer does not spin): what the tick
 precision costs, apart from the Python that does the work.
-Goals (issue 23): ours / minimal <= 1.5 at 1, 16 and 32 buses, and 32 buses under 35 %
-of a core.  Larger counts (``run.py`` adds 128) show where one core saturates: this
-process has one thread, so it never uses more than one core; past that point it sends
+Goals (issue 23): ours / (b) <= 1.5 at 1, 16 and 32 buses, and 32 buses under 35 %
+of a core.  (Until 2026-12-03 the ratio goal was read against ``minimal``, which is not
+the issue's (b): it wakes once per bus, not once per phase.)
+
+Larger counts (``run.py`` adds 128) show where one core saturates: this process has one
+thread, so it never uses more than one core; past that point it sends
 fewer ticks than it should.  Ours "keeps up" with a bus count when it sent at least 99 %
 of its ticks and no stream ended with an error; ``max_buses_keeping_up`` is the largest
 count up to which it kept up with every measured count.  Falling behind at well under
 100 % CPU means the machine did not give this process its core (the responder and any
 other load share the machine's cores).  ``ratio_per_tick`` divides each side's CPU by
-the ticks it sent: the same as ``ratio`` while ours keeps up, the honest figure once it
-does not.
+the ticks it sent: the same as ``ratio`` (to the minimal loop) while ours keeps up, the
+honest figure once it does not.
 
     python benchmarks/bench_cpu.py [--quick] [--seconds 10] [--rounds 5]
         [--buses 1,16,32,64] [--polls tick|shared] [--phase-groups N] [--out PATH]
@@ -56,6 +68,7 @@ from array import array
 from pathlib import Path
 from typing import Any
 
+from baselines import SPIN_S, PolledWork, polled_timerfd_loop
 from motorbus import manager
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
@@ -73,12 +86,20 @@ MINIMAL_POLL_OFFSET_S = 0.0015
 #: Where in the tick our poll task asks for a status (leaves room for the broadcast).
 OURS_POLL_OFFSET_S = 0.003
 REPLY_BYTES = la.STATUS_FRAME_SIZE
+#: The status queries of the baselines, one a tick, round-robin over the IDs.
+QUERIES = tuple(
+    la.Control(i, la.ControlAction.QUERY_STATUS).encode() for i in range(1, N_ACTUATORS + 1)
+)
 GOAL_RATIO = 1.5
 #: The bus counts the ratio goal is set at (issue 23); others are reported only.
 GOAL_RATIO_BUSES = (1, 16, 32)
 GOAL_32_CPU_PERCENT = 35.0
 #: Share of its ticks ours must send to keep up with a bus count.
 KEEPS_UP_TICKS_SENT_PCT = 99.0
+#: The loops of each case, measured in turn (see the module docstring).
+SIDES = ("ours", "timerfd", "timerfd_spin", "minimal")
+#: The baseline the ratio goal is read against: issue 23's (b), the floor.
+GOAL_BASELINE = "timerfd"
 #: File descriptors a bus count needs here, per bus (ours and the minimal loop open one
 #: pty each; the responder, a child that inherits the limit, holds two), plus room.
 FDS_PER_BUS = 2
@@ -92,6 +113,11 @@ ROW_KEYS = (
     "cpu_percent",
     "spin_percent",
     "tick_p99_us",
+    "timerfd_cpu_percent",
+    "ratio_timerfd",
+    "round_ratios_timerfd",
+    "timerfd_spin_cpu_percent",
+    "ratio_timerfd_spin",
     "minimal_cpu_percent",
     "ratio",
     "ratio_per_tick",
@@ -99,6 +125,8 @@ ROW_KEYS = (
     "minimal_ticks",
     "replies",
     "minimal_replies",
+    "timerfd_replies",
+    "timerfd_spin_replies",
     "late_ticks",
     "skipped_ticks",
     "ticks_sent_pct",
@@ -160,7 +188,6 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
         fd = os.open(path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         tty.setraw(fd)
         fds.append(fd)
-    queries = [la.Control(i, la.ControlAction.QUERY_STATUS).encode() for i in range(1, 16)]
     received = [0] * len(fds)
     counts = {"ticks": 0, "polls": 0}
     n = len(fds)
@@ -174,7 +201,7 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
             received[i] += len(os.read(fds[i], 4096))
 
     def poll(i: int, k: int) -> None:
-        os.write(fds[i], queries[k % len(queries)])
+        os.write(fds[i], QUERIES[k % len(QUERIES)])
         counts["polls"] += 1
 
     def tick(i: int, k: int) -> None:
@@ -365,6 +392,109 @@ def combine(rounds: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def turn_order(r: int) -> tuple[str, ...]:
+    """The order of the sides in round ``r``: each takes its turn first, so that a slow
+    spell of a shared machine does not always fall on the same one."""
+    k = r % len(SIDES)
+    return SIDES[k:] + SIDES[:k]
+
+
+def polled_work(phases: int) -> PolledWork:
+    """This benchmark's work for ``baselines.polled_timerfd_loop``: the broadcast of
+    ``broadcast_bytes``, then a status query ``OURS_POLL_OFFSET_S`` later, as ours."""
+    return PolledWork(
+        frame=lambda k: broadcast_bytes(k * PERIOD_S),
+        queries=QUERIES,
+        reply_size=REPLY_BYTES,
+        period=PERIOD_S,
+        poll_offset=OURS_POLL_OFFSET_S,
+        phases=phases,
+    )
+
+
+def run_side(
+    side: str, paths: list[str], seconds: float, polls: str, phase_groups: int | None
+) -> dict[str, Any]:
+    """One round of one side (``SIDES``) on ``paths``, in an event loop of its own.
+
+    The timerfd baselines spread their buses over ours's tick phases (``phase_groups``,
+    else the library's ``PHASE_GROUPS``): the same tick times, so the same wake-ups.
+    """
+    if side == "ours":
+        return asyncio.run(ours(paths, seconds, polls, phase_groups))
+    if side == "minimal":
+        return asyncio.run(minimal(paths, seconds))
+    if side not in SIDES:
+        raise ValueError(f"side must be one of {', '.join(SIDES)}, got {side!r}")
+    work = polled_work(manager.PHASE_GROUPS if phase_groups is None else phase_groups)
+    spin = SPIN_S if side == "timerfd_spin" else 0.0
+    return asyncio.run(polled_timerfd_loop(paths, work, seconds, spin=spin))
+
+
+def cpu_ratio(mine: dict[str, Any], base: dict[str, Any]) -> float | None:
+    """Ours's CPU over a baseline's, both over their own wall time (2 decimals)."""
+    if not base["cpu_percent"]:
+        return None
+    return round(mine["cpu_percent"] / base["cpu_percent"], 2)
+
+
+def add_row(
+    rows: dict[str, list[Any]], n: int, runs: dict[str, list[dict[str, Any]]], ticks_per_bus: int
+) -> None:
+    """Append the ``n``-bus case (each side's rounds, ``runs``) to ``rows`` and print it."""
+    mine = combine(runs["ours"])
+    base = {side: combine(runs[side]) for side in SIDES if side != "ours"}
+    minimal_ratio = cpu_ratio(mine, base["minimal"])
+    rows["buses"].append(n)
+    rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
+    rows["spin_percent"].append(round(mine["spin_percent"], 1))
+    p99 = mine.get("tick_p99_us")
+    rows["tick_p99_us"].append(None if p99 is None else round(p99))
+    for side in ("timerfd", "timerfd_spin"):
+        rows[f"{side}_cpu_percent"].append(round(base[side]["cpu_percent"], 1))
+        rows[f"ratio_{side}"].append(cpu_ratio(mine, base[side]))
+        rows[f"{side}_replies"].append(base[side]["replies"])
+    rows["round_ratios_timerfd"].append(
+        [cpu_ratio(m, b) for b, m in zip(runs[GOAL_BASELINE], runs["ours"], strict=True)]
+    )
+    rows["minimal_cpu_percent"].append(round(base["minimal"]["cpu_percent"], 1))
+    rows["ratio"].append(minimal_ratio)
+    rows["round_ratios"].append(
+        [cpu_ratio(m, b) for b, m in zip(runs["minimal"], runs["ours"], strict=True)]
+    )
+    # The same per tick sent: differs from ``ratio`` once ours falls behind.
+    per_tick = (
+        minimal_ratio * base["minimal"]["ticks"] / mine["ticks"]
+        if mine["ticks"] and minimal_ratio is not None
+        else None
+    )
+    rows["ratio_per_tick"].append(None if per_tick is None else round(per_tick, 2))
+    rows["ticks"].append(mine["ticks"])
+    rows["minimal_ticks"].append(base["minimal"]["ticks"])
+    rows["replies"].append(mine["replies"])
+    rows["minimal_replies"].append(base["minimal"]["replies"])
+    rows["late_ticks"].append(mine["late_ticks"])
+    rows["skipped_ticks"].append(mine["skipped_ticks"])
+    sent_pct = 100 * mine["ticks"] / (n * ticks_per_bus)
+    keeps_up = sent_pct >= KEEPS_UP_TICKS_SENT_PCT and mine["stream_errors"] == 0
+    rows["ticks_sent_pct"].append(round(sent_pct, 1))
+    rows["stream_errors"].append(mine["stream_errors"])
+    rows["keeps_up"].append(keeps_up)
+    print(
+        f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} % (spin "
+        f"{mine['spin_percent']:4.1f} %); (b) timerfd {base['timerfd']['cpu_percent']:5.1f} %, "
+        f"ratio {rows['ratio_timerfd'][-1]}; (c) timerfd + spin "
+        f"{base['timerfd_spin']['cpu_percent']:5.1f} %, ratio {rows['ratio_timerfd_spin'][-1]}; "
+        f"minimal {base['minimal']['cpu_percent']:5.1f} %, ratio {minimal_ratio}\n"
+        f"             ticks {mine['ticks']} / {n * ticks_per_bus} ({sent_pct:.1f} % sent), "
+        f"replies {mine['replies']} / {base['timerfd']['replies']} (b); tick p99 (ours's "
+        f"view) {rows['tick_p99_us'][-1]} us; {'keeps up' if keeps_up else 'FALLS BEHIND'}",
+        flush=True,
+    )
+    if mine["first_error"]:
+        print(f"        {mine['stream_errors']} ended: {mine['first_error']}")
+
+
 def max_buses_keeping_up(buses: list[int], kept_up: list[bool]) -> int:
     """The largest count up to which ours kept up with every measured count; 0 if it did
     not with the smallest."""
@@ -423,86 +553,43 @@ def main() -> int:
     with tempfile.TemporaryDirectory(prefix="motorbus-cpu-") as tmp:
         for n in counts:
             responder = Responder(n, Path(tmp) / f"cpu{n}.json")
-            bases: list[dict[str, Any]] = []
-            mines: list[dict[str, Any]] = []
+            runs: dict[str, list[dict[str, Any]]] = {side: [] for side in SIDES}
             try:
                 for r in range(args.rounds):
-                    seconds = args.seconds / args.rounds
-                    if r % 2 == 0:
-                        bases.append(asyncio.run(minimal(responder.paths, seconds)))
-                        mines.append(
-                            asyncio.run(
-                                ours(responder.paths, seconds, args.polls, args.phase_groups)
+                    for side in turn_order(r):
+                        runs[side].append(
+                            run_side(
+                                side,
+                                responder.paths,
+                                args.seconds / args.rounds,
+                                args.polls,
+                                args.phase_groups,
                             )
                         )
-                    else:
-                        mines.append(
-                            asyncio.run(
-                                ours(responder.paths, seconds, args.polls, args.phase_groups)
-                            )
-                        )
-                        bases.append(asyncio.run(minimal(responder.paths, seconds)))
             finally:
                 responder.stop()
-            base, mine = combine(bases), combine(mines)
-            rows["round_ratios"].append(
-                [
-                    round(m["cpu_percent"] / b["cpu_percent"], 2) if b["cpu_percent"] else None
-                    for b, m in zip(bases, mines, strict=True)
-                ]
-            )
-            ratio = mine["cpu_percent"] / base["cpu_percent"] if base["cpu_percent"] else math.nan
-            rows["buses"].append(n)
-            rows["cpu_percent"].append(round(mine["cpu_percent"], 1))
-            rows["spin_percent"].append(round(mine["spin_percent"], 1))
-            p99 = mine.get("tick_p99_us")
-            rows["tick_p99_us"].append(None if p99 is None else round(p99))
-            rows["minimal_cpu_percent"].append(round(base["cpu_percent"], 1))
-            rows["ratio"].append(round(ratio, 2) if math.isfinite(ratio) else None)
-            # The same per tick sent: differs from ``ratio`` once ours falls behind.
-            per_tick = ratio * base["ticks"] / mine["ticks"] if mine["ticks"] else math.nan
-            rows["ratio_per_tick"].append(round(per_tick, 2) if math.isfinite(per_tick) else None)
-            rows["ticks"].append(mine["ticks"])
-            rows["minimal_ticks"].append(base["ticks"])
-            rows["replies"].append(mine["replies"])
-            rows["minimal_replies"].append(base["replies"])
-            rows["late_ticks"].append(mine["late_ticks"])
-            rows["skipped_ticks"].append(mine["skipped_ticks"])
-            sent_pct = 100 * mine["ticks"] / (n * ticks_per_bus)
-            keeps_up = sent_pct >= KEEPS_UP_TICKS_SENT_PCT and mine["stream_errors"] == 0
-            rows["ticks_sent_pct"].append(round(sent_pct, 1))
-            rows["stream_errors"].append(mine["stream_errors"])
-            rows["keeps_up"].append(keeps_up)
-            print(
-                f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} % (spin "
-                f"{mine['spin_percent']:4.1f} %), minimal "
-                f"{base['cpu_percent']:5.1f} %, ratio {ratio:.2f}; ticks {mine['ticks']} / "
-                f"{base['ticks']} ({sent_pct:.1f} % sent), replies {mine['replies']} / "
-                f"{base['replies']}; tick p99 (ours's view) {rows['tick_p99_us'][-1]} us; "
-                f"{'keeps up' if keeps_up else 'FALLS BEHIND'}",
-                flush=True,
-            )
-            if mine["first_error"]:
-                print(f"        {mine['stream_errors']} ended: {mine['first_error']}")
+            add_row(rows, n, runs, ticks_per_bus)
     at32 = rows["buses"].index(32) if 32 in rows["buses"] else None
-    ratios = [r for r in rows["ratio"] if r is not None]
     goal_ratios = [
-        r for b, r in zip(rows["buses"], rows["ratio"], strict=True) if b in GOAL_RATIO_BUSES
+        r
+        for b, r in zip(rows["buses"], rows["ratio_timerfd"], strict=True)
+        if b in GOAL_RATIO_BUSES and r is not None
     ]
-    goal_ratios = [r for r in goal_ratios if r is not None]
+    minimal_ratios = [r for r in rows["ratio"] if r is not None]
     result: dict[str, Any] = {
         **rows,
-        "max_ratio": max(ratios) if ratios else None,
-        "max_ratio_1_16_32": max(goal_ratios) if goal_ratios else None,
+        "max_ratio_timerfd_1_16_32": max(goal_ratios) if goal_ratios else None,
+        "max_ratio": max(minimal_ratios) if minimal_ratios else None,
         "max_buses_keeping_up": max_buses_keeping_up(rows["buses"], rows["keeps_up"]),
         "cpu_percent_at_32": None if at32 is None else rows["cpu_percent"][at32],
         "seconds": args.seconds,
         "polls": args.polls,
         "phase_groups": groups,
+        "spin_s_timerfd_spin": SPIN_S,
     }
     print(f"largest bus count ours keeps up with: {result['max_buses_keeping_up']}")
     result["goals"] = {
-        "ratio_le_1.5x": None if not goal_ratios else max(goal_ratios) <= GOAL_RATIO,
+        "ratio_le_1.5x_timerfd": None if not goal_ratios else max(goal_ratios) <= GOAL_RATIO,
         "32_buses_lt_35pct": None
         if at32 is None
         else rows["cpu_percent"][at32] < GOAL_32_CPU_PERCENT,

@@ -230,7 +230,9 @@ def plot_cpu(cpu: Mapping[str, Any], path: Path) -> Path | None:
     for key, label, style in (
         ("cpu_percent", "motorbus", "o-"),
         ("spin_percent", "motorbus: of which timer spin", "^:"),
-        ("minimal_cpu_percent", "minimal asyncio loop", "s--"),
+        ("timerfd_cpu_percent", "(b) timerfd loop", "s--"),
+        ("timerfd_spin_cpu_percent", "(c) timerfd + busy-wait", "d-."),
+        ("minimal_cpu_percent", "minimal call_at loop", "x:"),
     ):
         values = cpu.get(key) or []
         pairs = [(b, v) for b, v in zip(buses, values, strict=False) if v is not None]

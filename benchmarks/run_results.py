@@ -386,6 +386,16 @@ def startup_results(startup: Mapping[str, Any] | None) -> dict[str, Any]:
     return out
 
 
+def goal_count_max(buses: Sequence[Any], ratios: Sequence[Any]) -> float | None:
+    """The largest of ``ratios`` at the bus counts the CPU ratio goal is read at."""
+    at_goal = [
+        r
+        for b, r in zip(buses, ratios, strict=False)
+        if b in CPU_GOAL_RATIO_BUSES and isinstance(r, int | float)
+    ]
+    return max(at_goal) if at_goal else None
+
+
 def build_results(
     reports: Mapping[str, Any],
     *,
@@ -460,13 +470,12 @@ def build_results(
             cpu_out[key] = []
     cpu_out["max_ratio"] = clean((cpu or {}).get("max_ratio"))
     # Here, not from the script: a report of an older bench_cpu.py has the lists only.
-    goal_ratios = [
-        r
-        for b, r in zip(cpu_out["buses"], cpu_out["ratio"], strict=False)
-        if b in CPU_GOAL_RATIO_BUSES and isinstance(r, int | float)
-    ]
-    cpu_out["max_ratio_1_16_32"] = max(goal_ratios) if goal_ratios else None
+    cpu_out["max_ratio_1_16_32"] = goal_count_max(cpu_out["buses"], cpu_out["ratio"])
+    cpu_out["max_ratio_timerfd_1_16_32"] = goal_count_max(
+        cpu_out["buses"], cpu_out["ratio_timerfd"]
+    )
     cpu_out["max_buses_keeping_up"] = (cpu or {}).get("max_buses_keeping_up")
+    cpu_out["spin_s_timerfd_spin"] = (cpu or {}).get("spin_s_timerfd_spin")
     cpu_out["seconds"] = (cpu or {}).get("seconds")
 
     timer_out = {
@@ -621,7 +630,7 @@ GOALS = (
     Goal("load.rt_no_missed_tick", "load.rt.missed_ticks", "==", 0),
     Goal("load.rt_no_late_tick", "load.rt.late_ticks", "==", 0),
     Goal("load.rt_min_gap_ge_1000us", "load.rt.min_gap_us", ">=", GOAL_MIN_GAP_US),
-    Goal("cpu.ratio_le_1.5x_minimal", "cpu.max_ratio_1_16_32", "<=", GOAL_CPU_RATIO),
+    Goal("cpu.ratio_le_1.5x_timerfd", "cpu.max_ratio_timerfd_1_16_32", "<=", GOAL_CPU_RATIO),
     Goal("cpu.32_buses_lt_35pct", "cpu.cpu_percent@32", "<", GOAL_CPU_32_PERCENT),
     Goal(
         "late_ticks.kernel_max_le_1000us_every_run",
