@@ -127,12 +127,16 @@ class Timer(abc.ABC):
         self._heap: list[tuple[float, int, TimerHandle]] = []
         self._seq = itertools.count()
         self._cancelled_in_heap = 0
-        # While above 0 (callbacks running, or a caller's hold_arming()), changes to the
-        # earliest deadline are only noted, and the wake-up source is re-armed once at the
-        # end: a reply callback that cancels a deadline and schedules the next write, or
-        # a wake-up whose callbacks cancel and schedule several, costs one re-arm.
+        # A change of the earliest deadline re-arms the wake-up source once the loop's
+        # current turn is over (_rearm_soon): the changes of a turn cost one re-arm.  A
+        # timer wake-up resolves a task's sleep, and the task, one turn later, sends a
+        # request and arms its reply deadline: one re-arm for both, where each used to
+        # cost one (settime for the near future reprograms the CPU's timer: tens of us
+        # on a VM, bench_pieces.py).  While _holds is above 0 (callbacks running, or a
+        # caller's hold_arming()) changes are only noted, for the same reason.
         self._holds = 0
         self._rearm_due = False
+        self._flush_queued = False
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
@@ -179,10 +183,7 @@ class Timer(abc.ABC):
         handle = TimerHandle(self, deadline, callback, precise)
         heapq.heappush(self._heap, (deadline, next(self._seq), handle))
         if self._heap[0][2] is handle:
-            if self._holds:
-                self._rearm_due = True
-            else:
-                self._arm(deadline)
+            self._rearm_soon()
         return handle
 
     def hold_arming(self) -> None:
@@ -190,7 +191,8 @@ class Timer(abc.ABC):
 
         For a callback that cancels and schedules several deadlines in a row (a reply
         that frees the bus and schedules the next write): the source is re-armed once,
-        at the release, for the earliest deadline then.  Holds nest.  No callback runs
+        after the release (at the end of the loop's turn, as every re-arm), for the
+        earliest deadline then.  Holds nest.  No callback runs
         early because of a hold; one can only run late if the loop gets to sleep before
         the release, so call both from the same callback (``try``/``finally``).
         """
@@ -201,7 +203,7 @@ class Timer(abc.ABC):
         self._holds -= 1
         if not self._holds and self._rearm_due and not self._closed:
             self._rearm_due = False
-            self._rearm()
+            self._rearm_soon()
 
     async def sleep_until(self, deadline: float, *, precise: bool = True) -> None:
         """Sleep until ``now() >= deadline``; cancel-safe (the wake-up is unscheduled).
@@ -279,7 +281,7 @@ class Timer(abc.ABC):
             self._rearm_due = True  # woken inside a caller's hold: its release re-arms
         else:
             self._rearm_due = False
-            self._rearm()
+            self._rearm_soon()
 
     def _rearm(self) -> None:
         heap = self._heap
@@ -309,7 +311,28 @@ class Timer(abc.ABC):
             self._rearm_soon()
 
     def _rearm_soon(self) -> None:
-        """Re-arm now, or at the end of the current hold."""
+        """Re-arm after the callbacks the loop has queued so far (or at the end of the
+        current hold): one re-arm for all the changes of a loop turn.
+
+        Never early, never missed: the re-arm is itself a queued callback, and a loop
+        with a queued callback does not sleep, so it runs before the loop can wait on
+        the wake-up source; it arms for the earliest deadline then, and a deadline
+        already past fires at the loop's next look.  It can only add to a deadline's
+        lateness the callbacks queued before it, and only for a deadline that falls
+        inside the current loop turn (under a millisecond ahead: a spacing timer, a
+        reply deadline), which those callbacks would have held up anyway.
+        """
+        if self._holds:
+            self._rearm_due = True
+        elif not self._flush_queued:
+            self._flush_queued = True
+            self.loop.call_soon(self._flush_rearm)
+
+    def _flush_rearm(self) -> None:
+        """The queued re-arm of :meth:`_rearm_soon`."""
+        self._flush_queued = False
+        if self._closed:
+            return
         if self._holds:
             self._rearm_due = True
         else:
@@ -458,7 +481,7 @@ class TimerfdTimer(Timer):
     a deadline fire within ~25 us at p99, never early, for at most the lead in CPU per
     wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
     environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
-    ``wakeups`` and ``spin_seconds`` count what that costs.
+    ``wakeups``, ``spin_seconds`` and ``arms`` count what that costs.
     """
 
     name = "timerfd"
@@ -500,6 +523,9 @@ class TimerfdTimer(Timer):
         #: precision, read by ``benchmarks/profile_tick.py`` and ``bench_late_ticks.py``.
         self.wakeups = 0
         self.spin_seconds = 0.0
+        #: Times the fd was armed (``timerfd_settime`` calls; disarming is not counted):
+        #: each one for the near future reprograms the CPU's timer, which a VM pays for.
+        self.arms = 0
         #: Called on each fd wake-up as ``(armed, woke, spun_until)`` (``time.monotonic``
         #: seconds; ``armed`` is 0.0 for a wake-up nobody armed): for tools that find out
         #: why a deadline was late.  Keep it short; it runs before the due callbacks.
@@ -525,6 +551,7 @@ class TimerfdTimer(Timer):
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
             self._armed_precise = precise
+            self.arms += 1
 
     def _current_lead(self) -> float:
         if not self._spin_lead:
