@@ -9,7 +9,9 @@ alternating from pair to pair (before first in even pairs).  A pair's two runs a
 seconds apart, so a slow spell falls on both: the figure is the median of the pairs'
 after/before CPU ratios, with how many pairs the after side won.  Beside it, each side's
 median timer spin and tick p99 (the lateness of the tick writes of all its streams, the
-bus's own view): what a CPU saving must not cost.
+bus's own view): what a CPU saving must not cost; and its ``timerfd_settime`` calls per
+tick sent over the whole run (a count, which the machine's noise does not move; each
+one for the near future reprograms the CPU's timer, tens of us on a VM).
 
 The "before" tree is a git revision of this checkout (``--before-rev``, exported with
 ``git archive``) or a directory holding the ``motorbus`` package (``--before``); the
@@ -76,10 +78,11 @@ def paired_summary(before: list[float], after: list[float]) -> dict[str, Any]:
     }
 
 
-def median_of(runs: list[dict[str, Any]], key: str) -> float | None:
-    """The median of ``key`` over the runs that report it, rounded; None if none does."""
+def median_of(runs: list[dict[str, Any]], key: str, digits: int = 1) -> float | None:
+    """The median of ``key`` over the runs that report it, rounded to ``digits``; None
+    if none does."""
     values = [r[key] for r in runs if r.get(key) is not None]
-    return round(statistics.median(values), 1) if values else None
+    return round(statistics.median(values), digits) if values else None
 
 
 def export_rev(rev: str, dest: Path) -> Path:
@@ -118,6 +121,29 @@ def run_child(
     return result
 
 
+def count_settime_calls() -> list[int]:
+    """Count, from now on, the bus timer's ``timerfd_settime`` calls (arming and
+    disarming) in a one-item list; an empty list where the tree has no timerfd timer.
+
+    Through the timer's syscall wrapper, which every tree since the timerfd timer has,
+    so that trees before the timer counted its own ``arms`` compare too.
+    """
+    from motorbus.bus import timer
+
+    api = getattr(timer, "_TimerfdApi", None)
+    if api is None:
+        return []
+    calls = [0]
+    real = api.set_absolute_ns
+
+    def counted(self: Any, fd: int, deadline_ns: int) -> None:
+        calls[0] += 1
+        real(self, fd, deadline_ns)
+
+    api.set_absolute_ns = counted
+    return calls
+
+
 def child(buses: int, seconds: float, kernel: bool, polls: str) -> None:
     import asyncio
     import contextlib
@@ -126,6 +152,7 @@ def child(buses: int, seconds: float, kernel: bool, polls: str) -> None:
     from kernel_clock import KernelWriteTrace, worst_tick_figures
 
     bench_cpu.raise_fd_limit(buses)
+    settimes = count_settime_calls()
     trace = KernelWriteTrace()
     with tempfile.TemporaryDirectory(prefix="motorbus-ab-") as tmp:
         responder = bench_cpu.Responder(buses, Path(tmp) / "rec.json")
@@ -135,6 +162,9 @@ def child(buses: int, seconds: float, kernel: bool, polls: str) -> None:
         finally:
             responder.stop()
     out = {k: res[k] for k in CHILD_KEYS}
+    out["settime_per_tick"] = (
+        round(settimes[0] / res["ticks"], 3) if settimes and res["ticks"] else None
+    )
     if kernel:  # the worst bus's tick writes on the kernel's clock (kernel_clock.py)
         tick_bytes = len(bench_cpu.broadcast_bytes(0.0))
         out.update(worst_tick_figures(trace, tick_bytes, bench_cpu.PERIOD_S))
@@ -201,7 +231,14 @@ def main() -> int:
             )
             precision = {side: median_of(runs[side], "tick_p99_us") for side in runs}
             spin = {side: median_of(runs[side], "spin_percent") for side in runs}
-            case = {"buses": n, **summary, "tick_p99_us": precision, "spin_percent": spin}
+            settime = {side: median_of(runs[side], "settime_per_tick", 2) for side in runs}
+            case = {
+                "buses": n,
+                **summary,
+                "tick_p99_us": precision,
+                "spin_percent": spin,
+                "settime_per_tick": settime,
+            }
             if args.kernel:
                 case["kernel_tick_jitter_p99_us"] = {
                     side: median_of(runs[side], "kernel_tick_jitter_p99_us") for side in runs
@@ -212,6 +249,7 @@ def main() -> int:
                 f"{summary['after_median']:5.1f} %; paired after/before median "
                 f"{summary['median_ratio']}, after lower in {summary['after_won']} of "
                 f"{summary['pairs']} pairs; spin {spin['before']} / {spin['after']} %; "
+                f"timerfd_settime a tick {settime['before']} / {settime['after']}; "
                 f"tick p99 (bus's view) {precision['before']} / {precision['after']} us",
                 flush=True,
             )
