@@ -10,8 +10,10 @@ seconds apart, so a slow spell falls on both: the figure is the median of the pa
 after/before CPU ratios, with how many pairs the after side won.  Beside it, each side's
 median timer spin and tick p99 (the lateness of the tick writes of all its streams, the
 bus's own view): what a CPU saving must not cost; and its ``timerfd_settime`` calls per
-tick sent over the whole run (a count, which the machine's noise does not move; each
-one for the near future reprograms the CPU's timer, tens of us on a VM).
+tick sent over the whole run (each one for the near future reprograms the CPU's timer,
+tens of us on a VM).  A count moves far less than CPU time, but not nothing: how many
+deadline changes share a loop turn depends on the timing, so its pairs are compared in
+the same sitting too.
 
 The "before" tree is a git revision of this checkout (``--before-rev``, exported with
 ``git archive``) or a directory holding the ``motorbus`` package (``--before``); the

@@ -32,7 +32,8 @@ deadlines (its ``spin_seconds``; 0 where the timer does not spin): what the tick
 precision costs, apart from the Python that does the work.  ``timer_arms_per_tick``
 counts the bus timer's ``timerfd_settime`` calls per tick sent (its ``arms``; a tick here
 is a broadcast and a poll): each one for the near future reprograms the CPU's timer,
-which costs a VM tens of us (``bench_pieces.py``); a count, so no noise of the machine.
+which costs a VM tens of us (``bench_pieces.py``).  A count moves far less with the
+machine than CPU time does (``ab_cpu.py`` says how much).
 Goals (issue 23): ours / (b) <= 1.5 at 1, 16 and 32 buses, and 32 buses under 35 %
 of a core.  (Until 2026-12-03 the ratio goal was read against ``minimal``, which is not
 the issue's (b): it wakes once per bus, not once per phase.)
