@@ -784,7 +784,7 @@ def render_report(results: Mapping[str, Any]) -> str:
         "",
     ]
     lines += late_ticks_tables(results)
-    lines += ["", "## CPU per bus-tick against a minimal asyncio loop (same writes)", ""]
+    lines += ["", "## CPU per bus-tick against hand-written loops (same writes and reads)", ""]
     lines += cpu_table(results)
     lines += ["", *cpu_notes(results)]
     lines += ["", "## Command-line start-up: wall time of a fresh process", ""]
