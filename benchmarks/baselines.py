@@ -314,13 +314,21 @@ async def polled_timerfd_loop(
         for fd in fds:
             loop.remove_reader(fd)
             os.close(fd)
+    return polled_result(cpu, wall, counts, sum(received) // work.reply_size)
+
+
+def polled_result(
+    cpu_s: float, wall_s: float, counts: dict[str, int], replies: int
+) -> dict[str, Any]:
+    """What a loop of ``bench_cpu.py``'s work reports: ``cpu_percent``, ``cpu_s``,
+    ``wall_s``, ``ticks`` and ``polls`` (from ``counts``), ``replies``."""
     return {
-        "cpu_percent": 100 * cpu / wall,
-        "cpu_s": cpu,
-        "wall_s": wall,
+        "cpu_percent": 100 * cpu_s / wall_s,
+        "cpu_s": cpu_s,
+        "wall_s": wall_s,
         "ticks": counts["ticks"],
         "polls": counts["polls"],
-        "replies": sum(received) // work.reply_size,
+        "replies": replies,
     }
 
 

@@ -72,7 +72,7 @@ from array import array
 from pathlib import Path
 from typing import Any
 
-from baselines import SPIN_S, PolledWork, polled_timerfd_loop
+from baselines import SPIN_S, PolledWork, polled_result, polled_timerfd_loop
 from motorbus import manager
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
@@ -230,14 +230,7 @@ async def minimal(paths: list[str], seconds: float) -> dict[str, Any]:
     for fd in fds:
         loop.remove_reader(fd)
         os.close(fd)
-    return {
-        "cpu_percent": 100 * cpu / wall,
-        "cpu_s": cpu,
-        "wall_s": wall,
-        "ticks": counts["ticks"],
-        "polls": counts["polls"],
-        "replies": sum(received) // REPLY_BYTES,
-    }
+    return polled_result(cpu, wall, counts, sum(received) // REPLY_BYTES)
 
 
 #: Where ``ours``'s poll tasks ask for a status: ``tick``, 3 ms after their own bus's tick
@@ -504,7 +497,7 @@ def add_row(
     print(
         f"  {n:3d} buses: ours {mine['cpu_percent']:5.1f} % (spin "
         f"{mine['spin_percent']:4.1f} %, {rows['timer_arms_per_tick'][-1]} timer arms a "
-        "tick); (b) timerfd {base['timerfd']['cpu_percent']:5.1f} %, "
+        f"tick); (b) timerfd {base['timerfd']['cpu_percent']:5.1f} %, "
         f"ratio {rows['ratio_timerfd'][-1]}; (c) timerfd + spin "
         f"{base['timerfd_spin']['cpu_percent']:5.1f} %, ratio {rows['ratio_timerfd_spin'][-1]}; "
         f"minimal {base['minimal']['cpu_percent']:5.1f} %, ratio {minimal_ratio}\n"

@@ -435,6 +435,16 @@ def test_cancelling_the_earliest_callback_rearms_instead_of_waking_for_nothing(
     run(loop_factory, main())
 
 
+def _record_settimes(timer: TimerfdTimer, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The absolute times (ns) ``timer`` arms its timerfd for from now on, in a list."""
+    armed: list[int] = []
+    real = timer._api.set_absolute_ns
+    monkeypatch.setattr(
+        timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
+    )
+    return armed
+
+
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_a_hold_rearms_once_at_its_release_and_callbacks_stay_on_time(
     loop_factory: Callable[[], asyncio.AbstractEventLoop], monkeypatch: pytest.MonkeyPatch
@@ -448,11 +458,7 @@ def test_a_hold_rearms_once_at_its_release_and_callbacks_stay_on_time(
 
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
-        armed: list[int] = []
-        real = timer._api.set_absolute_ns
-        monkeypatch.setattr(
-            timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
-        )
+        armed = _record_settimes(timer, monkeypatch)
         fired: list[tuple[str, float, float]] = []
         done = asyncio.get_running_loop().create_future()
 
@@ -506,11 +512,7 @@ def test_one_loop_turn_re_arms_the_timerfd_once_for_all_its_changes(
 
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
-        armed: list[int] = []
-        real = timer._api.set_absolute_ns
-        monkeypatch.setattr(
-            timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
-        )
+        armed = _record_settimes(timer, monkeypatch)
         loop = asyncio.get_running_loop()
         now = timer.now()
         far = timer.call_at(now + 1.0, lambda: None)
