@@ -15,7 +15,9 @@ process (``motorbus.guard``, Linux) that then sends the leased devices' safe act
   blocks run their safe stops); further signals during the stop are logged and
   ignored, because the stop takes milliseconds and must finish; whatever is still open
   afterwards is closed safely; the program then exits with status 128 + the signal
-  number (130 for Ctrl-C, 143 for SIGTERM).
+  number (130 for Ctrl-C, 143 for SIGTERM).  A repeat that comes after the stop, while
+  ``asyncio.run`` still tears down, is absorbed as well (one more after that goes to the
+  signal's usual disposition, for a teardown that hangs).
 * ``install_signal_handlers()`` does the same inside a loop you run yourself.
 * Without either, motorbus still protects the two ways a plain ``asyncio.run`` program
   would lose its safe stop: while a bus is open, SIGTERM and SIGHUP (if the program has
@@ -364,7 +366,9 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
     Raises:
         GuardError: ``guard=True`` and the guard cannot start (no pidfds: not Linux).
     """
-    state: dict[str, SignalHandlers] = {}
+    state: dict[str, Any] = {}
+    # What run() gives back at its end, whatever asyncio.run set up meanwhile.
+    before = _dispositions()
 
     async def runner() -> T:
         handlers = state["h"] = install_signal_handlers()
@@ -375,6 +379,11 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
             with deferred_interrupts():
                 await stop_everything()
             handlers.uninstall()
+            if handlers.first is not None:
+                # asyncio.run still has its teardown to do (cancel what is left, close
+                # the default executor): a repeated signal there must not turn the exit
+                # this one started into a KeyboardInterrupt traceback.
+                state["late"] = _LateRepeats(before)
 
     from motorbus.guard import guarded
 
@@ -386,3 +395,51 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
             if handlers is not None and handlers.first is not None:
                 raise SystemExit(128 + int(handlers.first)) from None
             raise
+        finally:
+            late = state.get("late")
+            if late is not None:
+                late.restore()
+
+
+def _dispositions() -> dict[signal.Signals, Any]:
+    """The stop signals' dispositions now (none where motorbus leaves signals alone)."""
+    if not _in_main_thread() or not _enabled():
+        return {}
+    return {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+
+
+class _LateRepeats:
+    """Between the end of a signalled stop and the end of ``run``: stop signals that
+    repeat are logged and absorbed, as they were during the stop (the program is already
+    on its way out with ``128 + first``); one more after that goes to ``before``'s
+    disposition, so that a teardown that hangs can still be interrupted.  ``restore``
+    puts ``before`` back (``asyncio.run``'s own SIGINT handler, which it leaves alone
+    once replaced, is not restored)."""
+
+    def __init__(self, before: dict[signal.Signals, Any]) -> None:
+        self.absorbed: list[int] = []
+        self._previous = dict(before)
+        for sig in before:
+            signal.signal(sig, self._on_signal)
+
+    def _on_signal(self, signum: int, frame: object) -> None:
+        if not self.absorbed:
+            self.absorbed.append(signum)
+            log.warning(
+                "%s again: the motion is stopped and the program is closing; "
+                "send it once more to stop waiting",
+                _name(signum),
+            )
+            return
+        self.restore()
+        # Not raise_signal: that runs the restored handler nested inside this one, and a
+        # KeyboardInterrupt raised there left CPython 3.11's recursion count wrong (a
+        # later ast.parse failed with "AST constructor recursion depth mismatch").
+        os.kill(os.getpid(), signum)
+
+    def restore(self) -> None:
+        """Give every stop signal its previous disposition back (idempotent)."""
+        previous, self._previous = self._previous, {}
+        for sig, handler in previous.items():
+            # None: a handler set outside Python, which cannot be put back from here.
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+from collections.abc import AsyncIterator
+from typing import Any
 
 import pytest
 
@@ -87,3 +89,67 @@ def test_without_loop_signal_handlers_run_falls_back_to_signal_signal(
         shutdown.run(main())
     assert ended.value.code == 128 + signal.SIGTERM
     assert signal.getsignal(signal.SIGTERM) is previous  # the fallback handler is removed
+
+
+_KEEP: list[object] = []  # async generators asyncio.run's teardown, not the GC, closes
+
+
+def _signals_in_teardown(times: int) -> Any:
+    """A main() that gets Ctrl-C, leaving an async generator that sends ``times`` more
+    Ctrl-C as asyncio.run's teardown closes it: after the stop, before run() returns.
+    (Not for a KeyboardInterrupt raised there: on CPython 3.11 one raised inside an
+    async generator's aclose in the teardown left a later ast.parse failing with "AST
+    constructor recursion depth mismatch".)"""
+
+    async def closing() -> AsyncIterator[None]:
+        try:
+            while True:
+                yield
+        finally:
+            for _ in range(times):
+                signal.raise_signal(signal.SIGINT)
+
+    async def main() -> None:
+        gen = closing()
+        _KEEP.append(gen)
+        await gen.__anext__()
+        asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGINT)
+        await asyncio.sleep(30)
+
+    return main()
+
+
+def test_a_repeated_ctrl_c_after_the_stop_still_exits_with_the_first_signals_status() -> None:
+    """Once the stop is done, asyncio.run still tears down (cancels what is left, closes
+    async generators and its executor).  A second Ctrl-C there used to escape as a
+    KeyboardInterrupt traceback (a stress run of tests/integration/test_exit_paths.py);
+    it waits, as one during the stop does."""
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        shutdown.run(_signals_in_teardown(1))
+    except SystemExit as ended:
+        assert ended.code == 128 + signal.SIGINT
+    except KeyboardInterrupt:
+        pytest.fail("a Ctrl-C in asyncio.run's teardown escaped as KeyboardInterrupt")
+    else:
+        pytest.fail("run() returned after a signal")
+    finally:
+        _KEEP.clear()
+    assert signal.getsignal(signal.SIGINT) is previous  # given back
+
+
+def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:
+    """A teardown that hangs must not trap the user: the repeat after the absorbed one
+    goes to the disposition run() found, and everything is given back."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        late = shutdown._LateRepeats({signal.SIGINT: signal.default_int_handler})
+        signal.raise_signal(signal.SIGINT)  # absorbed: the program is already closing
+        assert late.absorbed == [signal.SIGINT]
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+            for _ in range(1000):  # the restored handler runs at the next check
+                pass
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    finally:
+        signal.signal(signal.SIGINT, previous)
