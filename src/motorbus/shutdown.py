@@ -432,9 +432,8 @@ class _LateRepeats:
             )
             return
         self.restore()
-        # Not raise_signal: that runs the restored handler nested inside this one, and a
-        # KeyboardInterrupt raised there left CPython 3.11's recursion count wrong (a
-        # later ast.parse failed with "AST constructor recursion depth mismatch").
+        # os.kill, not raise_signal: the restored handler then runs once this one has
+        # returned, where the interrupted code is, not nested inside this handler.
         os.kill(os.getpid(), signum)
 
     def restore(self) -> None:
