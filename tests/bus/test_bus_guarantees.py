@@ -22,9 +22,11 @@ import itertools
 import pytest
 
 from motorbus.bus.bus import Bus
+from motorbus.bus.events import QuadDone
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import la
+from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Family
 from motorbus.sim.bus import LogRecord, Pacing
 from motorbus.streams import Streamer
@@ -264,3 +266,29 @@ async def test_a_reply_seen_after_its_deadline_is_late_whichever_callback_runs_f
             assert bus.stats.timeouts_in_host_stall == 1
     finally:
         await timer.stop()
+
+
+# -- a "done" reply in the same read as its ack ---------------------------------------------
+
+
+async def test_a_done_reply_that_arrives_in_the_same_read_as_its_ack_is_the_done_event() -> None:
+    """A quad stepper run answers twice: the ack, then "done" when the motor stops.  A
+    short run on a late loop (or a USB adapter's latency timer) hands both to one read.
+    The reassembler judges a read with the reply shapes expected when it came, and the
+    done shape was only expected once the ack was taken: the done reply was discarded as
+    "unexpected reply shape" and the run timed out (seen in CI, under load, over a pty)."""
+    host, peer = memory_pair(baudrate=9600)
+    ack, done = bytes.fromhex("FF AA 00 09 00 00"), bytes.fromhex("FF AA 00 09 01 00")
+
+    def device(data: bytes) -> None:
+        if data == q.Run(1).encode():
+            peer.send(ack + done)  # one read: the run was that short
+
+    peer.set_receiver(device)
+    async with Bus(host, families={Family.QUAD_STEPPER}, retries=0) as bus:
+        with bus.events.subscribe(QuadDone) as sub:
+            await bus.request(q.Run(1))
+            event = await sub.next(timeout=5)
+        assert (event.kind, event.raw) == ("run", done)
+        assert bus.stats.events == 1 and bus.stats.unexpected_frames == 0
+        assert bus.stats.reassembler.discarded_bytes == 0

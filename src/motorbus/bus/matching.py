@@ -209,8 +209,9 @@ class Matcher(Generic[J]):
         """Tell ``on_shapes`` which checksum-less stepper replies may be cut now, if
         that changed (``force``: a new reassembler, tell it anyway).
 
-        Exactly what the bus awaits: the pending request's replies, the "done" replies
-        still to come, and the replies of requests that timed out recently (so that
+        Exactly what the bus awaits: the pending request's replies (and its "done"
+        reply, which may follow its ack in the same read), the "done" replies still to
+        come, and the replies of requests that timed out recently (so that
         their late answers are recognised and counted).  Nothing else: stray ``FF AA``
         bytes are then discarded, never taken for a frame.
         """
@@ -222,6 +223,10 @@ class Matcher(Generic[J]):
         job = self.pending
         if job is not None:
             shapes.extend(job.cmd.reply_shapes())
+            # Its "done" reply too: a short run's done can come in the same read as the
+            # ack, and the reassembler cuts a read with the shapes expected when it came
+            # (the watch itself starts when the ack is taken, ``watch_done``).
+            shapes.extend(job.cmd.done_shapes())
         for watch in self.done_watches:
             shapes.extend(watch.shapes)
         for t in self.timeouts:
