@@ -280,7 +280,10 @@ async def test_a_done_reply_that_arrives_in_the_same_read_as_its_ack_is_the_done
     host, peer = memory_pair(baudrate=9600)
     ack, done = bytes.fromhex("FF AA 00 09 00 00"), bytes.fromhex("FF AA 00 09 01 00")
 
+    received: list[bytes] = []
+
     def device(data: bytes) -> None:
+        received.append(data)
         if data == q.Run(1).encode():
             peer.send(ack + done)  # one read: the run was that short
 
@@ -292,3 +295,5 @@ async def test_a_done_reply_that_arrives_in_the_same_read_as_its_ack_is_the_done
         assert (event.kind, event.raw) == ("run", done)
         assert bus.stats.events == 1 and bus.stats.unexpected_frames == 0
         assert bus.stats.reassembler.discarded_bytes == 0
+    # What the device got last: the run, not the stop a lost done reply used to send.
+    assert received[-1] == q.Run(1).encode()
