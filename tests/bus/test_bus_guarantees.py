@@ -139,6 +139,42 @@ async def test_polling_stream_keeps_its_ticks_while_three_request_loops_run(
         assert all(abs(b - a - PERIOD_S) < 1.5e-3 for a, b in itertools.pairwise(sent))
 
 
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_stream_ticks_are_not_held_behind_a_retry_waiting_out_its_late_guard(
+    pacing: Pacing,
+) -> None:
+    """A device that does not answer: each request to it times out, and its retry waits
+    out the device's 20 ms late guard at the head of the queue.  The stream's ticks,
+    queued behind it, still leave on their deadlines, and the other devices' requests
+    go on meanwhile."""
+    async with rig(pacing=pacing) as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        stop = asyncio.Event()
+        absent, present = [0], [0]
+        loops = [
+            asyncio.create_task(request_loop(InspireLA(r.bus, 99), stop, absent)),
+            asyncio.create_task(request_loop(actuators[0], stop, present)),
+        ]
+        streamer = Streamer(r.bus)
+        ticks = 50
+        stream = streamer.follow(
+            actuators, [[1000 + k] * 15 for k in range(ticks)], period=PERIOD_S
+        )
+        await stream.wait()
+        stop.set()
+        await asyncio.gather(*loops)
+        await streamer.close()
+        stats = r.bus.stats
+        assert stats.device("la:99").retries >= 5, stats.device("la:99")
+        assert stream.stats.ticks == ticks, stream.stats.summary()
+        assert stream.stats.late == 0 and stream.stats.slipped == 0, stream.stats.summary()
+        sent = [w.before for w in r.wire.writes if w.data[4] == 0xF3]
+        assert len(sent) == ticks
+        assert all(abs(b - a - PERIOD_S) < 1.5e-3 for a, b in itertools.pairwise(sent))
+        # la:1 was asked many times while la:99's retries waited out their guards.
+        assert present[0] > 5 * absent[0]
+
+
 # -- stop means stop ---------------------------------------------------------------------
 
 

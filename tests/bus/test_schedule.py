@@ -226,6 +226,70 @@ def test_a_late_guard_holds_only_its_own_device() -> None:
     assert send(sched, 5.0).key == "la:1"
 
 
+def test_a_guarded_retry_does_not_hold_the_jobs_queued_behind_it() -> None:
+    # The retry of a timed-out poll goes ahead of normal traffic (HIGH, queued first),
+    # then waits out its device's guard: other devices' requests go meanwhile.
+    sched: Scheduler[Job] = Scheduler()
+    sched.guard("la:1", 5.0)
+    sched.requeue(make_job(sched, status(1)))
+    other = make_job(sched, status(2))
+    sched.push(other)
+    assert send(sched, 4.0) is other
+    assert sched.poll(4.5) == Wait(5.0, True)  # the retry alone is left, still guarded
+    assert send(sched, 5.0).key == "la:1"
+
+
+def test_a_stream_tick_is_not_held_behind_a_guarded_retry() -> None:
+    sched: Scheduler[Job] = Scheduler()
+    sched.guard("la:3", 5.0)
+    sched.requeue(make_job(sched, status(3)))
+    entries = [(i, 1000) for i in range(1, 16)]
+    tick = make_job(
+        sched, la.Broadcast(la.BroadcastMode.FOLLOW, entries), priority=Priority.HIGH, reserved=True
+    )
+    sched.push(tick)
+    assert send(sched, 4.0) is tick
+
+
+def test_requests_that_reach_one_device_keep_their_order() -> None:
+    # Behind a guarded request to la:1: another to la:1, a request to la:2, and a
+    # broadcast (it reaches la:1 too).  Only the request to la:2 overtakes it.
+    sched: Scheduler[Job] = Scheduler()
+    sched.guard("la:1", 5.0)
+    first = make_job(sched, status(1))
+    again = make_job(sched, la.Control(1, la.ControlAction.PAUSE))
+    other = make_job(sched, status(2))
+    broadcast = make_job(sched, la.Broadcast(la.BroadcastMode.FOLLOW, [(1, 1000), (2, 1000)]))
+    for job in (first, again, other, broadcast):
+        sched.push(job)
+    assert send(sched, 4.0) is other
+    assert sched.poll(4.5) == Wait(5.0, True)
+    assert [send(sched, t) for t in (5.0, 6.0, 7.0)] == [first, again, broadcast]
+
+
+def test_a_held_broadcast_holds_every_actuator_behind_it() -> None:
+    sched: Scheduler[Job] = Scheduler()
+    sched.reservation_sources.append(windows((1.0, 1.001)))
+    broadcast = make_job(sched, la.Broadcast(la.BroadcastMode.POSITION, [(1, 1000)]), timeout=HOLD)
+    pause = make_job(sched, la.Control(7, la.ControlAction.PAUSE))
+    sched.push(broadcast)
+    sched.push(pause)
+    assert sched.poll(0.9995) == Wait(1.001, True)  # the pause does not overtake it
+    assert [send(sched, t) for t in (1.001, 1.002)] == [broadcast, pause]
+
+
+def test_a_job_held_by_the_spacing_holds_all_and_the_earliest_wait_is_given() -> None:
+    sched: Scheduler[Job] = Scheduler(next_tx=2.0)
+    sched.guard("la:1", 5.0)
+    sched.push(make_job(sched, status(1)))
+    sched.push(make_job(sched, status(2), priority=Priority.BACKGROUND))
+    sched.push(make_job(sched, status(3), priority=Priority.BACKGROUND))
+    # la:1 waits for its guard; la:2 for the spacing, and la:3 cannot start sooner.
+    assert sched.poll(1.0) == Wait(2.0, False)
+    assert len(sched) == 3  # everything looked at is put back
+    assert send(sched, 2.0).key == "la:2"
+
+
 def test_the_later_of_spacing_and_guard_wins() -> None:
     sched: Scheduler[Job] = Scheduler(next_tx=7.0)
     sched.guard("la:1", 5.0)

@@ -5,8 +5,8 @@ the simulators, and the answer is a decision.  ``Bus`` (``motorbus.bus.bus``) is
 asyncio shell that writes the frame or sets its timer; table tests drive this module
 with plain numbers (tests/bus/test_schedule.py).
 
-The rules, for the job at the head of the queue (lowest priority value, then the
-order it was queued in):
+The rules, for each queued job (in queue order: lowest priority value, then the order
+it was queued in; the first that may start goes):
 
 * spacing: not before ``next_tx``, which is the completed write of the previous frame
   plus its ``after_write`` (``max(min_spacing, its wire time)``, ``motorbus.bus.
@@ -18,7 +18,11 @@ order it was queued in):
   (requests to other devices are not held);
 * reservations: a frame that is not ``reserved`` (a stream tick's) nor an emergency is
   not started if it could still hold the bus when a reserved window begins; it waits
-  until the window ends.
+  until the window ends;
+* order: a job held by the guard or a window holds the jobs behind it only if they
+  reach a common device (``keeps_order``); a stream tick's frame is held by none.
+  Before 2026-12-03 a held job held the whole queue: a status poll's retry waiting out
+  its 20 ms guard made every stream tick behind it 20 ms late.
 
 Whether a reply is still owed (the pending request) is the matcher's business
 (``motorbus.bus.matching``): the shell asks this module only while nothing is pending.
@@ -45,6 +49,7 @@ __all__ = [
     "ReservationSource",
     "Scheduler",
     "Wait",
+    "keeps_order",
 ]
 
 #: What a write is assumed to take when a request is fitted before a reserved stream
@@ -116,6 +121,20 @@ class Wait:
     precise: bool
 
 
+def keeps_order(ahead: Job, job: Job) -> bool:
+    """True if ``job`` may not be written before ``ahead``, queued before it.
+
+    Requests that reach a common device keep their queue order (a pause must not
+    overtake the move queued before it; a broadcast reaches every device of its family).
+    A stream tick's frame (``reserved``) is kept back by no other frame: it owns its
+    window and its actuators (their lease), and it is rebuilt at its write from the
+    streams still sending.  Its own device rules (spacing, a late guard) still apply.
+    """
+    if job.reserved and not ahead.reserved:
+        return False
+    return ahead.cmd.reaches(job.key) or job.cmd.reaches(ahead.key)
+
+
 #: The job record a shell keeps (``Job`` or a subclass of it).
 J = TypeVar("J", bound=Job)
 
@@ -161,19 +180,39 @@ class Scheduler(Generic[J]):
     def poll(self, now: float) -> J | Wait | None:
         """What to do at ``now`` with no reply owed: the job to write now (taken off the
         queue), the time to look again, or None with nothing queued.  Jobs nobody
-        awaits any more are dropped on the way."""
+        awaits any more are dropped on the way.
+
+        The first job in queue order that may start now goes.  A job held by a rule of
+        its own (its device's late guard, a reserved window it may not use) does not
+        hold the jobs behind it, except those that must keep their order with it
+        (``keeps_order``); the spacing holds every job alike.
+        """
         heap = self.heap
-        while heap:
-            job = heap[0]
-            if job.gone():
-                heapq.heappop(heap)
-                continue
-            start = self.start_at(job, now)
-            if start > now:
-                return Wait(start, job.reserved or job.priority < Priority.BACKGROUND)
-            heapq.heappop(heap)
-            return job
-        return None
+        held: list[J] = []  # live jobs taken off to look behind them, put back below
+        wait: Wait | None = None
+        try:
+            while heap:
+                job = heap[0]
+                if job.gone():
+                    heapq.heappop(heap)
+                    continue
+                start = self.start_at(job, now)
+                behind = any(keeps_order(ahead, job) for ahead in held)
+                if not behind:
+                    if start <= now:
+                        return heapq.heappop(heap)
+                    precise = job.reserved or job.priority < Priority.BACKGROUND
+                    if wait is None or start < wait.at:
+                        wait = Wait(start, precise)
+                    elif start == wait.at and precise and not wait.precise:
+                        wait = Wait(start, True)
+                    if start <= self.next_tx:
+                        break  # held by the spacing alone: nothing behind starts sooner
+                held.append(heapq.heappop(heap))
+        finally:
+            for job in held:
+                heapq.heappush(heap, job)
+        return wait
 
     def start_at(self, job: Job, now: float) -> float:
         """The earliest time ``job`` may start, seen at ``now``."""

@@ -355,6 +355,11 @@ class Command(abc.ABC, Generic[ReplyT_co]):
         command answers ``"la:3"``): each family says how its devices are told apart."""
         return self.family.value
 
+    def reaches(self, key: str) -> bool:
+        """True if this command addresses the device whose ``device_key`` is ``key``:
+        the bus keeps the queue order of requests that reach a common device."""
+        return key == self.device_key
+
     def fault_state(self, reply: object) -> FaultState | None:
         """The fault flags a decoded ``reply`` reports, if the family reports any.
 

@@ -52,6 +52,9 @@ from motorbus.protocol.la.wire import (
     build_frame,
 )
 
+#: The ``device_key`` of a broadcast (ID 255), which reaches every actuator.
+BROADCAST_KEY = f"la:{BROADCAST_ID}"
+
 # --- commands ------------------------------------------------------------------------------
 
 
@@ -77,6 +80,14 @@ class LACommand(Command[ReplyT_co]):
     def device_key(self) -> str:
         """``"la:ID"`` (``"la:255"`` for a broadcast)."""
         return f"la:{getattr(self, 'id', BROADCAST_ID)}"
+
+    def reaches(self, key: str) -> bool:
+        """True for this actuator's key; a broadcast (``"la:255"``) reaches every
+        actuator, and every actuator's command shares its device with a broadcast."""
+        own = self.device_key
+        if key == own:
+            return True
+        return key.startswith("la:") and BROADCAST_KEY in (key, own)
 
     def fault_state(self, reply: object) -> FaultState | None:
         """The error flags (B15) of a status reply; ``None`` for other replies."""
