@@ -9,11 +9,12 @@ alternating from pair to pair (before first in even pairs).  A pair's two runs a
 seconds apart, so a slow spell falls on both: the figure is the median of the pairs'
 after/before CPU ratios, with how many pairs the after side won.  Beside it, each side's
 median timer spin and tick p99 (the lateness of the tick writes of all its streams, the
-bus's own view): what a CPU saving must not cost; and its ``timerfd_settime`` calls per
-tick sent over the whole run (each one for the near future reprograms the CPU's timer,
-tens of us on a VM).  A count moves far less than CPU time, but not nothing: how many
-deadline changes share a loop turn depends on the timing, so its pairs are compared in
-the same sitting too.
+bus's own view), late ticks and reply timeouts (each timed-out poll's retry waits out
+its device's late guard): what a CPU saving must not cost; and its
+``timerfd_settime`` calls per tick sent over the whole run (each one for the near
+future reprograms the CPU's timer, tens of us on a VM).  A count moves far less than
+CPU time, but not nothing: how many deadline changes share a loop turn depends on the
+timing, so its pairs are compared in the same sitting too.
 
 The "before" tree is a git revision of this checkout (``--before-rev``, exported with
 ``git archive``) or a directory holding the ``motorbus`` package (``--before``); the
@@ -57,6 +58,9 @@ CHILD_KEYS = (
     "stream_errors",
     "tick_p99_us",
     "tick_max_us",
+    "late_ticks",
+    "skipped_ticks",
+    "reply_timeouts",
 )
 
 
@@ -234,12 +238,18 @@ def main() -> int:
             precision = {side: median_of(runs[side], "tick_p99_us") for side in runs}
             spin = {side: median_of(runs[side], "spin_percent") for side in runs}
             settime = {side: median_of(runs[side], "settime_per_tick", 2) for side in runs}
+            # Ticks written later than the stream's LATE_AFTER_S, and reply deadlines
+            # that ran out (a late responder): medians of the runs.
+            late = {side: median_of(runs[side], "late_ticks", 0) for side in runs}
+            timeouts = {side: median_of(runs[side], "reply_timeouts", 0) for side in runs}
             case = {
                 "buses": n,
                 **summary,
                 "tick_p99_us": precision,
                 "spin_percent": spin,
                 "settime_per_tick": settime,
+                "late_ticks": late,
+                "reply_timeouts": timeouts,
             }
             if args.kernel:
                 case["kernel_tick_jitter_p99_us"] = {
@@ -252,7 +262,9 @@ def main() -> int:
                 f"{summary['median_ratio']}, after lower in {summary['after_won']} of "
                 f"{summary['pairs']} pairs; spin {spin['before']} / {spin['after']} %; "
                 f"timerfd_settime a tick {settime['before']} / {settime['after']}; "
-                f"tick p99 (bus's view) {precision['before']} / {precision['after']} us",
+                f"tick p99 (bus's view) {precision['before']} / {precision['after']} us; "
+                f"late ticks {late['before']} / {late['after']}, reply timeouts "
+                f"{timeouts['before']} / {timeouts['after']}",
                 flush=True,
             )
             if args.kernel:

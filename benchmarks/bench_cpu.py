@@ -347,6 +347,9 @@ async def _ours(paths: list[str], seconds: float, polls: str) -> dict[str, Any]:
             "replies": answered[0],
             "late_ticks": sum(s.stats.late for s in streams),
             "skipped_ticks": sum(s.stats.skipped for s in streams),
+            # Reply deadlines that ran out (each attempt): each retry then waits out its
+            # device's late guard (20 ms), which must hold nothing else.
+            "reply_timeouts": sum(mgr.bus(name).stats.timeouts for name in names),
             "stream_errors": len(errors),
             # How many distinct tick phases the buses were spread over (phase_groups).
             "tick_phases": len({mgr.streamer(name).phase for name in names}),
