@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Awaitable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -28,6 +28,7 @@ import anyio
 from motorbus import guard as guard_process
 from motorbus import realtime, shutdown
 from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.lease_shell import send_together
 from motorbus.busfile import (
     BusSpec,
     DeviceSpec,
@@ -424,11 +425,14 @@ class BusManager:
         self, name: str, plan: list[tuple[DeviceStop, Command[object]]]
     ) -> None:
         bus = self.buses[name]
-        for entry, cmd in plan:
-            try:
-                await bus.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
-            except Exception as err:
-                entry.outcome, entry.detail = "failed", str(err)
+
+        def send(cmd: Command[object]) -> Awaitable[object]:
+            return bus.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
+
+        results = await send_together(send, [cmd for _, cmd in plan])
+        for (entry, cmd), result in zip(plan, results, strict=True):
+            if isinstance(result, BaseException):
+                entry.outcome, entry.detail = "failed", str(result)
             else:
                 entry.outcome = "confirmed" if cmd.expects_reply else "sent"
 

@@ -241,6 +241,49 @@ async def test_nothing_of_a_stream_is_sent_after_its_safe_stop(
         assert paused == set(range(1, 16))
 
 
+def pause_writes(wire: TimedTransport) -> list[tuple[int, float]]:
+    """(ID, when the write began) of every LA pause written, in order."""
+    return [
+        (w.data[3], w.before)
+        for w in wire.writes
+        if w.data[4] == la.CMD_CONTROL and w.data[6] == la.ControlAction.PAUSE.value
+    ]
+
+
+@pytest.mark.parametrize("path", ["stream-stop", "bus-close"])
+async def test_a_silent_actuator_does_not_delay_the_others_safe_stop(path: str) -> None:
+    """la:1 does not answer: its pause times out and its retries wait out its late guard
+    (20 ms each).  The other 14 actuators' pauses go meanwhile, each right after the
+    one before, not behind la:1's retries.  Two paths: a stream's own safe action, and
+    the bus's leases ended as it closes (a stream that held its targets)."""
+    async with rig(range(2, 16)) as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        streamer = Streamer(r.bus)
+        stream = streamer.follow(
+            actuators,
+            [[1000 + k] * 15 for k in range(100)],
+            period=PERIOD_S,
+            safe_action="pause" if path == "stream-stop" else "hold",
+        )
+        await run_for(r.timer, 0.05)
+        await stream.stop()
+        await streamer.close()
+        if path == "bus-close":
+            assert pause_writes(r.wire) == []  # held: the pauses are the bus's, at close
+            await r.bus.close()
+        pauses = pause_writes(r.wire)
+        first = {}
+        for ident, at in pauses:
+            first.setdefault(ident, at)
+        assert set(first) == set(range(1, 16))
+        attempts_to_1 = [at for ident, at in pauses if ident == 1]
+        assert len(attempts_to_1) >= 2, pauses  # la:1's pause was retried
+        # Every other pause was written before la:1's first retry, one after another.
+        others = [first[i] for i in range(2, 16)]
+        assert max(others) < attempts_to_1[1], pauses
+        assert max(others) - first[1] < r.bus.config.late_guard, pauses
+
+
 # -- one budget per bus ------------------------------------------------------------------
 
 

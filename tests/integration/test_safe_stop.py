@@ -10,13 +10,19 @@ the interrupt was handled, and the safe stop is the program's normal way out.
 
 from __future__ import annotations
 
+import asyncio
 import signal
 from pathlib import Path
 
 import pytest
 
+from motorbus.bus.bus import Bus
+from motorbus.devices.la import InspireLA
 from motorbus.protocol import la
+from motorbus.protocol.base import Family
 from motorbus.sim.process import SimProcess
+from motorbus.streams import Streamer
+from motorbus.transport.serial import open_transport
 from tests.integration.conftest import (
     SIM_BAUD,
     SIM_DEVICES,
@@ -54,3 +60,31 @@ def test_exception_in_user_code_still_stops_safely_and_propagates(tmp_path: Path
     assert_safe_action_after_last_broadcast(
         received_frames(sim.log_records()), la.ControlAction.PAUSE
     )
+
+
+async def test_a_silent_actuator_does_not_hold_up_the_other_pauses(tmp_path: Path) -> None:
+    """la:1 is streamed but absent: its pause is never answered and is retried.  The
+    simulator process (which has only la:2 and la:3) logs what it received: both their
+    pauses came before la:1's retry, not after its attempts and late guards."""
+    with SimProcess(("la:2-3",), baud=SIM_BAUD, log_file=tmp_path / "sim.jsonl") as sim:
+        bus = Bus(open_transport(sim.path, baudrate=SIM_BAUD), families=[Family.LA])
+        async with bus:
+            streamer = Streamer(bus)
+            stream = streamer.follow(
+                [InspireLA(bus, i) for i in (1, 2, 3)],
+                lambda t, statuses: [1000, 1000, 1000],
+                period=0.01,
+                safe_action="pause",
+            )
+            await asyncio.sleep(0.1)
+            await stream.stop()
+            await streamer.close()
+        records = sim.log_records()
+    pauses = [
+        f[3]
+        for f in received_frames(records)
+        if len(f) == 8 and f[4] == la.CMD_CONTROL and f[6] == la.ControlAction.PAUSE.value
+    ]
+    assert pauses.count(1) >= 2, pauses  # la:1's pause was retried
+    retry = pauses.index(1, pauses.index(1) + 1)
+    assert {2, 3} <= set(pauses[:retry]), pauses

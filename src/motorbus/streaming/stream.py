@@ -12,16 +12,18 @@ import asyncio
 import inspect
 import itertools
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Awaitable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import BusEvent, Subscription
+from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
-from motorbus.errors import MotorbusError, StreamEnded
+from motorbus.errors import StreamEnded
 from motorbus.protocol import la
+from motorbus.protocol.base import Command
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
@@ -212,13 +214,16 @@ class Stream:
             if self.safe_action is SafeAction.ESTOP
             else la.ControlAction.PAUSE
         )
-        for ident in self.ids:
-            try:
-                await self.streamer.bus.request(
-                    la.Control(ident, action), priority=Priority.EMERGENCY
-                )
-            except MotorbusError as err:
-                log.warning("safe action %s on la:%d failed: %s", action.name, ident, err)
+        bus = self.streamer.bus
+
+        def send(cmd: Command[object]) -> Awaitable[object]:
+            return bus.request(cmd, priority=Priority.EMERGENCY)
+
+        results = await send_together(send, [la.Control(i, action) for i in self.ids])
+        for ident, result in zip(self.ids, results, strict=True):
+            if isinstance(result, BaseException):
+                log.warning("safe action %s on la:%d failed: %s", action.name, ident, result)
+        raise_unexpected(results)
 
     async def end(self, error: BaseException | None = None) -> None:
         """End with the safe action, then mark done with ``error`` (the tick loop's end:
