@@ -197,7 +197,7 @@ class Scheduler(Generic[J]):
                     heapq.heappop(heap)
                     continue
                 start = self.start_at(job, now)
-                behind = any(keeps_order(ahead, job) for ahead in held)
+                behind = bool(held) and any(keeps_order(ahead, job) for ahead in held)
                 if not behind:
                     if start <= now:
                         return heapq.heappop(heap)
