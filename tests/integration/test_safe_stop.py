@@ -65,9 +65,11 @@ def test_exception_in_user_code_still_stops_safely_and_propagates(tmp_path: Path
 async def test_a_silent_actuator_does_not_hold_up_the_other_pauses(tmp_path: Path) -> None:
     """la:1 is streamed but absent: its pause is never answered and is retried.  The
     simulator process (which has only la:2 and la:3) logs what it received: both their
-    pauses came before la:1's retry, not after its attempts and late guards."""
+    pauses came before la:1's retry, not after its attempts and late guards.  (A long
+    guard: only a host stalled for all of it could let the retry go first.)"""
     with SimProcess(("la:2-3",), baud=SIM_BAUD, log_file=tmp_path / "sim.jsonl") as sim:
-        bus = Bus(open_transport(sim.path, baudrate=SIM_BAUD), families=[Family.LA])
+        transport = open_transport(sim.path, baudrate=SIM_BAUD)
+        bus = Bus(transport, families=[Family.LA], late_guard=0.5)
         async with bus:
             streamer = Streamer(bus)
             stream = streamer.follow(
