@@ -867,3 +867,32 @@ def test_the_timerfd_baselines_do_ours_work_on_ours_phases(tmp_path: Path) -> No
     per_pty = json.loads((tmp_path / "rec.json").read_text())["frames"]
     broadcast, query = bench_cpu.broadcast_bytes(0)[4], bench_cpu.QUERIES[0][4]
     assert [[cmd for _, cmd in frames] for frames in per_pty] == [[broadcast, query] * 40] * 3
+
+
+def record(t: float, hexstr: str, direction: str = "request") -> dict[str, Any]:
+    return {"t": t, "kind": "frame", "direction": direction, "hex": hexstr}
+
+
+def test_a_safe_stops_spread_runs_to_the_last_present_actuators_first_pause() -> None:
+    """bench_safe_stop.py's figure, from a simulator's frame log: la:1 is absent (its
+    pause retried), la:2 and la:3 are there; a broadcast and a reply do not count."""
+    import bench_safe_stop as b
+
+    def pause(ident: int) -> str:
+        frame = bytes([0x55, 0xAA, 0x03, ident, 0x04, 0x00, 0x14])
+        return (frame + bytes([sum(frame[2:]) & 0xFF])).hex(" ")
+
+    records = [
+        record(0.990, "55 AA 2E FF F3 01 E8 03"),
+        record(1.000, pause(1)),
+        record(1.004, pause(2)),
+        record(1.005, "AA 55 11 02 04 00 14 00", direction="reply"),
+        record(1.006, pause(3)),
+        record(1.030, pause(1)),  # la:1's retry
+        record(1.040, pause(2)),  # the close's pause: not the first
+    ]
+    assert b.spread_ms(records, {2, 3}) == pytest.approx(6.0)
+    assert b.spread_ms(records, {2, 3, 4}) is None  # la:4 got no pause
+    assert b.spread_ms([], {2}) is None
+    s = b.summary([6.0, None, 10.0])
+    assert (s["median_ms"], s["max_ms"], s["runs_missing_a_pause"]) == (8.0, 10.0, 1)
