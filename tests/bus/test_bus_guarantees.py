@@ -8,6 +8,8 @@
   are skipped and counted, never holding a tick.
 * Stop means stop: after a stream's safe action begins, nothing more of that stream is
   written, with the bus left open and in use afterwards.
+* A late guard holds its device only: a retry waiting out its guard holds neither the
+  stream's ticks nor other devices' requests, nor the other actuators' safe stops.
 
 The clock (tests/fakeclock.py) only moves when the event loop is idle, so these are
 behaviour tests: the same outcome on a loaded CI machine as on an idle one.
