@@ -329,22 +329,27 @@ class Streamer:
     async def close(self, *, hold: bool = False, safe: bool | None = None) -> None:
         """End every stream with its safe action (none with ``hold``) and stop the task.
 
-        Every stream stops sending at once, before the first safe action is sent.
-        ``safe=False`` is the older spelling of ``hold=True``.
+        Every stream stops sending at once, before the first safe action is sent; they
+        stop together, so a silent actuator in one holds up no other's safe action (the
+        first error is raised after).  ``safe=False`` is the older ``hold=True``.
         """
         hold = hold_flag(hold, safe)
         streams = list(self.streams)
         for s in streams:
             s.stopping = True
         with deferred_interrupts():
-            for s in streams:
-                await s.stop(hold=hold)
+            stopped = await asyncio.gather(
+                *(s.stop(hold=hold) for s in streams), return_exceptions=True
+            )
         if self._task is not None:
             self._task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._task
             self._task = None
         self._detach()
+        for outcome in stopped:
+            if isinstance(outcome, BaseException):
+                raise outcome
 
     # -- the tick loop -------------------------------------------------------------------
 

@@ -286,6 +286,30 @@ async def test_a_silent_actuator_does_not_delay_the_others_safe_stop(path: str) 
         assert max(others) - first[1] < r.bus.config.late_guard, pauses
 
 
+async def test_a_silent_actuator_in_one_stream_does_not_delay_another_streams_stop() -> None:
+    """Two streams on one streamer, closed together: la:1 (in the first) does not
+    answer; the second stream's pauses do not wait for la:1's retries."""
+    async with rig(range(2, 16)) as r:
+        streamer = Streamer(r.bus)
+        for ids in (range(1, 8), range(8, 16)):
+            streamer.follow(
+                [InspireLA(r.bus, i) for i in ids],
+                [[1000] * len(ids)] * 100,
+                period=PERIOD_S,
+                safe_action="pause",
+            )
+        await run_for(r.timer, 0.05)
+        await streamer.close()
+        pauses = pause_writes(r.wire)
+        first: dict[int, float] = {}
+        for ident, at in pauses:
+            first.setdefault(ident, at)
+        assert set(first) == set(range(1, 16))
+        attempts_to_1 = [at for ident, at in pauses if ident == 1]
+        assert len(attempts_to_1) >= 2, pauses
+        assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
+
+
 # -- one budget per bus ------------------------------------------------------------------
 
 
