@@ -310,6 +310,29 @@ async def test_a_silent_actuator_in_one_stream_does_not_delay_another_streams_st
         assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
 
 
+async def test_a_silent_actuator_of_one_streamer_does_not_delay_another_at_close() -> None:
+    """Two streamers on one bus, stopped by the bus's close (its close hooks): la:1 (of
+    the first) does not answer; the second streamer's pauses do not wait for it."""
+    async with rig(range(2, 16)) as r:
+        for ids in (range(1, 8), range(8, 16)):
+            Streamer(r.bus).follow(
+                [InspireLA(r.bus, i) for i in ids],
+                [[1000] * len(ids)] * 100,
+                period=PERIOD_S,
+                safe_action="pause",
+            )
+        await run_for(r.timer, 0.05)
+        await r.bus.close()
+        pauses = pause_writes(r.wire)
+        first: dict[int, float] = {}
+        for ident, at in pauses:
+            first.setdefault(ident, at)
+        assert set(first) == set(range(1, 16))
+        attempts_to_1 = [at for ident, at in pauses if ident == 1]
+        assert len(attempts_to_1) >= 2, pauses
+        assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
+
+
 # -- one budget per bus ------------------------------------------------------------------
 
 

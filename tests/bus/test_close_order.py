@@ -101,3 +101,39 @@ async def test_a_safe_action_owed_while_the_port_is_lost_goes_out_when_it_is_bac
         await bus.wait_state(BusState.OPEN, timeout=5)
         await asyncio.sleep(0.05)
         assert model.power_state is PowerState.PAUSED
+
+
+class _Stop(BaseException):
+    """Not an Exception: a hook's ``BaseException`` is raised, once the port closed."""
+
+
+async def test_close_hooks_run_together_and_a_failing_one_stops_nothing(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    started: list[str] = []
+    release = asyncio.Event()
+
+    async def slow() -> None:
+        started.append("slow")
+        await release.wait()
+
+    async def failing() -> None:
+        started.append("failing")
+        release.set()  # runs while "slow" waits: the hooks run together
+        raise RuntimeError("hook broke")
+
+    async def interrupted() -> None:
+        started.append("interrupted")
+        raise _Stop
+
+    with pytest.raises(_Stop):
+        async with la_bus("wire") as (bus, rec):
+            await InspireLA(bus, 1).move_to(800)  # the implicit lease: a pause owed
+            for hook in (slow, failing, interrupted):
+                bus.add_close_hook(hook)
+    assert started == ["slow", "failing", "interrupted"]
+    assert "a close hook failed: hook broke" in caplog.text
+    # The leases still ended and the port still closed before _Stop came out.
+    assert to_la(1, rec.frames)[-1] == PAUSE_1
+    assert bus.leases == ()
+    assert bus.state.value == "closed"

@@ -239,8 +239,8 @@ class Bus(BusEngine):
         """Run ``await hook()`` at the start of every ``close``, before the port closes.
 
         Streams use it to stop safely (their safe action) whatever ends the program:
-        the bus is closed on every exit path.  A hook's error is logged; the others and
-        the close go on.
+        the bus is closed on every exit path.  The hooks run together; a hook's error is
+        logged, and the others and the close go on.
         """
         self._close_hooks.append(hook)
 
@@ -266,17 +266,22 @@ class Bus(BusEngine):
                 self._close_task = None
 
     async def _close(self) -> None:
+        interrupted: BaseException | None = None  # a hook's, raised once the port closed
         with shutdown.deferred_interrupts():
             # From here no motion is queued or sent: what is queued is dropped unsent,
             # what is submitted is refused, so nothing can follow the safe stops.
             self._stopping = True
             self._drop_queued_motion()
             if self.state is BusState.OPEN:
-                for hook in list(self._close_hooks):
-                    try:
-                        await hook()
-                    except Exception as err:
-                        log.error("bus %s: a close hook failed: %s", self.name, err)
+                # Together: a silent actuator of one streamer holds up no other's stop.
+                outcomes = await asyncio.gather(
+                    *(hook() for hook in list(self._close_hooks)), return_exceptions=True
+                )
+                for outcome in outcomes:
+                    if isinstance(outcome, Exception):
+                        log.error("bus %s: a close hook failed: %s", self.name, outcome)
+                    elif isinstance(outcome, BaseException) and interrupted is None:
+                        interrupted = outcome
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
             self._drop_queued_motion()
@@ -299,6 +304,8 @@ class Bus(BusEngine):
             if self.state is not BusState.CLOSED:
                 self.state = BusState.CLOSED
                 self._publish_state("closed")
+        if interrupted is not None:
+            raise interrupted
 
     async def __aenter__(self) -> Bus:
         await self.open()
