@@ -90,7 +90,9 @@ def _in_main_thread() -> bool:
 
 
 async def stop_everything() -> None:
-    """Close every open ``BusManager`` and ``Bus`` of the running loop, safely, in order.
+    """Close every open ``BusManager`` and ``Bus`` of the running loop, safely: the
+    managers together, then the buses left together (a silent device on one bus holds
+    up no other bus's safe stop).
 
     Errors are logged and do not stop the others; bounded by
     ``STOP_EVERYTHING_TIMEOUT_S``.
@@ -99,11 +101,15 @@ async def stop_everything() -> None:
     try:
         async with asyncio.timeout(STOP_EVERYTHING_TIMEOUT_S):
             for group in (_managers, _buses):
-                for item in [obj for obj, on in list(group.items()) if on is loop]:
-                    try:
-                        await item.close()
-                    except Exception as err:
-                        log.error("closing %r on the way out failed: %s", item, err)
+                items = [obj for obj, on in list(group.items()) if on is loop]
+                closed = await asyncio.gather(
+                    *(item.close() for item in items), return_exceptions=True
+                )
+                for item, outcome in zip(items, closed, strict=True):
+                    if isinstance(outcome, Exception):
+                        log.error("closing %r on the way out failed: %s", item, outcome)
+                    elif isinstance(outcome, BaseException):
+                        raise outcome
     except TimeoutError:
         log.error("closing everything took over %.0f s; gave up", STOP_EVERYTHING_TIMEOUT_S)
 

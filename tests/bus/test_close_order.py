@@ -10,7 +10,16 @@ import pytest
 from motorbus.devices.la import InspireLA
 from motorbus.errors import BusClosedError
 from motorbus.protocol import la
-from tests.bus.test_leases_pty import PAUSE_1, la_bus, to_la
+from motorbus.protocol.base import Family
+from tests.bus.test_leases_pty import (
+    LA_BAUD,
+    PAUSE_1,
+    Recorder,
+    la_bus,
+    open_bus,
+    pty_sim,
+    to_la,
+)
 
 pytestmark = pytest.mark.asyncio
 
@@ -137,3 +146,41 @@ async def test_close_hooks_run_together_and_a_failing_one_stops_nothing(
     assert to_la(1, rec.frames)[-1] == PAUSE_1
     assert bus.leases == ()
     assert bus.state.value == "closed"
+
+
+async def test_stop_everything_closes_the_buses_together() -> None:
+    """The way out of ``motorbus.run`` (a signal): two buses, and la:1 on bus A does not
+    answer, so its pause is retried after a long late guard (0.5 s).  Bus B's pause
+    does not wait for bus A's retries."""
+    from motorbus import shutdown
+    from motorbus.errors import ReplyTimeoutError
+    from motorbus.sim.la import LAModel
+
+    with (
+        pty_sim([LAModel(2)], LA_BAUD, "prompt") as (sim_a, rec_a),
+        pty_sim([LAModel(1)], LA_BAUD, "prompt") as (sim_b, rec_b),
+    ):
+        a = open_bus(sim_a, [Family.LA], late_guard=0.5)
+        b = open_bus(sim_b, [Family.LA])
+        await a.open()
+        await b.open()
+        try:
+            with pytest.raises(ReplyTimeoutError):
+                await a.request(la.MoveTo(1, 500))  # written: la:1 on A owes a pause
+            await InspireLA(b, 1).move_to(500)
+            await shutdown.stop_everything()
+        finally:
+            await a.close()
+            await b.close()
+        await asyncio.sleep(0.05)  # what was written reaches the simulators
+
+    def pauses(rec: Recorder, epoch: float) -> list[float]:
+        return [
+            epoch + float(r["t"])
+            for r in list(rec.records)
+            if r["dir"] == "rx" and bytes.fromhex(str(r["hex"])) == PAUSE_1
+        ]
+
+    on_a, on_b = pauses(rec_a, sim_a.bus.epoch), pauses(rec_b, sim_b.bus.epoch)
+    assert len(on_a) >= 2 and len(on_b) == 1, (on_a, on_b)
+    assert on_b[0] < on_a[1]  # bus B's pause came before bus A's retry
