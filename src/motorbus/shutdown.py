@@ -94,10 +94,11 @@ async def stop_everything() -> None:
     managers together, then the buses left together (a silent device on one bus holds
     up no other bus's safe stop).
 
-    Errors are logged and do not stop the others; bounded by
-    ``STOP_EVERYTHING_TIMEOUT_S``.
+    Errors are logged and do not stop the others (a ``BaseException`` is raised once
+    everything was closed); bounded by ``STOP_EVERYTHING_TIMEOUT_S``.
     """
     loop = asyncio.get_running_loop()
+    interrupted: BaseException | None = None
     try:
         async with asyncio.timeout(STOP_EVERYTHING_TIMEOUT_S):
             for group in (_managers, _buses):
@@ -108,10 +109,12 @@ async def stop_everything() -> None:
                 for item, outcome in zip(items, closed, strict=True):
                     if isinstance(outcome, Exception):
                         log.error("closing %r on the way out failed: %s", item, outcome)
-                    elif isinstance(outcome, BaseException):
-                        raise outcome
+                    elif isinstance(outcome, BaseException) and interrupted is None:
+                        interrupted = outcome
     except TimeoutError:
         log.error("closing everything took over %.0f s; gave up", STOP_EVERYTHING_TIMEOUT_S)
+    if interrupted is not None:
+        raise interrupted
 
 
 # -- automatic protection while a bus is open -----------------------------------------------

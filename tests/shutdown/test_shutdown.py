@@ -153,3 +153,32 @@ def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:
         assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+class _Interrupt(BaseException):
+    """Not an Exception: what a close might raise that is not an error of its own."""
+
+
+async def test_stop_everything_closes_the_buses_even_after_a_manager_raised() -> None:
+    closed: list[str] = []
+
+    class Manager:
+        async def close(self) -> None:
+            closed.append("manager")
+            raise _Interrupt
+
+    class Bus:
+        async def close(self) -> None:
+            closed.append("bus")
+            shutdown.unregister_bus(self)
+
+    manager, bus = Manager(), Bus()
+    shutdown.register_manager(manager)
+    shutdown.register_bus(bus)
+    try:
+        with pytest.raises(_Interrupt):
+            await shutdown.stop_everything()
+    finally:
+        shutdown.unregister_manager(manager)
+        shutdown.unregister_bus(bus)
+    assert closed == ["manager", "bus"]  # the bus's close ran before _Interrupt came out
