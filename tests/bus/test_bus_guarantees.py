@@ -252,6 +252,20 @@ def pause_writes(wire: TimedTransport) -> list[tuple[int, float]]:
     ]
 
 
+def assert_la1_held_up_no_other_pause(wire: TimedTransport) -> dict[int, float]:
+    """Actuators 1-15 each got a pause, la:1's (unanswered) was retried, and every
+    other's first pause was written before that retry.  Returns each first pause."""
+    pauses = pause_writes(wire)
+    first: dict[int, float] = {}
+    for ident, at in pauses:
+        first.setdefault(ident, at)
+    assert set(first) == set(range(1, 16)), pauses
+    attempts_to_1 = [at for ident, at in pauses if ident == 1]
+    assert len(attempts_to_1) >= 2, pauses  # la:1's pause was retried
+    assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
+    return first
+
+
 @pytest.mark.parametrize("path", ["stream-stop", "bus-close"])
 async def test_a_silent_actuator_does_not_delay_the_others_safe_stop(path: str) -> None:
     """la:1 does not answer: its pause times out and its retries wait out its late guard
@@ -273,64 +287,33 @@ async def test_a_silent_actuator_does_not_delay_the_others_safe_stop(path: str) 
         if path == "bus-close":
             assert pause_writes(r.wire) == []  # held: the pauses are the bus's, at close
             await r.bus.close()
-        pauses = pause_writes(r.wire)
-        first = {}
-        for ident, at in pauses:
-            first.setdefault(ident, at)
-        assert set(first) == set(range(1, 16))
-        attempts_to_1 = [at for ident, at in pauses if ident == 1]
-        assert len(attempts_to_1) >= 2, pauses  # la:1's pause was retried
-        # Every other pause was written before la:1's first retry, one after another.
-        others = [first[i] for i in range(2, 16)]
-        assert max(others) < attempts_to_1[1], pauses
-        assert max(others) - first[1] < r.bus.config.late_guard, pauses
+        first = assert_la1_held_up_no_other_pause(r.wire)
+        assert max(first.values()) - first[1] < r.bus.config.late_guard, first
 
 
-async def test_a_silent_actuator_in_one_stream_does_not_delay_another_streams_stop() -> None:
-    """Two streams on one streamer, closed together: la:1 (in the first) does not
-    answer; the second stream's pauses do not wait for la:1's retries."""
+@pytest.mark.parametrize("how", ["two-streams-one-streamer", "two-streamers-bus-close"])
+async def test_a_silent_actuator_of_one_stream_does_not_delay_another_streams_stop(
+    how: str,
+) -> None:
+    """Two streams stopped together: by their streamer's close, or (one streamer each)
+    by the bus's close hooks.  la:1, in the first, does not answer; the second
+    stream's pauses do not wait for la:1's retries."""
     async with rig(range(2, 16)) as r:
-        streamer = Streamer(r.bus)
+        shared = Streamer(r.bus) if how == "two-streams-one-streamer" else None
         for ids in (range(1, 8), range(8, 16)):
-            streamer.follow(
+            owner = shared if shared is not None else Streamer(r.bus)
+            owner.follow(
                 [InspireLA(r.bus, i) for i in ids],
                 [[1000] * len(ids)] * 100,
                 period=PERIOD_S,
                 safe_action="pause",
             )
         await run_for(r.timer, 0.05)
-        await streamer.close()
-        pauses = pause_writes(r.wire)
-        first: dict[int, float] = {}
-        for ident, at in pauses:
-            first.setdefault(ident, at)
-        assert set(first) == set(range(1, 16))
-        attempts_to_1 = [at for ident, at in pauses if ident == 1]
-        assert len(attempts_to_1) >= 2, pauses
-        assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
-
-
-async def test_a_silent_actuator_of_one_streamer_does_not_delay_another_at_close() -> None:
-    """Two streamers on one bus, stopped by the bus's close (its close hooks): la:1 (of
-    the first) does not answer; the second streamer's pauses do not wait for it."""
-    async with rig(range(2, 16)) as r:
-        for ids in (range(1, 8), range(8, 16)):
-            Streamer(r.bus).follow(
-                [InspireLA(r.bus, i) for i in ids],
-                [[1000] * len(ids)] * 100,
-                period=PERIOD_S,
-                safe_action="pause",
-            )
-        await run_for(r.timer, 0.05)
-        await r.bus.close()
-        pauses = pause_writes(r.wire)
-        first: dict[int, float] = {}
-        for ident, at in pauses:
-            first.setdefault(ident, at)
-        assert set(first) == set(range(1, 16))
-        attempts_to_1 = [at for ident, at in pauses if ident == 1]
-        assert len(attempts_to_1) >= 2, pauses
-        assert max(first[i] for i in range(2, 16)) < attempts_to_1[1], pauses
+        if shared is not None:
+            await shared.close()
+        else:
+            await r.bus.close()
+        assert_la1_held_up_no_other_pause(r.wire)
 
 
 # -- one budget per bus ------------------------------------------------------------------
