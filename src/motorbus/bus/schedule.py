@@ -135,6 +135,11 @@ def keeps_order(ahead: Job, job: Job) -> bool:
     return ahead.cmd.reaches(job.key) or job.cmd.reaches(ahead.key)
 
 
+def _precise(job: Job) -> bool:
+    """Whether a wait for ``job`` is worth the timer's last microseconds (``Wait``)."""
+    return job.reserved or job.priority < Priority.BACKGROUND
+
+
 #: The job record a shell keeps (``Job`` or a subclass of it).
 J = TypeVar("J", bound=Job)
 
@@ -188,6 +193,23 @@ class Scheduler(Generic[J]):
         (``keeps_order``); the spacing holds every job alike.
         """
         heap = self.heap
+        while heap:
+            job = heap[0]
+            if job.gone():
+                heapq.heappop(heap)
+                continue
+            start = self.start_at(job, now)
+            if start <= now:
+                return heapq.heappop(heap)
+            if start <= self.next_tx:  # held by the spacing alone, and so is every job
+                return Wait(start, _precise(job))
+            return self._past_the_held(now)
+        return None
+
+    def _past_the_held(self, now: float) -> J | Wait:
+        """``poll`` when the head is held by a rule of its own: the first job behind it
+        that may start now, else the earliest time one may."""
+        heap = self.heap
         held: list[J] = []  # live jobs taken off to look behind them, put back below
         wait: Wait | None = None
         try:
@@ -196,15 +218,13 @@ class Scheduler(Generic[J]):
                 if job.gone():
                     heapq.heappop(heap)
                     continue
-                start = self.start_at(job, now)
-                behind = bool(held) and any(keeps_order(ahead, job) for ahead in held)
-                if not behind:
+                if not any(keeps_order(ahead, job) for ahead in held):
+                    start = self.start_at(job, now)
                     if start <= now:
                         return heapq.heappop(heap)
-                    precise = job.reserved or job.priority < Priority.BACKGROUND
                     if wait is None or start < wait.at:
-                        wait = Wait(start, precise)
-                    elif start == wait.at and precise and not wait.precise:
+                        wait = Wait(start, _precise(job))
+                    elif start == wait.at and _precise(job):
                         wait = Wait(start, True)
                     if start <= self.next_tx:
                         break  # held by the spacing alone: nothing behind starts sooner
@@ -212,6 +232,7 @@ class Scheduler(Generic[J]):
         finally:
             for job in held:
                 heapq.heappush(heap, job)
+        assert wait is not None  # the head itself was held, not taken
         return wait
 
     def start_at(self, job: Job, now: float) -> float:
