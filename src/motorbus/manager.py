@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Awaitable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
@@ -27,7 +27,7 @@ import anyio
 
 from motorbus import guard as guard_process
 from motorbus import realtime, shutdown
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus
 from motorbus.bus.lease_shell import send_together
 from motorbus.busfile import (
     BusSpec,
@@ -65,9 +65,6 @@ log = logging.getLogger("motorbus.manager")
 
 #: Longest a safe stop may take on the way out before the ports close anyway.
 SAFE_STOP_TIMEOUT_S = 2.0
-#: Retries of each safe-stop command (pause, e-stop, stop project, stop all are
-#: idempotent: sending one twice is harmless, missing one is not).
-SAFE_STOP_RETRIES = 2
 #: Ticks of the buses are spread over this span (the shortest stream period)...
 PHASE_SPAN_S = 0.010
 #: ... in this many phase groups.  Buses of one group share their wake-ups: on this
@@ -424,12 +421,7 @@ class BusManager:
     async def _run_stop_plan(
         self, name: str, plan: list[tuple[DeviceStop, Command[object]]]
     ) -> None:
-        bus = self.buses[name]
-
-        def send(cmd: Command[object]) -> Awaitable[object]:
-            return bus.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
-
-        results = await send_together(send, [cmd for _, cmd in plan])
+        results = await send_together(self.buses[name].request, [cmd for _, cmd in plan])
         for (entry, cmd), result in zip(plan, results, strict=True):
             if isinstance(result, BaseException):
                 entry.outcome, entry.detail = "failed", str(result)

@@ -99,10 +99,6 @@ log = logging.getLogger("motorbus.bus")
 #: The decoded reply type of the command given to ``request`` / ``submit``.
 R = TypeVar("R")
 
-#: Retries of each safe-action command a lease's end sends (pause, e-stop, stop project,
-#: stop all are idempotent: sending one twice is harmless, missing one is not).
-SAFE_STOP_RETRIES = 2
-
 
 class Bus(BusEngine):
     """A serial bus of devices: ``await bus.request(command)`` returns the decoded reply.
@@ -182,7 +178,7 @@ class Bus(BusEngine):
             self.name,
             self.families,
             self.safe_action,
-            lambda cmd: self.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES),
+            self.request,
             lambda: self.state.value,
         )
         self._leases = self._lease_keeper.table  # the hot paths' direct reference

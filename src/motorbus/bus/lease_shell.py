@@ -11,17 +11,33 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections.abc import Awaitable, Callable, Iterable, Sequence
+from typing import Protocol
 
 from motorbus import shutdown
 from motorbus.bus import leases as _leases
 from motorbus.bus.leases import Lease, LeaseTable, SafeCommandsForKey
+from motorbus.bus.schedule import Priority
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 
-__all__ = ["LeaseKeeper", "raise_unexpected", "send_together"]
+__all__ = ["SAFE_STOP_RETRIES", "LeaseKeeper", "SafeRequest", "raise_unexpected", "send_together"]
 
 log = logging.getLogger("motorbus.bus")
+
+#: Retries of each safe-action command, wherever a safe stop is sent (``send_together``:
+#: a lease's end, a stream's safe action, BusManager, the rig; the dashboard): pause,
+#: e-stop, stop project and stop all are idempotent, so sending one twice is harmless
+#: and missing one is not.
+SAFE_STOP_RETRIES = 2
+
+
+class SafeRequest(Protocol):
+    """A bus's ``request``, as ``send_together`` calls it."""
+
+    def __call__(
+        self, cmd: Command[object], *, priority: Priority, retries: int
+    ) -> Awaitable[object]: ...
 
 
 class LeaseKeeper:
@@ -31,7 +47,7 @@ class LeaseKeeper:
         name: the bus's name, for messages.
         families: the families the bus carries (a key of another family is refused).
         safe_action: the safe action of the implicit lease (``Bus(safe_action=...)``).
-        send: sends one safe-action command (the bus: emergency priority, retried).
+        request: the bus's ``request``, which ``send_together`` sends safe actions with.
         state: the bus's state now (``"open"``, ``"lost"``, ``"closed"``).
     """
 
@@ -40,14 +56,14 @@ class LeaseKeeper:
         name: str,
         families: frozenset[Family],
         safe_action: str,
-        send: Callable[[Command[object]], Awaitable[object]],
+        request: SafeRequest,
         state: Callable[[], str],
     ) -> None:
         self.name = name
         self.families = families
         self.safe_action = safe_action
         self.table = LeaseTable()
-        self._send = send
+        self._request = request
         self._state = state
         self._safe_for: dict[str, SafeCommandsForKey] = {
             action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
@@ -137,7 +153,7 @@ class LeaseKeeper:
         owed, self.owed = self.owed, []
         if not owed:
             return
-        results = await send_together(self._send, owed)
+        results = await send_together(self._request, owed)
         for cmd, result in zip(owed, results, strict=True):
             if isinstance(result, BaseException):
                 log.warning(
@@ -177,7 +193,7 @@ class LeaseKeeper:
             return
 
         async def send_all() -> None:
-            results = await send_together(self._send, commands)
+            results = await send_together(self._request, commands)
             for cmd, result in zip(commands, results, strict=True):
                 if isinstance(result, BaseException):
                     log.warning(
@@ -193,12 +209,10 @@ class LeaseKeeper:
             await finish_shielded(asyncio.ensure_future(send_all()))
 
 
-async def send_together(
-    send: Callable[[Command[object]], Awaitable[object]],
-    commands: Sequence[Command[object]],
-) -> list[object]:
-    """Send every command of a safe stop at once and wait for them all: each one's
-    result, or the exception it failed with, in the order of ``commands``.
+async def send_together(request: SafeRequest, commands: Sequence[Command[object]]) -> list[object]:
+    """Send every command of a safe stop with ``request`` (a bus's), at emergency
+    priority with ``SAFE_STOP_RETRIES``, all at once; wait for them all.  Returns each
+    one's result, or the exception it failed with, in the order of ``commands``.
 
     Submitted in one go, they queue in their order, and commands to one device keep it
     (``motorbus.bus.schedule.keeps_order``).  A device that does not answer holds up no
@@ -207,7 +221,10 @@ async def send_together(
     attempts and guards: 25-50 ms each.)  The safe stops of leases, streams, the
     manager's stop plan and the rig go through here.
     """
-    return list(await asyncio.gather(*(send(cmd) for cmd in commands), return_exceptions=True))
+    sent = (
+        request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES) for cmd in commands
+    )
+    return list(await asyncio.gather(*sent, return_exceptions=True))
 
 
 def raise_unexpected(results: Iterable[object]) -> None:

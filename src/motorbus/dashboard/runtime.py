@@ -27,6 +27,7 @@ from typing import Any
 
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.events import BusEvent, Subscription
+from motorbus.bus.lease_shell import SAFE_STOP_RETRIES
 from motorbus.dashboard.record import Recorder
 from motorbus.dashboard.state import DashboardState
 from motorbus.devices.la import InspireLA
@@ -56,8 +57,6 @@ PERIOD_MIN_S = 0.001
 PERIOD_MAX_S = 3600.0
 #: Longest the safe stop on the way out may take before the buses close anyway.
 STOP_TIMEOUT_S = 2.0
-#: Retries of each safe-stop command (pause and e-stop are idempotent).
-STOP_RETRIES = 2
 #: Control actions on LA actuators and the priority each is sent at.
 ACTIONS: dict[str, tuple[la.ControlAction, Priority]] = {
     "estop": (la.ControlAction.ESTOP, Priority.EMERGENCY),
@@ -206,7 +205,7 @@ class Dashboard:
 
         async def send(target: Bus, cmd: Command[object]) -> None:
             try:
-                await target.request(cmd, priority=Priority.EMERGENCY, retries=STOP_RETRIES)
+                await target.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
             except Exception as err:
                 log.error("safe stop on %s: %r failed: %s", target.name, cmd, err)
 

@@ -16,7 +16,7 @@ import logging
 import math
 import statistics
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -25,7 +25,6 @@ from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
-from motorbus.protocol.base import Command
 from motorbus.rig.analysis import (
     RepeatFigures,
     Sample,
@@ -340,11 +339,8 @@ class _Rig:
 async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
     # Every actuator gets its pause, whatever another's did (a timeout means the pause
     # was written and only its status reply is missing), none held up by another's.
-    def send(cmd: Command[object]) -> Awaitable[object]:
-        return bus.request(cmd, priority=Priority.EMERGENCY)
-
     pauses = [la.Control(ident, la.ControlAction.PAUSE) for ident in ids]
-    results = await send_together(send, pauses)
+    results = await send_together(bus.request, pauses)
     for ident, result in zip(ids, results, strict=True):
         if isinstance(result, BaseException):
             log.warning("rig: pause of la:%d failed: %s", ident, result)

@@ -12,18 +12,17 @@ import asyncio
 import inspect
 import itertools
 import logging
-from collections.abc import Awaitable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, Protocol
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus
 from motorbus.bus.events import BusEvent, Subscription
 from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import StreamEnded
 from motorbus.protocol import la
-from motorbus.protocol.base import Command
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
@@ -214,12 +213,8 @@ class Stream:
             if self.safe_action is SafeAction.ESTOP
             else la.ControlAction.PAUSE
         )
-        bus = self.streamer.bus
-
-        def send(cmd: Command[object]) -> Awaitable[object]:
-            return bus.request(cmd, priority=Priority.EMERGENCY)
-
-        results = await send_together(send, [la.Control(i, action) for i in self.ids])
+        commands = [la.Control(i, action) for i in self.ids]
+        results = await send_together(self.streamer.bus.request, commands)
         for ident, result in zip(self.ids, results, strict=True):
             if isinstance(result, BaseException):
                 log.warning("safe action %s on la:%d failed: %s", action.name, ident, result)
