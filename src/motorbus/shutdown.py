@@ -39,7 +39,7 @@ import signal
 import sys
 import threading
 import weakref
-from collections.abc import Awaitable, Callable, Coroutine, Iterator
+from collections.abc import Awaitable, Callable, Coroutine, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 if TYPE_CHECKING:
@@ -52,6 +52,7 @@ __all__ = [
     "install_signal_handlers",
     "run",
     "stop_everything",
+    "together",
 ]
 
 log = logging.getLogger("motorbus.shutdown")
@@ -103,18 +104,33 @@ async def stop_everything() -> None:
         async with asyncio.timeout(STOP_EVERYTHING_TIMEOUT_S):
             for group in (_managers, _buses):
                 items = [obj for obj, on in list(group.items()) if on is loop]
-                closed = await asyncio.gather(
-                    *(item.close() for item in items), return_exceptions=True
-                )
-                for item, outcome in zip(items, closed, strict=True):
-                    if isinstance(outcome, Exception):
-                        log.error("closing %r on the way out failed: %s", item, outcome)
-                    elif isinstance(outcome, BaseException) and interrupted is None:
-                        interrupted = outcome
+
+                def failed(i: int, err: Exception, items: list[Any] = items) -> None:
+                    log.error("closing %r on the way out failed: %s", items[i], err)
+
+                first = await together([item.close() for item in items], failed)
+                interrupted = interrupted or first
     except TimeoutError:
         log.error("closing everything took over %.0f s; gave up", STOP_EVERYTHING_TIMEOUT_S)
     if interrupted is not None:
         raise interrupted
+
+
+async def together(
+    awaitables: Sequence[Awaitable[object]], failed: Callable[[int, Exception], None]
+) -> BaseException | None:
+    """Await every one of ``awaitables`` at once, so that a silent device behind one
+    holds up no other's stop.  Each that fails with an ``Exception`` goes to ``failed``
+    (with its index) and stops nothing; the first other ``BaseException`` is returned,
+    for the caller to raise once its own closing is done."""
+    outcomes = await asyncio.gather(*awaitables, return_exceptions=True)
+    interrupted: BaseException | None = None
+    for i, outcome in enumerate(outcomes):
+        if isinstance(outcome, Exception):
+            failed(i, outcome)
+        elif isinstance(outcome, BaseException) and interrupted is None:
+            interrupted = outcome
+    return interrupted
 
 
 # -- automatic protection while a bus is open -----------------------------------------------

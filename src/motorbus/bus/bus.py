@@ -270,14 +270,12 @@ class Bus(BusEngine):
             self._drop_queued_motion()
             if self.state is BusState.OPEN:
                 # Together: a silent actuator of one streamer holds up no other's stop.
-                outcomes = await asyncio.gather(
-                    *(hook() for hook in list(self._close_hooks)), return_exceptions=True
-                )
-                for outcome in outcomes:
-                    if isinstance(outcome, Exception):
-                        log.error("bus %s: a close hook failed: %s", self.name, outcome)
-                    elif isinstance(outcome, BaseException) and interrupted is None:
-                        interrupted = outcome
+
+                def failed(i: int, err: Exception) -> None:
+                    log.error("bus %s: a close hook failed: %s", self.name, err)
+
+                hooks = [hook() for hook in list(self._close_hooks)]
+                interrupted = await shutdown.together(hooks, failed)
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
             self._drop_queued_motion()
