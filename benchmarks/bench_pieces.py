@@ -119,10 +119,10 @@ async def bus_pieces(number: int, repeat: int) -> dict[str, float]:
 
         # The deadline a status poll gets on this bus (the bus owns the budget).  Beyond
         # the timer's spin lead: a nearer one would wake the loop to spin instead.
-        poll_budget = bus.reply_budget(la.control_frame(1, la.ControlAction.QUERY_STATUS))
+        query = la.control_frame(1, la.ControlAction.QUERY_STATUS)
+        poll_budget = bus.reply_budget(query)
         out["reply_deadline_ahead_ms"] = 1e3 * poll_budget
         out["timer_call_at_cancel_us"] = await reply_deadline_us(timer, poll_budget, number, repeat)
-        query = la.control_frame(1, la.ControlAction.QUERY_STATUS)
         reply = la.encode_status(1, target=1000, position=998)
         reassembler = Reassembler(families=frozenset([Family.LA]))
 

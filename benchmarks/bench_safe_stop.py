@@ -40,6 +40,7 @@ REPO = HERE.parent
 RESULTS = HERE / "results" / "safe_stop.json"
 sys.path.insert(0, str(HERE))
 
+from motorbus.protocol import la  # noqa: E402  (this checkout's: the simulator's log)
 from report_file import write_report  # noqa: E402
 
 BAUD = 921600
@@ -48,10 +49,8 @@ PERIOD_S = 0.010
 #: How long the stream runs before it is stopped.
 STREAM_S = 0.1
 PATHS = ("stream", "close")
-#: The LA control command and its pause action (LA manual 3.5.4: 55 AA 03 ID 04 00 14 CS).
-CMD_CONTROL = 0x04
-PAUSE = 0x14
-PAUSE_FRAME_LEN = 8
+#: Each ID's pause frame, as the protocol layer encodes it, and the ID it pauses.
+PAUSES = {la.Control(i, la.ControlAction.PAUSE).encode(): i for i in range(1, 255)}
 
 
 def spread_ms(records: list[dict[str, Any]], present: set[int]) -> float | None:
@@ -63,10 +62,10 @@ def spread_ms(records: list[dict[str, Any]], present: set[int]) -> float | None:
         if record.get("direction") != "request":
             continue
         frame = bytes.fromhex(str(record["hex"]))
-        if len(frame) == PAUSE_FRAME_LEN and frame[4] == CMD_CONTROL and frame[6] == PAUSE:
+        if frame in PAUSES:
             t = float(record["t"])
             start = t if start is None else start
-            first.setdefault(frame[3], t)
+            first.setdefault(PAUSES[frame], t)
     if start is None or not present <= first.keys():
         return None
     return 1e3 * (max(first[i] for i in present) - start)

@@ -879,8 +879,7 @@ def test_a_safe_stops_spread_runs_to_the_last_present_actuators_first_pause() ->
     import bench_safe_stop as b
 
     def pause(ident: int) -> str:
-        frame = bytes([0x55, 0xAA, 0x03, ident, 0x04, 0x00, 0x14])
-        return (frame + bytes([sum(frame[2:]) & 0xFF])).hex(" ")
+        return b.la.Control(ident, b.la.ControlAction.PAUSE).encode().hex(" ")
 
     records = [
         record(0.990, "55 AA 2E FF F3 01 E8 03"),
