@@ -341,18 +341,26 @@ async def test_two_streamers_on_one_bus_share_its_actuators_and_its_budget() -> 
 # -- deadlines decided by time, not by callback order -------------------------------------
 
 
-@pytest.mark.parametrize("data_first", [True, False], ids=["data-callback-first", "deadline-first"])
-async def test_a_reply_seen_after_its_deadline_is_late_whichever_callback_runs_first(
-    data_first: bool,
+STATUS_REPLY_1 = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
+
+
+@pytest.mark.parametrize(
+    "order",
+    ["data-callback-first", "deadline-first", "reply-after-the-decision"],
+)
+async def test_a_reply_already_in_when_a_late_loop_decides_the_deadline_is_taken(
+    order: str,
 ) -> None:
     """After a host stall both callbacks are due at once: the outcome must not depend on
-    which the loop runs first (it did: a late reply was accepted as on time)."""
+    which the loop runs first (it once did).  The deadline callback reads what the OS
+    holds before it decides, so a reply that was in when the bus looked is taken either
+    way, and counted as read past its deadline; only one that comes after the decision
+    is a timeout (and its late reply)."""
     loop = asyncio.get_running_loop()
     timer = AutojumpTimer(loop)
     timer.start()
     host, peer = memory_pair(baudrate=921600)
     peer.set_receiver(lambda data: None)
-    reply = bytes.fromhex("AA 55 11 01 04 00 22 EB 03 DE 03 14 64 00 F4 00 01 08 07 0A 07 94")
     try:
         async with Bus(host, families={Family.LA}, timer=timer, retries=0) as bus:
             request = asyncio.ensure_future(
@@ -363,20 +371,41 @@ async def test_a_reply_seen_after_its_deadline_is_late_whichever_callback_runs_f
             deadline = bus._matcher.pending.deadline  # type: ignore[union-attr]
             # The host stalls for 5 ms past the deadline; then both become due.
             timer.t = deadline + 5e-3
-            if data_first:
-                peer.send(reply)  # delivered by call_soon, before the timer is woken
+            if order == "data-callback-first":
+                peer.send(STATUS_REPLY_1)  # delivered by call_soon, before the timer wakes
+            elif order == "deadline-first":
+                peer.send(STATUS_REPLY_1)  # in (queued), but the deadline callback runs first
+                timer._wake()
             else:
-                timer._wake()  # the deadline callback runs first
-                peer.send(reply)
-            with pytest.raises(ReplyTimeoutError):
-                await request
+                timer._wake()  # decided with nothing in: a timeout
+                peer.send(STATUS_REPLY_1)
+            if order == "reply-after-the-decision":
+                with pytest.raises(ReplyTimeoutError):
+                    await request
+            else:
+                status = await request
+                assert status.position == 990  # type: ignore[attr-defined]
             for _ in range(5):
                 await asyncio.sleep(0)
-            assert bus.stats.timeouts == 1 and bus.stats.late_replies == 1
-            assert bus.stats.replies == 0
-            assert bus.stats.timeouts_in_host_stall == 1
+            stats = bus.stats
+            if order == "reply-after-the-decision":
+                assert (stats.timeouts, stats.late_replies, stats.replies) == (1, 1, 0)
+                assert stats.timeouts_in_host_stall == 1
+            else:
+                assert (stats.timeouts, stats.late_replies, stats.replies) == (0, 0, 1)
+                assert stats.replies_past_deadline == 1
     finally:
         await timer.stop()
+
+
+async def test_a_reply_before_the_deadline_is_not_counted_as_read_past_it() -> None:
+    """The count of replies read past their deadline is the host's lateness, not every
+    reply's: a prompt loop reads a prompt reply before its deadline."""
+    host, peer = memory_pair(baudrate=921600)
+    peer.set_receiver(lambda data: peer.send(STATUS_REPLY_1))
+    async with Bus(host, families={Family.LA}, retries=0) as bus:
+        await bus.request(la.Control(1, la.ControlAction.QUERY_STATUS))
+        assert bus.stats.replies == 1 and bus.stats.replies_past_deadline == 0
 
 
 # -- a "done" reply in the same read as its ack ---------------------------------------------

@@ -128,3 +128,27 @@ async def test_a_late_reply_held_by_the_kernel_is_not_the_next_requests_reply(
         status = await asyncio.wait_for(second, 2.0)
         assert status.position == 200
         assert bus.stats.late_replies == 1
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+async def test_a_reply_in_the_kernel_before_its_deadline_is_taken_after_a_stall(
+    pty_pair: tuple[int, str], backend: str
+) -> None:
+    """Over a pty: the device answers well inside the timeout, then the loop stalls past
+    the deadline before it reads.  The reply was there when the bus looked: it is the
+    reply, not a timeout (both callbacks are due at once, in whichever order the loop
+    runs them), and the bus counts it as read past its deadline."""
+    require(backend)
+    master, path = pty_pair
+    transport = SerialTransport(path, baudrate=921600, backend=backend)
+    timeout = 0.05
+    async with Bus(transport, families={Family.LA}, retries=0) as bus:
+        pending = bus.submit(QUERY, timeout=timeout)
+        assert await read_frame(master, len(QUERY.encode())) == QUERY.encode()
+        os.write(master, NEW_STATUS)  # on time: the deadline is ~50 ms away
+        time.sleep(timeout * 3)  # the loop stalls (no await) past the deadline
+        status = await asyncio.wait_for(pending, 2.0)
+        assert status.position == 200
+        stats = bus.stats
+        assert (stats.replies, stats.timeouts, stats.late_replies) == (1, 0, 0)
+        assert stats.replies_past_deadline == 1

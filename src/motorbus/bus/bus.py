@@ -28,10 +28,11 @@ however soon (a pty, a USB-CDC device or a TCP bridge does not pace bytes at the
 a frame that began before the write is older traffic.  "Before" is what the OS had
 received, not what the loop had read: a request's write is preceded by a read of what
 the OS already holds (``Transport.drain_input``), so a lagging loop cannot make an old
-reply look newer than the request.  Whether a reply is on time is
-decided by when its bytes were seen against the deadline, whichever callback runs
-first.  A late reply is never given to a later request: after a timeout, the next
-request to that device waits ``late_guard``, and the late frame is recognised by its
+reply look newer than the request.  A deadline is decided when its callback runs,
+after the same read: a reply the OS already held is taken, whichever callback a late
+loop runs first (counted in ``stats.replies_past_deadline``).  A late reply is never
+given to a later request: after a timeout, the next request to that device waits
+``late_guard``, and the late frame is recognised by its
 shape and counted.  The protocols carry no sequence numbers, so a reply later than the
 guard with exactly the shape of a newer request cannot be told apart: raise
 ``late_guard`` for such devices.  ``wire_floor=True`` (for a real UART that paces bytes

@@ -66,7 +66,7 @@ log = logging.getLogger("motorbus.bus")
 
 #: A timer callback that runs this much after its deadline means the host (not the
 #: device) stalled: a full garbage collection, another process on the core.  Timeouts
-#: and late replies decided then are counted apart (``BusStats.host_stalls``).
+#: decided then are counted apart (``BusStats.timeouts_in_host_stall``).
 HOST_STALL_S = 1e-3
 #: Reconnect backoff after a lost port: first delay, factor, ceiling (seconds).
 RECONNECT_FIRST_S = 0.05
@@ -424,7 +424,14 @@ class BusEngine:
         if job is None:
             return
         job.handle = None
-        self._expire(job, self.timer.now())
+        # The deadline is decided now, after reading what the OS already holds: a reply
+        # that is there came before the bus looked, however late the loop looks (a
+        # stall, a busy core), so it is taken, whichever of this callback and the
+        # reader's a late loop runs first (matching.py).  A prompt loop looks at the
+        # deadline itself, where only a reply that is late finds nothing.
+        self.transport.drain_input()
+        if self._matcher.pending is job:
+            self._expire(job, self.timer.now())
 
     def _expire(self, job: BusJob, now: float) -> None:
         """``job``'s deadline has passed (seen at ``now``): retry it or fail it."""
@@ -510,13 +517,6 @@ class BusEngine:
         if verdict is Verdict.ACCEPTED:
             assert job is not None
             self._accept(job, raw, now)
-        elif verdict is Verdict.OVERDUE:
-            # Seen after the deadline, whichever callback runs first: late.  The
-            # deadline's own callback has not run yet (the loop was held up), so the
-            # timeout is decided here, and the frame is counted as its late reply.
-            assert job is not None
-            self._expire(job, now)
-            verdict, about = matcher.classify(raw, start, now)
         elif verdict is Verdict.EARLY:
             assert job is not None
             self.stats.early_replies += 1
@@ -548,6 +548,8 @@ class BusEngine:
         latency = now - job.tx_time
         stats = self.stats
         stats.replies += 1
+        if now > job.deadline:  # read late, before the deadline was decided (matching.py)
+            stats.replies_past_deadline += 1
         stats.latency.record(latency)
         device = stats.device(job.key)
         device.replies += 1

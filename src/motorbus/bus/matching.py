@@ -18,12 +18,14 @@ What it remembers:
 A frame is the pending request's reply by causality and shape: its first byte must sit
 at or after the request's ``rx_mark`` (the stream offset when the request was handed to
 the OS: a frame whose bytes were already buffered before the write is older traffic)
-and ``Command.matches_reply`` must accept it.  Seen after the deadline, it is
-``OVERDUE``: the shell times the request out, then asks again, and the frame is
-recognised as the late reply.  A late reply is never given to a later request: it
-either began before that request's write, or a per-device late guard
-(``motorbus.bus.schedule``) kept a same-device request from being sent while it could
-still arrive.
+and ``Command.matches_reply`` must accept it.  It is accepted until the request's
+deadline is *decided* (``timed_out``), not until the deadline's time: the shell decides
+when its deadline callback runs, after reading whatever the OS already holds, so a reply
+that was there when the bus looked is taken whichever callback a late loop runs first
+(the loop, not the device, was late).  A reply that comes after the decision is the
+timed-out request's late reply, and is never given to a later request: it either began
+before that request's write, or a per-device late guard (``motorbus.bus.schedule``)
+kept a same-device request from being sent while it could still arrive.
 """
 
 from __future__ import annotations
@@ -63,8 +65,7 @@ WIRE_FLOOR_FACTOR = 0.9
 class Verdict(enum.Enum):
     """What a frame is, for the bus."""
 
-    ACCEPTED = "accepted"  # the pending request's reply, on time
-    OVERDUE = "overdue"  # the pending request's reply shape, seen after its deadline
+    ACCEPTED = "accepted"  # the pending request's reply (its deadline not yet decided)
     EARLY = "early"  # sooner than the wire allows (wire_floor=True only): refused
     DONE = "done"  # a watched "done" reply (the watch is given and forgotten)
     LATE = "late"  # the answer to a request that already timed out
@@ -101,7 +102,6 @@ class DoneWatch:
 Match = tuple[Verdict, "DoneWatch | TimedOut | None"]
 
 _ACCEPTED: Match = (Verdict.ACCEPTED, None)
-_OVERDUE: Match = (Verdict.OVERDUE, None)
 _EARLY: Match = (Verdict.EARLY, None)
 _UNEXPECTED: Match = (Verdict.UNEXPECTED, None)
 
@@ -243,14 +243,12 @@ class Matcher(Generic[J]):
         ``start``, seen at ``now``, is.
 
         ``DONE`` forgets the watch it returns; ``LATE`` returns the timed-out request.
-        ``OVERDUE`` changes nothing: the shell times the pending request out (``timed_out``
-        and ``release``, or its retry), then asks again.
+        The pending request's reply is ``ACCEPTED`` even past its deadline: a request
+        is pending until the shell decides its deadline (``timed_out``, then ``release``),
+        which it does after reading what the OS holds (module docstring).
         """
         job = self.pending
         if job is not None and start >= job.rx_mark and job.cmd.matches_reply(raw):
-            if now > job.deadline:
-                # Seen after the deadline, whichever callback runs first: late.
-                return _OVERDUE
             if self.wire_floor and now < job.earliest:
                 return _EARLY
             return _ACCEPTED

@@ -131,7 +131,10 @@ class BusStats:
     timeouts: int = 0  # deadlines that ran out (each attempt)
     retries: int = 0
     failed: int = 0  # requests that ended in an error for the caller
-    late_replies: int = 0  # replies that came after their request's deadline
+    late_replies: int = 0  # replies that came after their request's deadline was decided
+    #: Replies taken although the bus read them after their deadline: they were already
+    #: in when it looked, but it looked late (the host stalled or was busy).
+    replies_past_deadline: int = 0
     unexpected_frames: int = 0  # valid frames that answered nothing we asked
     #: The reassembler's own counters (frames cut, ``EE DD`` markers, discarded bytes by
     #: reason, resyncs), kept across reconnects: the one place discards are counted.
@@ -189,6 +192,7 @@ class BusStats:
                 "retries",
                 "failed",
                 "late_replies",
+                "replies_past_deadline",
                 "unexpected_frames",
                 "garbage_bytes",
                 "resyncs",
