@@ -212,6 +212,7 @@ def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> i
             selects=rec.selects.rows(),
             collections=rec.collections.rows(),
             runqueue=rec.runqueue.rows(),
+            syscalls=[(c.start, c.end) for c in trace.calls if c.end is not None],
         )
         late = [t.as_dict() for t in attribute(records, threshold)]
     result["late"] = late

@@ -9,7 +9,9 @@ bus process recorded, on the same ``CLOCK_MONOTONIC`` clock:
 * the event loop's ``select`` calls: when each was entered and when it returned;
 * garbage collections (``gc.callbacks``): start and stop;
 * the thread's run-queue wait (``/proc/thread-self/schedstat``, second field) read at
-  every tick's write: time the thread was runnable but another task had the CPU.
+  every tick's write: time the thread was runnable but another task had the CPU;
+* the process's ``write(2)`` calls, entry and return (kernel clock, the same trace as
+  ``W``).
 
 :func:`attribute` names, for every tick later than the threshold, the first cause that
 explains at least half of its lateness:
@@ -19,9 +21,16 @@ explains at least half of its lateness:
 ``machine: run queue``
     the thread waited that long for a CPU since the previous tick (another process,
     or a CPU hog, had it);
+``machine: write(2) held``
+    from the timer's arming to the tick's write, the loop was that long inside
+    ``write(2)`` calls of other frames (a poll): the kernel held them (a pty's lock,
+    the process on its other end, a vCPU the hypervisor took away); a UART driver with
+    room in its buffer returns at once;
 ``ours: loop busy``
-    when the timerfd fired, the loop was running callbacks, and went on that long
-    before it next looked at its fds (our code, or an application's callback);
+    from the timerfd's firing to the timer's callback, the loop ran other callbacks
+    that long: it was running them when the timerfd fired and went on before it looked
+    at its fds again, or the look that found the timerfd ready found other work too,
+    which ran first (our code, or an application's callback);
 ``machine: slow wake-up``
     the loop was waiting in ``select`` and it returned that late after the timerfd
     fired, without run-queue wait (a CPU leaving a deep idle state, a hypervisor);
@@ -46,6 +55,7 @@ __all__ = ["CAUSES", "LateTick", "TickRecords", "attribute", "summarise"]
 CAUSES = (
     "gc",
     "machine: run queue",
+    "machine: write(2) held",
     "ours: loop busy",
     "machine: slow wake-up",
     "ours: wake to write",
@@ -74,6 +84,8 @@ class TickRecords:
     collections: Sequence[tuple[float, float]]
     #: (host time, cumulative run-queue wait in seconds), read at each tick's write.
     runqueue: Sequence[tuple[float, float]]
+    #: The process's write(2) calls: (entered, returned), in order (none: not traced).
+    syscalls: Sequence[tuple[float, float]] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -85,6 +97,7 @@ class LateTick:
     cause: str
     gc_us: float
     runqueue_us: float
+    write_calls_us: float
     loop_busy_us: float
     wakeup_us: float
     wake_to_write_us: float
@@ -157,10 +170,14 @@ def attribute(records: TickRecords, threshold: float = 500e-6) -> list[LateTick]
         armed = wake[0] if wake is not None and wake[0] > 0 else deadline
         gc = _overlap(records.collections, armed, write)
         queued = _runqueue_between(records.runqueue, since if since is not None else armed, write)
+        held = _overlap(records.syscalls, armed, write)  # the tick's own call starts at write
         busy, wakeup = _loop_at(records.selects, armed)
+        if wake is not None and wake[1] - armed > busy + wakeup:
+            # The rest of the wake-up's lateness, out of select: callbacks that ran first.
+            busy = wake[1] - armed - wakeup
         to_write = write - max(deadline, wake[2]) if wake is not None else 0.0
         need = SHARE * late
-        figures = (gc, queued, busy, wakeup, to_write)
+        figures = (gc, queued, held, busy, wakeup, to_write)
         cause = next((c for c, v in zip(CAUSES, figures, strict=False) if v >= need), CAUSES[-1])
         out.append(
             LateTick(
@@ -169,6 +186,7 @@ def attribute(records: TickRecords, threshold: float = 500e-6) -> list[LateTick]
                 cause=cause,
                 gc_us=gc * 1e6,
                 runqueue_us=queued * 1e6,
+                write_calls_us=held * 1e6,
                 loop_busy_us=busy * 1e6,
                 wakeup_us=wakeup * 1e6,
                 wake_to_write_us=to_write * 1e6,

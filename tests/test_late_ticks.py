@@ -58,6 +58,24 @@ def test_run_queue_wait_is_the_machine() -> None:
     assert late[0].runqueue_us == pytest.approx(2500)
 
 
+def test_a_write_of_another_frame_held_in_the_kernel_is_the_machine() -> None:
+    """A poll's write(2) entered before the deadline and returned 1.8 ms later: the loop
+    was busy all that time, but inside the kernel, not in our code."""
+    r = records(2, 2e-3)
+    d = r.deadlines[2]
+    selects = list(r.selects)
+    selects[2] = (d - 0.008, d - 0.003)
+    selects.insert(3, (d + 1.9e-3, d + 1.95e-3))
+    late = lt.attribute(
+        records(
+            2, 2e-3, selects=selects, syscalls=[(d - 0.003, d - 0.0029), (d - LEAD, d + 1.8e-3)]
+        )
+    )
+    assert [t.cause for t in late] == ["machine: write(2) held"]
+    assert late[0].write_calls_us == pytest.approx(1800 + LEAD * 1e6)  # from the arming on
+    assert late[0].loop_busy_us > 1800  # what it was counted as before the calls were traced
+
+
 def test_a_callback_running_past_the_arming_is_ours() -> None:
     r = records(1, 1.5e-3)
     d = r.deadlines[1]
@@ -69,7 +87,20 @@ def test_a_callback_running_past_the_arming_is_ours() -> None:
     wakeups[1] = (d - LEAD, d - LEAD + 1.45e-3, d - LEAD + 1.45e-3)
     late = lt.attribute(records(1, 1.5e-3, selects=selects, wakeups=wakeups))
     assert [t.cause for t in late] == ["ours: loop busy"]
-    assert late[0].loop_busy_us == pytest.approx(1400)
+    assert late[0].loop_busy_us == pytest.approx(1450)  # from the arming to the callback
+
+
+def test_callbacks_that_run_before_the_timers_after_the_look_are_ours() -> None:
+    """The select that found the timerfd ready returned on time (it found a reply too),
+    and the reply's callbacks ran 1.5 ms before the timer's."""
+    r = records(3, 1.7e-3)
+    d = r.deadlines[3]
+    wakeups = list(r.wakeups)
+    wakeups[3] = (d - LEAD, d + 1.5e-3, d + 1.5e-3)
+    late = lt.attribute(records(3, 1.7e-3, wakeups=wakeups))
+    assert [t.cause for t in late] == ["ours: loop busy"]
+    assert late[0].wakeup_us == pytest.approx(50)
+    assert late[0].loop_busy_us == pytest.approx(1500 + LEAD * 1e6 - 50)
 
 
 def test_a_select_that_returns_late_is_a_slow_wake_up() -> None:
