@@ -58,6 +58,9 @@ from motorbus.sim.process import SimProcess
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "late_ticks.json"
 GOAL_QUIET_MAX_US = 1000.0
+#: A loop callback that runs longer than this is logged with what ran (the loop's own
+#: slow-callback log, without its debug mode).
+SLOW_CALLBACK_S = 300e-6
 GOAL_RT_MAX_US = 500.0
 #: Longest a child run may take beyond its planned length.
 CHILD_SLACK_S = 60.0
@@ -94,17 +97,70 @@ class Columns:
 
 
 class TimedSelector(selectors.DefaultSelector):
-    """The loop's selector, noting when each ``select`` was entered and returned."""
+    """The loop's selector, noting when each ``select`` was entered and returned, and
+    the thread's CPU time at both (``cpu``: the thread sleeps from the first to the
+    second, and is awake from the second to the next sample)."""
 
-    def __init__(self, log: Columns) -> None:
+    def __init__(self, log: Columns, cpu: Columns) -> None:
         super().__init__()
         self.log = log
+        self.cpu = cpu
 
     def select(self, timeout: float | None = None) -> list[Any]:
         entered = time.monotonic()
+        self.cpu.add(entered, time.thread_time(), 0.0)
         ready = super().select(timeout)
-        self.log.add(entered, time.monotonic())
+        returned = time.monotonic()
+        self.cpu.add(returned, time.thread_time(), 1.0)
+        self.log.add(entered, returned)
         return ready
+
+
+def callback_name(handle: asyncio.Handle) -> str:
+    """What a loop callback runs: a task's coroutine, or the callback's own name."""
+    callback = getattr(handle, "_callback", None)
+    owner = getattr(callback, "__self__", None)
+    if isinstance(owner, asyncio.Task):
+        return f"task {getattr(owner.get_coro(), '__qualname__', owner.get_name())}"
+    return str(getattr(callback, "__qualname__", type(callback).__name__))
+
+
+class SlowCallbacks:
+    """The loop's slow-callback log: every callback longer than ``SLOW_CALLBACK_S``,
+    with what ran and the thread's CPU time in it.  ``install`` wraps
+    ``asyncio.Handle._run`` (timer handles inherit it) with two reads of each clock (about
+    1.5 us a callback, the same for every tick); ``remove`` puts it back."""
+
+    def __init__(self) -> None:
+        self.times = Columns(3)  # start, stop, thread CPU seconds in between
+        self.names: list[str] = []
+        self._original: Any = None
+
+    def install(self) -> None:
+        original = self._original = asyncio.Handle._run
+        clock, cpu, times, names = time.monotonic, time.thread_time, self.times, self.names
+
+        def run(handle: asyncio.Handle) -> None:
+            start, ran = clock(), cpu()
+            original(handle)
+            stop = clock()
+            if stop - start > SLOW_CALLBACK_S:
+                times.add(start, stop, cpu() - ran)
+                names.append(callback_name(handle))
+
+        asyncio.Handle._run = run  # type: ignore[method-assign]
+
+    def remove(self) -> None:
+        if self._original is not None:
+            asyncio.Handle._run = self._original  # type: ignore[method-assign]
+            self._original = None
+
+    def rows(self) -> list[tuple[float, float, str]]:
+        """(start, stop, "what ran, X us on CPU") per slow callback."""
+        return [
+            (a, b, f"{n}, {c * 1e6:,.0f} us on CPU")
+            for (a, b, c), n in zip(self.times.rows(), self.names, strict=True)
+        ]
 
 
 class Recorder:
@@ -117,6 +173,9 @@ class Recorder:
         #: Per collection: its generation (0, 1, 2), in the order of ``collections``.
         self.generations = array("b")
         self.runqueue = Columns(2)
+        #: (host time, thread CPU time, 1.0 awake after / 0.0 asleep in select after).
+        self.thread_cpu = Columns(3)
+        self.slow = SlowCallbacks()
         self._gc_start = 0.0
         self._schedstat = os.open("/proc/thread-self/schedstat", os.O_RDONLY)
 
@@ -127,10 +186,17 @@ class Recorder:
             self.collections.add(self._gc_start, time.monotonic())
             self.generations.append(int(info.get("generation", 2)))
 
+    def on_wake(self, armed: float, woke: float, spun_until: float) -> None:
+        """The timer's wake-up (``TimerfdTimer.wake_observer``), and the thread's CPU
+        time there: it splits the awake stretch that serves a tick."""
+        self.wakeups.add(armed, woke, spun_until)
+        self.thread_cpu.add(time.monotonic(), time.thread_time(), 1.0)
+
     def on_write(self, cmd: object, at: float) -> None:
         if isinstance(cmd, la.Broadcast):
             wait_ns = int(os.pread(self._schedstat, 100, 0).split()[1])
             self.runqueue.add(at, wait_ns / 1e9)
+            self.thread_cpu.add(time.monotonic(), time.thread_time(), 1.0)
 
     def on_reply(self, *args: object) -> None:
         pass
@@ -142,7 +208,7 @@ class Recorder:
 async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
     timer = default_timer()
     if isinstance(timer, TimerfdTimer):
-        timer.wake_observer = rec.wakeups.add
+        timer.wake_observer = rec.on_wake
     mgr = BusManager(safe_stop=False)
     mgr.add_bus("late", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
     async with mgr:
@@ -169,22 +235,45 @@ async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
         }
 
 
-def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> int:
+def steal_seconds() -> float | None:
+    """The hypervisor's steal time of every CPU so far (``/proc/stat``, 8th column), or
+    None where the kernel does not report it."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = f.readline().split()
+    except OSError:
+        return None
+    if len(fields) < 9 or fields[0] != "cpu":
+        return None
+    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+
+
+def child(
+    path: str, seconds: float, rt: bool, threshold: float, out: Path, every_syscall: bool
+) -> int:
     """Run the stream here, record, attribute; write JSON to ``out``."""
     rec = Recorder()
     method = "none (SCHED_OTHER)"
-    gc.callbacks.append(rec.on_gc)
-    with KernelWriteTrace() as trace:
+    with KernelWriteTrace(every_syscall=every_syscall) as trace:
+        # Recorded from here to the stream's end only: perf's stop and the parsing of
+        # its output (many collections with --every-syscall) are not the run's.
+        gc.callbacks.append(rec.on_gc)
+        steal_before = steal_seconds()
+        rec.slow.install()
         if rt:
             try:
                 method = go_realtime()
             except (OSError, ImportError) as err:
                 method = f"FAILED: {err}"
         with asyncio.Runner(
-            loop_factory=lambda: asyncio.SelectorEventLoop(TimedSelector(rec.selects))
+            loop_factory=lambda: asyncio.SelectorEventLoop(
+                TimedSelector(rec.selects, rec.thread_cpu)
+            )
         ) as runner:
             host = runner.run(stream(path, seconds, rec))
-    gc.callbacks.remove(rec.on_gc)
+        rec.slow.remove()
+        gc.callbacks.remove(rec.on_gc)
+        steal_after = steal_seconds()
     rec.close()
     kernel = port_figures(
         trace,
@@ -212,10 +301,23 @@ def child(path: str, seconds: float, rt: bool, threshold: float, out: Path) -> i
             selects=rec.selects.rows(),
             collections=rec.collections.rows(),
             runqueue=rec.runqueue.rows(),
-            syscalls=[(c.start, c.end) for c in trace.calls if c.end is not None],
+            # Every system call but the loop's waits, or (the default) its write(2) calls.
+            syscalls=[(c.start, c.end) for c in trace.syscalls if not c.waits]
+            if every_syscall
+            else [(c.start, c.end) for c in trace.calls if c.end is not None],
+            thread_cpu=rec.thread_cpu.rows(),
+            slow_callbacks=rec.slow.rows(),
         )
         late = [t.as_dict() for t in attribute(records, threshold)]
     result["late"] = late
+    result["slow_callbacks"] = len(rec.slow.names)
+    # The whole machine's steal over the run (both CPUs; /proc/stat counts in clock
+    # ticks): beside "machine: CPU taken away", what the hypervisor itself reports.
+    result["steal_ms"] = (
+        round(1e3 * (steal_after - steal_before), 1)
+        if steal_before is not None and steal_after is not None
+        else None
+    )
     result["gc_collections"] = len(rec.collections)
     starts, stops = rec.collections.columns
     pauses = list(zip(rec.generations, starts, stops, strict=True))
@@ -236,6 +338,7 @@ def one_run(args: argparse.Namespace, k: int, tmp: Path) -> dict[str, Any]:
         cmd = [sys.executable, __file__, "--child", sim.path, "--seconds", str(args.seconds)]
         cmd += ["--threshold-us", str(args.threshold_us), "--out", str(out)]
         cmd += ["--realtime"] if args.realtime else []
+        cmd += ["--every-syscall"] if args.every_syscall else []
         subprocess.run(cmd, check=True, timeout=args.seconds + CHILD_SLACK_S)
     report: dict[str, Any] = json.loads(out.read_text(encoding="utf-8"))
     return report
@@ -248,12 +351,25 @@ def main() -> int:
     parser.add_argument("--realtime", action="store_true", help="the bus under SCHED_FIFO")
     parser.add_argument("--hogs", type=int, default=0, help="CPU hogs beside the bus")
     parser.add_argument("--threshold-us", type=float, default=500.0)
+    parser.add_argument(
+        "--every-syscall",
+        action="store_true",
+        help="trace every system call, not only write(2) (names the calls that held a "
+        "late tick, but tracing them all slows each one: more late ticks)",
+    )
     parser.add_argument("--quick", action="store_true", help="one 10 s run")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--child", metavar="PTY", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
-        return child(args.child, args.seconds, args.realtime, args.threshold_us * 1e-6, args.out)
+        return child(
+            args.child,
+            args.seconds,
+            args.realtime,
+            args.threshold_us * 1e-6,
+            args.out,
+            args.every_syscall,
+        )
     if args.quick:
         args.runs, args.seconds = 1, 10.0
     for name in ("runs", "seconds", "threshold_us"):
@@ -281,6 +397,7 @@ def main() -> int:
         "realtime": args.realtime,
         "hogs": args.hogs,
         "threshold_us": args.threshold_us,
+        "every_syscall": args.every_syscall,
         "machine": {
             "platform": platform.platform(),
             "python": sys.version.split()[0],
@@ -300,7 +417,7 @@ def main() -> int:
         print(f"kernel clock: not measured: {runs[0]['kernel_why']}")
     print(
         f"\n{'run':>4}{'p50 us':>9}{'p99 us':>9}{'max us':>9}{'late':>6}{'missed':>8}"
-        f"{'gc':>5}{'spin ms':>9}{'cpu us/tick':>13}"
+        f"{'gc':>5}{'spin ms':>9}{'cpu us/tick':>13}{'steal ms':>10}"
     )
     for k, r in enumerate(runs):
         spin = r.get("timer_spin_s")
@@ -308,7 +425,7 @@ def main() -> int:
             f"{k + 1:>4}{r['tick_jitter_p50_us']!s:>9}{r['tick_jitter_p99_us']!s:>9}"
             f"{r['tick_jitter_max_us']!s:>9}{r['late_ticks']!s:>6}{r['missed_ticks']!s:>8}"
             f"{r['gc_collections']:>5}{spin * 1e3 if spin else 0:>9.1f}"
-            f"{r['cpu_us_per_tick']:>13}"
+            f"{r['cpu_us_per_tick']:>13}{r.get('steal_ms')!s:>10}"
         )
     gens = [r.get("gc_by_generation", {}) for r in runs]
     print(
@@ -320,9 +437,18 @@ def main() -> int:
         )
     )
     print(f"\nticks later than {args.threshold_us:.0f} us at the kernel, by cause:")
-    print(f"{'cause':24}{'ticks':>7}{'worst us':>10}")
+    print(f"{'cause':26}{'ticks':>7}{'worst us':>10}")
     for cause in CAUSES:
-        print(f"{cause:24}{causes[cause]['ticks']:>7}{causes[cause]['worst_us']:>10}")
+        print(f"{cause:26}{causes[cause]['ticks']:>7}{causes[cause]['worst_us']:>10}")
+    ours = [t for t in late if t["cause"].startswith("ours")]
+    if ours:
+        print("\nthe ticks put down to our code (what ran, the thread's own CPU at most):")
+        for t in ours:
+            print(
+                f"  tick {t['index']}: {t['late_us']:,.0f} us late, {t['cause']}; "
+                f"{t['callback'] or 'no slow callback'}; on CPU {t['on_cpu_us']:,.0f} us, "
+                f"in system calls {t['syscalls_us']:,.0f} us"
+            )
     for name, met in goals.items():
         print(f"goal {name}: {'met' if met else 'NOT met'}")
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -49,11 +49,13 @@ __all__ = [
     "GapStats",
     "GridJitter",
     "KernelWriteTrace",
+    "Syscall",
     "WriteCall",
     "busiest_fd",
     "grid_jitter",
     "not_measured",
     "parse_perf_script",
+    "parse_syscalls",
     "port_figures",
     "worst_tick_figures",
     "write_gaps",
@@ -61,6 +63,13 @@ __all__ = [
 
 #: Events recorded: entry (time, fd, byte count) and exit (time, return value) of write(2).
 EVENTS = "syscalls:sys_enter_write,syscalls:sys_exit_write"
+#: Added with ``KernelWriteTrace(every_syscall=True)``: entry and exit of every system
+#: call (its number only), to see how long the kernel held the process in each.
+SYSCALL_EVENTS = "raw_syscalls:sys_enter,raw_syscalls:sys_exit"
+#: x86-64 numbers of the calls in which an event loop waits for its fds (poll, select,
+#: epoll_wait, pselect6, ppoll, epoll_pwait, epoll_pwait2): time in them is sleep, not
+#: work held up (``Syscall.waits``).
+WAIT_SYSCALLS = frozenset({7, 23, 232, 270, 271, 281, 441})
 #: Where the kernel lists the tracepoint (tracefs, mounted in either place).
 TRACEPOINT_DIRS = (
     "/sys/kernel/tracing/events/syscalls/sys_enter_write",
@@ -77,6 +86,10 @@ LATE_S = 1e-3
 _LINE = re.compile(
     r"(?P<pid>\d+)/(?P<tid>\d+)\s+(?P<time>\d+\.\d+):\s+syscalls:sys_(?P<kind>enter|exit)_write:"
     r"\s+(?P<rest>.*)$"
+)
+_RAW = re.compile(
+    r"(?P<pid>\d+)/(?P<tid>\d+)\s+(?P<time>\d+\.\d+):\s+raw_syscalls:sys_(?P<kind>enter|exit):"
+    r"\s+NR (?P<nr>-?\d+)"
 )
 _ENTER = re.compile(r"fd: (0x[0-9a-fA-F]+), buf: 0x[0-9a-fA-F]+, count: (0x[0-9a-fA-F]+)")
 _EXIT = re.compile(r"(-?0x[0-9a-fA-F]+|-?\d+)\s*$")
@@ -145,6 +158,48 @@ def parse_perf_script(text: str | Iterable[str], pid: int | None = None) -> list
                 ret -= 1 << 64
             calls[index] = WriteCall(c.pid, c.tid, c.fd, c.count, c.start, t, ret)
     return calls
+
+
+@dataclass(frozen=True, slots=True)
+class Syscall:
+    """One system call of any kind, as the kernel saw it (``every_syscall=True``).
+
+    Attributes:
+        tid: thread that made it.
+        nr: its number (x86-64 numbering on this machine).
+        start, end: entry and return (s, CLOCK_MONOTONIC).
+    """
+
+    tid: int
+    nr: int
+    start: float
+    end: float
+
+    @property
+    def waits(self) -> bool:
+        """True for the calls an event loop sleeps in (``WAIT_SYSCALLS``)."""
+        return self.nr in WAIT_SYSCALLS
+
+
+def parse_syscalls(text: str | Iterable[str], pid: int | None = None) -> list[Syscall]:
+    """Every completed system call in ``perf script`` output of ``raw_syscalls`` events
+    (other lines, other processes, and calls without an exit are skipped), in entry order."""
+    lines = text.splitlines() if isinstance(text, str) else text
+    out: list[Syscall] = []
+    open_at: dict[int, tuple[int, float]] = {}  # tid -> (nr, entered)
+    for line in lines:
+        m = _RAW.search(line)
+        if m is None or (pid is not None and int(m["pid"]) != pid):
+            continue
+        tid, t, nr = int(m["tid"]), float(m["time"]), int(m["nr"])
+        if m["kind"] == "enter":
+            open_at[tid] = (nr, t)
+            continue
+        entered = open_at.pop(tid, None)
+        if entered is not None and entered[0] == nr:
+            out.append(Syscall(tid, nr, entered[1], t))
+    out.sort(key=lambda c: c.start)
+    return out
 
 
 def busiest_fd(calls: Sequence[WriteCall], sizes: Iterable[int] | None = None) -> int | None:
@@ -434,15 +489,20 @@ class KernelWriteTrace:
 
     Attributes:
         pid: the process traced (default: this one).
+        every_syscall: trace every system call too (``syscalls``), not only write(2):
+            more events, so a little more disturbance; for ``bench_late_ticks.py``.
         measured: True once the trace was recorded and parsed.
         why: why not, when ``measured`` is False.
         calls: every write call of ``pid`` (all threads), in order.
+        syscalls: with ``every_syscall``, every completed system call of ``pid``.
     """
 
     pid: int = field(default_factory=os.getpid)
+    every_syscall: bool = False
     measured: bool = False
     why: str = "not started"
     calls: list[WriteCall] = field(default_factory=list)
+    syscalls: list[Syscall] = field(default_factory=list)
     _proc: subprocess.Popen[bytes] | None = None
     _tmp: tempfile.TemporaryDirectory[str] | None = None
     _fds: tuple[int, int] | None = None
@@ -477,8 +537,9 @@ class KernelWriteTrace:
         # O_RDWR: opening a FIFO that way never blocks, even if perf dies before opening it.
         ctl_fd, ack_fd = os.open(ctl, os.O_RDWR), os.open(ack, os.O_RDWR)
         self._fds = (ctl_fd, ack_fd)
+        events = f"{EVENTS},{SYSCALL_EVENTS}" if self.every_syscall else EVENTS
         cmd = [
-            "perf", "record", "-q", "-e", EVENTS, "-k", "CLOCK_MONOTONIC",
+            "perf", "record", "-q", "-e", events, "-k", "CLOCK_MONOTONIC",
             "-D", "-1", "--control", f"fifo:{ctl},{ack}",
             "-o", str(tmp / "out.perf"), "-p", str(self.pid),
         ]  # fmt: skip
@@ -543,6 +604,8 @@ class KernelWriteTrace:
             self.why = f"perf script failed: {script.stderr.strip()[-200:]}"
             return
         self.calls = parse_perf_script(script.stdout, pid=self.pid)
+        if self.every_syscall:
+            self.syscalls = parse_syscalls(script.stdout, pid=self.pid)
         self.measured = True
         self.why = ""
 

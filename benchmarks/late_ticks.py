@@ -10,8 +10,13 @@ bus process recorded, on the same ``CLOCK_MONOTONIC`` clock:
 * garbage collections (``gc.callbacks``): start and stop;
 * the thread's run-queue wait (``/proc/thread-self/schedstat``, second field) read at
   every tick's write: time the thread was runnable but another task had the CPU;
-* the process's ``write(2)`` calls, entry and return (kernel clock, the same trace as
-  ``W``).
+* the process's system calls, entry and return (kernel clock, the same trace as ``W``),
+  but those the loop sleeps in (``epoll_wait``: its ``select``);
+* the loop's slow callbacks (longer than ``bench_late_ticks.SLOW_CALLBACK_S``): start,
+  stop and what ran (a task's coroutine, or the callback's name);
+* the thread's CPU time (``CLOCK_THREAD_CPUTIME_ID``) at every ``select``'s entry and
+  return and at every tick's write: where the thread was awake (out of ``select``), how
+  much of the time it really ran.
 
 :func:`attribute` names, for every tick later than the threshold, the first cause that
 explains at least half of its lateness:
@@ -21,11 +26,20 @@ explains at least half of its lateness:
 ``machine: run queue``
     the thread waited that long for a CPU since the previous tick (another process,
     or a CPU hog, had it);
-``machine: write(2) held``
-    from the timer's arming to the tick's write, the loop was that long inside
-    ``write(2)`` calls of other frames (a poll): the kernel held them (a pty's lock,
-    the process on its other end, a vCPU the hypervisor took away); a UART driver with
-    room in its buffer returns at once;
+``machine: system call held``
+    from the timer's arming to the tick's write, the loop was that long inside system
+    calls (a poll's ``write(2)``, a ``read(2)`` of a reply, the timer's
+    ``timerfd_settime``, even ``getpid``): each is microseconds of work, so time beyond
+    that is the kernel's (a pty's lock, the process on its other end) or the
+    hypervisor's, which on this VM takes the vCPU inside system calls for up to
+    milliseconds (``benchmarks/README.md``, "Late ticks");
+``machine: CPU taken away``
+    from the timer's arming to the write, the thread was awake (out of ``select``) that
+    much longer than it ran, beyond its run-queue wait and its system calls: it
+    was neither running, nor waiting for a CPU in this kernel, nor in a system call.  On
+    a VM whose kernel accounts steal time (``CONFIG_PARAVIRT_TIME_ACCOUNTING``: a
+    thread's CPU time leaves out what the hypervisor took), that is the hypervisor
+    running something else on this vCPU;
 ``ours: loop busy``
     from the timerfd's firing to the timer's callback, the loop ran other callbacks
     that long: it was running them when the timerfd fired and went on before it looked
@@ -55,7 +69,8 @@ __all__ = ["CAUSES", "LateTick", "TickRecords", "attribute", "summarise"]
 CAUSES = (
     "gc",
     "machine: run queue",
-    "machine: write(2) held",
+    "machine: system call held",
+    "machine: CPU taken away",
     "ours: loop busy",
     "machine: slow wake-up",
     "ours: wake to write",
@@ -84,8 +99,14 @@ class TickRecords:
     collections: Sequence[tuple[float, float]]
     #: (host time, cumulative run-queue wait in seconds), read at each tick's write.
     runqueue: Sequence[tuple[float, float]]
-    #: The process's write(2) calls: (entered, returned), in order (none: not traced).
+    #: The process's system calls but the loop's waits: (entered, returned), in order
+    #: (none: not traced).
     syscalls: Sequence[tuple[float, float]] = ()
+    #: The thread's CPU time: (host time, CPU seconds, 1.0 if it is awake from there to
+    #: the next sample, 0.0 if it sleeps in ``select``), in order (none: not recorded).
+    thread_cpu: Sequence[tuple[float, float, float]] = ()
+    #: The loop's slow callbacks: (start, stop, what ran), in order.
+    slow_callbacks: Sequence[tuple[float, float, str]] = ()
 
 
 @dataclass(frozen=True, slots=True)
@@ -97,10 +118,17 @@ class LateTick:
     cause: str
     gc_us: float
     runqueue_us: float
-    write_calls_us: float
+    syscalls_us: float
+    taken_us: float
     loop_busy_us: float
     wakeup_us: float
     wake_to_write_us: float
+    #: The most of the thread's own CPU time that can fall between the arming and the
+    #: write (``taken_us`` is the least of its time off the CPU that must).
+    on_cpu_us: float = 0.0
+    #: The longest slow callback that ran between the arming and the write, and how
+    #: long it ran ("" if none): what "ours" names.
+    callback: str = ""
 
     def as_dict(self) -> dict[str, float | int | str]:
         return {k: round(v, 1) if isinstance(v, float) else v for k, v in asdict(self).items()}
@@ -129,6 +157,41 @@ def _runqueue_between(runqueue: Sequence[tuple[float, float]], lo: float, hi: fl
     if i < 0 or j >= len(runqueue):
         return 0.0
     return max(0.0, runqueue[j][1] - runqueue[i][1])
+
+
+def _awake_off_cpu(
+    samples: Sequence[tuple[float, float, float]], lo: float, hi: float
+) -> tuple[float, float]:
+    """(off CPU, on CPU) inside ``[lo, hi]`` while the thread was awake.
+
+    Between two samples the clocks say how long the thread ran, not when: "off" is the
+    least of its time off the CPU that must fall inside the window (all of it that
+    could not fit in the stretch's part outside), "on" the most of its running that
+    could.  So the machine is blamed for no more, and our code for no less, than the
+    samples show.
+    """
+    off = on = 0.0
+    i = max(0, bisect.bisect_right([t for t, _, _ in samples], lo) - 1)
+    for (t0, c0, awake), (t1, c1, _) in zip(samples[i:], samples[i + 1 :], strict=False):
+        if t0 >= hi:
+            break
+        if not awake or t1 <= lo or t1 <= t0:
+            continue
+        inside = min(t1, hi) - max(t0, lo)
+        ran = max(0.0, c1 - c0)
+        away = max(0.0, (t1 - t0) - ran)
+        off += max(0.0, away - ((t1 - t0) - inside))
+        on += min(ran, inside)
+    return off, on
+
+
+def _longest_callback(callbacks: Sequence[tuple[float, float, str]], lo: float, hi: float) -> str:
+    """The longest of ``callbacks`` that overlaps ``[lo, hi]``, with its length."""
+    best = max(
+        ((stop - start, what) for start, stop, what in callbacks if stop > lo and start < hi),
+        default=None,
+    )
+    return "" if best is None else f"{best[1]} ({best[0] * 1e6:,.0f} us)"
 
 
 def _loop_at(selects: Sequence[tuple[float, float]], t: float) -> tuple[float, float]:
@@ -171,13 +234,17 @@ def attribute(records: TickRecords, threshold: float = 500e-6) -> list[LateTick]
         gc = _overlap(records.collections, armed, write)
         queued = _runqueue_between(records.runqueue, since if since is not None else armed, write)
         held = _overlap(records.syscalls, armed, write)  # the tick's own call starts at write
+        off_cpu, on_cpu = _awake_off_cpu(records.thread_cpu, armed, write)
+        # What neither the run queue nor a system call explains (both subtracted whole:
+        # never more taken away than the thread's own clocks show).
+        taken = max(0.0, off_cpu - queued - held)
         busy, wakeup = _loop_at(records.selects, armed)
         if wake is not None and wake[1] - armed > busy + wakeup:
             # The rest of the wake-up's lateness, out of select: callbacks that ran first.
             busy = wake[1] - armed - wakeup
         to_write = write - max(deadline, wake[2]) if wake is not None else 0.0
         need = SHARE * late
-        figures = (gc, queued, held, busy, wakeup, to_write)
+        figures = (gc, queued, held, taken, busy, wakeup, to_write)
         cause = next((c for c, v in zip(CAUSES, figures, strict=False) if v >= need), CAUSES[-1])
         out.append(
             LateTick(
@@ -186,10 +253,13 @@ def attribute(records: TickRecords, threshold: float = 500e-6) -> list[LateTick]
                 cause=cause,
                 gc_us=gc * 1e6,
                 runqueue_us=queued * 1e6,
-                write_calls_us=held * 1e6,
+                syscalls_us=held * 1e6,
+                taken_us=taken * 1e6,
                 loop_busy_us=busy * 1e6,
                 wakeup_us=wakeup * 1e6,
                 wake_to_write_us=to_write * 1e6,
+                on_cpu_us=on_cpu * 1e6,
+                callback=_longest_callback(records.slow_callbacks, armed, write),
             )
         )
     return out

@@ -68,6 +68,42 @@ def test_parser_without_pid_keeps_other_processes_and_skips_junk() -> None:
     assert bash.end is None and bash.duration is None
 
 
+#: ``raw_syscalls`` lines as perf 6.1 prints them here (``every_syscall=True``): two
+#: threads interleaving, another process, an entry whose exit is missing, and the
+#: write(2) event of the same call beside its raw entry.
+RAW_SAMPLE = "\n".join(
+    (
+        "         python3  6236/6236   1731.817461007: raw_syscalls:sys_enter:"
+        " NR 232 (3, 7fb1c35dc000, 3, 36, 0, 0)",
+        "  python3 worker  6236/6240   1731.817470000: raw_syscalls:sys_enter: NR 202 (0, 0)",
+        "            bash  1180/1180   1731.817480000: raw_syscalls:sys_enter: NR 0 (0, 0)",
+        "         python3  6236/6236   1731.817601916:  raw_syscalls:sys_exit: NR 232 = 1",
+        "         python3  6236/6236   1731.817614114: raw_syscalls:sys_enter:"
+        " NR 1 (b, 7fefaa65a090, 33, 0, 0, 0)",
+        "         python3  6236/6236   1731.817614200:"
+        " syscalls:sys_enter_write: fd: 0x0000000b, buf: 0x7fefaa65a090, count: 0x00000033",
+        "         python3  6236/6236   1731.817621400:  syscalls:sys_exit_write: 0x33",
+        "         python3  6236/6236   1731.817621495:  raw_syscalls:sys_exit: NR 1 = 51",
+        "  python3 worker  6236/6240   1731.819470000:  raw_syscalls:sys_exit: NR 202 = 0",
+        "         python3  6236/6236   1731.819500000: raw_syscalls:sys_enter: NR 39 (0)",
+    )
+)
+
+
+def test_every_syscall_is_paired_per_thread_and_waits_are_marked() -> None:
+    calls = kc.parse_syscalls(RAW_SAMPLE, pid=6236)
+    assert [(c.tid, c.nr) for c in calls] == [(6236, 232), (6240, 202), (6236, 1)]
+    epoll, futex, write = calls
+    assert epoll.waits and not futex.waits and not write.waits
+    assert epoll.end - epoll.start == pytest.approx(140.909e-6, rel=1e-4)
+    assert futex.end == pytest.approx(1731.81947)  # its own thread's exit
+    assert write.end - write.start == pytest.approx(7.381e-6, rel=1e-3)
+    # The write events of the same call still parse as before, beside the raw ones.
+    assert [(c.fd, c.count, c.ret) for c in kc.parse_perf_script(RAW_SAMPLE)] == [(11, 51, 51)]
+    # Without a pid: bash's read never returned and getpid's exit is missing: skipped.
+    assert len(kc.parse_syscalls(RAW_SAMPLE)) == 3
+
+
 def test_busiest_fd_prefers_frame_sized_writes_above_stderr() -> None:
     calls = kc.parse_perf_script(SAMPLE)
     assert kc.busiest_fd(calls) == 5

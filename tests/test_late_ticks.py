@@ -71,8 +71,8 @@ def test_a_write_of_another_frame_held_in_the_kernel_is_the_machine() -> None:
             2, 2e-3, selects=selects, syscalls=[(d - 0.003, d - 0.0029), (d - LEAD, d + 1.8e-3)]
         )
     )
-    assert [t.cause for t in late] == ["machine: write(2) held"]
-    assert late[0].write_calls_us == pytest.approx(1800 + LEAD * 1e6)  # from the arming on
+    assert [t.cause for t in late] == ["machine: system call held"]
+    assert late[0].syscalls_us == pytest.approx(1800 + LEAD * 1e6)  # from the arming on
     assert late[0].loop_busy_us > 1800  # what it was counted as before the calls were traced
 
 
@@ -88,6 +88,101 @@ def test_a_callback_running_past_the_arming_is_ours() -> None:
     late = lt.attribute(records(1, 1.5e-3, selects=selects, wakeups=wakeups))
     assert [t.cause for t in late] == ["ours: loop busy"]
     assert late[0].loop_busy_us == pytest.approx(1450)  # from the arming to the callback
+
+
+def cpu_samples(
+    selects: list[tuple[float, float]], stolen: tuple[float, float] | None = None
+) -> list[tuple[float, float, float]]:
+    """The thread's CPU clock at each select's entry (asleep after) and return (awake
+    after): it runs all the time it is awake, but inside ``stolen``."""
+    out: list[tuple[float, float, float]] = []
+    cpu, last = 0.0, None
+    for entered, returned in selects:
+        if last is not None:  # awake from the last return to this entry
+            cpu += entered - last
+            if stolen is not None:
+                cpu -= max(0.0, min(entered, stolen[1]) - max(last, stolen[0]))
+        out.append((entered, cpu, 0.0))
+        out.append((returned, cpu, 1.0))
+        last = returned
+    return out
+
+
+def busy_past_the_arming() -> tuple[lt.TickRecords, float]:
+    """Tick 1 written 1.5 ms late: the loop left select 0.1 ms before the arming and
+    came back 1.4 ms after it, and the timer's callback ran then."""
+    r = records(1, 1.5e-3)
+    d = r.deadlines[1]
+    selects = list(r.selects)
+    selects[1] = (d - 0.008, d - LEAD - 0.1e-3)
+    selects.insert(2, (d - LEAD + 1.4e-3, d + 1.45e-3))
+    wakeups = list(r.wakeups)
+    wakeups[1] = (d - LEAD, d - LEAD + 1.45e-3, d - LEAD + 1.45e-3)
+    return records(1, 1.5e-3, selects=selects, wakeups=wakeups), d
+
+
+def test_a_busy_loop_whose_thread_ran_is_ours_with_its_cpu() -> None:
+    r, d = busy_past_the_arming()
+    callbacks = [
+        (d - 0.006, d - 0.0055, "task Streamer._run"),  # before the tick: not named
+        (d - LEAD - 0.1e-3, d - LEAD + 0.2e-3, "SerialTransport._read_ready"),
+        (d - LEAD + 0.2e-3, d - LEAD + 1.4e-3, "task Poller.run"),
+    ]
+    late = lt.attribute(
+        records(
+            1,
+            1.5e-3,
+            **_fields(r, thread_cpu=cpu_samples(r.selects), slow_callbacks=callbacks),
+        )
+    )
+    assert [t.cause for t in late] == ["ours: loop busy"]
+    assert late[0].callback == "task Poller.run (1,200 us)"
+    assert late[0].taken_us == pytest.approx(0, abs=1e-6)
+    assert late[0].on_cpu_us == pytest.approx(1400)  # awake from the arming to select
+
+
+def test_an_awake_thread_that_did_not_run_had_its_cpu_taken_away() -> None:
+    """The same busy loop, but its thread ran 0.2 ms of the 1.4 ms: not in the run
+    queue, not in a system call, not running: the hypervisor had the vCPU."""
+    r, d = busy_past_the_arming()
+    stolen = (d - LEAD + 0.1e-3, d - LEAD + 1.3e-3)
+    late = lt.attribute(records(1, 1.5e-3, **_fields(r, thread_cpu=cpu_samples(r.selects, stolen))))
+    assert [t.cause for t in late] == ["machine: CPU taken away"]
+    assert late[0].taken_us == pytest.approx(1100)  # 1.2 ms, of which 0.1 may be before
+    assert late[0].on_cpu_us == pytest.approx(300)
+    assert late[0].loop_busy_us == pytest.approx(1450)  # still reported beside it
+
+
+def test_cpu_taken_away_leaves_out_the_run_queue_and_sleep() -> None:
+    """Off CPU while queued is the run queue's; off CPU asleep in select is no one's."""
+    r, d = busy_past_the_arming()
+    stolen = (d - LEAD + 0.1e-3, d - LEAD + 1.3e-3)
+    queued = [(w, 0.0 if k < 1 else 0.8e-3) for k, w in enumerate(r.writes)]
+    late = lt.attribute(
+        records(1, 1.5e-3, **_fields(r, runqueue=queued, thread_cpu=cpu_samples(r.selects, stolen)))
+    )
+    assert [t.cause for t in late] == ["machine: run queue"]
+    assert late[0].taken_us == pytest.approx(300)  # 1.1 ms off CPU, 0.8 of it queued
+    # A late select return (the thread asleep) is a slow wake-up, however little it ran.
+    s = records(4, 1.2e-3)
+    d4 = s.deadlines[4]
+    selects = list(s.selects)
+    selects[4] = (d4 - 0.005, d4 - LEAD + 1.3e-3)
+    wakeups = list(s.wakeups)
+    wakeups[4] = (d4 - LEAD, d4 - LEAD + 1.3e-3, d4 - LEAD + 1.3e-3)
+    late = lt.attribute(
+        records(4, 1.2e-3, selects=selects, wakeups=wakeups, thread_cpu=cpu_samples(selects))
+    )
+    assert [t.cause for t in late] == ["machine: slow wake-up"]
+    assert late[0].taken_us == pytest.approx(0, abs=1e-6)
+
+
+def _fields(r: lt.TickRecords, **changes: object) -> dict[str, object]:
+    """``r``'s recorded fields but deadlines and writes (``records`` makes those), with
+    ``changes``."""
+    out: dict[str, object] = {"selects": r.selects, "wakeups": r.wakeups}
+    out.update(changes)
+    return out
 
 
 def test_callbacks_that_run_before_the_timers_after_the_look_are_ours() -> None:
