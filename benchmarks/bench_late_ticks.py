@@ -54,6 +54,7 @@ from motorbus.bus.timer import TimerfdTimer, default_timer
 from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
+from report_file import steal_seconds
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "late_ticks.json"
@@ -233,19 +234,6 @@ async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
             "timer_wakeups": getattr(timer, "wakeups", None),
             "timer_spin_s": round(getattr(timer, "spin_seconds", math.nan), 4),
         }
-
-
-def steal_seconds() -> float | None:
-    """The hypervisor's steal time of every CPU so far (``/proc/stat``, 8th column), or
-    None where the kernel does not report it."""
-    try:
-        with open("/proc/stat", encoding="ascii") as f:
-            fields = f.readline().split()
-    except OSError:
-        return None
-    if len(fields) < 9 or fields[0] != "cpu":
-        return None
-    return int(fields[8]) / os.sysconf("SC_CLK_TCK")
 
 
 def child(

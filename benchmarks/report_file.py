@@ -26,6 +26,17 @@ def machine_info() -> dict[str, Any]:
     }
 
 
+def steal_seconds() -> float | None:
+    """CPU time the hypervisor gave to others, all CPUs, since boot (s; ``/proc/stat``'s
+    "steal" column, in clock ticks); None where not available."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def write_report(out: Path, result: dict[str, Any]) -> None:
     """Write ``result`` to ``out`` as indented JSON, with ``machine`` and ``date`` added
     (the machine now, the time now in UTC), creating its folder; print where it went."""

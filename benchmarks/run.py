@@ -41,7 +41,7 @@ from typing import Any
 from bench_bus import (
     BACKEND_MODULES,
 )
-from report_file import machine_info
+from report_file import machine_info, steal_seconds
 from run_report import fmt, met_text, render_report
 from run_results import (
     ALL_BACKENDS,
@@ -185,17 +185,6 @@ def machine_probe() -> dict[str, float]:
         time.sleep(PROBE_SLEEP_S)
     wakeup = (time.process_time() - cpu0) / PROBE_SLEEPS
     return {"loop_ms": round(best * 1e3, 2), "wakeup_cpu_us": round(wakeup * 1e6, 1)}
-
-
-def steal_seconds() -> float | None:
-    """CPU time the hypervisor gave to others, all CPUs, since boot (s; ``/proc/stat``'s
-    "steal" column); None where not available."""
-    try:
-        with open("/proc/stat", encoding="ascii") as f:
-            fields = f.readline().split()
-        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def steal_percent(before: float | None, after: float | None, wall_s: float) -> float | None:

@@ -663,6 +663,27 @@ def test_steal_is_a_share_of_the_machines_cpu_time() -> None:
     assert now is None or now >= 0
 
 
+def test_vcpu_gap_loop_counts_every_step_over_its_threshold() -> None:
+    """With a threshold below any clock step every step is a gap: the gaps then add up
+    to the loop's wall time, and each is split into what was charged and what was not."""
+    import bench_vcpu_gaps
+
+    allowed = run.os.sched_getaffinity(0)
+    cpu = min(allowed)
+    try:
+        loop = bench_vcpu_gaps.busy_loop(cpu, 0.05, 1e-12)
+        assert run.os.sched_getaffinity(0) == {cpu}  # pinned, as each loop's process is
+        idle = bench_vcpu_gaps.busy_loop(cpu, 0.01, 10.0)
+    finally:
+        run.os.sched_setaffinity(0, allowed)
+    assert loop["cpu"] == cpu and loop["wall_s"] >= 0.05
+    assert loop["gaps"] > 100
+    assert loop["gap_total_ms"] == pytest.approx(1e3 * loop["wall_s"], rel=0.01)
+    total = loop["uncharged_total_ms"] + loop["charged_total_ms"]
+    assert total == pytest.approx(loop["gap_total_ms"], abs=0.05)
+    assert idle["gaps"] == 0  # no step of 10 s in a 10 ms loop
+
+
 def test_ab_pairs_alternate_and_are_summarised_pair_by_pair() -> None:
     import ab_cpu
 
