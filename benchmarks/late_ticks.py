@@ -31,8 +31,8 @@ explains at least half of its lateness:
     calls (a poll's ``write(2)``, a ``read(2)`` of a reply, the timer's
     ``timerfd_settime``, even ``getpid``): each is microseconds of work, so time beyond
     that is the kernel's (a pty's lock, the process on its other end) or the
-    hypervisor's, which on this VM takes the vCPU inside system calls for up to
-    milliseconds (``benchmarks/README.md``, "Late ticks");
+    hypervisor's (on this project's VM, single calls of each kind took 0.3-5 ms:
+    ``benchmarks/README.md``, "bench_late_ticks.py");
 ``machine: CPU taken away``
     from the timer's arming to the write, the thread was awake (out of ``select``) that
     much longer than it ran, beyond its run-queue wait and its system calls: it
