@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -164,15 +165,8 @@ def test_cpu_taken_away_leaves_out_the_run_queue_and_sleep() -> None:
     assert [t.cause for t in late] == ["machine: run queue"]
     assert late[0].taken_us == pytest.approx(300)  # 1.1 ms off CPU, 0.8 of it queued
     # A late select return (the thread asleep) is a slow wake-up, however little it ran.
-    s = records(4, 1.2e-3)
-    d4 = s.deadlines[4]
-    selects = list(s.selects)
-    selects[4] = (d4 - 0.005, d4 - LEAD + 1.3e-3)
-    wakeups = list(s.wakeups)
-    wakeups[4] = (d4 - LEAD, d4 - LEAD + 1.3e-3, d4 - LEAD + 1.3e-3)
-    late = lt.attribute(
-        records(4, 1.2e-3, selects=selects, wakeups=wakeups, thread_cpu=cpu_samples(selects))
-    )
+    slow = slow_wake_up()
+    late = lt.attribute(records(4, 1.2e-3, **slow, thread_cpu=cpu_samples(slow["selects"])))
     assert [t.cause for t in late] == ["machine: slow wake-up"]
     assert late[0].taken_us == pytest.approx(0, abs=1e-6)
 
@@ -198,14 +192,20 @@ def test_callbacks_that_run_before_the_timers_after_the_look_are_ours() -> None:
     assert late[0].loop_busy_us == pytest.approx(1500 + LEAD * 1e6 - 50)
 
 
-def test_a_select_that_returns_late_is_a_slow_wake_up() -> None:
+def slow_wake_up() -> dict[str, list[Any]]:
+    """Selects and wake-ups of ``records(4, 1.2e-3)`` in which the select that waited
+    for tick 4 returned 1.3 ms after the arming."""
     r = records(4, 1.2e-3)
     d = r.deadlines[4]
     selects = list(r.selects)
     selects[4] = (d - 0.005, d - LEAD + 1.3e-3)
     wakeups = list(r.wakeups)
     wakeups[4] = (d - LEAD, d - LEAD + 1.3e-3, d - LEAD + 1.3e-3)
-    late = lt.attribute(records(4, 1.2e-3, selects=selects, wakeups=wakeups))
+    return {"selects": selects, "wakeups": wakeups}
+
+
+def test_a_select_that_returns_late_is_a_slow_wake_up() -> None:
+    late = lt.attribute(records(4, 1.2e-3, **slow_wake_up()))
     assert [t.cause for t in late] == ["machine: slow wake-up"]
 
 
