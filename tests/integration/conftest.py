@@ -186,10 +186,16 @@ START_TIMEOUT_S = 20.0
 EXIT_TIMEOUT_S = 10.0
 
 
-def _default_sigint() -> None:
-    # A child started from a background job inherits SIGINT ignored, and Python then
-    # installs no KeyboardInterrupt handler; the test needs Ctrl-C's real behaviour.
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
+def default_signals() -> None:
+    """A child's ``preexec_fn``: the stop signals the tests send at their defaults.
+
+    A child started from a background job inherits SIGINT ignored (Python then installs
+    no KeyboardInterrupt handler), and one started under ``nohup`` SIGHUP ignored (and
+    motorbus rightly leaves an ignored signal alone); the tests need each signal's real
+    behaviour, however the suite itself was started.
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
 
 
 def start_example(port: str, *extra: str, example: Path | None = None) -> subprocess.Popen[str]:
@@ -206,7 +212,7 @@ def start_example(port: str, *extra: str, example: Path | None = None) -> subpro
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        preexec_fn=_default_sigint,
+        preexec_fn=default_signals,
         start_new_session=True,  # our signal goes to the child alone
     )
     assert proc.stdout is not None

@@ -35,6 +35,7 @@ from tests.integration.conftest import (
     SIM_BAUD,
     SIM_DEVICES,
     assert_safe_action_after_last_broadcast,
+    default_signals,
     finish,
     is_broadcast_follow,
     received_frames,
@@ -174,7 +175,7 @@ def test_the_stream_command_stops_safely(
             stderr=subprocess.PIPE,
             text=True,
             start_new_session=True,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+            preexec_fn=default_signals,
         )
         # Wait until the stream's broadcasts reach the simulator, then end the command.
         give_up = time.monotonic() + 20
