@@ -300,9 +300,11 @@ class Streamer:
                 self.lease.table.release(self.lease, hold=True, keys=taken)
             raise
         starting = self._task is None or self._task.done()
-        if starting and not realtime.gc_controlled():
+        if starting:
             # What the set-up made is young: the collector's first pass over it (1-2 ms)
             # would be a late tick. Pass now, before the first deadline (docs/design.md).
+            # Real-time mode too: its freeze at enable() does not cover what the program
+            # set up after it, and gen-1 passes stay automatic there.
             gc.collect(1)
         now = self.bus.timer.now()
         # Align the origin to this bus's grid so streams of one period coalesce.

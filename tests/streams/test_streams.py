@@ -9,6 +9,7 @@ import math
 
 import pytest
 
+from motorbus import realtime
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
@@ -43,9 +44,17 @@ async def test_fifteen_actuators_one_broadcast_per_tick(pacing: Pacing) -> None:
         await streamer.close()
 
 
-async def test_a_starting_stream_collects_the_young_generations_first() -> None:
+@pytest.mark.parametrize("gc_controlled", [False, True], ids=["plain", "realtime-gc"])
+async def test_a_starting_stream_collects_the_young_generations_first(
+    gc_controlled: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
     # The set-up's young objects would cost the collector's first pass mid-stream; the
-    # start does that pass instead, once: a stream joining a running one does not.
+    # start does that pass instead, once: a stream joining a running one does not.  Under
+    # real-time mode's GC control too: its freeze at enable() leaves what the program set
+    # up afterwards young, and a gen-1 pass of 1.2 ms over it was a late tick
+    # (bench_late_ticks.py --realtime --hogs 2, 2026-12-04).
+    monkeypatch.setattr(realtime._gc, "active", gc_controlled)
+    assert realtime.gc_controlled() is gc_controlled
     collected: list[int] = []
 
     def note(phase: str, info: dict[str, int]) -> None:
