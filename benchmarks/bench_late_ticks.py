@@ -346,7 +346,7 @@ def main() -> int:
         "--every-syscall",
         action="store_true",
         help="trace every system call, not only write(2) (names the calls that held a "
-        "late tick, but tracing them all slows each one: more late ticks)",
+        "late tick, but perf's handler then runs in every call: it adds to what it measures)",
     )
     parser.add_argument("--quick", action="store_true", help="one 10 s run")
     parser.add_argument("--out", type=Path, default=RESULTS)
