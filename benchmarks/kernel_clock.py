@@ -66,10 +66,11 @@ EVENTS = "syscalls:sys_enter_write,syscalls:sys_exit_write"
 #: Added with ``KernelWriteTrace(every_syscall=True)``: entry and exit of every system
 #: call (its number only), to see how long the kernel held the process in each.
 SYSCALL_EVENTS = "raw_syscalls:sys_enter,raw_syscalls:sys_exit"
-#: x86-64 numbers of the calls in which an event loop waits for its fds (poll, select,
-#: epoll_wait, pselect6, ppoll, epoll_pwait, epoll_pwait2): time in them is sleep, not
-#: work held up (``Syscall.waits``).
-WAIT_SYSCALLS = frozenset({7, 23, 232, 270, 271, 281, 441})
+#: x86-64 numbers of the calls in which an epoll event loop (asyncio's, uvloop's) waits
+#: for its fds (epoll_wait, epoll_pwait, epoll_pwait2): time in them is sleep, not work
+#: held up (``Syscall.waits``).  Not poll(2): the bus's ``poll(0)`` before a request
+#: (``drain_input``) is a check that returns at once, and time held in it is the machine's.
+WAIT_SYSCALLS = frozenset({232, 281, 441})
 #: Where the kernel lists the tracepoint (tracefs, mounted in either place).
 TRACEPOINT_DIRS = (
     "/sys/kernel/tracing/events/syscalls/sys_enter_write",

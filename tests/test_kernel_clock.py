@@ -104,6 +104,17 @@ def test_every_syscall_is_paired_per_thread_and_waits_are_marked() -> None:
     assert len(kc.parse_syscalls(RAW_SAMPLE)) == 3
 
 
+def test_a_poll_that_checks_is_not_a_wait() -> None:
+    """The bus's poll(0) before a request (drain_input) returns at once: time held in
+    it is not the loop's sleep, unlike epoll_wait."""
+    lines = [
+        "         python3  6236/6236   1731.900000000: raw_syscalls:sys_enter: NR 7 (7ff, 1, 0)",
+        "         python3  6236/6236   1731.901200000:  raw_syscalls:sys_exit: NR 7 = 0",
+    ]
+    (poll,) = kc.parse_syscalls(lines, pid=6236)
+    assert poll.nr == 7 and not poll.waits
+
+
 def test_busiest_fd_prefers_frame_sized_writes_above_stderr() -> None:
     calls = kc.parse_perf_script(SAMPLE)
     assert kc.busiest_fd(calls) == 5
