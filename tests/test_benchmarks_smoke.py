@@ -684,6 +684,22 @@ def test_vcpu_gap_loop_counts_every_step_over_its_threshold() -> None:
     assert idle["gaps"] == 0  # no step of 10 s in a 10 ms loop
 
 
+def test_profile_layers_put_each_file_in_one_place() -> None:
+    import profile_cpu
+
+    assert profile_cpu.layer("~") == "C"
+    assert profile_cpu.layer("/x/src/motorbus/bus/engine.py") == "shell"
+    assert profile_cpu.layer("/x/src/motorbus/transport/serial.py") == "shell"
+    assert profile_cpu.layer("/x/src/motorbus/bus/schedule.py") == "core"
+    assert profile_cpu.layer("/x/src/motorbus/protocol/la/wire.py") == "core"
+    assert profile_cpu.layer("/x/src/motorbus/devices/la.py") == "motorbus, other"
+    assert profile_cpu.layer("/usr/lib/python3.11/asyncio/events.py") == "asyncio"
+    assert profile_cpu.layer("/usr/lib/python3.11/selectors.py") == "selectors"
+    assert profile_cpu.layer("/x/benchmarks/bench_cpu.py") == "benchmark"
+    assert profile_cpu.layer("<frozen abc>") == "other"
+    assert set(profile_cpu.LAYERS) >= {"shell", "core", "C", "other"}
+
+
 def test_ab_pairs_alternate_and_are_summarised_pair_by_pair() -> None:
     import ab_cpu
 
