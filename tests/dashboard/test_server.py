@@ -268,6 +268,35 @@ async def test_a_page_of_another_origin_is_refused() -> None:
         assert set(rig.requests()) == QUERIES  # the refused e-stop sent nothing
 
 
+async def test_a_dns_rebinding_request_is_refused_and_sends_nothing() -> None:
+    # The attack of issue 39: a page of another site whose name now points at 127.0.0.1
+    # sends Host and Origin of its own name; they agree with each other, not with us.
+    async with served(control=True) as rig:
+        await rig.rounds(1)
+        before = len(rig.requests())
+        port = rig.client.port
+        rebound = {
+            "Host": f"rebind.attacker.example:{port}",
+            "Origin": f"http://rebind.attacker.example:{port}",
+        }
+        r = await rig.client.post(
+            "/api/move",
+            json={"bus": "arm", "id": 1, "position": 1777, "confirm": True},
+            headers=rebound,
+        )
+        assert r.status == 403
+        assert "rebind.attacker.example" in (await r.json())["error"]
+        for method, path in [("GET", "/api/state"), ("GET", "/"), ("GET", "/ws"),
+                             ("POST", "/api/estop")]:  # fmt: skip
+            r = await rig.client.request(method, path, headers=rebound)
+            assert r.status == 403, path
+        r = await rig.client.get("/api/state", headers={"Host": f"localhost:{port}"})
+        assert r.status == 200  # a loopback name is one this server answers to
+        await rig.rounds(1)  # a whole round since: every ID has been polled
+        assert set(rig.requests()[before:]) == QUERIES  # the refused move sent nothing
+        assert all(m.target == 300 for m in rig.models.values())
+
+
 async def test_the_page_is_self_contained() -> None:
     async with served(control=False) as rig:
         r = await rig.client.get("/")
@@ -337,3 +366,36 @@ def test_bad_settings_are_refused_when_the_dashboard_is_built(
 ) -> None:
     with pytest.raises(LocalProtocolError, match=re.escape(message)):
         Dashboard([], **options)
+
+
+@pytest.mark.parametrize(
+    ("listen", "allowed", "host", "ok"),
+    [
+        ("127.0.0.1", [], "127.0.0.1:8765", True),
+        ("127.0.0.1", [], "LOCALHOST:8765", True),
+        ("127.0.0.1", [], "[::1]:8765", True),
+        ("127.0.0.1", [], "rebind.attacker.example:8765", False),
+        ("127.0.0.1", [], "127.0.0.1.attacker.example", False),
+        ("127.0.0.1", [], None, False),
+        ("127.0.0.1", ["robot.local"], "robot.local:8765", True),
+        ("127.0.0.1", ["robot.local"], "robot.local.:8765", True),
+        ("192.0.2.7", [], "192.0.2.7:8765", True),
+        ("192.0.2.7", [], "localhost:8765", False),
+        ("0.0.0.0", [], "192.0.2.7:8765", True),
+        ("0.0.0.0", [], "[2001:db8::1]:8765", True),
+        ("0.0.0.0", [], "rebind.attacker.example", False),
+    ],
+)
+def test_the_host_names_a_dashboard_answers_to(
+    listen: str, allowed: list[str], host: str | None, ok: bool
+) -> None:
+    from motorbus.cli.dashboard import host_check
+
+    assert host_check(listen, allowed).allows(host) is ok
+
+
+def test_an_allowed_host_that_is_not_a_name_is_refused_at_start() -> None:
+    from motorbus.cli.dashboard import host_check
+
+    with pytest.raises(LocalProtocolError, match="--allow-host='http://x/'"):
+        host_check("127.0.0.1", ["http://x/"])

@@ -12,7 +12,10 @@ page's URL on a line of its own; open it in a browser (a phone works too).  One 
 per bus reads every LA actuator's status in turn (--interval apart), whatever the
 number of viewers.  The page is read-only unless started with --control (e-stop, pause,
 work, clear fault, move-to inside --window).  It listens on 127.0.0.1 unless --listen
-says otherwise; then every request needs the random token printed in the URL.
+says otherwise; then every request needs the random token printed in the URL.  It
+answers only requests addressed to the address it listens on (the Host header; on
+127.0.0.1 also "localhost"), which is what keeps a web page of another site from reaching
+it through DNS rebinding; --allow-host NAME adds a name it may be reached by.
 
 Without --bus-file it watches one port (--ids, else --devices la:1-3,quad-stepper...,
 else a scan); with --bus-file every bus of the file (or --bus NAME), every key honoured;
@@ -28,6 +31,7 @@ import asyncio
 import ipaddress
 import os
 import secrets
+import socket
 import sys
 from pathlib import Path
 from typing import Any
@@ -48,10 +52,11 @@ from motorbus.cli.ids import parse_ids
 from motorbus.cli.scan import SCAN_TIMEOUT_S
 from motorbus.cli.values import check_seconds
 from motorbus.dashboard import BusSetup, Dashboard
+from motorbus.dashboard.hosts import LOOPBACK_NAMES, HostCheck
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la
 
-__all__ = ["DEFAULT_LISTEN", "EXTRA_MESSAGE", "parse_listen", "register", "run"]
+__all__ = ["DEFAULT_LISTEN", "EXTRA_MESSAGE", "host_check", "parse_listen", "register", "run"]
 
 #: Where the page is served unless --listen says otherwise.
 DEFAULT_LISTEN = "127.0.0.1:8765"
@@ -87,6 +92,14 @@ def register(subparsers: Any) -> None:
         help=f"where to serve the page (default {DEFAULT_LISTEN}; port 0: any free port)",
     )
     p.add_argument("--control", action="store_true", help="allow controls (e-stop, move...)")
+    p.add_argument(
+        "--allow-host",
+        metavar="NAME",
+        action="append",
+        default=[],
+        help="a host name the page may be reached by besides the --listen address "
+        "(repeatable); requests for any other Host get 403",
+    )
     p.add_argument(
         "--window",
         metavar="LO:HI",
@@ -126,6 +139,30 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+def host_check(host: str, allowed: list[str]) -> HostCheck:
+    """The ``Host`` names a dashboard listening on ``host`` answers to.
+
+    The listen address itself, the loopback names when it is a loopback address, and
+    the names given with ``--allow-host``.  On a wildcard address (0.0.0.0, ::) any IP
+    address literal too, and this machine's own names: the page is then reached by
+    whichever of the machine's addresses the viewer uses.
+    """
+    names = [host, *allowed]
+    wildcard = host in ("0.0.0.0", "::", "")
+    if _is_loopback(host):
+        names += LOOPBACK_NAMES
+    if wildcard:
+        names += [*LOOPBACK_NAMES, socket.gethostname(), socket.getfqdn()]
+    for name in allowed:
+        if not name.strip() or any(c in name for c in "/ @"):
+            raise LocalProtocolError(
+                f"--allow-host={name!r} is not a host name (e.g. robot.local)",
+                field="--allow-host",
+                value=name,
+            )
+    return HostCheck(names, any_address=wildcard)
+
+
 def _parse_window(text: str) -> tuple[int, int]:
     lo, sep, hi = text.partition(":")
     if not sep or not lo.strip().isdigit() or not hi.strip().isdigit():
@@ -151,12 +188,13 @@ def run(args: argparse.Namespace) -> int:
             value=args.push_hz,
         )
     host, port = parse_listen(args.listen)
+    hosts = host_check(host, args.allow_host)
     window = _parse_window(args.window)
     Dashboard([], window=window)  # checks the window before any port opens
     manager, wanted = _manager(args)
     token = None if _is_loopback(host) else secrets.token_urlsafe(18)
     try:
-        run_safely(_serve(args, manager, wanted, host, port, token, window))
+        run_safely(_serve(args, manager, wanted, host, port, token, window, hosts))
     except SystemExit as end:
         if end.code not in (130, 143):  # Ctrl-C and SIGTERM are how a dashboard ends
             raise
@@ -238,6 +276,7 @@ async def _serve(
     port: int,
     token: str | None,
     window: tuple[int, int],
+    hosts: HostCheck,
 ) -> None:
     from aiohttp import web
 
@@ -255,7 +294,7 @@ async def _serve(
             setups.append(BusSetup(bus, list(ids), project, quad, spec.la_safe_action))
         dash = Dashboard(setups, period=args.interval, control=args.control, window=window)
         record = Path(args.record) if args.record else None
-        app = make_app(dash, token=token, push_hz=args.push_hz, record_dir=record)
+        app = make_app(dash, token=token, push_hz=args.push_hz, record_dir=record, hosts=hosts)
         runner = web.AppRunner(app, handle_signals=False, access_log=None)
         await runner.setup()
         try:

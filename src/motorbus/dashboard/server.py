@@ -18,6 +18,13 @@ With a ``token`` (given when listening beyond 127.0.0.1), every request needs it
 ``?token=`` or the ``X-Motorbus-Token`` header.  A browser request from a page of
 another origin (its ``Origin`` header) is refused: the WebSocket and the controls only
 answer this server's own page.
+
+Every request, the page's included, must name in its ``Host`` header one of the names
+the server answers to (``allowed_hosts``: the address it listens on, and the names the
+user allowed); anything else gets 403 before any handler runs.  This is what stops DNS
+rebinding: a page of ``attacker.example`` whose name the attacker re-points at 127.0.0.1
+is same-origin with itself, so the ``Origin`` check alone lets it through, but its
+requests carry ``Host: attacker.example``.
 """
 
 from __future__ import annotations
@@ -35,10 +42,17 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
+from motorbus.dashboard.hosts import LOOPBACK_NAMES, HostCheck
 from motorbus.dashboard.runtime import ControlError, Dashboard
 from motorbus.errors import LocalProtocolError
 
-__all__ = ["CSP", "DASHBOARD_KEY", "TOKEN_HEADER", "make_app", "page"]
+__all__ = [
+    "CSP",
+    "DASHBOARD_KEY",
+    "TOKEN_HEADER",
+    "make_app",
+    "page",
+]
 
 log = logging.getLogger("motorbus.dashboard")
 
@@ -71,6 +85,7 @@ def make_app(
     token: str | None = None,
     push_hz: float = 10.0,
     record_dir: Path | None = None,
+    hosts: HostCheck | None = None,
 ) -> web.Application:
     """The aiohttp application serving ``dash``.
 
@@ -79,6 +94,7 @@ def make_app(
         token: the access token every request must carry (``None``: none needed).
         push_hz: WebSocket pushes a second.
         record_dir: where the record button writes (default ``./motorbus-recording``).
+        hosts: the ``Host`` names answered (default: the loopback names only).
     """
     app = web.Application(middlewares=[_guard])
     app[DASHBOARD_KEY] = dash
@@ -88,6 +104,7 @@ def make_app(
         "push_hz": push_hz,
         "record_dir": record_dir or Path("motorbus-recording"),
         "page": page(),
+        "hosts": hosts if hosts is not None else HostCheck(LOOPBACK_NAMES),
     }
     app.router.add_get("/", _index)
     app.router.add_get("/ws", _ws)
@@ -112,6 +129,21 @@ def _same_origin(request: web.Request) -> bool:
 async def _guard(
     request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
 ) -> web.StreamResponse:
+    host = request.headers.get("Host")
+    if not request.app[_CONFIG]["hosts"].allows(host):
+        log.warning(
+            "dashboard: refused %s %s for Host %r (not a name this dashboard answers to)",
+            request.method,
+            request.path,
+            host,
+        )
+        return web.json_response(
+            {
+                "error": f"Host {host!r} is not a name this dashboard answers to; "
+                "start it with --allow-host NAME to allow a name"
+            },
+            status=403,
+        )
     token = request.app[_CONFIG]["token"]
     if token is not None:
         given = request.headers.get(TOKEN_HEADER) or request.query.get("token") or ""
