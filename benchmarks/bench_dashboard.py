@@ -1,25 +1,34 @@
-"""Fan-out of ``motorbus dashboard``: the bus's frames/s with 1 and with 50 WebSocket viewers.
+"""Fan-out of ``motorbus dashboard``: the bus's frames/s with 1 and with 50 WebSocket viewers,
+and what 50 viewers connecting at once do to the bus.
 
 The dashboard (one poller on the bus, the aiohttp server) runs here against
 ``motorbus sim`` on a pty; the viewers run in a child process, as browsers would, each
-holding a WebSocket and reading every push.  The bus's frames/s (``bus.stats.requests``
-over a window) is measured with 1 viewer and with 50, alternately, several times: the
-poller sets the traffic, so the two should agree (issue 25 asks for 1 % or better).
+holding a WebSocket and reading every push.
 
-Prints a table and writes ``benchmarks/results/dashboard.json``.
+* Steady: the bus's frames/s (``bus.stats.requests`` over a window) is measured with 1
+  viewer and with 50, alternately, several times: the poller sets the traffic, so the
+  two should agree (issue 25 asks for 1 % or better).
+* Burst (issue 39): once the plots' window is full (``--fill`` seconds), ``--viewers``
+  WebSockets connect at the same moment and an e-stop is posted among them.  Measured:
+  the e-stop's round trip, the longest time the simulator saw no frame at all (from its
+  own frame log), and the size of a new viewer's snapshot.
 
-    python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50]
+Prints tables and writes ``benchmarks/results/dashboard.json``.
+
+    python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50] [--fill 30]
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -59,6 +68,59 @@ async def viewers_only(url: str, count: int) -> None:
     print(json.dumps(received), flush=True)
 
 
+async def burst_only(base: str, count: int) -> None:
+    """Child process: at "go", connect ``count`` viewers at once and post an e-stop."""
+
+    async def one(session: aiohttp.ClientSession) -> int:
+        async with session.ws_connect(f"ws://{base}/ws") as ws:
+            msg = await ws.receive(timeout=60)
+            return len(msg.data)
+
+    async def estop(session: aiohttp.ClientSession) -> float:
+        await asyncio.sleep(0.01)  # posted while the viewers' snapshots are being built
+        t0 = time.perf_counter()
+        async with session.post(f"http://{base}/api/estop", json={}) as r:
+            assert r.status == 200, await r.text()
+        return time.perf_counter() - t0
+
+    connector = aiohttp.TCPConnector(limit=0)
+    async with aiohttp.ClientSession(connector=connector) as session:
+        print("ready", flush=True)
+        await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+        t0 = time.perf_counter()
+        stop_task = asyncio.create_task(estop(session))
+        sizes = await asyncio.gather(*(one(session) for _ in range(count)))
+        all_in = time.perf_counter() - t0
+        estop_s = await stop_task
+    print(json.dumps({"estop_s": estop_s, "all_connected_s": all_in, "bytes": max(sizes)}))
+
+
+async def burst(sim: SimProcess, base: str, viewers: int) -> dict[str, Any]:
+    child = await asyncio.create_subprocess_exec(
+        sys.executable, __file__, "--burst-only", base, str(viewers),
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+    )  # fmt: skip
+    assert child.stdout is not None and child.stdin is not None
+    assert (await child.stdout.readline()).strip() == b"ready"
+    await asyncio.sleep(0.3)
+    before = len(sim.log_records())
+    child.stdin.write(b"go\n")
+    await child.stdin.drain()
+    out = json.loads((await child.stdout.readline()).decode())
+    await asyncio.sleep(0.3)
+    child.stdin.close()
+    await child.wait()
+    rx = [float(r["t"]) for r in sim.log_records()[before:] if r.get("direction") == "request"]
+    gaps = [b - a for a, b in itertools.pairwise(rx)]
+    return {
+        "viewers": viewers,
+        "estop_ms": out["estop_s"] * 1e3,
+        "all_connected_ms": out["all_connected_s"] * 1e3,
+        "longest_silence_ms": max(gaps) * 1e3 if gaps else None,
+        "snapshot_bytes": out["bytes"],
+    }
+
+
 async def window(bus: Bus, url: str, viewers: int, seconds: float) -> dict[str, Any]:
     child = await asyncio.create_subprocess_exec(
         sys.executable, __file__, "--viewers-only", url, str(viewers),
@@ -81,17 +143,20 @@ async def window(bus: Bus, url: str, viewers: int, seconds: float) -> dict[str, 
     }
 
 
-async def measure(seconds: float, repeats: int, many: int) -> dict[str, Any]:
-    with SimProcess([f"la:{IDS[0]}-{IDS[-1]}"], baud=921600) as sim:
+async def measure(
+    seconds: float, repeats: int, many: int, fill: float, log: Path
+) -> dict[str, Any]:
+    with SimProcess([f"la:{IDS[0]}-{IDS[-1]}"], baud=921600, log_file=log) as sim:
         bus = Bus(open_transport(sim.path, baudrate=921600), name="arm", families=[Family.LA])
         async with bus:
-            dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD_S)
+            dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD_S, control=True)
             runner = web.AppRunner(make_app(dash, push_hz=10.0), access_log=None)
             await runner.setup()
             site = web.TCPSite(runner, "127.0.0.1", 0)
             await site.start()
             port = runner.addresses[0][1]
             await dash.start()
+            started = time.monotonic()
             try:
                 rows = []
                 for _ in range(repeats):
@@ -99,6 +164,8 @@ async def measure(seconds: float, repeats: int, many: int) -> dict[str, Any]:
                         rows.append(
                             await window(bus, f"ws://127.0.0.1:{port}/ws", viewers, seconds)
                         )
+                await asyncio.sleep(max(0.0, fill - (time.monotonic() - started)))
+                bursts = [await burst(sim, f"127.0.0.1:{port}", many) for _ in range(repeats)]
             finally:
                 await dash.stop()
                 await runner.cleanup()
@@ -121,6 +188,8 @@ async def measure(seconds: float, repeats: int, many: int) -> dict[str, Any]:
         "frames_per_s_1_viewer": mean1,
         f"frames_per_s_{many}_viewers": mean_many,
         "difference_pct": 100 * (mean_many - mean1) / mean1,
+        "fill_s": fill,
+        "bursts": bursts,
     }
 
 
@@ -129,12 +198,22 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--viewers", type=int, default=50)
+    parser.add_argument(
+        "--fill", type=float, default=30.0, help="seconds of samples before the bursts (30)"
+    )
     parser.add_argument("--viewers-only", nargs=2, metavar=("URL", "N"), help=argparse.SUPPRESS)
+    parser.add_argument("--burst-only", nargs=2, metavar=("HOST", "N"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.viewers_only:
         asyncio.run(viewers_only(args.viewers_only[0], int(args.viewers_only[1])))
         return
-    report = asyncio.run(measure(args.seconds, args.repeats, args.viewers))
+    if args.burst_only:
+        asyncio.run(burst_only(args.burst_only[0], int(args.burst_only[1])))
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        report = asyncio.run(
+            measure(args.seconds, args.repeats, args.viewers, args.fill, Path(tmp) / "sim.jsonl")
+        )
     print(f"{'viewers':>8} {'frames/s':>9} {'msgs/viewer':>12}")
     for r in report["windows"]:
         msgs = f"{r['messages_min']}..{r['messages_max']}"
@@ -144,6 +223,13 @@ def main() -> None:
         f"{report[f'frames_per_s_{args.viewers}_viewers']:.2f} frames/s "
         f"({report['difference_pct']:+.2f} %); polls ask {report['expected_frames_per_s']:.0f}"
     )
+    print(f"\n{args.viewers} viewers connecting at once, after {args.fill:g} s of samples:")
+    print(f"{'e-stop ms':>10} {'all in ms':>10} {'no frame ms':>12} {'snapshot kB':>12}")
+    for b in report["bursts"]:
+        print(
+            f"{b['estop_ms']:>10.1f} {b['all_connected_ms']:>10.1f} "
+            f"{b['longest_silence_ms']:>12.1f} {b['snapshot_bytes'] / 1e3:>12.1f}"
+        )
     RESULTS.parent.mkdir(exist_ok=True)
     RESULTS.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {RESULTS}")

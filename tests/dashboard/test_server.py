@@ -399,3 +399,45 @@ def test_an_allowed_host_that_is_not_a_name_is_refused_at_start() -> None:
 
     with pytest.raises(LocalProtocolError, match="--allow-host='http://x/'"):
         host_check("127.0.0.1", ["http://x/"])
+
+
+async def test_viewers_connecting_between_two_pushes_share_one_snapshot_build(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    async with served(control=False) as rig:
+        await rig.rounds(1)
+        builds: list[int | None] = []
+        real = rig.dash.state.snapshot
+
+        def counted(since: int | None = None) -> dict[str, Any]:
+            builds.append(since)
+            return real(since)
+
+        monkeypatch.setattr(rig.dash.state, "snapshot", counted)
+        rig.dash.pushed()
+        first = rig.dash.for_new_viewer()
+        assert rig.dash.for_new_viewer() is first  # no push in between
+        assert builds.count(None) == 1  # one full build for both viewers
+        await rig.rounds(1)
+        rig.dash.pushed()
+        again = rig.dash.for_new_viewer()
+        assert again is not first
+        assert json.loads(again)["seq"] > json.loads(first)["seq"]  # fresh after a push
+        assert rig.dash.message() is not again  # message() itself is always built anew
+
+
+async def test_a_viewer_gets_every_sample_across_its_snapshot_and_the_pushes() -> None:
+    async with served(control=False) as rig:
+        await rig.rounds(2)
+        async with rig.client.ws_connect("/ws") as ws:
+            seen: list[float] = []
+            for _ in range(6):
+                snap = json.loads((await ws.receive(timeout=WAIT_S)).data)
+                (bus,) = snap["buses"]
+                seen += bus["la"][0]["series"]["t"]
+            # No gap: every sample of la:1 the dashboard holds within the span the viewer
+            # saw reached the viewer, in its snapshot or a push.
+            state = rig.dash.state
+            held = [state._rel(s[1]) for s in state.buses["arm"].la[1].samples]
+        span = [t for t in held if min(seen) <= t <= max(seen)]
+        assert len(span) >= 6 and set(span) <= set(seen)

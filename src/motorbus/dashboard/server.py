@@ -175,7 +175,7 @@ async def _state(request: web.Request) -> web.Response:
 async def _ws(request: web.Request) -> web.WebSocketResponse:
     ws = web.WebSocketResponse(heartbeat=20.0)
     await ws.prepare(request)
-    await ws.send_str(request.app[DASHBOARD_KEY].message())
+    await ws.send_str(request.app[DASHBOARD_KEY].for_new_viewer())
     request.app[_VIEWERS].add(ws)
     try:
         async for msg in ws:  # viewers only listen; anything they send is ignored
@@ -205,6 +205,7 @@ async def _pusher(app: web.Application) -> AsyncIterator[None]:
             await asyncio.sleep(next_push - loop.time())
             if dash.recorder is not None:
                 dash.recorder.flush()
+            dash.pushed()
             viewers = [ws for ws in app[_VIEWERS] if not ws.closed]
             if not viewers:
                 since = dash.state.seq
