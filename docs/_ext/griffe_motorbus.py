@@ -39,26 +39,30 @@ DIRECTIVE = re.compile(r"^:::\s+(?P<id>[\w.]+)\s*$", re.MULTILINE)
 class MotorbusReference(griffe.Extension):
     """Roles to cross-references, each public name once, internals left out."""
 
-    def __init__(self, pages: str = "docs", internal: list[str] | None = None) -> None:
+    def __init__(
+        self, pages: str = "docs", internal: list[str] | None = None, package: str = "motorbus"
+    ) -> None:
         super().__init__()
+        self.package = package
         self.pages = Path(pages)
         self.internal = list(internal or [])
 
     def on_package(self, *, pkg: griffe.Module, loader: griffe.GriffeLoader, **_: Any) -> None:
-        if pkg.name != "motorbus":
+        if pkg.name != self.package:
             return
-        rendered = self._rendered_modules()
         everything = _walk(pkg)
+        for obj in everything:
+            if not obj.is_alias and obj.is_attribute and obj.docstring is None:
+                _doc_comment(obj)
         for obj in everything:
             if not obj.is_alias and obj.docstring is not None:
                 obj.docstring.value = ROLE.sub(
                     lambda m, o=obj: _reference(pkg, o, m), obj.docstring.value
                 )
         for obj in everything:
-            if obj.is_alias:
-                self._hide_reexport(obj, rendered)
-            elif obj.name.startswith("__") and obj.name.endswith("__") and obj.is_function:
+            if not obj.is_alias and obj.is_function and _is_dunder(obj.name):
                 _leave_out(obj)  # ``__repr__`` and co. (``__init__`` is merged into the class)
+        _one_home_each(pkg, everything, self._rendered_ids())
         for path in self.internal:
             obj = _lookup(pkg, path)
             if obj is None or obj.is_alias:
@@ -66,24 +70,89 @@ class MotorbusReference(griffe.Extension):
             else:
                 _leave_out(obj)
 
-    def _rendered_modules(self) -> set[str]:
+    def _rendered_ids(self) -> set[str]:
+        """What the pages render (``::: motorbus.x`` lines): modules, a few single objects."""
         found: set[str] = set()
         for page in sorted(self.pages.rglob("*.md")):
             found.update(m["id"] for m in DIRECTIVE.finditer(page.read_text(encoding="utf-8")))
         return found
 
-    @staticmethod
-    def _hide_reexport(alias: griffe.Object | griffe.Alias, rendered: set[str]) -> None:
-        parent = alias.parent
-        if parent is None or not parent.is_module:
-            return
-        try:
-            target = alias.final_target
-        except griffe.AliasResolutionError:
-            return  # another library's name: not documented here in any case
-        home = target.parent
-        if home is not None and home.path in rendered and home.path != parent.path:
-            alias.public = False
+
+def _is_dunder(name: str) -> bool:
+    return name.startswith("__") and name.endswith("__")
+
+
+def _one_home_each(pkg: griffe.Module, everything: list[Any], rendered: set[str]) -> None:
+    """Make each object public on exactly one page, its home.
+
+    The home is where the object is defined, when a page renders that module (or the
+    object itself).  Otherwise it is a rendered module that imports the object and
+    exports it: the one the package itself imports it from (``motorbus.PERIOD_MAX_S``
+    comes from ``motorbus.streams``), else the first by name.  Every other re-export
+    in a rendered module is left out.  Names the package exports (its imports,
+    ``from motorbus.x import Name as Name``: griffe cannot read the ``__all__`` it
+    computes) are public at their home even when their module's ``__all__`` omits them.
+    """
+    exported: dict[str, str] = {}  # target path -> the module the package imports it from
+    for member in pkg.members.values():
+        if member.is_alias:
+            try:
+                exported[member.final_target.path] = member.target_path.rsplit(".", 1)[0]
+            except griffe.AliasResolutionError:
+                continue  # another library (``__future__``, ``importlib``)
+    holders: dict[str, list[Any]] = {}
+    for obj in everything:
+        parent = obj.parent
+        if obj.is_alias and parent is not None and parent.is_module and parent.path in rendered:
+            try:
+                holders.setdefault(obj.final_target.path, []).append(obj)
+            except griffe.AliasResolutionError:
+                continue
+    for path in exported:
+        target = _lookup(pkg, path)
+        if target is not None and _defined_on_a_page(target, rendered):
+            target.public = True
+        elif path not in holders:
+            _log.warning("griffe_motorbus: motorbus exports %s, which no page renders", path)
+    for path, aliases in holders.items():
+        target = _lookup(pkg, path)
+        keep = None
+        if target is not None and not _defined_on_a_page(target, rendered):
+            ordered = sorted(aliases, key=lambda a: a.parent.path)
+            keep = next((a for a in ordered if a.parent.path == exported.get(path)), None)
+            if keep is None:
+                keep = next((a for a in ordered if a.is_public), None)
+        for alias in aliases:
+            alias.public = alias is keep
+
+
+def _defined_on_a_page(target: Any, rendered: set[str]) -> bool:
+    home = target.parent
+    return bool(target.path in rendered or (home is not None and home.path in rendered))
+
+
+def _doc_comment(attr: Any) -> None:
+    """Give an attribute documented by ``#:`` comments (above it, or after it on its
+    line: the Sphinx convention) that text as its docstring."""
+    try:
+        lines = attr.lines_collection[attr.filepath] if attr.lineno else None
+    except KeyError:
+        return
+    if not lines:
+        return
+    at = attr.lineno - 1
+    text: list[str] = []
+    if "#: " in lines[at]:
+        text.append(lines[at].split("#: ", 1)[1].strip())
+    else:
+        above = at - 1
+        while above >= 0 and lines[above].strip().startswith("#:"):
+            text.insert(0, lines[above].strip()[2:].strip())
+            above -= 1
+    if text:
+        # Written as plain text: ``[x][k]`` is an index there, not a Markdown reference.
+        value = "\n".join(text).replace("[", "\\[")
+        attr.docstring = griffe.Docstring(value, lineno=attr.lineno, parent=attr)
 
 
 def _leave_out(obj: griffe.Object | griffe.Alias) -> None:
