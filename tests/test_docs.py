@@ -245,3 +245,25 @@ def test_architecture_says_why_each_dependency() -> None:
     deps = text[text.index("## Dependencies, and why these") :]
     missing = sorted({n for n in names if f"`{n}`" not in deps})
     assert not missing, f"docs/architecture.md does not say why {missing}"
+
+
+#: A unit, in a field's description: what the number counts or measures.
+UNIT = re.compile(r"\b(ms|seconds?|units(/s)?|mA|grams|Hz|degrees|percent|no unit)\b")
+
+
+@needs_mkdocs
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize(
+    "name", ["Sample", "StepFigures", "FrequencyPoint", "TrackFigures", "RepeatFigures"]
+)
+def test_rig_figures_are_described_field_by_field_with_their_unit(site: Path, name: str) -> None:
+    import dataclasses
+
+    from motorbus.rig import analysis
+
+    described = field_descriptions(api_page(site, "rig"), f"motorbus.rig.analysis.{name}")
+    for f in dataclasses.fields(getattr(analysis, name)):
+        text = described.get(f.name, "")
+        assert text.strip(), f"{name}.{f.name} has no description"
+        if f.type == "float":
+            assert UNIT.search(text), f"{name}.{f.name}: no unit in {text.strip()!r}"
