@@ -267,3 +267,23 @@ def test_rig_figures_are_described_field_by_field_with_their_unit(site: Path, na
         assert text.strip(), f"{name}.{f.name} has no description"
         if f.type == "float":
             assert UNIT.search(text), f"{name}.{f.name}: no unit in {text.strip()!r}"
+
+
+@needs_mkdocs
+@pytest.mark.timeout(300)
+def test_bus_stats_fields_are_described_with_units_and_the_late_threshold(site: Path) -> None:
+    import dataclasses
+
+    from motorbus.bus.matching import LATE_WINDOW_S
+    from motorbus.bus.stats import BusStats, DeviceStats, LatencyHistogram
+
+    page = api_page(site, "bus")
+    for cls in (BusStats, DeviceStats, LatencyHistogram):
+        described = field_descriptions(page, f"motorbus.bus.stats.{cls.__name__}")
+        for f in dataclasses.fields(cls):
+            text = described.get(f.name, "")
+            assert text.strip(), f"{cls.__name__}.{f.name} has no description"
+            if f.type == "float":
+                assert UNIT.search(text), f"{cls.__name__}.{f.name}: no unit in {text!r}"
+    late = field_descriptions(page, "motorbus.bus.stats.BusStats")["late_replies"]
+    assert f"{LATE_WINDOW_S:g} s" in late and "LATE_WINDOW_S" in late
