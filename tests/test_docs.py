@@ -287,3 +287,84 @@ def test_bus_stats_fields_are_described_with_units_and_the_late_threshold(site: 
                 assert UNIT.search(text), f"{cls.__name__}.{f.name}: no unit in {text!r}"
     late = field_descriptions(page, "motorbus.bus.stats.BusStats")["late_replies"]
     assert f"{LATE_WINDOW_S:g} s" in late and "LATE_WINDOW_S" in late
+
+
+TOY_MODULE = '''\
+"""A toy package: :class:`Thing` and :func:`~toypkg.make`; see :mod:`asyncio`."""
+
+import asyncio
+
+__all__ = ["Thing", "make"]
+
+
+class Thing:
+    """A thing; :meth:`go` starts it, :meth:`Hidden.x <toypkg.make>` is titled."""
+
+    def go(self) -> None:
+        """Go; the loop is an :class:`asyncio.AbstractEventLoop`.  ROLE_HERE"""
+
+
+def make() -> Thing:
+    """Make a :class:`Thing` (:meth:`Thing.go` it next)."""
+    return Thing()
+
+
+def _helper() -> None:
+    """Private."""
+'''
+
+
+def build_toy(tmp_path: Path, extra_role: str) -> tuple[subprocess.CompletedProcess[str], Path]:
+    pkg = tmp_path / "src" / "toypkg"
+    pkg.mkdir(parents=True)
+    (pkg / "__init__.py").write_text(TOY_MODULE.replace("ROLE_HERE", extra_role))
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "index.md").write_text("# Toy\n\n::: toypkg\n")
+    ext = ROOT / "docs" / "_ext" / "griffe_motorbus.py"
+    (tmp_path / "mkdocs.yml").write_text(
+        "site_name: toy\nplugins:\n  - mkdocstrings:\n      handlers:\n        python:\n"
+        f"          paths: [src]\n          options:\n            filters: public\n"
+        "            show_source: false\n"
+        f"            extensions:\n              - {ext}:\n                  package: toypkg\n"
+        f"                  pages: {tmp_path / 'docs'}\n"
+    )
+    site = tmp_path / "site"
+    return mkdocs("build", "--strict", "--site-dir", str(site), cwd=tmp_path), site
+
+
+@needs_mkdocs
+@pytest.mark.timeout(300)
+def test_roles_become_links_where_python_would_resolve_the_name(tmp_path: Path) -> None:
+    r, site = build_toy(tmp_path, "")
+    assert r.returncode == 0, r.stderr[-4000:]
+    page = (site / "index.html").read_text(encoding="utf-8")
+    assert not RAW_ROLE.search(page)
+
+    def link(title: str) -> list[str]:
+        pattern = rf'<a class="autorefs[^"]*"[^>]*href="([^"]*)"><code>{re.escape(title)}</code>'
+        return re.findall(pattern, page)
+
+    assert link("Thing") == ["#toypkg.Thing", "#toypkg.Thing"]  # from the module, a function
+    assert link("make") == ["#toypkg.make"]  # ``~toypkg.make``: the last part shown
+    assert link("go") == ["#toypkg.Thing.go"]  # a method named from its class
+    assert link("Thing.go") == ["#toypkg.Thing.go"]
+    assert link("Hidden.x") == ["#toypkg.make"]  # ``title <target>``
+    # Another library's names stay plain code: the site has no page for them.
+    assert "<code>asyncio</code>" in page and "<code>asyncio.AbstractEventLoop</code>" in page
+
+
+@needs_mkdocs
+@pytest.mark.timeout(300)
+def test_a_role_that_names_nothing_fails_the_strict_build(tmp_path: Path) -> None:
+    r, _ = build_toy(tmp_path, ":func:`nowhere`")
+    assert r.returncode != 0
+    assert "names nothing" in r.stderr and ":func:`nowhere`" in r.stderr
+
+
+@needs_mkdocs
+@pytest.mark.timeout(300)
+def test_a_role_to_a_name_the_site_does_not_render_is_plain_code(tmp_path: Path) -> None:
+    r, site = build_toy(tmp_path, ":func:`_helper`")  # real, but private: not rendered
+    assert r.returncode == 0, r.stderr[-4000:]
+    page = (site / "index.html").read_text(encoding="utf-8")
+    assert "<code>_helper</code>" in page and 'href="#toypkg._helper"' not in page

@@ -183,38 +183,45 @@ def _lookup(pkg: griffe.Module, path: str) -> griffe.Object | griffe.Alias | Non
         return None
 
 
-def _member(scope: griffe.Object | griffe.Alias, dotted: str) -> Any:
-    """``scope.a.b`` (inherited members included), or None."""
-    obj: Any = scope
-    for part in dotted.split("."):
+def _path(obj: Any) -> str:
+    """Where ``obj`` is defined; for another library's object, the path it was imported as."""
+    try:
+        return str(obj.final_target.path if obj.is_alias else obj.path)
+    except griffe.AliasResolutionError:
+        return str(obj.target_path)
+
+
+def _member(scope: Any, dotted: str) -> str | None:
+    """The path of ``scope.a.b`` (inherited members included), or None."""
+    obj = scope
+    parts = dotted.split(".")
+    for i, part in enumerate(parts):
         try:
             if obj.is_alias:
                 obj = obj.final_target
             members = obj.all_members if obj.is_class else obj.members
         except griffe.AliasResolutionError:
-            return None
+            # Another library's object imported here (``asyncio``): the rest is its own.
+            return ".".join([str(obj.target_path), *parts[i:]])
         if part not in members:
             return None
         obj = members[part]
-    return obj
+    return _path(obj)
 
 
 def _resolve(pkg: griffe.Module, owner: griffe.Object, name: str) -> str | None:
-    """The canonical path of what ``name`` means in ``owner``'s docstring, or None.
-
-    An external name (``asyncio.Task``) comes back as the path it was imported as.
-    """
-    found = _lookup(pkg, name)
+    """The path of what ``name`` means in ``owner``'s docstring, or None: an absolute
+    path in the package, else the first scope out from ``owner`` that has the name."""
+    absolute = _lookup(pkg, name)
+    if absolute is not None:
+        return _path(absolute)
     scope: Any = owner
-    while found is None and scope is not None:
+    while scope is not None:
         found = _member(scope, name)
+        if found is not None:
+            return found
         scope = scope.parent
-    if found is None:
-        return None
-    try:
-        return str(found.final_target.path if found.is_alias else found.path)
-    except griffe.AliasResolutionError:
-        return str(found.target_path)
+    return None
 
 
 def _reference(pkg: griffe.Module, owner: griffe.Object, match: re.Match[str]) -> str:
