@@ -251,18 +251,28 @@ def test_architecture_says_why_each_dependency() -> None:
 UNIT = re.compile(r"\b(ms|seconds?|units(/s)?|mA|grams|Hz|degrees|percent|no unit)\b")
 
 
+RIG_VALUES = [
+    "analysis.Sample",
+    "analysis.StepFigures",
+    "analysis.FrequencyPoint",
+    "analysis.TrackFigures",
+    "analysis.RepeatFigures",
+    "runner.DeviceResult",
+    "runner.RigResult",
+]
+
+
 @needs_mkdocs
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize(
-    "name", ["Sample", "StepFigures", "FrequencyPoint", "TrackFigures", "RepeatFigures"]
-)
-def test_rig_figures_are_described_field_by_field_with_their_unit(site: Path, name: str) -> None:
+@pytest.mark.parametrize("name", RIG_VALUES)
+def test_rig_values_are_described_field_by_field_with_their_unit(site: Path, name: str) -> None:
     import dataclasses
+    import importlib
 
-    from motorbus.rig import analysis
-
-    described = field_descriptions(api_page(site, "rig"), f"motorbus.rig.analysis.{name}")
-    for f in dataclasses.fields(getattr(analysis, name)):
+    module, cls = name.split(".")
+    value_type = getattr(importlib.import_module(f"motorbus.rig.{module}"), cls)
+    described = field_descriptions(api_page(site, "rig"), f"motorbus.rig.{name}")
+    for f in dataclasses.fields(value_type):
         text = described.get(f.name, "")
         assert text.strip(), f"{name}.{f.name} has no description"
         if f.type == "float":
