@@ -10,11 +10,14 @@ tree it edits are the copies griffe loaded for the site.
   A target the site renders becomes a link; one it does not render (a private helper,
   an object without a docstring, another library) stays plain code.  A name that
   resolves nowhere is a warning, which fails the strict build.
-* A name a module imports and re-exports (``motorbus.sim.SimProcess``) is documented
-  once, on the page of the module that defines it, when a page renders that module;
-  the re-export is left out (it stays in the reference when it is the only place).
-* The objects listed in ``internal`` are left out: methods public by name that only the
-  package itself calls (``Stream.end``, ``Stream.next_targets``, ...).
+* ``#:`` comments (above an assignment, or after it on its line: the convention the
+  code uses for constants and fields) become the docstring of what they describe.
+* Each object is documented once, on one page: where it is defined when a page renders
+  that module, else the one module with a page that re-exports it (``motorbus.sim``
+  re-exports ``SimProcess``; ``motorbus.sim.process``, which defines it, has the entry).
+* Left out: ``__repr__`` and the other special methods, and the objects listed in
+  ``internal``: methods public by name that only the package itself calls
+  (``Stream.end``, ``Stream.next_targets``, ...).
 """
 
 from __future__ import annotations
@@ -55,20 +58,18 @@ class MotorbusReference(griffe.Extension):
             if not obj.is_alias and obj.is_attribute and obj.docstring is None:
                 _doc_comment(obj)
         for obj in everything:
-            if not obj.is_alias and obj.docstring is not None:
-                obj.docstring.value = ROLE.sub(
-                    lambda m, o=obj: _reference(pkg, o, m), obj.docstring.value
-                )
+            if isinstance(obj, griffe.Object) and obj.docstring is not None:
+                obj.docstring.value = _rewrite_roles(pkg, obj, obj.docstring.value)
         for obj in everything:
             if not obj.is_alias and obj.is_function and _is_dunder(obj.name):
                 _leave_out(obj)  # ``__repr__`` and co. (``__init__`` is merged into the class)
         _one_home_each(pkg, everything, self._rendered_ids())
         for path in self.internal:
-            obj = _lookup(pkg, path)
-            if obj is None or obj.is_alias:
+            internal = _lookup(pkg, path)
+            if internal is None or internal.is_alias:
                 _log.warning("griffe_motorbus: internal %s names no object defined there", path)
             else:
-                _leave_out(obj)
+                _leave_out(internal)
 
     def _rendered_ids(self) -> set[str]:
         """What the pages render (``::: motorbus.x`` lines): modules, a few single objects."""
@@ -95,7 +96,7 @@ def _one_home_each(pkg: griffe.Module, everything: list[Any], rendered: set[str]
     """
     exported: dict[str, str] = {}  # target path -> the module the package imports it from
     for member in pkg.members.values():
-        if member.is_alias:
+        if isinstance(member, griffe.Alias):
             try:
                 exported[member.final_target.path] = member.target_path.rsplit(".", 1)[0]
             except griffe.AliasResolutionError:
@@ -178,7 +179,8 @@ def _lookup(pkg: griffe.Module, path: str) -> griffe.Object | griffe.Alias | Non
     if not path.startswith(pkg.path + "."):
         return None
     try:
-        return pkg[path[len(pkg.path) + 1 :]]
+        found: griffe.Object | griffe.Alias = pkg[path[len(pkg.path) + 1 :]]
+        return found
     except (KeyError, griffe.AliasResolutionError):
         return None
 
@@ -222,6 +224,10 @@ def _resolve(pkg: griffe.Module, owner: griffe.Object, name: str) -> str | None:
             return found
         scope = scope.parent
     return None
+
+
+def _rewrite_roles(pkg: griffe.Module, owner: griffe.Object, text: str) -> str:
+    return ROLE.sub(lambda m: _reference(pkg, owner, m), text)
 
 
 def _reference(pkg: griffe.Module, owner: griffe.Object, match: re.Match[str]) -> str:
