@@ -49,11 +49,11 @@ class LatencyHistogram:
     ``log`` and a few comparisons, so it stays cheap on the reply path.
     """
 
-    counts: array[int] = field(default_factory=_new_counts)
-    count: int = 0
-    total: float = 0.0
-    min: float = math.inf
-    max: float = 0.0
+    counts: array[int] = field(default_factory=_new_counts)  #: samples per bucket (2317)
+    count: int = 0  #: samples recorded
+    total: float = 0.0  #: sum of the samples, seconds
+    min: float = math.inf  #: smallest sample, seconds (``inf`` while empty)
+    max: float = 0.0  #: largest sample, seconds
 
     def record(self, seconds: float) -> None:
         """Add one duration (anything up to 10 ns, negative too, counts in the lowest bucket)."""
@@ -111,13 +111,14 @@ class LatencyHistogram:
 
 @dataclass(slots=True)
 class DeviceStats:
-    """What happened to the requests addressed to one device."""
+    """What happened to the requests addressed to one device (counts, as ``BusStats``)."""
 
-    requests: int = 0
-    replies: int = 0
-    timeouts: int = 0
-    retries: int = 0
-    late_replies: int = 0
+    requests: int = 0  #: frames written to the device (retries included)
+    replies: int = 0  #: its replies matched to the pending request
+    timeouts: int = 0  #: its deadlines that ran out (each attempt)
+    retries: int = 0  #: requests to it written again after a timeout
+    late_replies: int = 0  #: its replies after their deadline was decided (as ``BusStats``)
+    #: Write of each request to its reply, seconds.
     latency: LatencyHistogram = field(default_factory=LatencyHistogram)
 
 
@@ -125,34 +126,38 @@ class DeviceStats:
 class BusStats:
     """What happened on one bus.  Every byte the bus discards is counted here."""
 
-    requests: int = 0  # frames written, replies expected or not (retries included)
-    replies: int = 0  # frames matched to the pending request
-    no_reply_frames: int = 0  # frames sent that expect no reply (broadcasts, 0x03, 0x19)
-    timeouts: int = 0  # deadlines that ran out (each attempt)
-    retries: int = 0
-    failed: int = 0  # requests that ended in an error for the caller
-    late_replies: int = 0  # replies that came after their request's deadline was decided
+    requests: int = 0  #: frames written, replies expected or not (retries included)
+    replies: int = 0  #: frames matched to the pending request
+    no_reply_frames: int = 0  #: frames sent that expect no reply (broadcasts, 0x03, 0x19)
+    timeouts: int = 0  #: deadlines that ran out (each attempt)
+    retries: int = 0  #: requests written again after a timeout
+    failed: int = 0  #: requests that ended in an error for the caller
+    #: Replies that came after their request timed out (its deadline decided), within
+    #: ``LATE_WINDOW_S`` (2 s) of it: recognised, counted, not delivered.
+    late_replies: int = 0
     #: Replies taken although the bus read them after their deadline: they were already
     #: in when it looked, but it looked late (the host stalled or was busy).
     replies_past_deadline: int = 0
-    unexpected_frames: int = 0  # valid frames that answered nothing we asked
+    unexpected_frames: int = 0  #: valid frames that answered nothing we asked
     #: The reassembler's own counters (frames cut, ``EE DD`` markers, discarded bytes by
     #: reason, resyncs), kept across reconnects: the one place discards are counted.
     reassembler: ReassemblerStats = field(default_factory=ReassemblerStats)
-    events: int = 0  # device events delivered (EE DD, done replies, fault changes)
-    done_watches_dropped: int = 0  # awaited "done" replies given up (never came)
-    not_sent: int = 0  # requests dropped unsent: they could not start by their start_by
-    dropped_by_refresh: int = 0  # queued frames no longer wanted when their turn came
-    early_replies: int = 0  # frames refused by the wire floor (wire_floor=True only)
-    #: Timeouts decided more than HOST_STALL_S after their deadline: the host was held up
-    #: (a garbage collection, another process), so the device may not be at fault.
+    events: int = 0  #: device events delivered (EE DD, done replies, fault changes)
+    done_watches_dropped: int = 0  #: awaited "done" replies given up (never came)
+    not_sent: int = 0  #: requests dropped unsent: they could not start by their start_by
+    dropped_by_refresh: int = 0  #: queued frames no longer wanted when their turn came
+    early_replies: int = 0  #: frames refused by the wire floor (wire_floor=True only)
+    #: Timeouts decided more than HOST_STALL_S (1 ms) after their deadline: the host was
+    #: held up (a garbage collection, another process), so the device may not be at fault.
     timeouts_in_host_stall: int = 0
-    host_stall_max: float = 0.0  # the longest such delay, seconds
-    late_reply_max: float = 0.0  # how long after its deadline the latest late reply came, s
-    disconnects: int = 0
-    reconnects: int = 0
-    bytes_out: int = 0
-    bytes_in: int = 0
+    host_stall_max: float = 0.0  #: the longest such delay, seconds
+    #: How long after its deadline the latest late reply came, seconds.
+    late_reply_max: float = 0.0
+    disconnects: int = 0  #: times the port was lost
+    reconnects: int = 0  #: times it was opened again after a loss
+    bytes_out: int = 0  #: bytes written
+    bytes_in: int = 0  #: bytes read (discarded ones included)
+    #: Write of each request to its matched reply, seconds.
     latency: LatencyHistogram = field(default_factory=LatencyHistogram)
     #: Per device, keyed like ``"la:3"``, ``"project_stepper"``, ``"quad_stepper"``.
     devices: dict[str, DeviceStats] = field(default_factory=dict)

@@ -33,12 +33,16 @@ __all__ = [
 @dataclass(frozen=True, slots=True)
 class Sample:
     """One status reply: arrival time ``t`` (s), position (0..2000 units), current (mA)
-    and force (N) as the actuator reported them."""
+    and force (grams) as the actuator reported them."""
 
     t: float
+    """When the reply arrived, seconds on the bus's clock."""
     position: float
+    """Position, 0..2000 units (the full stroke)."""
     current: float = 0.0
+    """Motor current, mA."""
     force: float = 0.0
+    """Force, grams (the LA's status reply, A2-05)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,12 +50,19 @@ class Distribution:
     """Order statistics of a set of values (same units as the values)."""
 
     count: int
+    """Number of values (every other figure is NaN when it is 0)."""
     p50: float
+    """Median, linear interpolation between closest ranks (numpy's default)."""
     p99: float
+    """99th percentile, interpolated like ``p50``."""
     max: float
+    """Largest value."""
     min: float
+    """Smallest value."""
     mean: float
+    """Arithmetic mean."""
     std: float
+    """Population standard deviation (divided by ``count``, not ``count - 1``)."""
 
 
 def _percentile(ordered: Sequence[float], q: float) -> float:
@@ -98,17 +109,30 @@ class StepFigures:
     never got there (e.g. no settling within the samples)."""
 
     start: float
+    """Position the step started from, units."""
     end: float
+    """Target of the step, units."""
     dead_time_ms: float
+    """Write of the target to the first of ``MOVED_SAMPLES`` (3) samples in a row more
+    than the noise band (``noise_band`` units, at least 2) from ``start``, ms."""
     rise_time_ms: float
+    """Between the 10 % and the 90 % crossings of the step (interpolated), ms."""
     peak_speed_units_per_s: float
+    """Largest robust slope over any 100 ms window (``speed_window_s``), units/s."""
     mean_speed_units_per_s: float
+    """80 % of the step over the rise time, units/s."""
     overshoot_pct: float
+    """How far the position went past ``end``, percent of the step (0 if never)."""
     settling_time_ms: float
+    """Write of the target to the first sample after which every sample stays within
+    1 % of the step (``settle_band_pct``) around ``end``, ms."""
     steady_state_error: float
+    """Mean of position - ``end`` over the last 100 ms of samples (``tail_s``), units."""
     peak_current: float
+    """Largest reported current during the step (absolute), mA."""
     peak_force: float
-    #: When the target was written (the bus's clock, s): where the plot starts.
+    """Largest reported force during the step (absolute), grams."""
+    #: When the target was written (the bus's clock, seconds): where the plot starts.
     command_t: float = math.nan
 
 
@@ -252,8 +276,12 @@ class FrequencyPoint:
     and the phase of the output against the target (degrees, negative = lagging)."""
 
     frequency_hz: float
+    """The frequency of the target sine, Hz."""
     amplitude_ratio: float
+    """Amplitude of the positions over amplitude of the targets (least-squares sine
+    fits; 1 = full amplitude, no unit)."""
     phase_deg: float
+    """Phase of the positions against the targets, degrees (negative = lagging)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -263,9 +291,15 @@ class TrackFigures:
     was given."""
 
     rms_error: float
+    """Root mean square of position - target, units; the target of a sample is the
+    last one written before it arrived."""
     max_error: float
+    """Largest absolute position - target, units."""
     lag_ms: float
+    """Shift of the positions that best matches the targets (peak of their
+    cross-correlation on a 1 ms grid, refined by a parabola), ms."""
     response: FrequencyPoint | None
+    """Amplitude ratio and phase at the tracking frequency; None without one."""
 
 
 def _value_at(times: Sequence[float], values: Sequence[float], t: float) -> float:
@@ -417,10 +451,15 @@ class RepeatFigures:
     backlash (mean from above minus mean from below), all in position units."""
 
     target: float
+    """The point approached, units."""
     from_below: Distribution
+    """Settled positions of the approaches from below, units."""
     from_above: Distribution
+    """Settled positions of the approaches from above, units."""
     spread: float
+    """Largest minus smallest settled position over every approach, units."""
     backlash: float
+    """Mean from above minus mean from below, units."""
 
 
 def repeat_figures(

@@ -60,15 +60,19 @@ Progress = Callable[[str, float], None]
 class DeviceResult:
     """Everything measured on one actuator."""
 
-    id: int
-    steps: list[StepFigures] = field(default_factory=list)
+    id: int  #: the actuator's ID (1..254)
+    steps: list[StepFigures] = field(default_factory=list)  #: each step, in order
+    #: Each tracking run, one per frequency (or the one run without a frequency).
     tracks: list[TrackFigures] = field(default_factory=list)
     #: (first, last) write time of each tracking run's targets (bus clock, s).
     track_windows: list[tuple[float, float]] = field(default_factory=list)
+    #: Dead time of each latency step (write of the target to the first move), ms.
     dead_times_ms: list[float] = field(default_factory=list)
-    repeat: RepeatFigures | None = None
+    repeat: RepeatFigures | None = None  #: the repeatability figures, if that test ran
     #: Where each repeatability approach ended, per side ("below", "above").
     ends: dict[str, list[float]] = field(default_factory=dict)
+    #: Position noise at rest: standard deviation of the positions, units (NaN if never
+    #: measured).
     noise: float = math.nan
 
     def figures(self) -> dict[str, float]:
@@ -121,14 +125,18 @@ class DeviceResult:
 class RigResult:
     """A whole run: per actuator results, the raw samples and the achieved sampling."""
 
-    plan: RigPlan
-    devices: dict[int, DeviceResult]
-    samples: dict[int, list[Sample]]
+    plan: RigPlan  #: what was asked
+    devices: dict[int, DeviceResult]  #: per actuator ID, what was measured
+    samples: dict[int, list[Sample]]  #: per actuator ID, every status reply, in order
+    #: Per actuator ID, each target written: (bus clock when the write completed,
+    #: seconds; position, units).
     targets: dict[int, list[tuple[float, int]]]
-    started: float
-    seconds: float
-    polls: int
-    poll_timeouts: int
+    started: float  #: when the run started, seconds since the epoch (``time.time()``)
+    seconds: float  #: how long the run took, seconds
+    polls: int  #: status queries sent
+    poll_timeouts: int  #: status queries without a reply (timed out, or the port lost)
+    #: Why the run ended early, for a caller that records it (``run_rig`` itself
+    #: raises ``RigAborted``); None for a complete run.
     aborted: str | None = None
 
     def sampling(self) -> dict[str, float]:

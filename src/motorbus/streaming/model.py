@@ -36,6 +36,7 @@ __all__ = [
 
 #: Follow-mode targets must come at a fixed interval of 10..50 ms (LA manual 3.5.3).
 PERIOD_MIN_S = 0.010
+#: The longest stream period, seconds (50 ms: LA manual 3.5.3).
 PERIOD_MAX_S = 0.050
 #: A tick sent later than this after its deadline counts as late (it is still sent).
 LATE_AFTER_S = 1e-3
@@ -66,22 +67,40 @@ class GapPolicy(enum.Enum):
 
 @dataclass(slots=True)
 class StreamStats:
-    """Timing and counts of one stream (durations in seconds)."""
+    """Timing and counts of one stream, since it started.
 
-    ticks: int = 0  # ticks served (frames sent)
-    late: int = 0  # ticks sent more than LATE_AFTER_S after their deadline
-    skipped: int = 0  # ticks dropped because the stream fell a whole period behind
+    Every count is a number of ticks, frames or polls, as its name says; durations are
+    in seconds.  A tick is late when its first frame went out more than
+    ``LATE_AFTER_S`` (1 ms) after its deadline, ``origin + k * period``.
+    """
+
+    ticks: int = 0
+    """Ticks served: targets sent (a tick skipped or ended is not counted)."""
+    late: int = 0
+    """Ticks whose first frame went out more than 1 ms (``LATE_AFTER_S``) after their
+    deadline; a late tick is still sent, and counted in ``ticks`` too."""
+    skipped: int = 0
+    """Ticks not sent: the stream was a whole period or more behind (a stalled host),
+    the port was gone, or the tick went to reading positions after a gap."""
     #: Ticks whose first frame could not be written at the deadline itself (a reply
     #: was still owed, or the 1 ms spacing from the previous write): sent that much later.
     slipped: int = 0
-    frames: int = 0  # frames sent for this stream (broadcasts shared count once each)
+    frames: int = 0
+    """Frames written for this stream: each shared broadcast counts once, each feedback
+    frame once."""
     feedback_timeouts: int = 0
+    """Feedback frames and status polls that failed: no reply in time, or another error
+    on the bus (each one counted)."""
     polls: int = 0
+    """Status polls answered (``poll_status=True``): one reply each."""
     #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
     #: whose free slots held no poll at all.
     polls_skipped: int = 0
-    gaps: int = 0  # gaps handled (``StreamGap`` events)
-    #: Lateness of each tick's first frame against its absolute deadline.
+    gaps: int = 0
+    """Gaps handled (``StreamGap`` events): the bus came back after an outage, or the
+    stream fell ``GAP_TICKS`` (3) or more ticks behind."""
+    #: Lateness of each tick's first frame against its absolute deadline, in seconds
+    #: (``as_dict()`` gives p50/p99/max in microseconds).  Over 1 ms counts as ``late``.
     jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
 
     def summary(self) -> str:

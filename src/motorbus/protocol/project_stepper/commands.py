@@ -83,7 +83,7 @@ from motorbus.protocol.project_stepper.wire import (
 class ProjectStepperCommand(Command[ReplyT_co]):
     """Base of every doc-000 command: an 8-byte payload framed by :func:`build_request`.
 
-    Subclasses provide :meth:`payload` and :meth:`reply_shapes`; matching checks the
+    Subclasses provide :meth:`body` and :meth:`reply_shapes`; matching checks the
     exact length and every byte pattern of the shape (A.7).  Most commands are
     acknowledged (:class:`AckCommand`); ``ReadProject`` and ``ReadInput`` decode
     their own replies.
