@@ -95,13 +95,20 @@ async def burst_only(base: str, count: int) -> None:
     print(json.dumps({"estop_s": estop_s, "all_connected_s": all_in, "bytes": max(sizes)}))
 
 
-async def burst(sim: SimProcess, base: str, viewers: int) -> dict[str, Any]:
+async def ready_child(mode: str, where: str, viewers: int) -> asyncio.subprocess.Process:
+    """This script as a child in ``mode`` (its viewers), once it says it is ready."""
     child = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--burst-only", base, str(viewers),
+        sys.executable, __file__, mode, where, str(viewers),
         stdin=subprocess.PIPE, stdout=subprocess.PIPE,
     )  # fmt: skip
-    assert child.stdout is not None and child.stdin is not None
+    assert child.stdout is not None
     assert (await child.stdout.readline()).strip() == b"ready"
+    return child
+
+
+async def burst(sim: SimProcess, base: str, viewers: int) -> dict[str, Any]:
+    child = await ready_child("--burst-only", base, viewers)
+    assert child.stdout is not None and child.stdin is not None
     await asyncio.sleep(0.3)
     before = len(sim.log_records())
     child.stdin.write(b"go\n")
@@ -122,12 +129,8 @@ async def burst(sim: SimProcess, base: str, viewers: int) -> dict[str, Any]:
 
 
 async def window(bus: Bus, url: str, viewers: int, seconds: float) -> dict[str, Any]:
-    child = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, "--viewers-only", url, str(viewers),
-        stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-    )  # fmt: skip
+    child = await ready_child("--viewers-only", url, viewers)
     assert child.stdout is not None and child.stdin is not None
-    assert (await child.stdout.readline()).strip() == b"ready"
     await asyncio.sleep(0.5)  # settle
     n0, t0 = bus.stats.requests, time.monotonic()
     await asyncio.sleep(seconds)
