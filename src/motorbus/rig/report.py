@@ -168,13 +168,15 @@ def _svg(
     integer_x: bool = False,
     integer_y: bool = False,
     bar_width: float = 0.0,
+    x_pad: float = 0.0,
 ) -> str:
     """A chart: ``series`` are (label, points, "line" | "points" | "bars").
 
     Legible by construction: round ticks with labels that fit inside the image (the
     margins are sized from the labels), the legend above the plot area (never over the
     data), and ``integer_y`` (counts) gives whole ticks from 0.  ``bar_width`` is the
-    width of a bar in x units (a histogram's bin)."""
+    width of a bar in x units (a histogram's bin); ``x_pad`` widens the x axis by
+    that many units at each end (points off the frame)."""
     pts = [p for _, ps, _ in series for p in ps if all(math.isfinite(v) for v in p)]
     if logx:
         pts = [p for p in pts if p[0] > 0]
@@ -190,8 +192,17 @@ def _svg(
         if x1 == x0:
             x0, x1 = x0 - 0.5, x1 + 0.5
     else:
-        xticks = _nice_ticks(x_lo, x_hi, integer=integer_x)
-        x0, x1 = xticks[0], xticks[-1]
+        # The x axis spans the data (time series start where they start); its ticks
+        # are the round values inside it.
+        x0, x1 = x_lo - x_pad, x_hi + x_pad
+        if x1 <= x0:
+            x0, x1 = x0 - 1.0, x1 + 1.0
+        span = x1 - x0
+        xticks = [
+            t
+            for t in _nice_ticks(x0, x1, integer=integer_x)
+            if x0 - 1e-9 * span <= t <= x1 + 1e-9 * span
+        ] or [x0, x1]
     y_lo, y_hi = min(ys), max(ys)
     if integer_y:
         y_lo = min(0.0, y_lo)
@@ -317,7 +328,7 @@ def _device_section(ident: int, d: DeviceResult, result: RigResult) -> str:
                 continue
             settle = s.settling_time_ms / 1e3 if math.isfinite(s.settling_time_ms) else 2.0
             points = _window(samples, t_cmd, t_cmd + settle + 0.2)
-            series.append((f"{s.start:g} → {s.end:g}", points, "line"))
+            series.append((f"{s.start:.0f} → {s.end:.0f}", points, "line"))
         parts.append(_svg("Step response", series, "ms from the target's write", "position"))
     if d.tracks:
         last = d.tracks[-1]
@@ -410,18 +421,19 @@ def _device_section(ident: int, d: DeviceResult, result: RigResult) -> str:
                 [
                     (
                         "from below",
-                        [(float(k), v) for k, v in enumerate(d.ends.get("below", []))],
+                        [(k + 1.0, v) for k, v in enumerate(d.ends.get("below", []))],
                         "points",
                     ),
                     (
                         "from above",
-                        [(float(k), v) for k, v in enumerate(d.ends.get("above", []))],
+                        [(k + 1.0, v) for k, v in enumerate(d.ends.get("above", []))],
                         "points",
                     ),
                 ],
                 "approach",
                 f"position (target {r.target:g})",
                 integer_x=True,
+                x_pad=0.5,
             )
         )
     parts.append("</section>")

@@ -254,9 +254,10 @@ class _Rig:
 
     async def arrive(self, ident: int, target: int, since: float, start: float) -> None:
         """Wait for the actuator to settle at ``target`` (written at ``since``, from
-        ``start``).  An actuator that is still short of half the move when the plan's
-        ``settle_timeout`` ends does not follow: ArrivalTimeoutError says where it is.
-        One that got further but is not still or not near is left to the figures."""
+        ``start``).  An actuator that, when the plan's ``settle_timeout`` ends, is as far
+        from the target as half the move, and as the plan's smallest move
+        (``latency_step``) does not follow: ArrivalTimeoutError says where it is.  One
+        that got closer but is not still or not near is left to the figures."""
         size = abs(target - start)
         if await self.settle(ident, target, since, max(size, 1)):
             return
@@ -271,7 +272,8 @@ class _Rig:
                 status=None,
             )
         at = self.rest_position(ident, seen[-1].position)
-        if abs(at - target) <= max(size / 2, 2 * self.noise_band(ident)):
+        slack = max(size / 2, 2 * self.noise_band(ident), self.plan.latency_step)
+        if abs(at - target) < slack:
             return
         span = max(s.position for s in seen) - min(s.position for s in seen)
         how = "did not move" if span <= self.noise_band(ident) else f"stopped at {at:.0f}"
