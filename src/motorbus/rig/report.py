@@ -198,11 +198,17 @@ def _svg(
         if x1 <= x0:
             x0, x1 = x0 - 1.0, x1 + 1.0
         span = x1 - x0
-        xticks = [
-            t
-            for t in _nice_ticks(x0, x1, integer=integer_x)
-            if x0 - 1e-9 * span <= t <= x1 + 1e-9 * span
-        ] or [x0, x1]
+        xticks = [x0, x1]
+        for count in (5, 8, 12):  # at least 4 ticks inside the data when they fit
+            inside = [
+                t
+                for t in _nice_ticks(x0, x1, count, integer=integer_x)
+                if x0 - 1e-9 * span <= t <= x1 + 1e-9 * span
+            ]
+            if len(inside) >= 2:
+                xticks = inside
+            if len(inside) >= 4:
+                break
     y_lo, y_hi = min(ys), max(ys)
     if integer_y:
         y_lo = min(0.0, y_lo)
