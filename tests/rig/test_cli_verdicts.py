@@ -125,3 +125,11 @@ def test_compare_fails_a_run_that_lacks_a_figure_of_the_old_one(
     r = cli("rig", "compare", str(golden), str(new))
     assert r.returncode == 1, r.stdout + r.stderr
     assert re.search(r"latency\.max_ms .* REGRESSED \(not in NEW\)", r.stdout), r.stdout
+
+
+def test_a_bad_plan_with_json_is_one_error_object_and_exit_2() -> None:
+    r = cli("--json", "rig", "1", "--tests", "step,spin", "--out", "/nonexistent/x")
+    assert r.returncode == 2, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["code"] == 2 and doc["field"] == "tests"
+    assert "'spin' is not a test" in doc["error"]
