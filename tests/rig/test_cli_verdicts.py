@@ -133,3 +133,17 @@ def test_a_bad_plan_with_json_is_one_error_object_and_exit_2() -> None:
     doc = json.loads(r.stdout)
     assert doc["code"] == 2 and doc["field"] == "tests"
     assert "'spin' is not a test" in doc["error"]
+
+
+def test_compare_fails_a_new_run_that_recorded_failures(tmp_path: Path, golden: Path) -> None:
+    failed = {"device": "la:1", "test": "latency", "why": "2 of 50 small steps have no dead time"}
+    new = tmp_path / "new.json"
+    new.write_text(json.dumps({**good(), "passed": False, "failures": [failed]}))
+    r = cli("rig", "compare", str(golden), str(new))
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "the NEW run failed: la:1 latency: 2 of 50 small steps" in r.stderr
+    dead = tmp_path / "dead.json"
+    dead.write_text(json.dumps({**good(), "devices": {"la:1": {}}}))
+    r = cli("rig", "compare", str(golden), str(dead))
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert r.stdout.count("REGRESSED (not in NEW)") == len(WRITTEN)

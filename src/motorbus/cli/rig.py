@@ -245,10 +245,12 @@ async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
     return 0
 
 
-def _load(args: argparse.Namespace, path_text: str) -> dict[str, dict[str, float]] | int:
-    """The figures of one results file, or the exit code of its refusal (2, the file and
-    the field named)."""
-    from motorbus.rig import read_results
+def _load(
+    args: argparse.Namespace, path_text: str
+) -> tuple[dict[str, dict[str, float]], list[str]] | int:
+    """The figures and failures of one results file, or the exit code of its refusal
+    (2, the file and the field named)."""
+    from motorbus.rig.compare import read_failures, read_results
 
     path = Path(path_text)
     if path.is_dir():
@@ -261,7 +263,7 @@ def _load(args: argparse.Namespace, path_text: str) -> dict[str, dict[str, float
         why = f"rig compare: {path} is not a rig results.json ({err})"
         return _error(args, 2, why, file=str(path))
     try:
-        return read_results(doc)
+        return read_results(doc), read_failures(doc)
     except LocalProtocolError as err:
         why = f"rig compare: {path}: {err}"
         return _error(args, 2, why, file=str(path), field=err.field, value=err.value)
@@ -277,13 +279,16 @@ def _compare(args: argparse.Namespace) -> int:
         tolerances = parse_tolerances(args.tolerance)
     except ValueError as err:
         return _error(args, 2, str(err), field="--tolerance", value=args.tolerance)
-    old = _load(args, rest[0])
-    if isinstance(old, int):
-        return old
-    new = _load(args, rest[1])
-    if isinstance(new, int):
-        return new
+    loaded_old = _load(args, rest[0])
+    if isinstance(loaded_old, int):
+        return loaded_old
+    loaded_new = _load(args, rest[1])
+    if isinstance(loaded_new, int):
+        return loaded_new
+    (old, old_failed), (new, new_failed) = loaded_old, loaded_new
     rows = compare_results(old, new, tolerances)
+    if not rows:
+        return _error(args, 2, "rig compare: the two runs hold no figure to compare")
     if args.json:
         print_json([_row_dict(r) for r in rows])
     else:
@@ -297,7 +302,12 @@ def _compare(args: argparse.Namespace) -> int:
                 f"{r.device:8} {r.figure:30} {_num(r.old):>10} {_num(r.new):>10} {pct:>9}  "
                 f"{verdict}"
             )
+    for name, failed in (("OLD", old_failed), ("NEW", new_failed)):
+        for line in failed:
+            print(f"motorbus rig: the {name} run failed: {line}", file=sys.stderr)
     bad = [r for r in rows if r.regressed]
+    if new_failed and not bad:
+        return 1
     if bad:
         print(
             f"{len(bad)} figure(s) regressed beyond tolerance or missing from NEW: "

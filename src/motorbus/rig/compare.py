@@ -6,6 +6,7 @@ relative (a fraction of the old value, never less than ``at_least`` units) or ab
 when it moved in its worse direction by more than its tolerance; moving the other way
 is never a regression.  A figure or an actuator the old run has and the new one lacks
 regressed too (the new run did not measure it); one only the new run has is listed.
+A new run that recorded failures (``read_failures``) fails the comparison.
 
 :func:`read_results` checks a parsed ``results.json`` before anything is compared: its
 format and version, and that every figure is a known figure with a finite number (not
@@ -30,6 +31,7 @@ __all__ = [
     "Row",
     "compare_results",
     "parse_tolerances",
+    "read_failures",
     "read_results",
 ]
 
@@ -166,6 +168,26 @@ def read_results(doc: Any) -> dict[str, dict[str, float]]:
             if not math.isfinite(value):
                 raise _refuse(f"{where}.{name}", value, "must be a finite number")
             out[device][name] = float(value)
+    return out
+
+
+def read_failures(doc: Mapping[str, Any]) -> list[str]:
+    """The failures a results document records (``"la:1 step: why"``; ``[]`` for a
+    run that passed, or a results file written before runs recorded them).
+
+    Raises:
+        LocalProtocolError: ``failures`` is not a list of objects with ``device``,
+            ``test`` and ``why``.
+    """
+    failures = doc.get("failures", [])
+    if not isinstance(failures, list):
+        raise _refuse("failures", failures, "must be a list")
+    out = []
+    for k, f in enumerate(failures):
+        if not isinstance(f, dict) or not isinstance(f.get("why"), str):
+            raise _refuse(f"failures[{k}]", f, "must be an object with device, test and why")
+        where = " ".join(str(x) for x in (f.get("device"), f.get("test")) if x)
+        out.append(f"{where}: {f['why']}")
     return out
 
 
