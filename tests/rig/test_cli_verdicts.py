@@ -147,3 +147,18 @@ def test_compare_fails_a_new_run_that_recorded_failures(tmp_path: Path, golden: 
     r = cli("rig", "compare", str(golden), str(dead))
     assert r.returncode == 1, r.stdout + r.stderr
     assert r.stdout.count("REGRESSED (not in NEW)") == len(WRITTEN)
+
+
+def test_an_aborted_run_exits_1_and_still_writes_its_report(tmp_path: Path) -> None:
+    with SimProcess(["la:1,position=300"], baud=921600) as sim:  # it draws 300 mA moving
+        r = cli(
+            "rig", "1", "--tests", "step", "--max-current", "200", "--out", str(tmp_path),
+            "--port", sim.path,
+        )  # fmt: skip
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "FAILED la:1 step: la:1 drew 300 mA (ceiling 200 mA)" in r.stderr
+    page = (tmp_path / "report.html").read_text(encoding="utf-8")
+    top = page[: page.index("<h2>")]
+    assert 'class="verdict failed"' in top and "the run was aborted" in top
+    doc = json.loads((tmp_path / "results.json").read_text(encoding="utf-8"))
+    assert doc["aborted"].startswith("rig aborted in la:1 step: la:1 drew 300 mA")
