@@ -11,12 +11,16 @@ Examples::
 Every target stays inside --min..--max (default: the stroke less 5 % at each end);
 each test first moves the actuator to its start in positioning mode (the actuator's own
 profile, from wherever it is); a status reply over --max-current or --max-force pauses
-every actuator under test and ends the run (exit code 1).  However the run ends
-(Ctrl-C, SIGTERM, an error), every actuator is paused after its last target.
+every actuator under test and ends the run.  However the run ends (Ctrl-C, SIGTERM,
+an error), every actuator is paused after its last target.
 
 The run writes results.json, samples.csv and report.html (one self-contained file)
-into --out; docs/rig.md defines every figure.  ``rig compare OLD NEW`` prints each
-figure of two runs side by side and exits 1 if any regressed beyond its tolerance.
+into --out; docs/rig.md defines every figure.  It exits 1, naming the actuator, the
+test and why, when an actuator does not follow (a move not half done within 5 s),
+a figure cannot be computed or a ceiling aborted the run; the report says so at the
+top.  ``rig compare OLD NEW`` prints every figure of two runs side by side and exits
+1 if any regressed beyond its tolerance or is missing from NEW, 2 (naming the file
+and the field) if a file is not rig results or holds a null or a non-number.
 ``rig project N`` runs stored project N of a project stepper ``--runs`` times and
 reports the start -> ``EE DD`` times (p50/p99/max); ``rig quad MOTOR`` does the same
 for a 4-axis run -> its done reply (the motor's stored settings; --baud defaults to
@@ -38,12 +42,12 @@ from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD, add_bus_options, ope
 from motorbus.cli.ids import parse_id_args
 from motorbus.cli.output import print_json
 from motorbus.cli.values import check_seconds
-from motorbus.errors import CommandFailed, LocalProtocolError, UsageError
+from motorbus.errors import LocalProtocolError, MotorbusError, UsageError
 from motorbus.protocol.base import Family, check_int
 from motorbus.rig.plan import DEFAULT_FREQUENCIES, TESTS, RigPlan, default_window
 
 if TYPE_CHECKING:
-    from motorbus.rig import RigResult, Row
+    from motorbus.rig import Row
 
 __all__ = ["register", "run"]
 
@@ -124,7 +128,40 @@ def _plan(args: argparse.Namespace) -> RigPlan:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``motorbus rig`` (or ``rig compare``)."""
+    """Run ``motorbus rig`` (or ``rig compare``).  With ``--json``, an error is one JSON
+    object on standard output: ``error``, ``code`` and what it concerns."""
+    if not getattr(args, "json", False):
+        return _dispatch(args)
+    try:
+        return _dispatch(args)
+    except (LocalProtocolError, UsageError, ValueError, FileNotFoundError) as err:
+        return _error(args, 2, str(err), field=getattr(err, "field", None))
+    except (MotorbusError, OSError) as err:
+        return _error(args, 1, str(err))
+
+
+def _error(args: argparse.Namespace, code: int, message: str, **about: Any) -> int:
+    """Report a failure (one line on standard error; with --json also one JSON object on
+    standard output) and return its exit code."""
+    print(f"motorbus rig: {message}", file=sys.stderr)
+    if getattr(args, "json", False):
+        print_json({"error": message, "code": code, **_jsonable(about)})
+    return code
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    if value is None or isinstance(value, str | int | float | bool):
+        return value
+    return repr(value)
+
+
+def _dispatch(args: argparse.Namespace) -> int:
     if args.ids and args.ids[0] == "compare":
         return _compare(args)
     if args.ids and args.ids[0] in ("project", "quad"):
@@ -168,23 +205,31 @@ class _Bar:
 
 
 async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
-    from motorbus.rig import RigAborted, run_rig, write_report
+    from motorbus.rig import run_rig, write_report
 
     bar = _Bar(plan.estimate_seconds())
-    aborted: str | None = None
-    result: RigResult | None = None
     async with open_bus(args, [Family.LA]) as bus:
         try:
-            result = await run_rig(bus, plan, bar)
-        except RigAborted as err:
-            aborted = str(err)
+            result = await run_rig(bus, plan, bar, raise_on_abort=False)
         finally:
             bar.close()
         stats = bus.stats.as_dict()
-    if result is None:
-        raise CommandFailed(aborted or "rig: no result")
     paths = write_report(out, result, stats)
     doc = json.loads(paths["results"].read_text(encoding="utf-8"))
+    if not result.passed:
+        failures = [str(f) for f in result.failures]
+        failures += [f"la:{i}: not tested (the run was aborted first)" for i in result.untested]
+        for line in failures:
+            print(f"motorbus rig: FAILED {line}", file=sys.stderr)
+        what = "aborted" if result.aborted else "failed"
+        message = f"rig {what}: {'; '.join(failures)} (report: {paths['report']})"
+        if args.json:
+            print_json(
+                {"error": message, "code": 1, "report": str(paths["report"]), **_jsonable(doc)}
+            )
+        else:
+            print(f"motorbus rig: {what}; report: {paths['report']}", file=sys.stderr)
+        return 1
     if args.json:
         print_json(doc)
     else:
@@ -200,25 +245,28 @@ async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
     return 0
 
 
-def _load(path_text: str) -> dict[str, dict[str, float]]:
+def _load(
+    args: argparse.Namespace, path_text: str
+) -> tuple[dict[str, dict[str, float]], list[str]] | int:
+    """The figures and failures of one results file, or the exit code of its refusal
+    (2, the file and the field named)."""
+    from motorbus.rig.compare import read_failures, read_results
+
     path = Path(path_text)
     if path.is_dir():
         path = path / "results.json"
     try:
         doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise UsageError(f"rig compare: {path} does not exist") from None
+    except (FileNotFoundError, IsADirectoryError):
+        return _error(args, 2, f"rig compare: {path} does not exist", file=str(path))
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise UsageError(f"rig compare: {path} is not a rig results.json ({err})") from None
-    if not isinstance(doc, dict) or doc.get("format") != "motorbus-rig-results":
-        raise UsageError(f"rig compare: {path} is not a rig results.json (no format key)")
-    devices = doc.get("devices")
-    if not isinstance(devices, dict):
-        raise UsageError(f"rig compare: {path} has no devices")
-    return {
-        name: {k: (math.nan if v is None else float(v)) for k, v in figs.items()}
-        for name, figs in devices.items()
-    }
+        why = f"rig compare: {path} is not a rig results.json ({err})"
+        return _error(args, 2, why, file=str(path))
+    try:
+        return read_results(doc), read_failures(doc)
+    except LocalProtocolError as err:
+        why = f"rig compare: {path}: {err}"
+        return _error(args, 2, why, file=str(path), field=err.field, value=err.value)
 
 
 def _compare(args: argparse.Namespace) -> int:
@@ -230,11 +278,17 @@ def _compare(args: argparse.Namespace) -> int:
     try:
         tolerances = parse_tolerances(args.tolerance)
     except ValueError as err:
-        raise UsageError(str(err)) from None
-    old, new = _load(rest[0]), _load(rest[1])
+        return _error(args, 2, str(err), field="--tolerance", value=args.tolerance)
+    loaded_old = _load(args, rest[0])
+    if isinstance(loaded_old, int):
+        return loaded_old
+    loaded_new = _load(args, rest[1])
+    if isinstance(loaded_new, int):
+        return loaded_new
+    (old, old_failed), (new, new_failed) = loaded_old, loaded_new
     rows = compare_results(old, new, tolerances)
     if not rows:
-        raise UsageError("rig compare: the two runs share no actuator and figure")
+        return _error(args, 2, "rig compare: the two runs hold no figure to compare")
     if args.json:
         print_json([_row_dict(r) for r in rows])
     else:
@@ -242,11 +296,21 @@ def _compare(args: argparse.Namespace) -> int:
         for r in rows:
             pct = "n/a" if math.isnan(r.change_pct) else f"{r.change_pct:+.1f}%"
             verdict = "REGRESSED" if r.regressed else "ok"
-            print(f"{r.device:8} {r.figure:30} {r.old:10.4g} {r.new:10.4g} {pct:>9}  {verdict}")
+            if r.missing:
+                verdict += f" (not in {r.missing.upper()})"
+            print(
+                f"{r.device:8} {r.figure:30} {_num(r.old):>10} {_num(r.new):>10} {pct:>9}  "
+                f"{verdict}"
+            )
+    for name, failed in (("OLD", old_failed), ("NEW", new_failed)):
+        for line in failed:
+            print(f"motorbus rig: the {name} run failed: {line}", file=sys.stderr)
     bad = [r for r in rows if r.regressed]
+    if new_failed and not bad:
+        return 1
     if bad:
         print(
-            f"{len(bad)} figure(s) regressed beyond tolerance: "
+            f"{len(bad)} figure(s) regressed beyond tolerance or missing from NEW: "
             + ", ".join(f"{r.device} {r.figure}" for r in bad),
             file=sys.stderr,
         )
@@ -254,16 +318,23 @@ def _compare(args: argparse.Namespace) -> int:
     return 0
 
 
-def _row_dict(r: Row) -> dict[str, Any]:
-    return {
-        "device": r.device,
-        "figure": r.figure,
-        "old": r.old,
-        "new": r.new,
-        "change_pct": r.change_pct,
-        "allowed": r.allowed,
-        "regressed": r.regressed,
-    }
+def _num(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:.4g}"
+
+
+def _row_dict(r: Row) -> Any:
+    return _jsonable(
+        {
+            "device": r.device,
+            "figure": r.figure,
+            "old": r.old,
+            "new": r.new,
+            "change_pct": r.change_pct,
+            "allowed": r.allowed,
+            "regressed": r.regressed,
+            "missing": r.missing,
+        }
+    )
 
 
 def _stepper(args: argparse.Namespace) -> int:

@@ -13,10 +13,16 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 _EXPORTS = {
-    "motorbus.rig.compare": ("FIGURES", "Row", "compare_results", "parse_tolerances"),
+    "motorbus.rig.compare": (
+        "FIGURES",
+        "Row",
+        "compare_results",
+        "parse_tolerances",
+        "read_results",
+    ),
     "motorbus.rig.plan": ("DEFAULT_FREQUENCIES", "TESTS", "RigPlan", "default_window"),
     "motorbus.rig.report": ("write_report",),
-    "motorbus.rig.runner": ("DeviceResult", "RigResult", "run_rig"),
+    "motorbus.rig.runner": ("DeviceResult", "Failure", "RigResult", "run_rig"),
     "motorbus.errors": ("RigAborted",),
 }
 
@@ -26,12 +32,14 @@ if TYPE_CHECKING:
     from motorbus.rig.compare import Row as Row
     from motorbus.rig.compare import compare_results as compare_results
     from motorbus.rig.compare import parse_tolerances as parse_tolerances
+    from motorbus.rig.compare import read_results as read_results
     from motorbus.rig.plan import DEFAULT_FREQUENCIES as DEFAULT_FREQUENCIES
     from motorbus.rig.plan import TESTS as TESTS
     from motorbus.rig.plan import RigPlan as RigPlan
     from motorbus.rig.plan import default_window as default_window
     from motorbus.rig.report import write_report as write_report
     from motorbus.rig.runner import DeviceResult as DeviceResult
+    from motorbus.rig.runner import Failure as Failure
     from motorbus.rig.runner import RigResult as RigResult
     from motorbus.rig.runner import run_rig as run_rig
 

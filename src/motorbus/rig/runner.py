@@ -7,6 +7,13 @@ the rig never jumps; every target is inside the plan's window (checked at plan t
 and again here before any write).  However the run ends, every actuator under test
 is paused after its last target (``finally``), and the ceilings of the plan pause
 everything at once from the reply that crossed them.
+
+The rig fails what fails.  An actuator that does not follow (a move that does not get
+halfway to its target within the plan's ``settle_timeout``, a sine it does not move
+with), a figure that cannot be computed (the motion never got there) and an abort are
+each a :class:`Failure` naming the actuator, the test and why.  An actuator that does
+not follow is paused and its remaining tests are skipped; the next actuator is tested.
+``RigResult.passed`` is False when anything failed.
 """
 
 from __future__ import annotations
@@ -23,7 +30,7 @@ from typing import Any
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError
+from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.rig.analysis import (
     RepeatFigures,
@@ -41,7 +48,7 @@ from motorbus.rig.sampler import RigAborted, Sampler
 from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import Streamer
 
-__all__ = ["DeviceResult", "Progress", "RigResult", "run_rig"]
+__all__ = ["DeviceResult", "Failure", "Progress", "RigResult", "run_rig"]
 
 log = logging.getLogger("motorbus.rig")
 
@@ -54,6 +61,30 @@ TAIL_S = 0.15
 
 #: ``progress(what, done_fraction)``: called as the plan goes.
 Progress = Callable[[str, float], None]
+
+#: Why a figure can be missing (NaN, ``null`` in results.json): docs/rig.md's definitions.
+WHY_MISSING = {
+    "step.dead_time_ms": "the position never left the noise band around the start",
+    "step.rise_time_ms": "the position never crossed both 10 % and 90 % of the step",
+    "step.mean_speed_units_per_s": "the position never crossed both 10 % and 90 % of the step",
+    "step.settling_time_ms": "the position never stayed within 1 % of the step around the end",
+    "track.lag_ms": "the targets and positions overlap too briefly to correlate",
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Failure:
+    """One actuator failed one test (``test``: one of ``TESTS``) for the reason ``why``."""
+
+    id: int
+    test: str
+    why: str
+
+    def __str__(self) -> str:
+        return f"la:{self.id} {self.test}: {self.why}"
+
+    def as_dict(self) -> dict[str, str]:
+        return {"device": f"la:{self.id}", "test": self.test, "why": self.why}
 
 
 @dataclass
@@ -74,6 +105,8 @@ class DeviceResult:
     #: Position noise at rest: standard deviation of the positions, units (NaN if never
     #: measured).
     noise: float = math.nan
+    #: What failed on this actuator, in the order it happened (empty: it passed).
+    failures: list[Failure] = field(default_factory=list)
 
     def figures(self) -> dict[str, float]:
         """The flat figures ``results.json`` lists (docs/rig.md defines each)."""
@@ -98,8 +131,9 @@ class DeviceResult:
             out["track.rms_error"] = max(t.rms_error for t in self.tracks)
             out["track.max_error"] = max(t.max_error for t in self.tracks)
             out["track.lag_ms"] = statistics.fmean(t.lag_ms for t in self.tracks)
+        finite = [v for v in self.dead_times_ms if math.isfinite(v)]
         if self.dead_times_ms:
-            d = distribution(self.dead_times_ms)
+            d = distribution(finite)
             out["latency.p50_ms"] = d.p50
             out["latency.p99_ms"] = d.p99
             out["latency.max_ms"] = d.max
@@ -118,6 +152,7 @@ class DeviceResult:
             "dead_times_ms": self.dead_times_ms,
             "repeat": asdict(self.repeat) if self.repeat is not None else None,
             "repeat_ends": self.ends,
+            "failures": [f.as_dict() for f in self.failures],
         }
 
 
@@ -135,9 +170,24 @@ class RigResult:
     seconds: float  #: how long the run took, seconds
     polls: int  #: status queries sent
     poll_timeouts: int  #: status queries without a reply (timed out, or the port lost)
-    #: Why the run ended early, for a caller that records it (``run_rig`` itself
-    #: raises ``RigAborted``); None for a complete run.
+    #: Why the run stopped early (a ceiling or a fault tripped), or None for a complete
+    #: run.
     aborted: str | None = None
+
+    @property
+    def failures(self) -> list[Failure]:
+        """Every failure of every actuator tested, in plan order."""
+        return [f for d in self.devices.values() for f in d.failures]
+
+    @property
+    def untested(self) -> list[int]:
+        """Actuators of the plan the run never got to (it was aborted first)."""
+        return [i for i in self.plan.ids if i not in self.devices]
+
+    @property
+    def passed(self) -> bool:
+        """True when every actuator of the plan was tested and nothing failed."""
+        return self.aborted is None and not self.failures and not self.untested
 
     def sampling(self) -> dict[str, float]:
         """Achieved sample rate (Hz) and interval jitter (ms) over every actuator."""
@@ -209,11 +259,43 @@ class _Rig:
                 return True
         return False
 
+    async def arrive(self, ident: int, target: int, since: float, start: float) -> None:
+        """Wait for the actuator to settle at ``target`` (written at ``since``, from
+        ``start``).  An actuator that, when the plan's ``settle_timeout`` ends, is as far
+        from the target as half the move, and as the plan's smallest move
+        (``latency_step``) does not follow: ArrivalTimeoutError says where it is.  One
+        that got closer but is not still or not near is left to the figures."""
+        size = abs(target - start)
+        if await self.settle(ident, target, since, max(size, 1)):
+            return
+        now = self.bus.timer.now()
+        seen = self.sampler.since(ident, since)
+        timeout = self.plan.settle_timeout
+        if not seen:
+            raise ArrivalTimeoutError(
+                f"no status sample in the {timeout:g} s after target {target} was written",
+                id=ident,
+                target=target,
+                status=None,
+            )
+        at = self.rest_position(ident, seen[-1].position)
+        slack = max(size / 2, 2 * self.noise_band(ident), self.plan.latency_step)
+        if abs(at - target) < slack:
+            return
+        span = max(s.position for s in seen) - min(s.position for s in seen)
+        how = "did not move" if span <= self.noise_band(ident) else f"stopped at {at:.0f}"
+        raise ArrivalTimeoutError(
+            f"did not follow: sent from {start:.0f} to {target}, it {how} "
+            f"(at {at:.0f} after {now - since:.1f} s; limit settle_timeout={timeout:g} s)",
+            id=ident,
+            target=target,
+            status=seen[-1],
+        )
+
     async def goto(self, ident: int, target: int) -> None:
         status = await self.bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS))
-        size = abs(target - status.position)
         t = await self.move(ident, target)
-        await self.settle(ident, target, t, max(size, 1))
+        await self.arrive(ident, target, t, status.position)
         await self.sampler.sleep(TAIL_S)
         self.measure_noise(ident)
 
@@ -230,7 +312,7 @@ class _Rig:
         band = self.noise_band(ident)
         rest = self.rest_position(ident, start)
         t = await self.move(ident, end)
-        await self.settle(ident, end, t, abs(end - start))
+        await self.arrive(ident, end, t, rest)
         await self.sampler.sleep(TAIL_S)
         return step_figures(self.sampler.since(ident, t), t, rest, end, noise_band=band)
 
@@ -263,18 +345,37 @@ class _Rig:
             await streamer.close(safe=True)
         self.sampler.check()
         written = self.sampler.targets[ident][first_write:]
+        if not written:
+            raise ValueError(f"{frequency:g} Hz: no target of the sine was written")
         # Skip the first cycle (or half the run): the response has to settle into the sine.
         skip = min(1.0 / frequency, seconds / 2)
         start = written[0][0] + skip
         kept = [(t, x) for t, x in written if t >= start]
+        if len(kept) < 2:
+            raise ValueError(f"{frequency:g} Hz: too few targets after the first cycle")
         samples = [s for s in self.sampler.since(ident, start) if s.t <= kept[-1][0]]
-        return track_figures(
+        span = max((s.position for s in samples), default=0.0) - min(
+            (s.position for s in samples), default=0.0
+        )
+        if span <= self.noise_band(ident):
+            raise ArrivalTimeoutError(
+                f"did not follow: the {frequency:g} Hz sine spanned {2 * amp} units, "
+                f"the position {span:.0f}",
+                id=ident,
+                target=center + amp,
+                status=samples[-1] if samples else None,
+            )
+        figures = track_figures(
             [t for t, _ in kept],
             [float(x) for _, x in kept],
             samples,
             frequency_hz=frequency,
             max_lag_s=min(0.5, 0.5 / frequency),
         )
+        r = figures.response
+        if r is not None and not (math.isfinite(r.amplitude_ratio) and math.isfinite(r.phase_deg)):
+            raise ValueError(f"{frequency:g} Hz: no sine fits the targets or the positions")
+        return figures
 
     async def latency(self, ident: int, result: DeviceResult) -> None:
         plan = self.plan
@@ -292,12 +393,18 @@ class _Rig:
             band = min(self.noise_band(ident), plan.latency_step / 2)
             rest = self.rest_position(ident, start)
             t = await self.move(ident, end)
-            await self.settle(ident, end, t, plan.latency_step)
+            await self.arrive(ident, end, t, rest)
             await self.sampler.sleep(TAIL_S)
             self.measure_noise(ident)
             fig = step_figures(self.sampler.since(ident, t), t, rest, end, noise_band=band)
             result.dead_times_ms.append(fig.dead_time_ms)
             self.tell(f"la:{ident} latency {k + 1}/{plan.latency_count}")
+        lost = sum(1 for v in result.dead_times_ms if not math.isfinite(v))
+        if lost:
+            raise ValueError(
+                f"{lost} of {len(result.dead_times_ms)} small steps have no dead time: "
+                f"{WHY_MISSING['step.dead_time_ms']}"
+            )
 
     async def repeat(self, ident: int, result: DeviceResult) -> RepeatFigures:
         plan = self.plan
@@ -309,39 +416,73 @@ class _Rig:
             for k in range(plan.repeat_count):
                 await self.goto(ident, point + away)
                 t = await self.move(ident, point)
-                await self.settle(ident, point, t, abs(away))
+                await self.arrive(ident, point, t, point + away)
                 await self.sampler.sleep(TAIL_S)
                 now = self.bus.timer.now()
                 tail = self.sampler.since(ident, now - TAIL_S)
+                if not tail:
+                    raise ValueError(f"no status sample after approach {k + 1} from {side}")
                 ends[side].append(statistics.fmean(s.position for s in tail))
                 self.tell(f"la:{ident} repeat from {side} {k + 1}/{plan.repeat_count}")
         return repeat_figures(point, ends["below"], ends["above"])
 
-    async def device(self, ident: int) -> DeviceResult:
+    async def run_test(self, ident: int, test: str, result: DeviceResult) -> None:
         plan = self.plan
-        result = DeviceResult(ident)
-        self.sampler.poll([ident])
-        status = await self.bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS))
-        await self.bus.request(la.Control(ident, la.ControlAction.WORK))
-        self.tell(f"la:{ident} at {status.position}")
-        if "step" in plan.tests:
+        if test == "step":
             assert plan.step_start is not None and plan.step_end is not None
             for a, b in ((plan.step_start, plan.step_end), (plan.step_end, plan.step_start)):
                 self.tell(f"la:{ident} step {a} -> {b}")
                 result.steps.append(await self.step(ident, a, b))
-        result.noise = self.rest_noise.get(ident, math.nan)
-        if "track" in plan.tests:
+            result.noise = self.rest_noise.get(ident, math.nan)
+        elif test == "track":
             for f in plan.frequencies:
                 first = len(self.sampler.targets[ident])
                 result.tracks.append(await self.track(ident, f))
                 written = self.sampler.targets[ident][first:]
                 if written:
                     result.track_windows.append((written[0][0], written[-1][0]))
-        if "latency" in plan.tests:
+        elif test == "latency":
             await self.latency(ident, result)
-        if "repeat" in plan.tests:
+        else:
             result.repeat = await self.repeat(ident, result)
-        return result
+
+    async def device(self, ident: int, result: DeviceResult) -> None:
+        """Run the plan's tests on one actuator; what fails goes to ``result.failures``.
+
+        Raises:
+            RigAborted: a ceiling tripped (the failure is recorded first).
+        """
+        tests = self.plan.tests
+        test = tests[0]
+        self.sampler.poll([ident])
+        try:
+            status = await self.bus.request(la.Control(ident, la.ControlAction.QUERY_STATUS))
+            await self.bus.request(la.Control(ident, la.ControlAction.WORK))
+            self.tell(f"la:{ident} at {status.position}")
+            for test in tests:
+                try:
+                    await self.run_test(ident, test, result)
+                except ValueError as err:  # the analysis could not compute a figure
+                    result.failures.append(Failure(ident, test, str(err)))
+                    continue
+                for name, value in result.figures().items():
+                    if name.startswith(f"{test}.") and not math.isfinite(value):
+                        why = WHY_MISSING.get(name, "no sample to compute it from")
+                        result.failures.append(
+                            Failure(ident, test, f"{name} could not be computed: {why}")
+                        )
+        except (ArrivalTimeoutError, ReplyTimeoutError) as err:
+            # It does not follow (or answer): its other tests would only wait for it.
+            why = str(err) if isinstance(err, ArrivalTimeoutError) else f"no reply: {err}"
+            skipped = tests[tests.index(test) + 1 :]
+            if skipped:
+                why += f"; not run: {', '.join(skipped)}"
+            result.failures.append(Failure(ident, test, why))
+            self.sampler.poll(())
+            await _pause_all(self.bus, (ident,))
+        except RigAborted as err:
+            result.failures.append(Failure(ident, test, self.sampler.tripped or str(err)))
+            raise
 
 
 async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
@@ -355,26 +496,47 @@ async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
     raise_unexpected(results)
 
 
-async def run_rig(bus: Bus, plan: RigPlan, progress: Progress | None = None) -> RigResult:
+async def run_rig(
+    bus: Bus,
+    plan: RigPlan,
+    progress: Progress | None = None,
+    *,
+    raise_on_abort: bool = True,
+) -> RigResult:
     """Run ``plan`` on the LA actuators of ``bus``; every actuator is paused at the end.
+
+    An actuator that does not follow or whose figures cannot be computed does not end
+    the run: its failures are in the result (``RigResult.passed``, ``.failures``).
+
+    Args:
+        raise_on_abort: when a ceiling trips, raise (True) or return what was measured
+            until then, with ``aborted`` saying why (False: the command line writes a
+            report of an aborted run).
 
     Raises:
         RigAborted: a ceiling tripped or an actuator faulted (all paused; the message
-            says which and why).  Whatever else ends the run (an error, cancellation)
-            also pauses every actuator under test before it propagates.
+            says which, in which test, and why).  Whatever else ends the run (an error,
+            cancellation) also pauses every actuator under test before it propagates.
     """
     tell = progress or (lambda _what, _done: None)
     started = time.time()
     t0 = time.monotonic()
     results: dict[int, DeviceResult] = {}
+    aborted: str | None = None
     with Sampler(
         bus, plan.ids, max_current_ma=plan.max_current_ma, max_force_g=plan.max_force_g
     ) as sampler:
         rig = _Rig(bus, plan, sampler, tell)
         try:
             for ident in plan.ids:
-                results[ident] = await rig.device(ident)
+                results[ident] = DeviceResult(ident)
+                await rig.device(ident, results[ident])
             tell("done", 1.0)
+        except RigAborted:
+            failed = results[ident].failures[-1]
+            aborted = f"rig aborted in {failed}; every actuator under test is paused"
+            if raise_on_abort:
+                raise RigAborted(aborted) from None
         finally:
             sampler.poll(())
             with deferred_interrupts():
@@ -388,6 +550,7 @@ async def run_rig(bus: Bus, plan: RigPlan, progress: Progress | None = None) -> 
         seconds=time.monotonic() - t0,
         polls=sampler.polls,
         poll_timeouts=sampler.poll_timeouts,
+        aborted=aborted,
     )
 
 

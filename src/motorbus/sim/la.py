@@ -22,6 +22,8 @@ What the model does (behaviour from the manual; the numbers marked "model choice
   While stall, over-current or over-temperature is active, position commands are ignored.
 * Motor abnormal is a *notice* (manual 3.8: "提示"): it does not stop the motor.  It clears
   on CLEAR_FAULT or once the motor draws more than 30 mA, i.e. when the model moves.
+* ``seized=True`` models a dead actuator: it takes and answers every command but its
+  position never changes, and it reports no fault (what a test rig must fail).
 * Nothing answers ID 255, broadcasts, 0x03 or 0x19; a frame ``decode_request`` refuses is
   ignored and counted in ``ignored``.
 
@@ -203,6 +205,7 @@ class LAModel(DeviceModel):
         lag_tau: float = 0.0,
         dead_band: float = 0.0,
         position_noise: float = 0.0,
+        seized: bool = False,
         seed: int | None = None,
     ) -> None:
         """Create an actuator in its power-on state with the factory control table.
@@ -238,6 +241,10 @@ class LAModel(DeviceModel):
                 above end ``dead_band`` apart, a simulated backlash).
             position_noise: standard deviation, units, of gaussian noise added to the
                 reported position (not to the motion).
+            seized: the motor never moves (model choice: a seized gearbox or an
+                unplugged motor that the electronics do not notice).  Position
+                commands are taken as usual (the target register changes, replies
+                are normal, no fault is reported) but the position stays where it is.
             seed: seed of the noise (None: a fixed default, so runs repeat).
 
         Raises:
@@ -293,6 +300,7 @@ class LAModel(DeviceModel):
             dead_band=_not_negative("dead_band", dead_band),
         )
         self._noise = _not_negative("position_noise", position_noise)
+        self._seized = bool(seized)
         self._rng = random.Random(0 if seed is None else seed)
         # Position commands not yet acted on (dead time): (time due, target, follow).
         self._pending: list[tuple[float, int, bool]] = []
@@ -583,6 +591,8 @@ class LAModel(DeviceModel):
             return  # model choice: an out-of-range target is not adopted
         self._power = PowerState.WORKING
         self._table.put(Register.TARGET, target)
+        if self._seized:
+            return
         if self._dead_time:
             self._pending.append((now + self._dead_time, target, follow))
         else:
