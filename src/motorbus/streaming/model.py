@@ -75,11 +75,15 @@ class StreamStats:
     #: was still owed, or the 1 ms spacing from the previous write): sent that much later.
     slipped: int = 0
     frames: int = 0  # frames sent for this stream (broadcasts shared count once each)
+    #: Feedback round trips (``feedback=True``) that got no good reply.
     feedback_timeouts: int = 0
     polls: int = 0
     #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
     #: whose free slots held no poll at all.
     polls_skipped: int = 0
+    #: Status polls (``poll_status=True``) sent that got no good reply: counted, never
+    #: raised - the next poll of that actuator comes round again.
+    poll_timeouts: int = 0
     gaps: int = 0  # gaps handled (``StreamGap`` events)
     #: Lateness of each tick's first frame against its absolute deadline.
     jitter: LatencyHistogram = field(default_factory=LatencyHistogram)
@@ -93,7 +97,8 @@ class StreamStats:
         return (
             f"{d['ticks']} ticks ({d['frames']} frames), {d['late']} late, "
             f"{d['skipped']} skipped, {d['slipped']} slipped; polls {d['polls']} "
-            f"({d['polls_skipped']} skipped), {d['feedback_timeouts']} feedback timeouts; "
+            f"({d['polls_skipped']} skipped, {d['poll_timeouts']} poll timeouts), "
+            f"{d['feedback_timeouts']} feedback timeouts; "
             f"{d['gaps']} gaps; jitter p50 {d['jitter_p50_us']:.0f} / p99 "
             f"{d['jitter_p99_us']:.0f} / max {d['jitter_max_us']:.0f} us"
         )
@@ -110,6 +115,7 @@ class StreamStats:
             "feedback_timeouts": self.feedback_timeouts,
             "polls": self.polls,
             "polls_skipped": self.polls_skipped,
+            "poll_timeouts": self.poll_timeouts,
             "gaps": self.gaps,
             "jitter_p50_us": j["p50_us"],
             "jitter_p99_us": j["p99_us"],
