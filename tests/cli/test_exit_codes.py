@@ -283,6 +283,21 @@ def test_every_command_has_a_row_and_every_row_every_fault() -> None:
                 assert (fault == "ctrl-c") == bool(entry.ready), (command, fault)
 
 
+def test_the_table_in_docs_cli_md_is_this_table() -> None:
+    docs = Path(__file__).resolve().parents[2] / "docs" / "cli.md"
+    text = docs.read_text(encoding="utf-8").split("## Exit codes", 1)[1]
+    documented: dict[str, list[str]] = {}
+    for line in text.splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == len(FAULTS) + 1 and cells[0].startswith("`"):
+            documented[cells[0].strip("`")] = [c.split()[0] for c in cells[1:]]
+    expected = {
+        command: [str(e.code) if isinstance(e, Cell) else "-" for e in row.values()]
+        for command, row in TABLE.items()
+    }
+    assert documented == expected
+
+
 # -- the fixtures the cells name ---------------------------------------------------------------
 
 QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()

@@ -7,10 +7,13 @@ times a day starts in a small fraction of a second, and one command's optional
 dependency never breaks another.  The top-level help lists :data:`COMMANDS`, whose
 one-line texts tests/cli/test_cli_startup.py checks against each module's ``register``.
 
-Exit codes (documented in docs/cli.md):
+Exit codes (documented in docs/cli.md, checked by tests/cli/test_exit_codes.py; with
+``--json`` a failure also ends stdout with one object: error, code, command, what it
+concerns):
     0  success
     1  the command ran but failed: a reply timeout (a silent ID, also one of several),
-       a device error or bad reply, a port that cannot open or was lost, a project verify
+       a device error or bad reply, a port that cannot open (missing, forbidden, held by
+       another program) or was lost, a project verify
        mismatch, ``scan`` finding nothing, ``stream`` skipping ticks or finding a listed
        actuator silent, a ``project run``/``quad run`` that timed out (stopped unless
        ``--keep-running``)
