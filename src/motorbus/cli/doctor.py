@@ -46,7 +46,6 @@ from motorbus.cli.bus_options import (
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.main import UsageError
 from motorbus.cli.output import error_doc, plural, print_json
-from motorbus.doctor.checks import Level
 from motorbus.errors import CommandFailed, LocalProtocolError
 
 __all__ = ["register", "run"]
@@ -142,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
     report = asyncio.run(diagnose(config))
     if args.json:
         print_json(report.as_dict())
-        red = [f.check for f in report.by_level(Level.RED)]
+        red = [f.check for f in report.findings if f.level.value == "red"]
         if red:  # the report, then one error object naming the red checks
             text = f"{plural(len(red), 'check')} red: {', '.join(red)}"
             print_json(error_doc("doctor", text, report.exit_code, port=config.url, checks=red))
