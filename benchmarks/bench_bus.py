@@ -403,7 +403,8 @@ async def mixed_run(path: str, backend: str, seconds: float) -> dict[str, Any]:
             "host_late": st.late,
             "host_skipped": st.skipped,
             "polls": st.polls,
-            "poll_timeouts": st.feedback_timeouts,
+            # Before poll_timeouts had its own count, failed polls were feedback_timeouts.
+            "poll_timeouts": getattr(st, "poll_timeouts", st.feedback_timeouts),
             "bus_requests": bs.requests,
             "bus_timeouts": bs.timeouts,
             "bus_not_sent": getattr(bs, "not_sent", None),  # not in the pre-230979d bus

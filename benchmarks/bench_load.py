@@ -122,7 +122,7 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
             "host_late": s.stats.late,
             "host_skipped": s.stats.skipped,
             "polls": s.stats.polls,
-            "poll_timeouts": s.stats.feedback_timeouts,
+            "poll_timeouts": s.stats.poll_timeouts,
         }
 
 

@@ -4,9 +4,12 @@
 
 Runs until ``--seconds``, Ctrl-C (once or more), SIGTERM or SIGHUP.  Either way, leaving
 ``async with BusManager`` ends the stream and then pauses (or e-stops) every actuator
-before the port closes, and the program prints "stopped safely" and exits with status 0
-only if every actuator confirmed its stop; otherwise it lists those that did not and
-exits with status 1.  With
+before the port closes, and the program prints "stopped safely" if every actuator
+confirmed its stop; otherwise it lists those that did not and exits with status 1.
+After a safe stop it exits as the command line does (docs/cli.md, exit codes): 0 at the
+end of ``--seconds``; 128 + the signal number when a signal ended it - 130 for Ctrl-C,
+143 for SIGTERM, 129 for SIGHUP - so that a shell, systemd or a supervisor sees that
+it was stopped, not that it finished.  With
 ``--fail-after S`` the program raises an error S seconds into the stream, to show that
 an exception in your code gets the same safe stop (and still ends the program with
 its traceback, status 1).
@@ -81,6 +84,7 @@ if __name__ == "__main__":
     p.add_argument("--safe-action", choices=["pause", "estop"], default="pause")
     p.add_argument("--fail-after", type=float, help="raise an error this long into the stream")
     args = p.parse_args()
+    status = 0
     with port_or_simulator(args, [f"la:{args.ids}"], args.baud) as port:
         try:
             # motorbus.run: asyncio.run that turns SIGINT, SIGTERM and SIGHUP into the
@@ -90,9 +94,12 @@ if __name__ == "__main__":
             )
         except SystemExit as ended:
             # A signal ended main(): BusManager's exit ran the safe stop before this.
-            print(f"interrupted (status {ended.code})", flush=True)
+            status = ended.code if isinstance(ended.code, int) else 1
+            print(f"interrupted (status {status})", flush=True)
     report = MANAGERS[0].stop_report if MANAGERS else None
     if report is None or not report.ok:
+        # A stop that did not complete outranks how the program was ended.
         print(report if report is not None else "safe stop did not run", flush=True)
         raise SystemExit(1)
     print("stopped safely", flush=True)
+    raise SystemExit(status)

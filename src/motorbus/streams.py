@@ -680,9 +680,9 @@ class Streamer:
                     s.stats.polls_skipped += 1
                     polled = -1  # counted already
                     break
-                except MotorbusError:
+                except MotorbusError:  # a missed poll is counted, never raised
                     s.poll_done()
-                    s.stats.feedback_timeouts += 1
+                    s.stats.poll_timeouts += 1
                     continue
                 s.poll_done()
                 polled += 1

@@ -10,9 +10,11 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager
@@ -45,11 +47,16 @@ def _env() -> dict[str, str]:
 
 @asynccontextmanager
 async def dashboard(
-    sim: SimProcess | None, *extra: str, pids: list[int] | None = None
+    sim: SimProcess | None,
+    *extra: str,
+    pids: list[int] | None = None,
+    labelled: list[tuple[str, str]] | None = None,
 ) -> AsyncIterator[str]:
     """Run ``motorbus dashboard`` (on the simulator's pty, if given); yield the URL it
     printed (and append its process ID to ``pids``).  On the way out it gets SIGTERM, and
-    must end with status 0."""
+    must end with status 0.  Listening on a wildcard address it prints a URL a line,
+    each followed by what it is: those go to ``labelled`` as (URL, what), and the one for
+    this machine is yielded."""
     port = ["--port", sim.path, "--ids", "1-3"] if sim is not None else []
     proc = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "motorbus", "dashboard", *port,
@@ -63,6 +70,13 @@ async def dashboard(
         line = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
         if not line:
             raise AssertionError((await proc.stderr.read()).decode())
+        while labelled is not None and line.endswith(")"):
+            url, _, what = line.partition("  (")
+            labelled.append((url, what.removesuffix(")")))
+            if what == "this machine only)":
+                line = url
+                break
+            line = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
         assert re.fullmatch(r"http://[\d.]+:\d+/(\?token=[\w-]+)?", line), line
         yield line
     finally:
@@ -381,15 +395,30 @@ async def test_a_bus_file_process_group_is_served_on_its_cpus(tmp_path: Path) ->
 
 
 async def test_listening_beyond_loopback_needs_the_printed_token(sim: SimProcess) -> None:
-    async with dashboard(sim, "--listen", "0.0.0.0:0") as url:
+    labelled: list[tuple[str, str]] = []
+    async with dashboard(sim, "--listen", "0.0.0.0:0", labelled=labelled) as url:
         assert "?token=" in url
-        base, token = url.split("?token=")
-        local = base.replace("0.0.0.0", "127.0.0.1")
+        local, token = url.split("?token=")
+        assert local.startswith("http://127.0.0.1:")
         with pytest.raises(urllib.error.HTTPError) as refused:
             await asyncio.to_thread(get_json, local + "api/state")
         assert refused.value.code == 401
         state = await asyncio.to_thread(get_json, f"{local}api/state?token={token}")
         assert [d["id"] for d in state["buses"][0]["la"]] == [1, 2, 3]
+        # Every URL printed is one another machine could open: no 0.0.0.0; the host
+        # name first, then this machine's addresses, each saying what it is.
+        assert all("0.0.0.0" not in u for u, _ in labelled), labelled
+        first, what = labelled[0]
+        assert what == "host name", labelled
+        assert urllib.parse.urlsplit(first).hostname in (socket.getfqdn(), socket.gethostname())
+        for printed, what in labelled:
+            assert what in ("host name", "address", "this machine only"), labelled
+            assert printed.endswith(f"/?token={token}")
+        for printed, what in labelled:
+            if what == "address":  # this machine's own address reaches the page too
+                base = printed.split("?")[0]
+                state = await asyncio.to_thread(get_json, f"{base}api/state?token={token}")
+                assert state["buses"][0]["la"]
 
 
 async def test_record_writes_what_motorbus_replay_reads(sim: SimProcess, tmp_path: Path) -> None:

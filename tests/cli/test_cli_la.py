@@ -105,8 +105,12 @@ def test_a_silent_id_among_several_gets_a_row_and_exit_1(la_sim: SimProcess) -> 
     ]
     r = cli("la", "pause", "9,1", "--port", la_sim.path, "--json")
     assert r.returncode == 1
-    assert json_lines(r.stdout) == [{"id": 9, "error": "timeout"}, json_lines(r.stdout)[1]]
-    assert json_lines(r.stdout)[1]["id"] == 1
+    rows = json_lines(r.stdout)
+    assert rows[:2] == [{"id": 9, "error": "timeout"}, rows[1]]
+    assert rows[1]["id"] == 1
+    # Then the one error object of a failure (docs/cli.md): code, and which IDs.
+    assert len(rows) == 3
+    assert (rows[2]["code"], rows[2]["command"], rows[2]["ids"]) == (1, "la", [9])
 
 
 def test_set_id_onto_an_id_that_answers_is_refused(la_sim: SimProcess) -> None:

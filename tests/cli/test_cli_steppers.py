@@ -197,7 +197,7 @@ def test_ctrl_c_during_project_run_stops_it_and_exits_130(
     assert code == 130, err
     assert "Task exception was never retrieved" not in err
     assert "Traceback" not in err
-    assert err.splitlines()[-1] == "motorbus: interrupted"
+    assert err.splitlines()[-1] == "motorbus project: interrupted"
     assert frames_after(logged_project_sim, START_PROJECT_1) == [STOP_PROJECT]
 
 

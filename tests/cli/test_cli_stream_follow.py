@@ -78,8 +78,10 @@ def test_stream_no_enable_reports_the_actuator_that_did_not_follow(tmp_path: Pat
             "stream", str(csv_file), "--ramp", "0.2", "--no-enable", "--json", "--port", sim.path
         )
         assert r.returncode == 1
-        (summary,) = json_lines(r.stdout)
+        summary, error = json_lines(r.stdout)  # the summary, then the failure's object
         assert (summary["enabled"], summary["not_following"]) == (False, [2])
+        assert (error["code"], error["command"], error["not_following"]) == (1, "stream", [2])
+        assert "did not follow" in error["error"]
         (line,) = [ln for ln in r.stderr.splitlines() if "did not follow" in ln]
         assert line.startswith("motorbus stream: failed: 1 actuator of 2 did not follow (la:2 ")
         assert "paused or e-stopped" in line

@@ -55,7 +55,8 @@ def test_ctrl_c_during_upload_leaves_an_invalid_project_and_says_how_far(
     assert code == 130, err
     assert "Traceback" not in err
     total = 3 + 7 * 10 + 2 + 1  # select, motor, distance/rev, 7 per step, loop, repeat, save
-    lines = [line for line in err.splitlines() if line.startswith("motorbus project: ")]
+    assert err.splitlines()[-1] == "motorbus project: interrupted"
+    lines = [line for line in err.splitlines()[:-1] if line.startswith("motorbus project: ")]
     assert len(lines) == 1, err
     prefix = "motorbus project: project 1: upload interrupted after "
     assert lines[0].startswith(prefix), err

@@ -85,5 +85,5 @@ def test_ctrl_c_ends_a_replay_through_the_bus_close(tmp_path: Path) -> None:
         _, err = proc.communicate(timeout=CLI_TIMEOUT_S)
         heard = [x for x in sim.log_records() if x["direction"] == "request"]
     assert proc.returncode == 130, err
-    assert err.endswith("motorbus: interrupted\n") and "Traceback" not in err, err
+    assert err.endswith("motorbus replay: interrupted\n") and "Traceback" not in err, err
     assert 1 <= len(heard) < 200

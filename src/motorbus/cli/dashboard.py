@@ -8,7 +8,10 @@ Examples::
     motorbus dashboard --port /dev/ttyUSB0 --listen 0.0.0.0:8765   # prints a token URL
 
 Needs the dashboard extra: pip install 'motorbus[dashboard]'.  On start it prints the
-page's URL on a line of its own; open it in a browser (a phone works too).  One poller
+page's URL on a line of its own; open it in a browser (a phone works too).  Listening
+on every address (--listen 0.0.0.0:PORT) it prints one URL a line instead, each saying
+what it is: the machine's host name, each of its addresses, and 127.0.0.1 for this
+machine only.  With --port the bus is named by the port as given (/dev/ttyUSB0).  One poller
 per bus reads every LA actuator's status in turn (--interval apart), whatever the
 number of viewers.  The page is read-only unless started with --control (e-stop, pause,
 work, clear fault, move-to inside --window).  It listens on 127.0.0.1 unless --listen
@@ -56,7 +59,16 @@ from motorbus.dashboard.hosts import LOOPBACK_NAMES, HostCheck
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la
 
-__all__ = ["DEFAULT_LISTEN", "EXTRA_MESSAGE", "host_check", "parse_listen", "register", "run"]
+__all__ = [
+    "DEFAULT_LISTEN",
+    "EXTRA_MESSAGE",
+    "host_check",
+    "machine_addresses",
+    "page_urls",
+    "parse_listen",
+    "register",
+    "run",
+]
 
 #: Where the page is served unless --listen says otherwise.
 DEFAULT_LISTEN = "127.0.0.1:8765"
@@ -161,6 +173,64 @@ def host_check(host: str, allowed: list[str]) -> HostCheck:
                 value=name,
             )
     return HostCheck(names, any_address=wildcard)
+
+
+#: Listen addresses that mean "every address of this machine".
+WILDCARDS = ("0.0.0.0", "::", "")
+#: Documentation addresses (RFC 5737, RFC 3849): a UDP socket "connected" to one tells
+#: which local address the default route uses, without sending anything.
+_PROBE = {socket.AF_INET: "192.0.2.1", socket.AF_INET6: "2001:db8::1"}
+
+
+def machine_addresses(ipv6: bool) -> list[str]:
+    """This machine's addresses another machine may reach it by: the default route's,
+    then those its host name resolves to; no loopback or link-local address."""
+    families = [socket.AF_INET, socket.AF_INET6] if ipv6 else [socket.AF_INET]
+    found: list[str] = []
+    for family in families:
+        try:
+            with socket.socket(family, socket.SOCK_DGRAM) as probe:
+                probe.connect((_PROBE[family], 9))  # UDP: no packet leaves
+                found.append(str(probe.getsockname()[0]))
+        except OSError:
+            pass  # no route of this family
+        try:
+            infos = socket.getaddrinfo(socket.gethostname(), None, family, socket.SOCK_STREAM)
+        except OSError:
+            infos = []
+        found += [str(info[4][0]) for info in infos]
+    usable = []
+    for text in dict.fromkeys(found):
+        address = ipaddress.ip_address(text.split("%")[0])
+        if not (address.is_loopback or address.is_link_local or address.is_unspecified):
+            usable.append(text)
+    return usable
+
+
+def page_urls(host: str, port: int, token: str | None) -> list[tuple[str, str]]:
+    """The URLs the page is opened by, each with what it is (``""`` for the one URL of a
+    listen address that is not a wildcard).
+
+    On a wildcard address (``--listen 0.0.0.0:PORT`` or ``[::]:PORT``) the listen address
+    is no URL: every other machine needs one of this machine's names or addresses, so
+    the host name comes first, then each address, then loopback for this machine.
+    """
+    query = f"?token={token}" if token else ""
+
+    def url(name: str) -> str:
+        shown = f"[{name}]" if ":" in name else name
+        return f"http://{shown}:{port}/{query}"
+
+    if host not in WILDCARDS:
+        return [(url(host), "")]
+    urls = [
+        (url(name), "host name")
+        for name in dict.fromkeys((socket.getfqdn(), socket.gethostname()))
+        if name and name != "localhost" and not name.startswith("localhost.")
+    ]
+    urls += [(url(a), "address") for a in machine_addresses(ipv6=host == "::")]
+    urls.append((url("::1" if host == "::" else "127.0.0.1"), "this machine only"))
+    return urls
 
 
 def _parse_window(text: str) -> tuple[int, int]:
@@ -304,8 +374,8 @@ async def _serve(
             await dash.start()
             if record is not None:
                 dash.start_recording(record)
-            shown = f"[{host}]" if ":" in host else host
-            print(f"http://{shown}:{bound}/" + (f"?token={token}" if token else ""), flush=True)
+            for url, what in page_urls(host, bound, token):
+                print(f"{url}  ({what})" if what else url, flush=True)
             for s in setups:
                 listed = ", ".join(map(str, s.la_ids)) or "none"
                 print(f"bus {s.bus.name}: LA {listed}", file=sys.stderr, flush=True)

@@ -99,6 +99,14 @@ def run(args: argparse.Namespace) -> int:
         raise LocalProtocolError(
             f"--seconds={args.seconds} is out of range: allowed 1..3600", field="seconds"
         )
+    try:  # a folder that cannot be made is bad input (exit 2), found before anything runs
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise LocalProtocolError(
+            f"--out={args.out}: cannot make the folder ({err.strerror})",
+            field="--out",
+            value=args.out,
+        ) from err
     return asyncio.run(_demo(args))
 
 

@@ -21,7 +21,8 @@ red line with the one thing to do about it:
 * budget: the occupancy model's cycle budget at --period beside a measurement;
 * host: timer, real-time grant, CPU governor, other real-time processes.
 
-Exit status: 0 when nothing is red, 1 otherwise, 2 for bad arguments (nothing sent).
+Exit status: 0 when nothing is red, 1 otherwise (a port that does not exist included),
+2 for bad arguments (nothing sent).
 """
 
 from __future__ import annotations
@@ -44,8 +45,8 @@ from motorbus.cli.bus_options import (
 )
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.main import UsageError
-from motorbus.cli.output import print_json
-from motorbus.errors import LocalProtocolError
+from motorbus.cli.output import error_doc, plural, print_json
+from motorbus.errors import CommandFailed, LocalProtocolError
 
 __all__ = ["register", "run"]
 
@@ -114,18 +115,23 @@ def _config(args: argparse.Namespace) -> DoctorConfig:
         default = default_bus_file()
         if default is not None and default.is_file():
             bus_file = str(default)
-    if bus_file and not port:
-        if not os.path.isfile(bus_file):
-            raise UsageError(f"--bus-file {bus_file}: no such file")
-        if args.baud is not None or args.backend is not None:
-            raise UsageError("--baud/--backend come from the bus file with --bus-file")
-        return DoctorConfig.from_bus_file(bus_file, bus, **options)
-    resolve_port(args)
     try:
+        if bus_file and not port:
+            if not os.path.isfile(bus_file):
+                raise UsageError(f"--bus-file {bus_file}: no such file")
+            if args.baud is not None or args.backend is not None:
+                raise UsageError("--baud/--backend come from the bus file with --bus-file")
+            return DoctorConfig.from_bus_file(bus_file, bus, **options)
+        resolve_port(args)
         return DoctorConfig(args.port, args.baud, backend=args.backend, **options)
     except LocalProtocolError as err:
         if err.field == "port":
-            raise UsageError(f"{err}; {available_ports()}") from err
+            # A port that is not there is a fault of the bus, not of the input: exit 1,
+            # as every command that opens a port (docs/cli.md, exit codes).
+            args.port = err.value
+            raise CommandFailed(
+                f"cannot open port {err.value}: No such file or directory; {available_ports()}"
+            ) from err
         raise
 
 
@@ -135,6 +141,10 @@ def run(args: argparse.Namespace) -> int:
     report = asyncio.run(diagnose(config))
     if args.json:
         print_json(report.as_dict())
+        red = [f.check for f in report.findings if f.level.value == "red"]
+        if red:  # the report, then one error object naming the red checks
+            text = f"{plural(len(red), 'check')} red: {', '.join(red)}"
+            print_json(error_doc("doctor", text, report.exit_code, port=config.url, checks=red))
     else:
         print(report.format_text(colour=sys.stdout.isatty()), flush=True)
     return report.exit_code

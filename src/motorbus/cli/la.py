@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import sys
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -29,7 +28,7 @@ from motorbus import Bus, InspireLA
 from motorbus.cli.bus_options import LA_BAUD, add_bus_options, add_guard_option, open_bus
 from motorbus.cli.ids import add_ids_argument, check_ids, parse_id_args
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, UsageError
-from motorbus.cli.output import plural, print_json, say
+from motorbus.cli.output import fail, plural, print_json, say
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
@@ -241,13 +240,15 @@ async def _run_control(args: argparse.Namespace, bus: Bus) -> int:
     silent = [r for r in results if isinstance(r, int)]
     if not silent:
         return EXIT_OK
-    print(
-        f"motorbus la: {plural(len(silent), 'actuator')} of {len(results)} did not answer "
+    return fail(
+        args,
+        f"{plural(len(silent), 'actuator')} of {len(results)} did not answer "
         f"({', '.join(f'la:{i}' for i in silent)}): check the IDs (motorbus scan lists "
         f"the ones that answer) and --baud {args.baud}",
-        file=sys.stderr,
+        code=EXIT_FAILURE,
+        port=args.port,
+        ids=silent,
     )
-    return EXIT_FAILURE
 
 
 def _unit(reg: la.Register) -> str:

@@ -7,10 +7,13 @@ times a day starts in a small fraction of a second, and one command's optional
 dependency never breaks another.  The top-level help lists :data:`COMMANDS`, whose
 one-line texts tests/cli/test_cli_startup.py checks against each module's ``register``.
 
-Exit codes (documented in docs/cli.md):
+Exit codes (documented in docs/cli.md, checked by tests/cli/test_exit_codes.py; with
+``--json`` a failure also ends stdout with one object: error, code, command, what it
+concerns):
     0  success
     1  the command ran but failed: a reply timeout (a silent ID, also one of several),
-       a device error or bad reply, a port that cannot open or was lost, a project verify
+       a device error or bad reply, a port that cannot open (missing, forbidden, held by
+       another program) or was lost, a project verify
        mismatch, ``scan`` finding nothing, ``stream`` skipping ticks or finding a listed
        actuator silent, a ``project run``/``quad run`` that timed out (stopped unless
        ``--keep-running``)
@@ -38,6 +41,7 @@ import logging
 import os
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
 import motorbus
 from motorbus.errors import (
@@ -92,6 +96,33 @@ COMMAND_MODULES = tuple(COMMANDS)
 GLOBAL_FLAGS = ("--debug", "--json")
 
 
+class _Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors, under ``--json``, also print the JSON error
+    object on standard output (exit code 2, as argparse's); sub-parsers are of this class
+    too (argparse makes them of their parent's class)."""
+
+    json_errors = False
+
+    def error(self, message: str) -> NoReturn:
+        if self.json_errors:
+            from motorbus.cli.output import error_doc, print_json
+
+            command = self.prog.split()[1] if len(self.prog.split()) > 1 else None
+            with contextlib.suppress(OSError):
+                print_json(error_doc(command, message, EXIT_USAGE))
+        super().error(message)
+
+
+def _json_errors(parser: argparse.ArgumentParser) -> None:
+    """Have ``parser`` and every sub-parser print argument errors as JSON too."""
+    if isinstance(parser, _Parser):
+        parser.json_errors = True
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for child in dict.fromkeys(action.choices.values()):
+                _json_errors(child)
+
+
 def version() -> str:
     """The motorbus version (``motorbus.__version__``, which tests check against the
     installed metadata; reading the metadata would cost ``--version`` 30 ms of imports)."""
@@ -108,7 +139,7 @@ def build_parser(only: str | None = "") -> argparse.ArgumentParser:
             top-level help and for argparse to name the choices.  ``None``: no command
             module is imported at all (``motorbus --help``, ``--version``, a typo).
     """
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="motorbus",
         description="Drive buses of serial motion devices (Inspire LA actuators, FF AA steppers).",
     )
@@ -188,6 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
     rest, flags = _split_global_flags(sys.argv[1:] if argv is None else argv)
     parser = build_parser(only=_command_of(rest))
+    if "--json" in flags:
+        _json_errors(parser)
     args = parser.parse_args(rest)
     args.debug = "--debug" in flags
     if "--json" in flags:
@@ -208,8 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.flush()  # a closed pipe shows here, inside the handler below
         return code
     except KeyboardInterrupt:
-        print("motorbus: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _failed(args, EXIT_INTERRUPTED, "interrupted")
     except BrokenPipeError:
         # ``motorbus replay f.jsonl | head``: the reader has all it wanted.  Point
         # stdout at /dev/null so the interpreter's final flush does not complain.
@@ -220,23 +252,38 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.debug:
             raise
         name = err.filename if err.filename is not None else err
-        print(f"motorbus {args.command}: no such file: {name}", file=sys.stderr)
-        return EXIT_USAGE
+        return _failed(args, EXIT_USAGE, f"no such file: {name}", file=name)
     except (LocalProtocolError, UsageError, ValueError) as err:
         if args.debug:
             raise
-        print(f"motorbus {args.command}: {err}", file=sys.stderr)
-        return EXIT_USAGE
+        concerns: dict[str, object] = {}
+        if isinstance(err, LocalProtocolError) and err.field is not None:
+            concerns = {"field": err.field, "value": err.value}
+        return _failed(args, EXIT_USAGE, str(err), **concerns)
     except ReplyTimeoutError as err:
         if args.debug:
             raise
-        print(f"motorbus {args.command}: {err}{_timeout_hint(args)}", file=sys.stderr)
-        return EXIT_FAILURE
+        return _failed(args, EXIT_FAILURE, f"{err}{_timeout_hint(args)}", port=_port_of(args))
     except (MotorbusError, OSError) as err:
         if args.debug:
             raise
-        print(f"motorbus {args.command}: {err}{_port_in_use_hint(err, args)}", file=sys.stderr)
-        return EXIT_FAILURE
+        message = f"{err}{_port_in_use_hint(err, args)}"
+        return _failed(args, EXIT_FAILURE, message, port=_port_of(args))
+
+
+def _failed(args: argparse.Namespace, code: int, message: str, **concerns: object) -> int:
+    """Report a failure (one line on stderr; with --json one JSON object on stdout)."""
+    from motorbus.cli.output import fail
+
+    with contextlib.suppress(BrokenPipeError):
+        fail(args, message, code=code, **concerns)
+    return code
+
+
+def _port_of(args: argparse.Namespace) -> str | None:
+    """The port the command was given (``--port``, a bus file's, ``replay --to``)."""
+    port = getattr(args, "port", None) or getattr(args, "to", None)
+    return port if isinstance(port, str) else None
 
 
 def _guarded(enabled: bool) -> contextlib.AbstractContextManager[object]:

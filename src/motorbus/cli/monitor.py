@@ -8,8 +8,9 @@ Each refresh queries every listed actuator once, in turn, then waits ``--interva
 On a terminal the table is redrawn in place; otherwise each refresh prints a block of
 lines (or, with ``--json``, one JSON object a line).  An actuator that does not answer
 shows as ``timeout`` and does not stop the monitor.  ``--count N`` ends after N
-refreshes; otherwise Ctrl-C ends it (exit code 0).  Without ``--ids`` the bus is
-scanned first.
+refreshes (exit code 1 if an actuator did not answer the last one, as ``la status``);
+otherwise Ctrl-C ends it (exit code 0: that is how an endless monitor ends).
+Without ``--ids`` the bus is scanned first.
 
 ``--plot`` draws position, target and force of each actuator against time instead of
 the table: in the terminal with plain characters (``--plot`` or ``--plot terminal``),
@@ -43,7 +44,7 @@ from motorbus.cli.capture import FAMILY_BAUD
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.la import STATUS_HEADER, status_json, status_row
 from motorbus.cli.main import UsageError
-from motorbus.cli.output import LiveText, print_json
+from motorbus.cli.output import LiveText, fail, plural, print_json
 from motorbus.cli.scan import SCAN_TIMEOUT_S
 from motorbus.cli.values import check_seconds
 from motorbus.errors import ReplyTimeoutError
@@ -138,6 +139,7 @@ async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
                 print("motorbus monitor: no actuator answered a scan of 1..254", file=sys.stderr)
                 return 1
         refreshes = 0
+        rows: list[la.Status | str] = []
         started = time.monotonic()
         plotter = _Plotter(getattr(args, "plot", None), ids, live)
         while args.count is None or refreshes < args.count:
@@ -166,6 +168,18 @@ async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
             for i, s in zip(ids, rows, strict=True):
                 lines.append(status_row(s) if isinstance(s, la.Status) else f"  {i:3d}  {s}")
             live.show(lines)
+    silent = [i for i, s in zip(ids, rows, strict=True) if not isinstance(s, la.Status)]
+    if silent and args.count is not None:
+        # A bounded monitor reports as ``la status`` does: a listed actuator that did
+        # not answer its last query makes the exit code 1.
+        return fail(
+            args,
+            f"{plural(len(silent), 'actuator')} of {len(ids)} did not answer the last "
+            f"refresh ({', '.join(f'la:{i}' for i in silent)}): check --ids (motorbus scan "
+            f"lists the IDs that answer) and --baud {args.baud}",
+            port=args.port,
+            ids=silent,
+        )
     return 0
 
 

@@ -7,7 +7,7 @@ import json
 import sys
 from typing import Any, TextIO
 
-__all__ = ["LiveText", "add_json_option", "plural", "print_json", "say"]
+__all__ = ["LiveText", "add_json_option", "error_doc", "fail", "plural", "print_json", "say"]
 
 
 def add_json_option(parser: argparse.ArgumentParser) -> None:
@@ -33,6 +33,34 @@ def print_json(value: Any, out: TextIO | None = None) -> None:
     stream = out if out is not None else sys.stdout
     stream.write(json.dumps(value, ensure_ascii=False) + "\n")
     stream.flush()
+
+
+def error_doc(command: str | None, message: str, code: int, **concerns: Any) -> dict[str, Any]:
+    """The JSON object of a failure: ``error`` (the message), ``code`` (the exit code),
+    ``command``, then what it concerns (``port``, ``file``, ``field`` and ``value``,
+    ``ids``...; a value JSON cannot hold is given as text, ``None`` left out)."""
+    doc: dict[str, Any] = {"error": message, "code": code, "command": command}
+    for key, value in concerns.items():
+        if value is None:
+            continue
+        if not isinstance(value, (str, int, float, bool, list, dict)):
+            value = str(value)
+        doc[key] = value
+    return doc
+
+
+def fail(args: argparse.Namespace, message: str, *, code: int = 1, **concerns: Any) -> int:
+    """Report that the command failed, and return ``code``.
+
+    One line ``motorbus COMMAND: message`` on standard error; with ``--json`` also one
+    JSON object on standard output (:func:`error_doc`), so that a program reading the
+    output sees the failure, its exit code and what it concerns (docs/cli.md).
+    """
+    command = getattr(args, "command", None)
+    print(f"motorbus {command}: {message}", file=sys.stderr, flush=True)
+    if getattr(args, "json", False):
+        print_json(error_doc(command, message, code, **concerns))
+    return code
 
 
 class LiveText:

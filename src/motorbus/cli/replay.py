@@ -50,7 +50,7 @@ from motorbus.cli.logformat import (
     record_filter,
 )
 from motorbus.cli.main import UsageError
-from motorbus.cli.output import add_json_option, print_json
+from motorbus.cli.output import add_json_option, fail, print_json
 from motorbus.cli.tee import Tee
 from motorbus.cli.values import check_seconds
 from motorbus.errors import LocalProtocolError, MotorbusError
@@ -173,7 +173,7 @@ class _Planned:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    """Run ``motorbus replay``; return 0, or 2 when motion is refused.
+    """Run ``motorbus replay``; return 0, 1 if a request sent failed, 2 when motion is refused.
 
     Raises:
         LocalProtocolError: a bad file, ``--wait``, ``--baud``, ``--speed``, ``--loop`` or
@@ -460,6 +460,12 @@ async def _replay(
         f"replies){closing}",
         file=sys.stderr,
     )
+    if sender.failed:  # a device that did not answer fails the command, as everywhere
+        return fail(
+            args,
+            f"{sender.failed} of {sender.sent} requests failed (timeouts or bad replies)",
+            port=transport.url,
+        )
     return 0
 
 

@@ -41,6 +41,7 @@ from typing import Any, TextIO
 from motorbus import SCAN_PASSES_MAX, Bus, ScanReport, scan
 from motorbus.cli.bus_options import LA_BAUD, add_bus_options, open_bus
 from motorbus.cli.ids import parse_ids
+from motorbus.cli.output import fail
 from motorbus.cli.output import print_json as _print_json
 from motorbus.cli.values import check_seconds
 from motorbus.protocol import la
@@ -262,12 +263,13 @@ async def _scan(args: argparse.Namespace, ids: list[int]) -> int:
     elif found:
         print(",".join(str(i) for i in found))
     if not found:
-        print(
-            f"motorbus scan: no actuator answered ({len(ids)} IDs tried at {args.baud} bit/s): "
+        return fail(
+            args,
+            f"no actuator answered ({len(ids)} IDs tried at {args.baud} bit/s): "
             + NOTHING_ANSWERED_HINT,
-            file=sys.stderr,
+            port=args.port,
+            tried=len(ids),
         )
-        return 1
     return 0
 
 
@@ -292,12 +294,13 @@ async def _scan_all(args: argparse.Namespace, ids: list[int]) -> int:
         for baud, report in reports.items():
             print(f"{baud}: {','.join(str(i) for i in report.found) or 'none'}")
     if not any(r.found for r in reports.values()):
-        print(
-            f"motorbus scan: no actuator answered at any baud rate ({len(ids)} IDs tried at "
+        return fail(
+            args,
+            f"no actuator answered at any baud rate ({len(ids)} IDs tried at "
             f"each of {', '.join(str(b) for b in reports)}): " + NOTHING_ANSWERED_HINT,
-            file=sys.stderr,
+            port=args.port,
+            tried=len(ids),
         )
-        return 1
     return 0
 
 

@@ -73,7 +73,7 @@ from motorbus.cli.bus_options import (
     open_bus,
 )
 from motorbus.cli.ids import check_ids, parse_ids
-from motorbus.cli.output import plural, print_json
+from motorbus.cli.output import error_doc, plural, print_json
 from motorbus.cli.values import check_seconds
 from motorbus.errors import (
     CommandFailed,
@@ -479,7 +479,7 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             f"{summary['late']} late, {summary['skipped']} skipped, "
             f"jitter p50 {summary['jitter_p50_us']:.0f} us, p99 {summary['jitter_p99_us']:.0f} us"
         )
-    failed = False
+    failures: list[str] = []
     if lagging:
         hint = (
             "--no-enable was given: are they paused or e-stopped (motorbus la enable)?"
@@ -494,13 +494,11 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             if check.stopped_at is not None
             else ""
         )
-        print(
-            f"motorbus stream: failed: {plural(len(lagging), 'actuator')} of "
+        failures.append(
+            f"{plural(len(lagging), 'actuator')} of "
             f"{len(trajectory.ids)} did not follow ({moved}; tolerance {FOLLOW_TOLERANCE}"
-            f"{stopped}): {hint}",
-            file=sys.stderr,
+            f"{stopped}): {hint}"
         )
-        failed = True
     if summary["gaps"]:
         print(
             f"motorbus stream: warning: {plural(summary['gaps'], 'gap')} (the port was lost, "
@@ -514,13 +512,18 @@ async def _stream(args: argparse.Namespace, trajectory: Trajectory) -> int:
             if summary["feedback_timeouts"] and args.feedback
             else "the host or the port could not keep up (a loaded machine, a slow adapter)"
         )
-        print(
-            f"motorbus stream: failed: {plural(summary['skipped'], 'tick')} of {len(rows)} "
+        failures.append(
+            f"{plural(summary['skipped'], 'tick')} of {len(rows)} "
             f"skipped - those targets were never sent, because a tick started more than a "
-            f"period ({args.period * 1e3:g} ms) late: {cause}",
-            file=sys.stderr,
+            f"period ({args.period * 1e3:g} ms) late: {cause}"
         )
-        return 1
-    if summary["feedback_timeouts"] and args.feedback and not failed:
+    elif summary["feedback_timeouts"] and args.feedback and not failures:
         print(f"motorbus stream: warning: {missing} missing (late or lost)", file=sys.stderr)
-    return 1 if failed else 0
+    if not failures:
+        return 0
+    for text in failures:
+        print(f"motorbus stream: failed: {text}", file=sys.stderr)
+    if args.json:  # one error object after the summary, naming every failure
+        doc = error_doc("stream", "failed: " + "; ".join(failures), 1, port=args.port)
+        print_json({**doc, "not_following": lagging, "skipped": summary["skipped"]})
+    return 1

@@ -18,6 +18,8 @@ from typing import Any
 
 from motorbus.protocol import framelog
 from motorbus.sim.bus import Pacing, check_pacing
+from motorbus.sim.faults import FaultConfig
+from motorbus.sim.spec import parse_device_specs
 
 __all__ = ["SimProcess"]
 
@@ -41,7 +43,10 @@ class SimProcess:
             (``motorbus sim --pacing prompt``; see ``motorbus.sim.bus``).
 
     Raises:
-        LocalProtocolError: ``pacing`` is not ``"wire"`` or ``"prompt"``.
+        LocalProtocolError: at construction, before any process starts: a device spec
+            ``motorbus sim`` would refuse (an unknown kind - the message names the spec,
+            the kind and the allowed kinds -, a bad ID or option), a bad ``faults``
+            spec, or ``pacing`` not ``"wire"`` or ``"prompt"``.
     """
 
     def __init__(
@@ -58,6 +63,10 @@ class SimProcess:
         pacing: Pacing = "wire",
     ) -> None:
         self.pacing: Pacing = check_pacing(pacing)
+        # Checked here, as the child would check them: a bad spec is the caller's error,
+        # named now, not a child that "did not start".
+        parse_device_specs(devices)
+        FaultConfig.parse(faults or "")
         self.args = [sys.executable, "-m", "motorbus", "sim"]
         if spin:
             self.args.append("--spin")

@@ -146,7 +146,8 @@ def parse_device_spec(spec: str) -> list[DeviceModel]:
     kind, _, rest = spec.strip().partition(":")
     kind = kind.strip().lower().replace("_", "-")
     if kind not in DEVICE_KINDS:
-        raise _bad(spec, f"unknown device kind {kind!r}")
+        allowed = ", ".join(DEVICE_KINDS)
+        raise _bad(spec, f"unknown device kind {kind!r} (allowed kinds: {allowed})")
     items = [i.strip() for i in rest.split(",") if i.strip()] if rest else []
     options = [i for i in items if "=" in i]
     plain = [i for i in items if "=" not in i]

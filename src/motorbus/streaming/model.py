@@ -89,13 +89,16 @@ class StreamStats:
     """Frames written for this stream: each shared broadcast counts once, each feedback
     frame once."""
     feedback_timeouts: int = 0
-    """Feedback frames and status polls that failed: no reply in time, or another error
-    on the bus (each one counted)."""
+    """Feedback round trips (``feedback=True``) that got no good reply: no reply in time,
+    or another error on the bus (each one counted)."""
     polls: int = 0
     """Status polls answered (``poll_status=True``): one reply each."""
     #: Polls that could not get a slot before the next tick (dropped unsent), and ticks
     #: whose free slots held no poll at all.
     polls_skipped: int = 0
+    poll_timeouts: int = 0
+    """Status polls (``poll_status=True``) sent that got no good reply: counted, never
+    raised; the next poll of that actuator comes round again."""
     gaps: int = 0
     """Gaps handled (``StreamGap`` events): the bus came back after an outage, or the
     stream fell ``GAP_TICKS`` (3) or more ticks behind."""
@@ -112,7 +115,8 @@ class StreamStats:
         return (
             f"{d['ticks']} ticks ({d['frames']} frames), {d['late']} late, "
             f"{d['skipped']} skipped, {d['slipped']} slipped; polls {d['polls']} "
-            f"({d['polls_skipped']} skipped), {d['feedback_timeouts']} feedback timeouts; "
+            f"({d['polls_skipped']} skipped, {d['poll_timeouts']} poll timeouts), "
+            f"{d['feedback_timeouts']} feedback timeouts; "
             f"{d['gaps']} gaps; jitter p50 {d['jitter_p50_us']:.0f} / p99 "
             f"{d['jitter_p99_us']:.0f} / max {d['jitter_max_us']:.0f} us"
         )
@@ -129,6 +133,7 @@ class StreamStats:
             "feedback_timeouts": self.feedback_timeouts,
             "polls": self.polls,
             "polls_skipped": self.polls_skipped,
+            "poll_timeouts": self.poll_timeouts,
             "gaps": self.gaps,
             "jitter_p50_us": j["p50_us"],
             "jitter_p99_us": j["p99_us"],
