@@ -40,9 +40,9 @@ from typing import TYPE_CHECKING, Any
 
 from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD, add_bus_options, open_bus
 from motorbus.cli.ids import parse_id_args
-from motorbus.cli.output import print_json
+from motorbus.cli.output import error_doc, fail, print_json
 from motorbus.cli.values import check_seconds
-from motorbus.errors import LocalProtocolError, MotorbusError, UsageError
+from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol.base import Family, check_int
 from motorbus.rig.plan import DEFAULT_FREQUENCIES, TESTS, RigPlan, default_window
 
@@ -128,25 +128,16 @@ def _plan(args: argparse.Namespace) -> RigPlan:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run ``motorbus rig`` (or ``rig compare``).  With ``--json``, an error is one JSON
-    object on standard output: ``error``, ``code`` and what it concerns."""
-    if not getattr(args, "json", False):
-        return _dispatch(args)
-    try:
-        return _dispatch(args)
-    except (LocalProtocolError, UsageError, ValueError, FileNotFoundError) as err:
-        return _error(args, 2, str(err), field=getattr(err, "field", None))
-    except (MotorbusError, OSError) as err:
-        return _error(args, 1, str(err))
+    """Run ``motorbus rig`` (or ``rig compare``).  Errors raised here reach
+    ``motorbus.cli.main``, which prints them (one JSON object with ``--json``) and picks
+    the exit code."""
+    return _dispatch(args)
 
 
 def _error(args: argparse.Namespace, code: int, message: str, **about: Any) -> int:
     """Report a failure (one line on standard error; with --json also one JSON object on
     standard output) and return its exit code."""
-    print(f"motorbus rig: {message}", file=sys.stderr)
-    if getattr(args, "json", False):
-        print_json({"error": message, "code": code, **_jsonable(about)})
-    return code
+    return fail(args, message, code=code, **_jsonable(about))
 
 
 def _jsonable(value: Any) -> Any:
@@ -224,9 +215,7 @@ async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
         what = "aborted" if result.aborted else "failed"
         message = f"rig {what}: {'; '.join(failures)} (report: {paths['report']})"
         if args.json:
-            print_json(
-                {"error": message, "code": 1, "report": str(paths["report"]), **_jsonable(doc)}
-            )
+            print_json(error_doc("rig", message, 1, report=str(paths["report"]), **_jsonable(doc)))
         else:
             print(f"motorbus rig: {what}; report: {paths['report']}", file=sys.stderr)
         return 1
@@ -306,15 +295,12 @@ def _compare(args: argparse.Namespace) -> int:
         for line in failed:
             print(f"motorbus rig: the {name} run failed: {line}", file=sys.stderr)
     bad = [r for r in rows if r.regressed]
-    if new_failed and not bad:
-        return 1
     if bad:
-        print(
-            f"{len(bad)} figure(s) regressed beyond tolerance or missing from NEW: "
-            + ", ".join(f"{r.device} {r.figure}" for r in bad),
-            file=sys.stderr,
-        )
-        return 1
+        figures = [f"{r.device} {r.figure}" for r in bad]
+        why = f"{len(bad)} figure(s) regressed beyond tolerance or missing from NEW: "
+        return _error(args, 1, why + ", ".join(figures), figures=figures)
+    if new_failed:
+        return _error(args, 1, "the NEW run failed: " + "; ".join(new_failed))
     return 0
 
 
