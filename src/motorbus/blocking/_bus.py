@@ -51,6 +51,7 @@ class Bus(Proxy[_bus.Bus]):
             return bus
 
         self._aio = self._runner.call(open_bus())
+        self._runner.opened()
 
     # -- what the bus is ---------------------------------------------------------------
 
@@ -252,6 +253,7 @@ class BusManager(Proxy[_manager.BusManager]):
         """
         run = runner()
         run.call(manager.open())
+        run.opened()
         proxy = cls._of(manager, run)
         proxy._views = {}
         return proxy

@@ -25,6 +25,7 @@ import threading
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
+from motorbus.blocking._signals import protect
 from motorbus.errors import BusClosedError, WrongLoopError
 from motorbus.shutdown import STOP_EVERYTHING_TIMEOUT_S, stop_everything
 
@@ -61,6 +62,16 @@ class Runner:
             self.loop.run_forever()
         finally:
             self.loop.close()
+
+    def opened(self) -> None:
+        """A bus opened: make the safe stop at exit the first exit handler to run.
+
+        ``atexit`` runs its handlers last registered first, and what a bus opens may
+        register its own (the timer's ``weakref.finalize`` closes its file descriptor at
+        exit): the stop must run while everything it needs is still there.
+        """
+        atexit.unregister(self.shutdown)
+        atexit.register(self.shutdown)
 
     def in_loop_thread(self) -> bool:
         return threading.current_thread() is self.thread
@@ -168,10 +179,19 @@ _runner: Runner | None = None
 
 
 def runner() -> Runner:
-    """The process's runner, started on first use (and stopped safely at exit)."""
+    """The process's runner, started on first use (and stopped safely at exit, or on
+    SIGTERM or SIGHUP: ``motorbus.blocking._signals``)."""
     global _runner
     with _lock:
         if _runner is None or _runner.closed:
             _runner = Runner()
             atexit.register(_runner.shutdown)
-        return _runner
+        current = _runner
+    protect(_stop_current)
+    return current
+
+
+def _stop_current() -> None:
+    current = _runner
+    if current is not None:
+        current.stop_everything()
