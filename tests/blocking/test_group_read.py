@@ -74,6 +74,19 @@ async def test_a_silent_actuator_is_named_after_the_bus_retries(pacing: str) -> 
         assert isinstance(mixed[1], la.Status) and isinstance(mixed[3], la.Status)
 
 
+@pytest.mark.parametrize("pacing", PACINGS)
+async def test_a_reply_lost_once_is_retried_and_the_program_sees_only_the_status(
+    pacing: str,
+) -> None:
+    models = [LAModel(1), LAModel(2, silent_replies=1), LAModel(3)]  # la:2 misses one reply
+    async with sim_bus(models, pacing=pacing, retries=1) as (bus, _):  # type: ignore[arg-type]
+        statuses = await read_statuses(bus, [1, 2, 3])
+        assert list(statuses) == [1, 2, 3]
+        assert models[1].silenced == 1  # its first query went unanswered...
+        assert bus.stats.retries == 1  # ...and the bus asked again, once
+        assert bus.stats.timeouts >= 1
+
+
 @pytest.mark.parametrize(
     ("ids", "field"),
     [([], "ids"), ([0], "ids"), ([255], "ids"), ([1, 2, 1], "ids"), ("1-3", "ids"), (7, "ids")],
