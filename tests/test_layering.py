@@ -131,6 +131,9 @@ ALLOWED: dict[str, set[str]] = {
     "doctor": _LIBRARY_BASE
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
     "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
+    # The blocking API: a view of the library, on a thread of its own.
+    "blocking": _LIBRARY_BASE
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
     "sim": {"errors", "protocol", "transport"},
 }
 

@@ -23,12 +23,14 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
     "motorbus.bus.leases": ("Lease", "LeaseInfo"),
     "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
+    "motorbus.devices.group": ("read_statuses",),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
     "motorbus.doctor": ("DoctorConfig", "DoctorReport", "diagnose"),
     "motorbus.devices.quad_stepper": ("QuadStepper",),
     "motorbus.errors": (
         "ArrivalTimeoutError",
         "BusClosedError",
+        "GroupReadError",
         "GuardError",
         "LeaseConflictError",
         "LocalProtocolError",
@@ -70,6 +72,7 @@ if TYPE_CHECKING:
     from motorbus.busfile import BusSpec as BusSpec
     from motorbus.busfile import default_bus_file as default_bus_file
     from motorbus.busfile import load_bus_file as load_bus_file
+    from motorbus.devices.group import read_statuses as read_statuses
     from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.la import InspireLA as InspireLA
     from motorbus.devices.la import ScanReport as ScanReport
@@ -81,6 +84,7 @@ if TYPE_CHECKING:
     from motorbus.doctor import diagnose as diagnose
     from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
+    from motorbus.errors import GroupReadError as GroupReadError
     from motorbus.errors import GuardError as GuardError
     from motorbus.errors import LeaseConflictError as LeaseConflictError
     from motorbus.errors import LocalProtocolError as LocalProtocolError

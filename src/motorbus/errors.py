@@ -12,6 +12,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- ArrivalTimeoutError [TimeoutError] ``move_to(wait=True)``: not there in time
          +-- NotSentError                       dropped before sending (``start_by`` passed)
+         +-- GroupReadError                     ``read_statuses``: some IDs did not answer
          +-- BusClosedError [ConnectionError]   the bus or its port is closed or was lost
          +-- PortInUseError [OSError]           another open holds the port's exclusive lock
          +-- LeaseConflictError                 another owner holds the device (nothing sent)
@@ -53,6 +54,7 @@ __all__ = [
     "BusClosedError",
     "CommandFailed",
     "ControlError",
+    "GroupReadError",
     "GuardError",
     "IdListError",
     "LeaseConflictError",
@@ -156,6 +158,26 @@ class ArrivalTimeoutError(MotorbusError, TimeoutError):
 
 class NotSentError(MotorbusError):
     """A request could not start by its ``start_by`` time and was dropped; nothing was sent."""
+
+
+class GroupReadError(MotorbusError):
+    """A group read (``read_statuses``) where some actuators gave no status.
+
+    Raised once every request of the group has ended (after the bus's retries), so
+    the statuses that did arrive are not lost.
+
+    Attributes:
+        statuses: ``{id: Status}`` of the actuators that answered, in the order asked.
+        failures: ``{id: error}`` of those that did not (``ReplyTimeoutError``,
+            ``RemoteProtocolError`` or ``NotSentError``), in the order asked.
+    """
+
+    def __init__(
+        self, message: str, *, statuses: dict[int, object], failures: dict[int, Exception]
+    ) -> None:
+        super().__init__(message)
+        self.statuses = statuses
+        self.failures = failures
 
 
 class BusClosedError(MotorbusError, ConnectionError):

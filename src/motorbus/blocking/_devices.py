@@ -1,0 +1,192 @@
+"""Blocking devices: ``InspireLA``, ``ProjectStepper`` and ``QuadStepper`` without ``await``.
+
+Every method is the asyncio device's (same arguments, same checks, same docstring),
+run on the background loop; tests/blocking/test_api.py checks that each public
+coroutine method of the asyncio classes has its blocking counterpart here.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+from motorbus.blocking._proxy import Proxy, coroutine, plain, wrapped
+from motorbus.devices import la as _la
+from motorbus.devices import project_stepper as _ps
+from motorbus.devices import quad_stepper as _qs
+from motorbus.protocol import la
+from motorbus.protocol import project_stepper as ps
+
+if TYPE_CHECKING:
+    from motorbus.blocking._bus import Bus
+
+__all__ = ["InspireLA", "ProjectStepper", "QuadStepper"]
+
+
+def _same_bus(self: Proxy[_la.InspireLA], moved: _la.InspireLA) -> InspireLA:
+    assert isinstance(self, InspireLA)
+    return InspireLA._on(self.bus, moved)
+
+
+class InspireLA(Proxy[_la.InspireLA]):
+    """One LA actuator on a blocking bus: :class:`motorbus.InspireLA` without ``await``.
+
+    Args:
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.LA``.
+        id: the actuator ID, 1..254.
+        stroke_mm: the stroke of this model in millimetres (enables the ``_mm`` methods).
+
+    Raises:
+        LocalProtocolError: a bad ``id`` or ``stroke_mm`` (nothing is sent).
+    """
+
+    _bus: Bus
+
+    def __init__(self, bus: Bus, id: int, *, stroke_mm: float | None = None) -> None:
+        self._aio = _la.InspireLA(bus.aio, id, stroke_mm=stroke_mm)
+        self._runner = bus._runner
+        self._bus = bus
+
+    @classmethod
+    def _on(cls, bus: Bus, aio: _la.InspireLA) -> InspireLA:
+        proxy = cls._of(aio, bus._runner)
+        proxy._bus = bus
+        return proxy
+
+    @property
+    def bus(self) -> Bus:
+        """The blocking bus the actuator is on."""
+        return self._bus
+
+    @property
+    def id(self) -> int:
+        """The actuator ID."""
+        return self._aio.id
+
+    @property
+    def stroke_mm(self) -> float | None:
+        """The stroke in millimetres, if given."""
+        return self._aio.stroke_mm
+
+    @property
+    def key(self) -> str:
+        """The device key, ``"la:ID"`` (stats, leases)."""
+        return self._aio.key
+
+    to_mm = plain(_la.InspireLA.to_mm)
+    from_mm = plain(_la.InspireLA.from_mm)
+    safe_stop_commands = plain(_la.InspireLA.safe_stop_commands)
+
+    position_mm = coroutine(_la.InspireLA.position_mm)
+
+    def move_to_mm(self, mm: float, **kwargs: Any) -> la.Status | None:
+        return self._runner.call(self._aio.move_to_mm(mm, **kwargs))
+
+    move_to_mm.__doc__ = _la.InspireLA.move_to_mm.__doc__
+
+    release = coroutine(_la.InspireLA.release)
+    status = coroutine(_la.InspireLA.status)
+    move_to = coroutine(_la.InspireLA.move_to)
+    follow = coroutine(_la.InspireLA.follow)
+    enable = coroutine(_la.InspireLA.enable)
+    estop = coroutine(_la.InspireLA.estop)
+    pause = coroutine(_la.InspireLA.pause)
+    save = coroutine(_la.InspireLA.save)
+    clear_fault = coroutine(_la.InspireLA.clear_fault)
+    recover = coroutine(_la.InspireLA.recover)
+    read = coroutine(_la.InspireLA.read)
+    write = coroutine(_la.InspireLA.write)
+    read_table = coroutine(_la.InspireLA.read_table)
+    write_table = coroutine(_la.InspireLA.write_table)
+    position = coroutine(_la.InspireLA.position)
+    target = coroutine(_la.InspireLA.target)
+    force = coroutine(_la.InspireLA.force)
+    raw_force = coroutine(_la.InspireLA.raw_force)
+    zero_force_sensor = coroutine(_la.InspireLA.zero_force_sensor)
+    over_current_limit = coroutine(_la.InspireLA.over_current_limit)
+    set_over_current_limit = coroutine(_la.InspireLA.set_over_current_limit)
+    temperature_limits = coroutine(_la.InspireLA.temperature_limits)
+    set_temperature_limits = coroutine(_la.InspireLA.set_temperature_limits)
+    baud_code = coroutine(_la.InspireLA.baud_code)
+    set_baud_code = coroutine(_la.InspireLA.set_baud_code)
+    change_id = wrapped(_la.InspireLA.change_id, _same_bus)
+
+
+class ProjectStepper(Proxy[_ps.ProjectStepper]):
+    """The 11-byte ``FF AA`` project stepper controller on a blocking bus:
+    :class:`motorbus.ProjectStepper` without ``await``.
+
+    Args:
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.PROJECT_STEPPER``.
+        motor: the motor byte of motor-addressed commands (default 0x03).
+    """
+
+    _bus: Bus
+
+    def __init__(self, bus: Bus, *, motor: int = ps.DEFAULT_MOTOR) -> None:
+        self._aio = _ps.ProjectStepper(bus.aio, motor=motor)
+        self._runner = bus._runner
+        self._bus = bus
+
+    @property
+    def bus(self) -> Bus:
+        """The blocking bus the controller is on."""
+        return self._bus
+
+    @property
+    def motor(self) -> int:
+        """The motor byte of motor-addressed commands."""
+        return self._aio.motor
+
+    safe_stop_commands = plain(_ps.ProjectStepper.safe_stop_commands)
+
+    release = coroutine(_ps.ProjectStepper.release)
+    upload = coroutine(_ps.ProjectStepper.upload)
+    check_project = coroutine(_ps.ProjectStepper.check_project)
+    read_project = coroutine(_ps.ProjectStepper.read_project)
+    save_project = coroutine(_ps.ProjectStepper.save_project)
+    clear_project = coroutine(_ps.ProjectStepper.clear_project)
+    start_project = coroutine(_ps.ProjectStepper.start_project)
+    run_project = coroutine(_ps.ProjectStepper.run_project)
+    stop_project = coroutine(_ps.ProjectStepper.stop_project)
+    jog = coroutine(_ps.ProjectStepper.jog)
+    single_run = coroutine(_ps.ProjectStepper.single_run)
+    home = coroutine(_ps.ProjectStepper.home)
+    stop = coroutine(_ps.ProjectStepper.stop)
+    set_stop_mode = coroutine(_ps.ProjectStepper.set_stop_mode)
+    set_output = coroutine(_ps.ProjectStepper.set_output)
+    read_input = coroutine(_ps.ProjectStepper.read_input)
+    set_mode4 = coroutine(_ps.ProjectStepper.set_mode4)
+    set_power_on_homing = coroutine(_ps.ProjectStepper.set_power_on_homing)
+
+
+class QuadStepper(Proxy[_qs.QuadStepper]):
+    """The 9-byte ``FF AA`` 4-axis stepper controller on a blocking bus:
+    :class:`motorbus.QuadStepper` without ``await``.
+
+    Args:
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.QUAD_STEPPER``.
+    """
+
+    _bus: Bus
+
+    def __init__(self, bus: Bus) -> None:
+        self._aio = _qs.QuadStepper(bus.aio)
+        self._runner = bus._runner
+        self._bus = bus
+
+    @property
+    def bus(self) -> Bus:
+        """The blocking bus the controller is on."""
+        return self._bus
+
+    safe_stop_commands = plain(_qs.QuadStepper.safe_stop_commands)
+
+    release = coroutine(_qs.QuadStepper.release)
+    configure = coroutine(_qs.QuadStepper.configure)
+    run = coroutine(_qs.QuadStepper.run)
+    run_all = coroutine(_qs.QuadStepper.run_all)
+    stop = coroutine(_qs.QuadStepper.stop)
+    stop_all = coroutine(_qs.QuadStepper.stop_all)
+    home = coroutine(_qs.QuadStepper.home)
+    led = coroutine(_qs.QuadStepper.led)
+    save = coroutine(_qs.QuadStepper.save)
