@@ -33,7 +33,16 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
 
-from motorbus import Bus, InspireLA, scan
+from motorbus import (
+    Bus,
+    Calibration,
+    InspireLA,
+    NamedActuator,
+    default_bus_file,
+    load_bus_file,
+    scan,
+    write_calibration_file,
+)
 from motorbus.cli.bus_options import (
     LA_BAUD,
     add_bus_options,
@@ -42,17 +51,9 @@ from motorbus.cli.bus_options import (
 )
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, CommandFailed, UsageError
-from motorbus.devices.calibration import (
-    DIRECTIONS,
-    UNITS,
-    Calibration,
-    NamedActuator,
-    write_calibration_file,
-)
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
-from motorbus.shutdown import deferred_interrupts
 
 __all__ = ["register_calibrate", "register_setup", "run_calibrate", "run_setup"]
 
@@ -106,9 +107,9 @@ def register_calibrate(sub: argparse._SubParsersAction[argparse.ArgumentParser])
     p.add_argument(
         "--step", type=int, default=STEP_DEFAULT, help="raw units per step toward an end (1..200)"
     )
-    p.add_argument("--unit", choices=UNITS, help="the unit programs use for this device")
+    p.add_argument("--unit", help="the unit programs use for this device: raw | mm | percent")
     p.add_argument("--stroke-mm", type=float, help="the stroke in millimetres (1..1000)")
-    p.add_argument("--direction", choices=DIRECTIONS, help="which end is the start")
+    p.add_argument("--direction", help="which end is the start: normal | reversed")
     p.add_argument("--offset-mm", type=float, help="millimetres added to every position")
     p.add_argument("--yes", action="store_true", help="write without asking")
     add_bus_options(p, default_baud=LA_BAUD, json_option=False)
@@ -144,10 +145,9 @@ async def _bus_at(args: argparse.Namespace, baud: int) -> AsyncIterator[Bus]:
 
 async def _pause(bus: Bus, *ids: int) -> None:
     """Pause each ID, whatever happens (an interrupted write leaves it paused)."""
-    with deferred_interrupts():
-        for ident in dict.fromkeys(ids):
-            with contextlib.suppress(Exception):
-                await InspireLA(bus, ident).pause()
+    for ident in dict.fromkeys(ids):
+        with contextlib.suppress(Exception):
+            await InspireLA(bus, ident).pause()
 
 
 # -- la setup ---------------------------------------------------------------------------------
@@ -297,7 +297,6 @@ async def _write_id_and_baud(
 
 def _named_device(args: argparse.Namespace) -> tuple[Path, str, NamedActuator]:
     """The bus file, the bus and the named device ``args.name``; sets ``--bus``."""
-    from motorbus.busfile import default_bus_file, load_bus_file
     from motorbus.cli.bus_options import BUS_FILE_ENV
 
     given = args.bus_file or os.environ.get(BUS_FILE_ENV)

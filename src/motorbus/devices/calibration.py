@@ -225,8 +225,11 @@ class Calibration:
         a, b = (self.from_raw(r, unit, device=device) for r in self.limits)
         return (a, b) if a <= b else (b, a)
 
-    def to_raw(self, value: object, unit: str | None = None, *, device: str = "la") -> int:
-        """``value`` in ``unit`` (default: this calibration's) as the nearest raw position.
+    def to_raw(
+        self, value: object, unit: str | None = None, *, device: str = "la", whole: bool = False
+    ) -> int:
+        """``value`` in ``unit`` (default: this calibration's) as the nearest raw position
+        (``whole``: a raw position must be an integer, as the device API takes it).
 
         Raises:
             LocalProtocolError: not a finite number, or outside the soft limits; the
@@ -235,6 +238,14 @@ class Calibration:
         chosen = self._unit(unit, device)
         key = "position" if chosen == "raw" else chosen
         number = as_real(value)
+        fraction = isinstance(value, bool) or not hasattr(value, "__index__")
+        if whole and chosen == "raw" and fraction:
+            raise LocalProtocolError(
+                f"{device}: position must be an integer (raw units 0..2000), got {value!r}; "
+                "nothing sent",
+                field=key,
+                value=value,
+            )
         if number is None or not math.isfinite(number):
             raise LocalProtocolError(
                 f"{device}: {key} must be a finite number, got {value!r}; nothing sent",
@@ -404,8 +415,7 @@ class Positioned(Protocol):
 
     id: int
     name: str
-
-    def from_unit(self, value: float, unit: str | None = None) -> int: ...
+    calibration: Calibration
 
 
 def limited_targets(devices: Sequence[Positioned], source: Any, unit: str | None = None) -> Any:
@@ -443,7 +453,7 @@ def limited_targets(devices: Sequence[Positioned], source: Any, unit: str | None
                     field="targets",
                 )
             pairs = list(zip(devices, values, strict=True))
-        return {d.id: d.from_unit(v, unit) for d, v in pairs}
+        return {d.id: d.calibration.to_raw(v, unit, device=d.name) for d, v in pairs}
 
     if isinstance(source, str | bytes):
         return source  # refused by the stream, as text

@@ -90,7 +90,7 @@ class InspireLA:
     def from_unit(self, value: float, unit: str | None = None) -> int:
         """``value`` in ``unit`` (default :attr:`unit`) as a raw position, checked against
         the soft limits (``LocalProtocolError`` naming the device, value and limits)."""
-        return self.calibration.to_raw(value, unit, device=self.name)
+        return self.calibration.to_raw(value, unit, device=self.name, whole=True)
 
     def to_mm(self, position: float) -> float:
         """A position in 0..2000 units as millimetres (needs ``stroke_mm``)."""
