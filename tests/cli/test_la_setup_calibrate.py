@@ -275,3 +275,15 @@ def test_ctrl_c_while_calibrating_pauses_and_leaves_the_file(tmp_path: Path) -> 
         assert model.power_state is PowerState.PAUSED and not model.moving
     assert cal.read_bytes() == before
     assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def test_calibrate_never_sends_a_target_outside_the_present_limits(tmp_path: Path) -> None:
+    model = LAModel(1, position=2000)  # outside the limits 100..1900 of the bus file
+    with PtySim([model]) as sim:
+        path = _arm(tmp_path, sim.path)
+        r = cli("la", "calibrate", "gripper", "--bus-file", str(path), "--step", "200", "--yes")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "outside its limits: moving to 1900 first" in r.stdout
+        targets = [t for _, _, t in model.received]
+        assert targets and min(targets) == 100 and max(targets) == 1900
+        assert model.power_state is PowerState.PAUSED

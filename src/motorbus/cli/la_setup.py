@@ -27,6 +27,7 @@ import argparse
 import asyncio
 import contextlib
 import copy
+import dataclasses
 import os
 import sys
 from collections.abc import AsyncIterator
@@ -386,12 +387,18 @@ async def _find_range(
 ) -> tuple[int, int]:
     """Move slowly to each end within ``base``'s limits; return where it stopped."""
     async with open_bus(args, [Family.LA]) as bus:
-        actuator = InspireLA(bus, named.id, name=named.name)
+        # Raw units within the present limits: the library refuses any target outside.
+        within = dataclasses.replace(base, unit="raw")
+        actuator = InspireLA(bus, named.id, calibration=within, name=named.name)
         try:
             await actuator.enable()
             start = (await actuator.status()).position
             lo, hi = base.limits
             print(f"{named.name}: at {start}; finding its ends within {lo}..{hi}", flush=True)
+            if not lo <= start <= hi:
+                nearest = min(max(start, lo), hi)
+                print(f"  outside its limits: moving to {nearest} first", flush=True)
+                await actuator.move_to(nearest, wait=True, timeout=STEP_TIMEOUT_S * 10)
             low = await _seek(actuator, lo, -args.step)
             high = await _seek(actuator, hi, args.step)
         finally:
@@ -406,6 +413,8 @@ async def _seek(actuator: InspireLA, limit: int, step: int) -> int:
     position = (await actuator.status()).position
     while position != limit:
         target = max(limit, position + step) if step < 0 else min(limit, position + step)
+        low, high = actuator.calibration.limits
+        target = min(max(target, low), high)  # never outside the present limits
         try:
             status = await actuator.move_to(
                 target, wait=True, tolerance=STEP_TOLERANCE, timeout=STEP_TIMEOUT_S
