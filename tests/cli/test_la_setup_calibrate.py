@@ -281,7 +281,8 @@ def test_calibrate_never_sends_a_target_outside_the_present_limits(tmp_path: Pat
     model = LAModel(1, position=2000)  # outside the limits 100..1900 of the bus file
     with PtySim([model]) as sim:
         path = _arm(tmp_path, sim.path)
-        r = cli("la", "calibrate", "gripper", "--bus-file", str(path), "--step", "200", "--yes")
+        # Steps of 50 from 2000 would start at 1950, beyond the upper limit.
+        r = cli("la", "calibrate", "gripper", "--bus-file", str(path), "--step", "50", "--yes")
         assert r.returncode == 0, r.stdout + r.stderr
         assert "outside its limits: moving to 1900 first" in r.stdout
         targets = [t for _, _, t in model.received]
