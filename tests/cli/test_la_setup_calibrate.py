@@ -288,3 +288,16 @@ def test_calibrate_never_sends_a_target_outside_the_present_limits(tmp_path: Pat
         targets = [t for _, _, t in model.received]
         assert targets and min(targets) == 100 and max(targets) == 1900
         assert model.power_state is PowerState.PAUSED
+
+
+def test_calibrate_stops_at_end_stops_and_keeps_a_margin(tmp_path: Path) -> None:
+    # Mechanical ends at 300 and 1700, inside the limits: pushed on, the motor stalls.
+    model = LAModel(1, position=1000, travel_min=300, travel_max=1700)
+    with PtySim([model]) as sim:
+        path = _arm(tmp_path, sim.path)
+        r = cli("la", "calibrate", "gripper", "--bus-file", str(path), "--step", "100", "--yes")
+        assert r.returncode == 0, r.stdout + r.stderr
+        assert "STALL at 300 (target 200): an end; 310 with the margin" in r.stdout
+        assert "STALL at 1700 (target 1800): an end; 1690 with the margin" in r.stdout
+        assert "limits = [310, 1690]" in (tmp_path / "arm.cal.toml").read_text()
+        assert model.power_state is PowerState.PAUSED and not model.errors

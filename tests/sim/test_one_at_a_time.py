@@ -38,3 +38,15 @@ def test_plugging_in_powers_up_afresh_so_a_saved_baud_takes_effect() -> None:
     assert model.baud == 57600 and _answers(bus, 0.4) == 0
     bus.set_line_rate(57600)
     assert _answers(bus, 0.5) == 1
+
+
+def test_an_end_stop_stops_the_motor_with_a_stall() -> None:
+    model = LAModel(1, position=1000, travel_min=300, travel_max=1700)
+    model.handle(la.MoveTo(1, 100, True).encode(), 0.0)
+    assert model.status(5.0).position == 300 and model.errors == la.ErrorFlags.STALL
+    try:
+        LAModel(1, travel_min=500, travel_max=400)
+    except ValueError as err:
+        assert "travel_max=400 is out of range" in str(err)
+    else:
+        raise AssertionError("travel_max below travel_min was accepted")

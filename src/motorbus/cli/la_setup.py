@@ -33,17 +33,9 @@ import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from motorbus import (
-    Bus,
-    Calibration,
-    InspireLA,
-    NamedActuator,
-    default_bus_file,
-    load_bus_file,
-    scan,
-    write_calibration_file,
-)
+from motorbus import Bus, InspireLA, scan
 from motorbus.cli.bus_options import (
     LA_BAUD,
     add_bus_options,
@@ -52,9 +44,12 @@ from motorbus.cli.bus_options import (
 )
 from motorbus.cli.ids import parse_ids
 from motorbus.cli.main import EXIT_FAILURE, EXIT_OK, CommandFailed, UsageError
-from motorbus.errors import ArrivalTimeoutError, LocalProtocolError
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
+
+if TYPE_CHECKING:  # the bus file's modules load only for la calibrate (start-up time)
+    from motorbus import Calibration, NamedActuator
 
 __all__ = ["register_calibrate", "register_setup", "run_calibrate", "run_setup"]
 
@@ -63,8 +58,13 @@ LA_BAUDS = tuple(code.baud for code in la.BaudCode)
 #: ``la calibrate``: raw units per step toward an end, and the most a step may take.
 STEP_DEFAULT = 20
 STEP_TIMEOUT_S = 3.0
-#: A step is done when the actuator is within this of its target (raw units).
+#: A step is done when the actuator is within this of its target (raw units); its status
+#: is read every STEP_POLL_S, and STILL_POLLS reads without progress mean an end.
 STEP_TOLERANCE = 5
+STEP_POLL_S = 0.02
+STILL_POLLS = 5
+#: A range end found at an end stop is kept this far inside it (raw units, 0.5 %).
+END_MARGIN = 10
 #: Fault flags that mean "pushing against something": the end of the range.
 _END_FLAGS = la.ErrorFlags.STALL | la.ErrorFlags.OVER_CURRENT
 
@@ -298,6 +298,7 @@ async def _write_id_and_baud(
 
 def _named_device(args: argparse.Namespace) -> tuple[Path, str, NamedActuator]:
     """The bus file, the bus and the named device ``args.name``; sets ``--bus``."""
+    from motorbus import default_bus_file, load_bus_file
     from motorbus.cli.bus_options import BUS_FILE_ENV
 
     given = args.bus_file or os.environ.get(BUS_FILE_ENV)
@@ -321,6 +322,8 @@ def _named_device(args: argparse.Namespace) -> tuple[Path, str, NamedActuator]:
 
 
 def _limits_text(text: str) -> tuple[int, int]:
+    from motorbus import Calibration
+
     parts = text.replace(":", " ").split()
     try:
         values = [int(p) for p in parts]
@@ -337,6 +340,8 @@ def _limits_text(text: str) -> tuple[int, int]:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """Run ``la calibrate``: 0 once written (or declined), 1 if the device failed."""
+    from motorbus import Calibration, write_calibration_file
+
     cal_path, _, named = _named_device(args)
     resolve_port(args)
     check_int("--step", args.step, 1, 200)
@@ -409,25 +414,39 @@ async def _find_range(
 
 
 async def _seek(actuator: InspireLA, limit: int, step: int) -> int:
-    """Step toward ``limit``; return where the actuator stopped advancing, or ``limit``."""
+    """Step toward ``limit``; return where the actuator stopped advancing (an end stop:
+    :data:`END_MARGIN` inside it), or ``limit``."""
     position = (await actuator.status()).position
+    low, high = actuator.calibration.limits
     while position != limit:
         target = max(limit, position + step) if step < 0 else min(limit, position + step)
-        low, high = actuator.calibration.limits
         target = min(max(target, low), high)  # never outside the present limits
-        try:
-            status = await actuator.move_to(
-                target, wait=True, tolerance=STEP_TOLERANCE, timeout=STEP_TIMEOUT_S
-            )
-        except ArrivalTimeoutError as err:
-            stopped = getattr(err.status, "position", position)
-            print(f"  stopped at {stopped} short of {target}: an end", flush=True)
-            return int(min(max(stopped, la.POSITION_MIN), la.POSITION_MAX))
-        assert status is not None
-        if status.errors & _END_FLAGS:
-            await actuator.clear_fault()
-            print(f"  {status.errors!r} at {status.position}: an end", flush=True)
-            return int(min(max(status.position, la.POSITION_MIN), la.POSITION_MAX))
+        arrived, at, why = await _step(actuator, target)
+        if not arrived:
+            await actuator.clear_fault()  # a stall against the end: clear it, move on
+            end = min(max(at - END_MARGIN if step > 0 else at + END_MARGIN, low), high)
+            print(f"  {why} at {at} (target {target}): an end; {end} with the margin", flush=True)
+            return end
         position = target
     print(f"  reached {limit}", flush=True)
     return limit
+
+
+async def _step(actuator: InspireLA, target: int) -> tuple[bool, int, str]:
+    """One move: (arrived, where it is, why it stopped short)."""
+    await actuator.move_to(target)
+    clock = actuator.bus.timer
+    deadline = clock.now() + STEP_TIMEOUT_S
+    last: int | None = None
+    still = 0
+    while True:
+        await clock.sleep_until(clock.now() + STEP_POLL_S)
+        status = await actuator.status()
+        if status.errors & _END_FLAGS:
+            return False, status.position, status.errors.name or "a fault"
+        if abs(status.position - target) <= STEP_TOLERANCE:
+            return True, status.position, ""
+        still = still + 1 if last is not None and abs(status.position - last) <= 1 else 0
+        if still >= STILL_POLLS or clock.now() > deadline:
+            return False, status.position, "stopped"
+        last = status.position

@@ -204,6 +204,8 @@ class LAModel(DeviceModel):
         dead_band: float = 0.0,
         position_noise: float = 0.0,
         seed: int | None = None,
+        travel_min: float = POSITION_MIN,
+        travel_max: float = POSITION_MAX,
     ) -> None:
         """Create an actuator in its power-on state with the factory control table.
 
@@ -239,6 +241,8 @@ class LAModel(DeviceModel):
             position_noise: standard deviation, units, of gaussian noise added to the
                 reported position (not to the motion).
             seed: seed of the noise (None: a fixed default, so runs repeat).
+            travel_min, travel_max: mechanical end stops inside 0..2000 (model choice,
+                for calibration): the motor stops there and, pushed on, stalls.
 
         Raises:
             LocalProtocolError: a value out of range or not one of the choices.
@@ -293,6 +297,13 @@ class LAModel(DeviceModel):
             dead_band=_not_negative("dead_band", dead_band),
         )
         self._noise = _not_negative("position_noise", position_noise)
+        self._travel = (_not_negative("travel_min", travel_min), float(travel_max))
+        if not self._travel[0] < self._travel[1] <= POSITION_MAX:
+            raise LocalProtocolError(
+                f"travel_max={travel_max!r} is out of range: allowed travel_min..{POSITION_MAX}",
+                field="travel_max",
+                value=travel_max,
+            )
         self._rng = random.Random(0 if seed is None else seed)
         # Position commands not yet acted on (dead time): (time due, target, follow).
         self._pending: list[tuple[float, int, bool]] = []
@@ -621,6 +632,11 @@ class LAModel(DeviceModel):
             self._motion.adopt(target, follow)
         if motion.goal is not None and motion.moving:
             motion.integrate(now - start)
+            low, high = self._travel
+            if not low <= motion.position <= high:  # an end stop: the motor stalls on it
+                motion.position = min(max(motion.position, low), high)
+                self._trips[ErrorFlags.STALL] = (now, False)
+                self._stop()
             if self._motor_abnormal and MOVING_CURRENT_MA > MOTOR_ABNORMAL_CLEAR_MA:
                 self._motor_abnormal = False
         for flag, (since, latched) in list(self._trips.items()):
