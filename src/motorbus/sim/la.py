@@ -241,8 +241,9 @@ class LAModel(DeviceModel):
             position_noise: standard deviation, units, of gaussian noise added to the
                 reported position (not to the motion).
             seed: seed of the noise (None: a fixed default, so runs repeat).
-            travel_min, travel_max: mechanical end stops inside 0..2000 (model choice,
-                for calibration): the motor stops there and, pushed on, stalls.
+            travel_min: a mechanical end stop inside 0..2000 (model choice, for
+                calibration): the motor stops there and, pushed on, stalls.
+            travel_max: the other end stop, above ``travel_min``.
 
         Raises:
             LocalProtocolError: a value out of range or not one of the choices.
