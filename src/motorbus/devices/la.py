@@ -59,7 +59,7 @@ class InspireLA:
         self.id = check_int("id", id, la.ID_MIN, la.ID_MAX)
         cal = Calibration() if calibration is None else calibration
         if not isinstance(cal, Calibration):
-            raise LocalProtocolError(f"calibration must be a Calibration, got {cal!r}")
+            raise LocalProtocolError(f"calibration={cal!r}: not a Calibration", field="calibration")
         if stroke_mm is not None:
             cal = dataclasses.replace(cal, stroke_mm=stroke_mm)  # checked there
         #: Units, soft limits, stroke (``motorbus.devices.calibration``): every move is
