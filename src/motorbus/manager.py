@@ -40,7 +40,7 @@ from motorbus.busfile import (
     load_bus_file,
     parse_devices,
 )
-from motorbus.devices.calibration import limited_targets
+from motorbus.devices.calibration import FULL_STROKE, limited_targets
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
@@ -294,7 +294,7 @@ class BusManager:
                 )
                 self.buses[name] = bus
                 phase = (i % PHASE_GROUPS) * PHASE_SPAN_S / PHASE_GROUPS
-                self._streamers[name] = Streamer(bus, phase=phase)
+                self._streamers[name] = _LimitedStreamer(bus, phase=phase)
         except BaseException:
             self.buses.clear()
             self._streamers.clear()
@@ -511,7 +511,8 @@ class BusManager:
                 f"devices are on buses {buses}: one stream drives one bus", field="devices"
             )
         source = limited_targets(group, targets, unit)
-        return self.streamer(buses[0]).follow(group, source, **options)
+        # Converted and checked here: the streamer's own check would find nothing more.
+        return Streamer.follow(self.streamer(buses[0]), group, source, **options)
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
@@ -529,6 +530,22 @@ class BusManager:
         """The streamer of bus ``bus`` (phase-offset from the other buses)."""
         self.bus(bus)
         return self._streamers[bus]
+
+
+class _LimitedStreamer(Streamer):
+    """The manager's streamers: the targets of actuators with soft limits narrower than
+    the stroke (named devices) are checked against them, in raw units as
+    ``Streamer.follow`` takes them (see ``limited_targets``); others pass as before."""
+
+    def follow(
+        self, actuators: InspireLA | Sequence[InspireLA], targets: Any, **options: Any
+    ) -> Stream:
+        group = [actuators] if isinstance(actuators, InspireLA) else actuators
+        if isinstance(group, Sequence) and any(
+            isinstance(a, InspireLA) and a.calibration.limits != FULL_STROKE for a in group
+        ):
+            targets = limited_targets(list(group), targets, "raw")
+        return super().follow(actuators, targets, **options)
 
 
 def _describe(cmd: Command[object]) -> str:

@@ -105,6 +105,12 @@ async def test_a_stream_of_named_devices_refuses_targets_outside_the_limits() ->
                 mgr.follow("gripper", [0.5])
             with pytest.raises(LocalProtocolError, match=r"targets name 'elbow'"):
                 mgr.follow(["gripper"], [{"elbow": 3}])
+            # The manager's streamer checks them too, in its raw units.
+            streamer = mgr.streamer("arm")
+            with pytest.raises(LocalProtocolError, match=r"gripper: position=1950 is out of"):
+                streamer.follow(mgr.device("gripper"), [1500, 1950])
+            with pytest.raises(LocalProtocolError, match=r"gripper: position=50 is out of"):
+                streamer.follow([mgr.la("arm", 1), mgr.la("arm", 2)], [[50, 600]])
             assert sim.bus.stats.requests == before  # the simulator received nothing
             # Within the limits, by name, in each device's unit.
             stream = mgr.follow(["gripper", "wrist"], [{"gripper": 15.0, "wrist": 0}] * 3)

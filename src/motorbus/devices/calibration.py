@@ -50,6 +50,7 @@ from motorbus.protocol.base import as_real, check_int
 __all__ = [
     "CALIBRATION_KEYS",
     "DIRECTIONS",
+    "FULL_STROKE",
     "UNITS",
     "Calibration",
     "NamedActuator",
@@ -73,6 +74,8 @@ CALIBRATION_KEYS = ("stroke_mm", "limits", "direction", "offset_mm", "unit")
 #: Range of ``stroke_mm`` and ``offset_mm``, millimetres.
 STROKE_MM_MIN, STROKE_MM_MAX = 1.0, 1000.0
 OFFSET_MM_MAX = 1000.0
+#: The limits of an uncalibrated actuator: its whole stroke, raw.
+FULL_STROKE = (la.POSITION_MIN, la.POSITION_MAX)
 #: Slack for a value at a limit that a unit conversion moved by a rounding error.
 _SLACK = 1e-9
 DEVICE_NAME_MAX = 64
@@ -145,7 +148,7 @@ class Calibration:
     """
 
     stroke_mm: float | None = None
-    limits: tuple[int, int] = (la.POSITION_MIN, la.POSITION_MAX)
+    limits: tuple[int, int] = FULL_STROKE
     direction: str = "normal"
     offset_mm: float = 0.0
     unit: str = "raw"
