@@ -52,6 +52,11 @@ devices             list of strings: ``la:1-15``, ``la:1,4,7`` (IDs 1..254, rang
                     see ``protocol.project_stepper.check_motor``), ``quad-stepper``
 process             the process group that serves the bus: 1..32 ASCII letters,
                     digits, ``-`` or ``_`` (default none)
+la                  named LA actuators, ``[bus.la.NAME]`` tables: ``id`` (1..254,
+                    once per bus; added to ``devices``), and calibration keys
+                    (``motorbus.devices.calibration``); a NAME once per file
+calibration         file of calibrations by device name, relative to the bus file
+                    (``motorbus la calibrate`` writes it); it must exist
 ==================  ===============================================================
 
 Process groups.  ``process = "arms"`` puts a bus in group ``arms``.  A program that
@@ -89,6 +94,12 @@ from pathlib import Path
 from typing import Any
 
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S
+from motorbus.devices.calibration import (
+    NamedActuator,
+    calibrate_buses,
+    check_named,
+    parse_named,
+)
 from motorbus.errors import LocalProtocolError
 from motorbus.process_groups import (
     ProcessGroup,
@@ -142,6 +153,8 @@ BUS_KEYS = frozenset(
         "la_stroke_mm",
         "devices",
         "process",
+        "la",
+        "calibration",
     }
 )
 #: Range of ``min_spacing_ms`` and ``host_margin_ms`` in a bus file, milliseconds.
@@ -304,6 +317,24 @@ def _check_url(value: object) -> str:
     return url
 
 
+def _check_path(key: str, value: object) -> str:
+    path = check_name(key, value)
+    if path is None or _CONTROL.search(path):
+        raise LocalProtocolError(
+            f"{key}={value!r} is not allowed: a file path of printable characters",
+            field=key,
+            value=value,
+        )
+    return path
+
+
+def _check_named(named: Sequence[NamedActuator], devices: list[DeviceSpec]) -> list[DeviceSpec]:
+    """``devices`` with the named IDs it leaves out (so the safe stop reaches them)."""
+    listed = {i for d in devices for i in d.ids}
+    extra = tuple(i for i in check_named(named) if i not in listed)
+    return [*devices, DeviceSpec("la", extra)] if extra else devices
+
+
 def _check_baud_for(baud: int, devices: Sequence[DeviceSpec]) -> None:
     """Refuse a rate one of the bus's device families does not take."""
     for kind in dict.fromkeys(d.kind for d in devices):
@@ -343,6 +374,7 @@ def _check_fields(values: Mapping[str, Any]) -> dict[str, Any]:
             None if v is None else check_number("la_stroke_mm", v, 1.0, 1000.0, "mm")
         ),
         "process": lambda v: None if v is None else check_group_name("process", v),
+        "calibration": lambda v: None if v is None else _check_path("calibration", v),
     }
     out = {key: checks[key](value) for key, value in values.items() if key in checks}
     if out.get("rs485") and out.get("backend") == "serialx":
@@ -382,12 +414,17 @@ class BusSpec:
     #: The process group that serves this bus (``None``: every program that opens the
     #: file without choosing a group).
     process: str | None = None
+    #: Named, calibrated LA actuators (``[bus.la.NAME]`` tables).
+    la: tuple[NamedActuator, ...] = ()
+    #: The calibration file the bus names (resolved against the bus file's folder on load).
+    calibration: str | None = None
 
     def __post_init__(self) -> None:
-        values = {key: getattr(self, key) for key in BUS_KEYS if key != "devices"}
+        values = {key: getattr(self, key) for key in BUS_KEYS if key not in ("devices", "la")}
         try:
             checked = _check_fields(values)
-            self.devices = _check_devices(self.devices)
+            self.la = tuple(self.la)
+            self.devices = _check_devices(_check_named(self.la, list(self.devices)))
             _check_baud_for(checked["baud"], self.devices)
         except LocalProtocolError as err:
             raise labelled(f"bus {self.name!r}", err) from None
@@ -415,7 +452,8 @@ class BusSpec:
                 raise LocalProtocolError(f"{where}: '{key}' is required", field=key)
         try:
             checked = _check_fields({"name": f"bus{index}", **data})
-            devices = _check_devices(parse_devices(data.get("devices", [])))
+            named = parse_named(data.get("la", {}), checked.get("la_stroke_mm"))
+            devices = _check_devices(_check_named(named, parse_devices(data.get("devices", []))))
             _check_baud_for(checked["baud"], devices)
         except LocalProtocolError as err:
             raise labelled(where, err) from None
@@ -424,7 +462,7 @@ class BusSpec:
             checked["host_margin_ms"] = (
                 REMOTE_HOST_MARGIN_MS if remote else DEFAULT_HOST_MARGIN_S * 1e3
             )
-        return cls(devices=devices, **checked)
+        return cls(devices=devices, la=named, **checked)
 
     def families(self) -> set[Family]:
         """The protocol families its devices speak (all three if none are listed)."""
@@ -500,9 +538,13 @@ def specs_from_dict(data: Mapping[str, Any]) -> list[BusSpec]:
     return buses_and_groups(data)[0]
 
 
-def buses_and_groups(data: Mapping[str, Any]) -> tuple[list[BusSpec], dict[str, ProcessGroup]]:
+def buses_and_groups(
+    data: Mapping[str, Any], *, base: Path | None = None, missing_calibration_ok: bool = False
+) -> tuple[list[BusSpec], dict[str, ProcessGroup]]:
     """The buses of parsed TOML, and the process groups they name (with their
-    ``[process.NAME]`` tables); every key of both checked here."""
+    ``[process.NAME]`` tables); every key of both checked here, and each bus's
+    calibration file read (relative paths from ``base``, default the working folder;
+    a missing one is refused unless ``missing_calibration_ok``)."""
     if not isinstance(data, Mapping):
         raise LocalProtocolError(f"a bus file is a table, got {data!r}", field="bus")
     unknown = sorted(set(data) - {"bus", "process"})
@@ -523,7 +565,18 @@ def buses_and_groups(data: Mapping[str, Any]) -> tuple[list[BusSpec], dict[str, 
         except LocalProtocolError as err:
             raise labelled(f"bus {spec.name!r} (#{i + 1})", err) from None
         specs.append(spec)
+    _calibrate(specs, base or Path.cwd(), missing_calibration_ok)
     return specs, _groups_from_dict(data, specs)
+
+
+def _calibrate(specs: Sequence[BusSpec], base: Path, missing_ok: bool) -> None:
+    """Refuse a device name used twice in a file; merge each calibration file in."""
+    for spec in specs:
+        if spec.calibration is not None:
+            spec.calibration = str(base / Path(spec.calibration).expanduser())
+    buses = [(s.name, s.calibration, s.la) for s in specs]
+    for spec, named in zip(specs, calibrate_buses(buses, missing_ok), strict=True):
+        spec.la = named
 
 
 @dataclass(frozen=True, slots=True)
@@ -600,8 +653,9 @@ def read_bus_toml(path: str | Path) -> dict[str, Any]:
         ) from None
 
 
-def load_bus_file(path: str | Path) -> BusFile:
-    """Read and check a bus file (see the module docstring).
+def load_bus_file(path: str | Path, *, missing_calibration_ok: bool = False) -> BusFile:
+    """Read and check a bus file (see the module docstring), and the calibration files it
+    names (a missing one is refused unless ``missing_calibration_ok``).
 
     Raises:
         LocalProtocolError: naming the file, the bus, the key, the value and what is
@@ -610,7 +664,9 @@ def load_bus_file(path: str | Path) -> BusFile:
     """
     data = read_bus_toml(path)
     try:
-        specs, groups = buses_and_groups(data)
+        specs, groups = buses_and_groups(
+            data, base=Path(path).parent, missing_calibration_ok=missing_calibration_ok
+        )
     except LocalProtocolError as err:
         raise labelled(str(path), err) from None
     tables = data["bus"]

@@ -15,6 +15,7 @@ buses only and, while they are open, runs on the group's CPUs.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 from collections.abc import Mapping, Sequence
@@ -39,6 +40,7 @@ from motorbus.busfile import (
     load_bus_file,
     parse_devices,
 )
+from motorbus.devices.calibration import FULL_STROKE, limited_targets
 from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
@@ -47,7 +49,7 @@ from motorbus.process_groups import ProcessGroup, choose_group
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
 from motorbus.shutdown import deferred_interrupts
-from motorbus.streams import SafeAction, Streamer
+from motorbus.streams import SafeAction, Stream, Streamer
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import open_transport
 
@@ -117,8 +119,10 @@ class BusManager:
     """Opens many buses together, hands out their devices, and stops them safely.
 
     Use as ``async with BusManager.from_toml("buses.toml") as mgr:`` or build it with
-    ``add_bus``.  Devices: ``mgr.la("arm", 3)``, ``mgr.project_stepper("feeder")``,
-    ``mgr.quad_stepper("feeder")``; streaming: ``mgr.streamer("arm")``.
+    ``add_bus``.  Devices: ``mgr.la("arm", 3)``, ``mgr.device("gripper")`` (named and
+    calibrated in the bus file), ``mgr.project_stepper("feeder")``,
+    ``mgr.quad_stepper("feeder")``; streaming: ``mgr.streamer("arm")``, or
+    ``mgr.follow(["gripper"], ...)`` in the devices' units within their soft limits.
     """
 
     def __init__(self, *, safe_stop: bool = True) -> None:
@@ -290,7 +294,7 @@ class BusManager:
                 )
                 self.buses[name] = bus
                 phase = (i % PHASE_GROUPS) * PHASE_SPAN_S / PHASE_GROUPS
-                self._streamers[name] = Streamer(bus, phase=phase)
+                self._streamers[name] = _LimitedStreamer(bus, phase=phase)
         except BaseException:
             self.buses.clear()
             self._streamers.clear()
@@ -440,8 +444,75 @@ class BusManager:
             ) from None
 
     def la(self, bus: str, id: int) -> InspireLA:
-        """The LA actuator ``id`` on bus ``bus`` (with the bus's ``la_stroke_mm``)."""
-        return InspireLA(self.bus(bus), id, stroke_mm=self.specs[bus].la_stroke_mm)
+        """The LA actuator ``id`` on bus ``bus`` (with the bus's ``la_stroke_mm``).
+
+        If the bus file names it (``[bus.la.NAME]``), it has its name and calibration
+        (soft limits, stroke) but raw units, so a program that addresses actuators by ID
+        is unchanged; :meth:`device` gives it with the unit of its calibration.
+        """
+        handle = self.bus(bus)
+        spec = self.specs[bus]
+        for named in spec.la:
+            if named.id == id:
+                cal = dataclasses.replace(named.calibration, unit="raw")
+                return InspireLA(handle, id, calibration=cal, name=named.name)
+        return InspireLA(handle, id, stroke_mm=spec.la_stroke_mm)
+
+    def device(self, name: str) -> InspireLA:
+        """The actuator the bus file names ``name`` (``[bus.la.NAME]``), calibrated: its
+        positions are in its calibration's unit (raw, mm or percent) and every move is
+        checked against its soft limits before anything is sent.
+
+        Raises:
+            LocalProtocolError: no device of that name (the message lists the names).
+        """
+        for bus, spec in self.specs.items():
+            for named in spec.la:
+                if named.name == name:
+                    return InspireLA(
+                        self.bus(bus), named.id, calibration=named.calibration, name=name
+                    )
+        names = sorted(n.name for spec in self.specs.values() for n in spec.la)
+        raise LocalProtocolError(
+            f"no device named {name!r}; named devices: {names or 'none'} ([bus.la.NAME] "
+            "tables of the bus file)",
+            field="device",
+            value=name,
+        )
+
+    def follow(
+        self,
+        devices: str | InspireLA | Sequence[str | InspireLA],
+        targets: Any,
+        *,
+        unit: str | None = None,
+        **options: Any,
+    ) -> Stream:
+        """Stream follow targets to named (or any) actuators of one bus, in their units.
+
+        ``devices``: names (:meth:`device`) or actuators; ``targets``: as for
+        ``Streamer.follow`` but in ``unit`` (default each device's own), or mappings by
+        name.  Every target is checked against its device's soft limits: a sequence
+        whole, before the stream starts (nothing sent); a live source item by item (a
+        target outside the limits ends the stream with its safe action, unsent).
+        ``options`` are those of ``Streamer.follow``.
+
+        Raises:
+            LocalProtocolError: an unknown name, devices of several buses, a target
+                outside the limits (see above), or a bad option.
+        """
+        items = [devices] if isinstance(devices, str | InspireLA) else list(devices)
+        group = [self.device(d) if isinstance(d, str) else d for d in items]
+        if not group:
+            raise LocalProtocolError("devices must name at least one device", field="devices")
+        buses = sorted({d.bus.name for d in group})
+        if len(buses) != 1:
+            raise LocalProtocolError(
+                f"devices are on buses {buses}: one stream drives one bus", field="devices"
+            )
+        source = limited_targets(group, targets, unit)
+        # Converted and checked here: the streamer's own check would find nothing more.
+        return Streamer.follow(self.streamer(buses[0]), group, source, **options)
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
@@ -459,6 +530,22 @@ class BusManager:
         """The streamer of bus ``bus`` (phase-offset from the other buses)."""
         self.bus(bus)
         return self._streamers[bus]
+
+
+class _LimitedStreamer(Streamer):
+    """The manager's streamers: the targets of actuators with soft limits narrower than
+    the stroke (named devices) are checked against them, in raw units as
+    ``Streamer.follow`` takes them (see ``limited_targets``); others pass as before."""
+
+    def follow(
+        self, actuators: InspireLA | Sequence[InspireLA], targets: Any, **options: Any
+    ) -> Stream:
+        group = [actuators] if isinstance(actuators, InspireLA) else actuators
+        if isinstance(group, Sequence) and any(
+            isinstance(a, InspireLA) and a.calibration.limits != FULL_STROKE for a in group
+        ):
+            targets = limited_targets(list(group), targets, "raw")
+        return super().follow(actuators, targets, **options)
 
 
 def _describe(cmd: Command[object]) -> str:

@@ -124,6 +124,9 @@ BAD: dict[str, list[tuple[Any, str | None]]] = {
         (["quad-stepper", "quad-stepper"], "quad_stepper is listed twice"),
         (["project-stepper", "project-stepper:motor=4"], "project_stepper is listed twice"),
     ],
+    # Named devices' own keys (limits, unit...) are refused in tests/busfile/test_named.py.
+    "la": [(5, None), ("gripper", None), ([1], None), (True, None)],
+    "calibration": [("", None), (5, None), (True, None), ("arm\x00.cal.toml", None)],
 }
 
 CASES = [

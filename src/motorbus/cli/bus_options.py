@@ -209,7 +209,8 @@ def chosen_bus(
                 )
         return None  # the default user file is optional
     try:
-        bus_file = load_bus_file(path)
+        # A calibration file not yet written must not stop ``la calibrate`` writing it.
+        bus_file = load_bus_file(path, missing_calibration_ok=True)
     except OSError as err:
         raise UsageError(f"{path}: cannot read: {_one_line(err)}") from err
     names = bus_file.names()

@@ -8,6 +8,8 @@ Examples::
     motorbus la set 1 over_current_limit 800
     motorbus la set 1 baud 115200                 # a rate, or its code 0..3
     motorbus la set-id 1 7 --save
+    motorbus la setup 1-4 --port /dev/ttyUSB0      # one actuator at a time, any baud
+    motorbus la calibrate gripper --bus-file arm.toml
 
 Positions are 0..2000 (0..100 % of the stroke).  Register names are those of
 motorbus.protocol.la.Register (case-insensitive); "la set" takes the value in the
@@ -98,6 +100,10 @@ def register(subparsers: Any) -> None:
     p.add_argument("--save", action="store_true", help="save to flash so the ID survives power")
     p.add_argument("--force", action="store_true", help="change the ID even if NEW already answers")
     _common(p)
+    from motorbus.cli import la_setup
+
+    la_setup.register_setup(sub)
+    la_setup.register_calibrate(sub)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:

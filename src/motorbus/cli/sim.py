@@ -37,6 +37,8 @@ EXIT_USAGE = 2
 #: How often the main thread checks that the sim thread is still alive (s).
 _LIVENESS_PERIOD_S = 0.5
 _STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+#: ... and SIGUSR1: the next device (``--one-at-a-time``).
+_WAITED = _STOP_SIGNALS | {signal.SIGUSR1}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -99,6 +101,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "adapter that hears itself (motorbus doctor finds it)",
     )
     parser.add_argument(
+        "--device-bauds",
+        action="store_true",
+        help="each LA actuator hears only at its own rate (la:1,baud_code=0 is a 19200 "
+        "bit/s actuator), as actuators set to different rates on one line",
+    )
+    parser.add_argument(
+        "--one-at-a-time",
+        action="store_true",
+        help="connect only the first DEVICE; each SIGUSR1 unplugs it and plugs in the next, "
+        "powered up afresh (as a user connects actuators one by one; IDs may repeat)",
+    )
+    parser.add_argument(
         "--strict-baud",
         action="store_true",
         help="devices ignore the host while it has the port at another rate than --baud, "
@@ -134,14 +148,15 @@ def run(args: argparse.Namespace) -> int:
     thread fails.
     """
     try:
-        models = parse_device_specs(args.devices)
+        one_at_a_time = getattr(args, "one_at_a_time", False)
+        models = parse_device_specs(args.devices, distinct_ids=not one_at_a_time)
         faults = FaultConfig.parse(args.faults or "")
     except LocalProtocolError as err:
         print(f"motorbus sim: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     # Block the stop signals before the sim thread exists, so that it inherits the mask
     # and only this thread takes them, synchronously, with sigtimedwait.
-    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    old_mask = signal.pthread_sigmask(signal.SIG_BLOCK, _WAITED)
     try:
         try:
             sim = PtySim(
@@ -156,6 +171,8 @@ def run(args: argparse.Namespace) -> int:
                 pacing=getattr(args, "pacing", "wire"),
                 echo=getattr(args, "echo", False),
                 strict_baud=getattr(args, "strict_baud", False),
+                device_bauds=getattr(args, "device_bauds", False),
+                one_at_a_time=one_at_a_time,
             ).start()
         except (OSError, LocalProtocolError) as err:
             print(f"motorbus sim: error: {err}", file=sys.stderr)
@@ -166,7 +183,13 @@ def run(args: argparse.Namespace) -> int:
             if sim.tap is not None:
                 tap = f"motorbus sim: tap on {sim.tap_path} ({sim.tap})"
                 print(tap, file=sys.stderr, flush=True)
-            while signal.sigtimedwait(_STOP_SIGNALS, _LIVENESS_PERIOD_S) is None:
+            while (got := signal.sigtimedwait(_WAITED, _LIVENESS_PERIOD_S)) is None or (
+                got.si_signo == signal.SIGUSR1
+            ):
+                if got is not None:
+                    plugged = sim.next_device()
+                    said = "none (that was the last)" if plugged is None else f"#{plugged + 1}"
+                    print(f"motorbus sim: connected device {said}", file=sys.stderr, flush=True)
                 if not sim.running:
                     print(f"motorbus sim: error: simulator stopped: {sim.error}", file=sys.stderr)
                     return 1

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
 from motorbus.bus.bus import REQUEST_TIMEOUT_MAX_S, Bus, Priority
+from motorbus.devices.calibration import Calibration, check_device_name
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la, safety
 from motorbus.protocol.base import check_choice, check_int, check_timeout
@@ -39,58 +41,80 @@ class InspireLA:
             enables :meth:`position_mm`, :meth:`move_to_mm`, :meth:`to_mm` and
             :meth:`from_mm` (0..2000 maps linearly to 0..stroke_mm).  The actuator
             cannot report its stroke; the 0..2000 API is the same with or without it.
+        calibration: units, soft limits, direction, offset (``Calibration``; a bus file's
+            named devices have theirs); ``stroke_mm`` replaces its stroke.
+        name: the device's name (default ``"la:ID"``), in errors and ``BusManager.device``.
     """
 
-    def __init__(self, bus: Bus, id: int, *, stroke_mm: float | None = None) -> None:
+    def __init__(
+        self,
+        bus: Bus,
+        id: int,
+        *,
+        stroke_mm: float | None = None,
+        calibration: Calibration | None = None,
+        name: str | None = None,
+    ) -> None:
         self.bus = bus
         self.id = check_int("id", id, la.ID_MIN, la.ID_MAX)
-        self.stroke_mm = None if stroke_mm is None else _stroke("stroke_mm", stroke_mm)
+        cal = Calibration() if calibration is None else calibration
+        if not isinstance(cal, Calibration):
+            raise LocalProtocolError(f"calibration={cal!r}: not a Calibration", field="calibration")
+        if stroke_mm is not None:
+            cal = dataclasses.replace(cal, stroke_mm=stroke_mm)  # checked there
+        #: Units, soft limits, stroke (``motorbus.devices.calibration``): every move is
+        #: checked against the limits before anything is sent.
+        self.calibration = cal
+        #: The name a bus file gives it (``BusManager.device(name)``), else ``"la:ID"``.
+        self.name = self.key if name is None else check_device_name("name", name)
 
     def __repr__(self) -> str:
         return f"InspireLA(id={self.id}, bus={self.bus.name!r})"
 
-    # -- millimetres (needs stroke_mm) ---------------------------------------------
+    # -- units (raw 0..2000, mm, percent of the calibrated range) ---------------------
+
+    @property
+    def stroke_mm(self) -> float | None:
+        """The stroke of this model in millimetres (``None``: not given)."""
+        return self.calibration.stroke_mm
+
+    @property
+    def unit(self) -> str:
+        """The unit of positions given without one: ``raw`` unless calibrated otherwise."""
+        return self.calibration.unit
+
+    def to_unit(self, position: float, unit: str | None = None) -> float:
+        """A raw position 0..2000 in ``unit`` ("raw", "mm", "percent"; default :attr:`unit`)."""
+        return self.calibration.from_raw(position, unit, device=self.name)
+
+    def from_unit(self, value: float, unit: str | None = None) -> int:
+        """``value`` in ``unit`` (default :attr:`unit`) as a raw position, checked against
+        the soft limits (``LocalProtocolError`` naming the device, value and limits)."""
+        return self.calibration.to_raw(value, unit, device=self.name, whole=True)
 
     def to_mm(self, position: float) -> float:
-        """A position in 0..2000 units as millimetres of the stroke (needs ``stroke_mm``)."""
-        return position * self._stroke() / la.POSITION_MAX
+        """A position in 0..2000 units as millimetres (needs ``stroke_mm``)."""
+        return self.to_unit(position, "mm")
 
     def from_mm(self, mm: float) -> int:
-        """Millimetres (0..``stroke_mm``) as the nearest position unit, 0..2000.
+        """Millimetres as the nearest position unit, within the soft limits (needs
+        ``stroke_mm``)."""
+        return self.from_unit(mm, "mm")
 
-        Raises:
-            LocalProtocolError: no ``stroke_mm``, or ``mm`` outside 0..stroke_mm.
-        """
-        stroke = self._stroke()
-        if isinstance(mm, bool) or not isinstance(mm, int | float) or not 0 <= mm <= stroke:
-            raise LocalProtocolError(
-                f"mm={mm!r} is out of range: allowed 0..{stroke:g} (the stroke of la:{self.id})",
-                field="mm",
-                value=mm,
-            )
-        return round(mm * la.POSITION_MAX / stroke)
+    async def position_in(self, unit: str | None = None) -> float:
+        """The current position in ``unit`` (default :attr:`unit`), from a status query."""
+        self.calibration.limits_in(
+            unit, device=self.name
+        )  # a bad unit fails before anything is sent
+        return self.to_unit((await self.status()).position, unit)
 
     async def position_mm(self) -> float:
         """The current position in millimetres, from a status query (needs ``stroke_mm``)."""
-        self._stroke()
-        return self.to_mm((await self.status()).position)
+        return await self.position_in("mm")
 
     async def move_to_mm(self, mm: float, **kwargs: Any) -> la.Status | None:
-        """:meth:`move_to` with the target in millimetres (0..``stroke_mm``).
-
-        Keyword arguments are those of :meth:`move_to`; ``tolerance`` stays in 0..2000
-        units.
-        """
-        return await self.move_to(self.from_mm(mm), **kwargs)
-
-    def _stroke(self) -> float:
-        if self.stroke_mm is None:
-            raise LocalProtocolError(
-                f"la:{self.id} has no stroke_mm: give InspireLA(bus, {self.id}, stroke_mm=...) "
-                "to use millimetres",
-                field="stroke_mm",
-            )
-        return self.stroke_mm
+        """:meth:`move_to` with the target in millimetres; ``tolerance`` stays raw."""
+        return await self.move_to(mm, unit="mm", **kwargs)
 
     def safe_stop_commands(self, action: object = "pause") -> list[la.Control]:
         """The commands that bring this actuator to a safe state, as values.
@@ -132,8 +156,9 @@ class InspireLA:
 
     async def move_to(
         self,
-        position: int,
+        position: float,
         *,
+        unit: str | None = None,
         reply: bool = True,
         wait: bool = False,
         tolerance: int = ARRIVAL_TOLERANCE,
@@ -156,7 +181,9 @@ class InspireLA:
         the last status is returned.  The wait does not stop the actuator on a timeout.
 
         Args:
-            position: the target, 0..2000 (0..100 % of the stroke).
+            position: the target in ``unit``: raw 0..2000 (0..100 % of the stroke) by
+                default, within the soft limits of :attr:`calibration`.
+            unit: "raw", "mm" or "percent" (default :attr:`unit`, raw unless calibrated).
             reply: send 0x21 (with a status reply) rather than 0x03.
             wait: return only once the actuator has arrived (see above).
             tolerance: 0..200 position units (default 10, 0.5 % of the stroke).
@@ -175,9 +202,10 @@ class InspireLA:
             check_int("tolerance", tolerance, 0, ARRIVAL_TOLERANCE_MAX)
             check_timeout("timeout", timeout, ARRIVAL_TIMEOUT_MAX_S)
             check_timeout("poll_interval", poll_interval, ARRIVAL_POLL_MAX_S)
-        result: la.Status | None = await self.bus.request(la.MoveTo(self.id, position, reply))
+        raw = self.from_unit(position, unit)
+        result: la.Status | None = await self.bus.request(la.MoveTo(self.id, raw, reply))
         if wait:
-            return await self._wait_arrived(position, tolerance, timeout, poll_interval)
+            return await self._wait_arrived(raw, tolerance, timeout, poll_interval)
         return result
 
     async def _wait_arrived(
@@ -203,12 +231,13 @@ class InspireLA:
                 )
             await clock.sleep_until(clock.now() + poll)
 
-    async def follow(self, position: int, *, reply: bool = True) -> la.Status | None:
-        """Follow-mode target (0x20 with status, 0x19 without); send at a fixed 10-50 ms rate.
-
-        For streaming, use :mod:`motorbus.streams`, which keeps the rate.
-        """
-        result: la.Status | None = await self.bus.request(la.Follow(self.id, position, reply))
+    async def follow(
+        self, position: float, *, unit: str | None = None, reply: bool = True
+    ) -> la.Status | None:
+        """Follow-mode target in ``unit`` (as :meth:`move_to`); 0x20 with status, 0x19
+        without; send at a fixed 10-50 ms rate (:mod:`motorbus.streams` keeps it)."""
+        raw = self.from_unit(position, unit)
+        result: la.Status | None = await self.bus.request(la.Follow(self.id, raw, reply))
         return result
 
     async def enable(self) -> la.Status:
@@ -362,22 +391,6 @@ class InspireLA:
         if save:
             await moved.save()
         return moved
-
-
-def _stroke(field: str, mm: object) -> float:
-    """A stroke length in mm: a finite number, 1..1000."""
-    if (
-        isinstance(mm, bool)
-        or not isinstance(mm, int | float)
-        or not math.isfinite(mm)
-        or not 1 <= mm <= 1000
-    ):
-        raise LocalProtocolError(
-            f"{field}={mm!r} is out of range: allowed 1..1000 (millimetres)",
-            field=field,
-            value=mm,
-        )
-    return float(mm)
 
 
 def _tenths(field: str, degrees: object) -> int:

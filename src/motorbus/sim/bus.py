@@ -49,6 +49,13 @@ the wire time: a host that assumes the wire paces replies fails here.
 
 Faults (``FaultConfig``) apply to the device -> host direction; see ``faults``.
 Times are seconds on the driver's clock; ``epoch`` is the origin of the fault schedule.
+
+Actuators set up one by one: ``unplug(i)`` takes model ``i`` off the line (it hears and
+says nothing) and ``plug(i, now)`` puts it back, powered up afresh (``power_cycle``: a
+baud rate saved to flash becomes its rate).  With ``device_bauds=True`` each model with
+a ``baud`` (the LA's own rate, from its baud code) hears only while the host speaks at
+that rate (``set_line_rate``, which the driver calls with the host's rate), as a UART
+set to another rate reads framing errors; the wire is timed at the host's rate.
 """
 
 from __future__ import annotations
@@ -169,6 +176,8 @@ class SimBus:
             set it to their clock when they start serving.
         pacing: ``"wire"`` emulates the wire time of every byte at ``baud`` and the
             models' turnarounds; ``"prompt"`` emulates neither (see the module docstring).
+        device_bauds: each model with a ``baud`` hears only at that rate (see the module
+            docstring).
 
     Raises:
         LocalProtocolError: ``baud`` is not a positive integer, or ``pacing`` is not
@@ -185,9 +194,13 @@ class SimBus:
         log: Callable[[LogRecord], None] | None = None,
         epoch: float = 0.0,
         pacing: Pacing = "wire",
+        device_bauds: bool = False,
     ) -> None:
         self.models: tuple[DeviceModel, ...] = tuple(models)
         self.baud = baud
+        self.device_bauds = bool(device_bauds)
+        #: Per model: on the line (``plug``/``unplug``).
+        self.connected = [True] * len(self.models)
         self.pacing: Pacing = check_pacing(pacing)
         self._paced = self.pacing == "wire"
         wire_byte_time = byte_time(baud)  # validates the baud in either mode
@@ -228,6 +241,27 @@ class SimBus:
     def link_up(self) -> bool:
         """False while a disconnect fault holds the link down."""
         return self._link_up
+
+    def plug(self, index: int, now: float) -> None:
+        """Put model ``index`` on the line, powered up afresh (its RAM from flash)."""
+        self.models[index].power_cycle(now)
+        self.connected[index] = True
+
+    def unplug(self, index: int) -> None:
+        """Take model ``index`` off the line: it hears nothing and sends nothing."""
+        self.connected[index] = False
+
+    def set_line_rate(self, baud: int) -> None:
+        """The host now speaks at ``baud`` (``device_bauds``: who hears, and wire time)."""
+        if baud != self.baud:
+            self._byte_time = byte_time(baud) if self._paced else 0.0
+            self.baud = baud
+
+    def _hears(self, i: int) -> bool:
+        if not self.connected[i]:
+            return False
+        own = getattr(self.models[i], "baud", None) if self.device_bauds else None
+        return own is None or own == self.baud
 
     def receive(self, data: bytes, now: float) -> None:
         """Take ``data`` the host wrote, all of which arrived at ``now`` (s).
@@ -323,7 +357,7 @@ class SimBus:
         hearing: list[int] = []
         missed = 0
         for i, model in enumerate(self.models):
-            if model.family is not frame.family:
+            if model.family is not frame.family or not self._hears(i):
                 continue
             if self._is_transmitting(i, t_start, t_end):
                 missed += 1

@@ -207,6 +207,8 @@ class LAModel(DeviceModel):
         position_noise: float = 0.0,
         seized: bool = False,
         seed: int | None = None,
+        travel_min: float = POSITION_MIN,
+        travel_max: float = POSITION_MAX,
     ) -> None:
         """Create an actuator in its power-on state with the factory control table.
 
@@ -246,6 +248,9 @@ class LAModel(DeviceModel):
                 commands are taken as usual (the target register changes, replies
                 are normal, no fault is reported) but the position stays where it is.
             seed: seed of the noise (None: a fixed default, so runs repeat).
+            travel_min: a mechanical end stop inside 0..2000 (model choice, for
+                calibration): the motor stops there and, pushed on, stalls.
+            travel_max: the other end stop, above ``travel_min``.
 
         Raises:
             LocalProtocolError: a value out of range or not one of the choices.
@@ -301,6 +306,13 @@ class LAModel(DeviceModel):
         )
         self._noise = _not_negative("position_noise", position_noise)
         self._seized = bool(seized)
+        self._travel = (_not_negative("travel_min", travel_min), float(travel_max))
+        if not self._travel[0] < self._travel[1] <= POSITION_MAX:
+            raise LocalProtocolError(
+                f"travel_max={travel_max!r} is out of range: allowed travel_min..{POSITION_MAX}",
+                field="travel_max",
+                value=travel_max,
+            )
         self._rng = random.Random(0 if seed is None else seed)
         # Position commands not yet acted on (dead time): (time due, target, follow).
         self._pending: list[tuple[float, int, bool]] = []
@@ -631,6 +643,11 @@ class LAModel(DeviceModel):
             self._motion.adopt(target, follow)
         if motion.goal is not None and motion.moving:
             motion.integrate(now - start)
+            low, high = self._travel
+            if not low <= motion.position <= high:  # an end stop: the motor stalls on it
+                motion.position = min(max(motion.position, low), high)
+                self._trips[ErrorFlags.STALL] = (now, False)
+                self._stop()
             if self._motor_abnormal and MOVING_CURRENT_MA > MOTOR_ABNORMAL_CLEAR_MA:
                 self._motor_abnormal = False
         for flag, (since, latched) in list(self._trips.items()):

@@ -8,6 +8,7 @@ the end-to-end tests need.
 from __future__ import annotations
 
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -41,6 +42,9 @@ class SimProcess:
         tap: serve a listen-only copy of the traffic on a pty linked here (``--tap``).
         pacing: ``"wire"`` (default) emulates wire time; ``"prompt"`` answers at once
             (``motorbus sim --pacing prompt``; see ``motorbus.sim.bus``).
+        device_bauds: each LA actuator hears only at its own rate (``--device-bauds``).
+        one_at_a_time: only the first device is connected; :meth:`next_device` plugs in
+            the next (``--one-at-a-time``).
 
     Raises:
         LocalProtocolError: at construction, before any process starts: a device spec
@@ -61,6 +65,8 @@ class SimProcess:
         spin: bool = False,
         tap: str | os.PathLike[str] | None = None,
         pacing: Pacing = "wire",
+        device_bauds: bool = False,
+        one_at_a_time: bool = False,
     ) -> None:
         self.pacing: Pacing = check_pacing(pacing)
         # Checked here, as the child would check them: a bad spec is the caller's error,
@@ -68,6 +74,8 @@ class SimProcess:
         parse_device_specs(devices)
         FaultConfig.parse(faults or "")
         self.args = [sys.executable, "-m", "motorbus", "sim"]
+        self.args += ["--device-bauds"] if device_bauds else []
+        self.args += ["--one-at-a-time"] if one_at_a_time else []
         if spin:
             self.args.append("--spin")
         if self.pacing != "wire":
@@ -107,6 +115,25 @@ class SimProcess:
             raise RuntimeError(f"motorbus sim did not start: {err.strip()}")
         self.path = line.split()[0]
         return self
+
+    def next_device(self, timeout: float = START_TIMEOUT_S) -> str:
+        """``one_at_a_time``: unplug the connected device, plug in the next; return the
+        simulator's line saying which (``connected device #N``) once it has done it."""
+        assert self.proc is not None and self.proc.stderr is not None
+        self.proc.send_signal(signal.SIGUSR1)
+        fd = self.proc.stderr.fileno()
+        line = b""
+        while select.select([fd], [], [], timeout)[0]:
+            byte = os.read(fd, 1)
+            if not byte or byte == b"\n":
+                if b"connected device" in line:
+                    return line.decode().strip()
+                if not byte:
+                    break
+                line = b""
+            else:
+                line += byte
+        raise RuntimeError(f"motorbus sim did not connect the next device: {line!r}")
 
     def stop(self) -> str:
         """Interrupt the child (SIGINT) and return its one-line summary."""

@@ -29,6 +29,12 @@ them): ``echo=True`` sends every byte the host writes straight back, as a half-d
 RS-485 adapter whose receiver is not disabled while it transmits; ``strict_baud=True``
 makes the devices deaf while the host's end of the pty is set to another rate than
 ``baud`` (a UART at the wrong rate reads framing errors; they answer nothing).
+
+Two more set up actuators as a user does (``motorbus la setup``): ``device_bauds=True``
+lets each LA actuator hear only at its own rate (``la:1,baud_code=0`` is a 19200 bit/s
+actuator) while the host's end of the pty says which rate it speaks; ``one_at_a_time=True``
+connects only the first device at start, and each :meth:`PtySim.next_device` unplugs
+the present one and plugs in the next, powered up afresh (``SimBus.plug``).
 """
 
 from __future__ import annotations
@@ -44,6 +50,7 @@ import termios
 import threading
 import time
 import tty
+from collections import deque
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from types import TracebackType
@@ -95,6 +102,8 @@ class PtySim:
             that hears itself), before any reply.
         strict_baud: ignore what the host sends while its end of the pty is set to
             another rate than ``baud`` (counted in ``baud_mismatch_bytes``).
+        device_bauds: each LA actuator hears only at its own rate (see above).
+        one_at_a_time: only one device is connected at a time (see above).
 
     Attributes:
         bus: the ``SimBus`` (for inspection; it is driven by the sim thread).
@@ -123,6 +132,8 @@ class PtySim:
         pacing: Pacing = "wire",
         echo: bool = False,
         strict_baud: bool = False,
+        device_bauds: bool = False,
+        one_at_a_time: bool = False,
     ) -> None:
         self.link = Path(link) if link is not None else None
         self.tap = Path(tap) if tap is not None else None
@@ -142,7 +153,15 @@ class PtySim:
             seed=seed,
             log=self._write_log if wants_log else None,
             pacing=pacing,
+            device_bauds=device_bauds,
         )
+        #: The device connected now (``one_at_a_time``), None after the last.
+        self.connected: int | None = None
+        self._plugs: deque[tuple[int | None, threading.Event]] = deque()
+        if one_at_a_time:
+            for i in range(1, len(self.bus.models)):
+                self.bus.unplug(i)
+            self.connected = 0
         self.echo = bool(echo)
         self.strict_baud = bool(strict_baud)
         self.echoed_bytes = 0
@@ -184,6 +203,32 @@ class PtySim:
             True if the pty is open, False on timeout.
         """
         return self._open.wait(timeout)
+
+    def next_device(self, timeout: float = 5.0) -> int | None:
+        """Unplug the connected device and plug in the next (``one_at_a_time``), powered
+        up afresh; return its index (``None``: that was the last).  Returns once the sim
+        thread has done it (or ``timeout`` seconds have passed)."""
+        current = self.connected
+        nxt = 0 if current is None else current + 1
+        self.connected = nxt if nxt < len(self.bus.models) else None
+        done = threading.Event()
+        self._plugs.append((current, done))
+        if self._wake_w is not None and self.running:
+            os.write(self._wake_w, b"p")
+            done.wait(timeout)
+        else:
+            self._apply_plugs()
+        return self.connected
+
+    def _apply_plugs(self) -> None:
+        while self._plugs:
+            current, done = self._plugs.popleft()
+            if current is not None:
+                self.bus.unplug(current)
+            nxt = 0 if current is None else current + 1
+            if nxt < len(self.bus.models):
+                self.bus.plug(nxt, time.monotonic())
+            done.set()
 
     def start(self) -> PtySim:
         """Open the pty, create the link, start the sim thread; return ``self``.
@@ -378,6 +423,7 @@ class PtySim:
             readable, _, _ = select.select(fds, [], [], timeout)
             if wake_r in readable:
                 os.read(wake_r, 64)
+                self._apply_plugs()
                 continue
             if master is not None and master in readable:
                 try:
@@ -398,6 +444,8 @@ class PtySim:
                     if self.strict_baud and self._host_baud() not in (None, bus.baud):
                         self.baud_mismatch_bytes += len(data)
                         continue
+                    if bus.device_bauds:
+                        bus.set_line_rate(self._host_baud() or bus.baud)
                     bus.receive(data, now)
 
     def _host_baud(self) -> int | None:

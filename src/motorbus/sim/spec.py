@@ -167,8 +167,9 @@ def parse_device_spec(spec: str) -> list[DeviceModel]:
         raise _bad(spec, str(err)) from err
 
 
-def parse_device_specs(specs: Iterable[str]) -> list[DeviceModel]:
-    """Build the models of several specs; refuse two LA models with the same ID.
+def parse_device_specs(specs: Iterable[str], *, distinct_ids: bool = True) -> list[DeviceModel]:
+    """Build the models of several specs; refuse two LA models with the same ID (unless
+    not ``distinct_ids``: actuators connected one at a time may share one).
 
     Raises:
         LocalProtocolError: see ``parse_device_spec``; also a duplicate LA ID across specs.
@@ -178,7 +179,7 @@ def parse_device_specs(specs: Iterable[str]) -> list[DeviceModel]:
     for spec in specs:
         for model in parse_device_spec(spec):
             model_id = getattr(model, "id", None)
-            if model.family is Family.LA and isinstance(model_id, int):
+            if model.family is Family.LA and isinstance(model_id, int) and distinct_ids:
                 if model_id in seen:
                     raise _bad(spec, f"LA ID {model_id} is already used by {seen[model_id]!r}")
                 seen[model_id] = spec
