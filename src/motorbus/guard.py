@@ -309,8 +309,16 @@ def send_safe_frames(
 def _open_serial(port: GuardPort) -> Any:
     import serial  # the guard process only; pyserial is a motorbus dependency
 
+    from motorbus.transport.usb import resolve_port
+
+    # Where the adapter is now: a usb: URL or by-id link may name another node than
+    # the program last opened (the adapter was replugged meanwhile).
     ser = serial.serial_for_url(
-        port.url, baudrate=port.baud, timeout=0, write_timeout=WRITE_TIMEOUT_S, do_not_open=True
+        resolve_port(port.url),
+        baudrate=port.baud,
+        timeout=0,
+        write_timeout=WRITE_TIMEOUT_S,
+        do_not_open=True,
     )
     if port.options.get("rs485"):
         import serial.rs485
