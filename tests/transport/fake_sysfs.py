@@ -27,7 +27,8 @@ class Adapter:
 
     @property
     def by_id_name(self) -> str:
-        words = "_".join(f"{self.manufacturer} {self.product}".split())
+        maker = self.manufacturer or self.vid  # udev's fallback when there is no string
+        words = "_".join(f"{maker} {self.product}".split())
         tail = f"_{self.serial}" if self.serial else ""
         port = "-if00" if self.driver == "cdc_acm" else "-if00-port0"
         return f"usb-{words}{tail}{port}"
@@ -88,7 +89,10 @@ class FakeSysfs:
             path.write_text("")
         else:
             path.symlink_to(node)
-        (self.by_id / adapter.by_id_name).symlink_to(Path("..") / ".." / tty)
+        link = self.by_id / adapter.by_id_name
+        if link.is_symlink():
+            link.unlink()  # two alike: udev's link names the one found last
+        link.symlink_to(Path("..") / ".." / tty)
         self._usb_dirs[tty] = usb
         return path
 
