@@ -309,12 +309,16 @@ def send_safe_frames(
 def _open_serial(port: GuardPort) -> Any:
     import serial  # the guard process only; pyserial is a motorbus dependency
 
-    from motorbus.transport.usb import resolve_port
+    url = port.url
+    if url.startswith("usb:"):
+        # An adapter named by its USB identity: where it is now (it may have come back
+        # under another name since the program opened it).  Imported only then: the
+        # transport package costs the guard tens of ms before its first frame.
+        from motorbus.transport.usb import resolve_port
 
-    # Where the adapter is now: a usb: URL or by-id link may name another node than
-    # the program last opened (the adapter was replugged meanwhile).
+        url = resolve_port(url)
     ser = serial.serial_for_url(
-        resolve_port(port.url),
+        url,
         baudrate=port.baud,
         timeout=0,
         write_timeout=WRITE_TIMEOUT_S,

@@ -96,7 +96,7 @@ def test_json_has_every_field_and_the_name_that_tells_adapters_apart(
 def test_a_serial_number_two_ports_share_is_not_offered(fake: FakeSysfs) -> None:
     fake.plug(FT232R, "ttyUSB0", usb_port="1-1")
     fake.plug(FT232R, "ttyUSB1", usb_port="1-2")  # one dual-port chip, or a cloned serial
-    ports = usb.list_ports()
+    ports = usb.list_serial_ports()
     assert [stable_url(p, ports) for p in ports] == [None, None]
 
 

@@ -9,7 +9,13 @@ import pytest
 
 from motorbus.errors import LocalProtocolError
 from motorbus.transport import usb
-from motorbus.transport.usb import UsbSelector, list_ports, parse_usb_url, port_info, resolve_port
+from motorbus.transport.usb import (
+    UsbSelector,
+    list_serial_ports,
+    parse_usb_url,
+    port_info,
+    resolve_port,
+)
 from tests.transport.fake_sysfs import CDC_ACM, CH340, FT232R, FT232R_B, FakeSysfs
 
 
@@ -126,9 +132,9 @@ def test_listing_is_usb_only_in_name_order_unless_all_is_asked(fake: FakeSysfs) 
     fake.plug(CDC_ACM, "ttyACM0", usb_port="1-3")
     fake.add_uart("ttyS0")
     fake.add_virtual("tty0")
-    names = [p.name for p in list_ports(**roots(fake))]
+    names = [p.name for p in list_serial_ports(**roots(fake))]
     assert names == ["ttyACM0", "ttyUSB2", "ttyUSB10"]
-    every = list_ports(**roots(fake), usb_only=False)
+    every = list_serial_ports(**roots(fake), usb_only=False)
     assert [p.name for p in every] == ["ttyACM0", "ttyS0", "ttyUSB2", "ttyUSB10"]
     uart = every[1]
     assert (uart.is_usb, uart.driver, uart.describe()) == (
@@ -139,7 +145,7 @@ def test_listing_is_usb_only_in_name_order_unless_all_is_asked(fake: FakeSysfs) 
 
 
 def test_no_sysfs_lists_nothing(tmp_path: Path) -> None:
-    assert list_ports(sysfs=str(tmp_path / "nothing"), dev=str(tmp_path)) == []
+    assert list_serial_ports(sysfs=str(tmp_path / "nothing"), dev=str(tmp_path)) == []
 
 
 # -- resolving --------------------------------------------------------------------
@@ -213,7 +219,7 @@ def test_the_module_roots_are_the_defaults(
     monkeypatch.setattr(usb, "SYSFS", str(fake.sys))
     monkeypatch.setattr(usb, "DEV", str(fake.dev))
     assert resolve_port("usb:serial=A12345") == str(fake.dev / "ttyUSB3")
-    assert [p.name for p in list_ports()] == ["ttyUSB3"]
+    assert [p.name for p in list_serial_ports()] == ["ttyUSB3"]
 
 
 def test_paths_resolve_through_links_and_urls_stay_as_given(tmp_path: Path) -> None:

@@ -33,8 +33,8 @@ from collections import Counter
 from collections.abc import Sequence
 from typing import Any
 
+from motorbus import SerialPortInfo, list_serial_ports
 from motorbus.cli.output import add_json_option, print_json
-from motorbus.transport.usb import SerialPortInfo, list_ports
 
 __all__ = ["register", "run", "stable_url", "table"]
 
@@ -107,7 +107,7 @@ def table(ports: Sequence[SerialPortInfo]) -> list[str]:
 
 def run(args: argparse.Namespace) -> int:
     """List the ports; exit 0 (none found is not an error)."""
-    ports = list_ports(usb_only=not args.all)
+    ports = list_serial_ports(usb_only=not args.all)
     if args.json:
         print_json(
             {"ports": [p.as_dict() | {"url": stable_url(p, ports)} for p in ports]},

@@ -44,7 +44,7 @@ __all__ = [
     "SerialPortInfo",
     "UsbSelector",
     "is_usb_url",
-    "list_ports",
+    "list_serial_ports",
     "parse_usb_url",
     "port_info",
     "read_latency_timer_ms",
@@ -303,7 +303,7 @@ def _natural(name: str) -> tuple[str, int]:
     return (stem, int(name[len(stem) :] or -1))
 
 
-def list_ports(
+def list_serial_ports(
     *, sysfs: str | None = None, dev: str | None = None, usb_only: bool = True
 ) -> list[SerialPortInfo]:
     """The serial ports sysfs knows, USB adapters only unless ``usb_only`` is False
@@ -357,7 +357,7 @@ def resolve_port(url: str, *, sysfs: str | None = None, dev: str | None = None) 
     """
     if is_usb_url(url):
         selector = parse_usb_url(url)
-        ports = list_ports(sysfs=sysfs, dev=dev)
+        ports = list_serial_ports(sysfs=sysfs, dev=dev)
         matches = [p for p in ports if selector.matches(p)]
         if not matches:
             raise _no_such_adapter(url, ports)
