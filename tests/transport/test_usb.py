@@ -229,10 +229,23 @@ def test_paths_resolve_through_links_and_urls_stay_as_given(tmp_path: Path) -> N
     link = tmp_path / "usb-FTDI-if00-port0"
     link.symlink_to(target)
     assert resolve_port(str(link)) == str(target)
+    assert resolve_port("COM3") == "COM3"  # Windows: never made a path of the cwd
+    assert resolve_port("/dev/cu.usbserial-A12345") == "/dev/cu.usbserial-A12345"
     assert resolve_port("socket://10.0.0.5:7012") == "socket://10.0.0.5:7012"
     assert resolve_port("rfc2217://host:2217") == "rfc2217://host:2217"
     missing = str(tmp_path / "gone")
     assert resolve_port(missing) == missing  # the open names the missing file
+
+
+def test_without_sysfs_a_usb_url_says_it_needs_linux(tmp_path: Path) -> None:
+    with pytest.raises(OSError) as caught:
+        resolve_port("usb:serial=A12345", sysfs=str(tmp_path / "nosys"), dev=str(tmp_path))
+    assert caught.value.errno == errno.ENODEV
+    assert str(caught.value) == (
+        f"usb:serial=A12345: a usb: URL is found through Linux sysfs, and "
+        f"{tmp_path / 'nosys' / 'class' / 'tty'} is not there; name the port by its device "
+        "(COM3, /dev/cu.usbserial-...) on this system"
+    )
 
 
 def test_a_malformed_url_fails_before_sysfs_is_read(tmp_path: Path) -> None:

@@ -64,6 +64,7 @@ def test_one_adapter_spelled_twice_is_one_port(tmp_path: Path) -> None:
 def test_the_cli_on_an_absent_adapter_fails_naming_what_it_found(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    (tmp_path / "sys" / "class" / "tty").mkdir(parents=True)  # Linux, nothing plugged in
     monkeypatch.setattr(usb, "SYSFS", str(tmp_path / "sys"))
     monkeypatch.setattr(usb, "DEV", str(tmp_path / "dev"))
     code = main(["la", "status", "1", "--port", "usb:serial=A12345"])

@@ -345,18 +345,29 @@ def _ambiguous(url: str, matches: list[SerialPortInfo]) -> OSError:
 def resolve_port(url: str, *, sysfs: str | None = None, dev: str | None = None) -> str:
     """The device path to open for ``url`` now.
 
-    A ``usb:`` URL becomes the node of the one adapter it matches; a device path (such
-    as a ``/dev/serial/by-id/...`` link) is resolved through its symlinks; any other
-    URL (``socket://``, ``rfc2217://``) is returned as given.  Call it at every open:
-    the answer changes when an adapter comes back under another name.
+    A ``usb:`` URL becomes the node of the one adapter it matches; a symlink (such as
+    a ``/dev/serial/by-id/...`` link) becomes the device it points to now; anything
+    else (a device node, ``COM3``, ``socket://``, ``rfc2217://``) is returned as given.
+    Call it at every open: the answer changes when an adapter comes back under another
+    name.
 
     Raises:
         LocalProtocolError: a malformed ``usb:`` URL.
         OSError: no adapter matches (``errno`` ENODEV; the message lists what is
-            plugged in), or more than one does (ENOTUNIQ; the message names them).
+            plugged in), or more than one does (ENOTUNIQ; the message names them), or
+            there is no sysfs (not Linux: ENODEV).
     """
     if is_usb_url(url):
         selector = parse_usb_url(url)
+        sysfs = SYSFS if sysfs is None else sysfs
+        ttys = os.path.join(sysfs, "class", "tty")
+        if not os.path.isdir(ttys):
+            err = OSError(
+                f"{url}: a usb: URL is found through Linux sysfs, and {ttys} is not there; "
+                "name the port by its device (COM3, /dev/cu.usbserial-...) on this system"
+            )
+            err.errno = errno.ENODEV
+            raise err
         ports = list_serial_ports(sysfs=sysfs, dev=dev)
         matches = [p for p in ports if selector.matches(p)]
         if not matches:
@@ -364,6 +375,6 @@ def resolve_port(url: str, *, sysfs: str | None = None, dev: str | None = None) 
         if len(matches) > 1:
             raise _ambiguous(url, matches)
         return matches[0].device
-    if "://" in url:
-        return url
-    return os.path.realpath(url)
+    if "://" not in url and os.path.islink(url):
+        return os.path.realpath(url)
+    return url  # a device node (or COM3 on Windows) as given: realpath would mangle COM3
