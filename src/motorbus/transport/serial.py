@@ -15,7 +15,8 @@ A backend is imported only when chosen, so a missing optional package fails at
 
 Any pyserial URL works: a device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...``),
 ``usb:serial=A12345`` / ``usb:VID:PID[:SERIAL]`` (an adapter by its USB identity, see
-:mod:`motorbus.transport.usb`), ``socket://host:port`` (a raw TCP serial server such as ser2net), ``rfc2217://host:port``.
+:mod:`motorbus.transport.usb`), ``socket://host:port`` (a raw TCP serial server such as
+ser2net), ``rfc2217://host:port``.
 RFC 2217 does not work with the two pyserial-family backends (a known upstream bug), and
 serialx waits for a modem-state acknowledgement that ser2net does not send for a pty;
 prefer ``socket://`` with a raw-TCP ser2net port.
