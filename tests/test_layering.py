@@ -115,7 +115,8 @@ ALLOWED: dict[str, set[str]] = {
     "validation": {"errors", "protocol"},
     "realtime": {"errors"},
     "shutdown": {"errors", "guard"},
-    "guard": {"errors", "protocol"},
+    # transport: only motorbus.transport.usb, to find a usb: URL's adapter when it acts.
+    "guard": {"errors", "protocol", "transport"},
     "transport": {"errors", "protocol", "validation"},
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},

@@ -55,6 +55,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.streams": ("PERIOD_MAX_S", "PERIOD_MIN_S", "SafeAction", "Stream", "Streamer"),
     "motorbus.transport.base": ("DataCallback", "LostCallback", "Transport", "TransportStats"),
     "motorbus.transport.serial": ("BACKENDS", "DEFAULT_BACKEND", "open_transport"),
+    "motorbus.transport.usb": ("SerialPortInfo", "list_serial_ports", "resolve_port"),
 }
 
 if TYPE_CHECKING:
@@ -122,6 +123,9 @@ if TYPE_CHECKING:
     from motorbus.transport.serial import BACKENDS as BACKENDS
     from motorbus.transport.serial import DEFAULT_BACKEND as DEFAULT_BACKEND
     from motorbus.transport.serial import open_transport as open_transport
+    from motorbus.transport.usb import SerialPortInfo as SerialPortInfo
+    from motorbus.transport.usb import list_serial_ports as list_serial_ports
+    from motorbus.transport.usb import resolve_port as resolve_port
 
 _LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
 

@@ -29,7 +29,9 @@ the bus (``name`` or ``#index``), the key, the value and what is allowed:
 name                non-empty string, unique (default ``busN``)
 url                 non-empty string without control characters (required); two
                     buses may not name one port (symlinks such as
-                    ``/dev/serial/by-id/...`` are resolved)
+                    ``/dev/serial/by-id/...`` are resolved); ``usb:serial=SERIAL``,
+                    ``usb:VID:PID`` or ``usb:VID:PID:SERIAL`` (hex VID/PID of 4
+                    digits) name a USB adapter, found again at every (re)open
 baud                integer 300..4000000 (required), and a rate every listed device
                     family takes: la 19200 | 57600 | 115200 | 921600 (its baud
                     codes), project-stepper 9600 (doc 000 A.1); the quad stepper's
@@ -114,6 +116,7 @@ from motorbus.protocol.families import FAMILIES, STEPPER_DEFAULT_BAUD
 from motorbus.protocol.ids import IdListError, parse_id_items
 from motorbus.streams import SafeAction
 from motorbus.transport.serial import BACKENDS
+from motorbus.transport.usb import is_usb_url, parse_usb_url
 from motorbus.validation import RETRIES_MAX, check_baud, check_name, check_number
 
 __all__ = [
@@ -314,6 +317,8 @@ def _check_url(value: object) -> str:
             field="url",
             value=url,
         )
+    if is_usb_url(url):
+        parse_usb_url(url)  # the adapter need not be plugged in yet: only the form
     return url
 
 
@@ -480,7 +485,10 @@ class BusSpec:
 
 def port_identity(url: str) -> str:
     """What makes two URLs one port: a device path resolved through its symlinks
-    (``/dev/serial/by-id/...`` is its ``/dev/ttyUSBn``), any other URL as written."""
+    (``/dev/serial/by-id/...`` is its ``/dev/ttyUSBn``), a ``usb:`` URL in its canonical
+    spelling (lower-case hex), any other URL as written."""
+    if is_usb_url(url):
+        return str(parse_usb_url(url))
     if "://" in url:
         return url
     return os.path.realpath(url)

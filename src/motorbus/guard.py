@@ -309,8 +309,20 @@ def send_safe_frames(
 def _open_serial(port: GuardPort) -> Any:
     import serial  # the guard process only; pyserial is a motorbus dependency
 
+    url = port.url
+    if url.startswith("usb:"):
+        # An adapter named by its USB identity: where it is now (it may have come back
+        # under another name since the program opened it).  Imported only then: the
+        # transport package costs the guard tens of ms before its first frame.
+        from motorbus.transport.usb import resolve_port
+
+        url = resolve_port(url)
     ser = serial.serial_for_url(
-        port.url, baudrate=port.baud, timeout=0, write_timeout=WRITE_TIMEOUT_S, do_not_open=True
+        url,
+        baudrate=port.baud,
+        timeout=0,
+        write_timeout=WRITE_TIMEOUT_S,
+        do_not_open=True,
     )
     if port.options.get("rs485"):
         import serial.rs485

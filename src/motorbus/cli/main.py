@@ -76,6 +76,7 @@ COMMANDS: dict[str, str] = {
     "sim": "serve simulated devices on a pseudo-terminal",
     "decode": "describe frames given in hex",
     "scan": "find the LA actuators that answer on a bus",
+    "ports": "list the serial ports: USB IDs, serial number, driver, latency timer",
     "doctor": "check a bus: port, adapter, echo, baud, devices, timing, what it can sustain",
     "la": "commands to Inspire LA actuators",
     "stream": "stream a CSV trajectory to LA actuators (follow mode)",

@@ -22,7 +22,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -64,6 +64,7 @@ from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int, wire_time
 from motorbus.protocol.families import STEPPER_DEFAULT_BAUD
 from motorbus.streams import PERIOD_MAX_S, PERIOD_MIN_S, SafeAction, Streamer
+from motorbus.transport import usb
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import DEFAULT_BACKEND, open_transport
 from motorbus.validation import check_number
@@ -124,7 +125,9 @@ class DoctorConfig:
             object.__setattr__(
                 self, "ids", tuple(check_int("id", i, la.ID_MIN, la.ID_MAX) for i in self.ids)
             )
-        if "://" not in self.url and not os.path.exists(self.url):
+        if usb.is_usb_url(self.url):
+            usb.parse_usb_url(self.url, field="port")  # whether it is plugged in: a finding
+        elif "://" not in self.url and not os.path.exists(self.url):
             raise LocalProtocolError(
                 f"port {self.url!r} does not exist", field="port", value=self.url
             )
@@ -395,6 +398,18 @@ class _Line:
 # -- the whole sequence --------------------------------------------------------------------
 
 
+def _usb_device(url: str, sysfs: str, add: Callable[[Finding], None]) -> str | None:
+    """The device a local ``url`` names now (a ``usb:`` URL resolved), or None after
+    adding a red port finding when no adapter, or more than one, matches."""
+    if not usb.is_usb_url(url):
+        return url
+    try:
+        return usb.resolve_port(url, sysfs=sysfs)
+    except OSError as err:
+        add(Finding("port", Level.RED, str(err), "plug the adapter in; motorbus ports lists them"))
+        return None
+
+
 async def diagnose(
     config: DoctorConfig,
     *,
@@ -425,12 +440,15 @@ async def diagnose(
     if "://" in config.url:
         add(Finding("port", Level.GREEN, f"{config.url}: network port, no local checks"))
         add(checks.check_latency(LatencyFacts(None), timing, config.period_s))
+    elif (device := _usb_device(config.url, sysfs, add)) is None:
+        usable = False
+        add(checks.check_latency(LatencyFacts(None), timing, config.period_s))
     else:
-        pf = port_facts(config.url, uid=uid, gids=gids, sysfs=sysfs, proc=proc)
+        pf = port_facts(device, uid=uid, gids=gids, sysfs=sysfs, proc=proc)
         port = checks.check_port(pf)
         add(port)
         usable = port.level is not Level.RED
-        lf = latency_facts(config.url, pf.usb.driver if pf.usb else "", fix=config.fix)
+        lf = latency_facts(device, pf.usb.driver if pf.usb else "", fix=config.fix)
         adapter_ms = lf.latency_timer_ms
         report.read_only = not lf.wrote
         add(checks.check_latency(lf, timing, config.period_s))

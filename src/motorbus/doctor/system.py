@@ -19,6 +19,7 @@ from collections.abc import Iterable
 from motorbus.doctor.checks import LatencyFacts, PortFacts, UsbInfo
 from motorbus.doctor.host import HostFacts
 from motorbus.transport import serial as serial_transport
+from motorbus.transport import usb
 from motorbus.transport.serial import usb_serial_name
 
 __all__ = ["holders", "host_facts", "latency_facts", "port_facts", "usb_info"]
@@ -43,25 +44,19 @@ def _read(path: str) -> str:
 
 
 def usb_info(tty_name: str, sysfs: str = "/sys") -> UsbInfo | None:
-    """The USB device behind ``ttyUSB0``/``ttyACM0`` from sysfs, or None."""
-    device = os.path.join(sysfs, "class", "tty", tty_name, "device")
-    if not os.path.exists(device):
+    """The USB device behind ``ttyUSB0``/``ttyACM0`` from sysfs, or None
+    (read by :func:`motorbus.transport.usb.port_info`, as ``motorbus ports`` does)."""
+    info = usb.port_info(tty_name, sysfs=sysfs, by_id=())
+    if info is None or not info.is_usb:
         return None
-    driver_link = os.path.join(device, "driver")
-    driver = os.path.basename(os.path.realpath(driver_link)) if os.path.exists(driver_link) else ""
-    here = os.path.realpath(device)
-    while here not in ("/", "") and here.startswith(os.path.realpath(sysfs)):
-        if os.path.exists(os.path.join(here, "idVendor")):
-            return UsbInfo(
-                vid=_read(os.path.join(here, "idVendor")),
-                pid=_read(os.path.join(here, "idProduct")),
-                driver=driver,
-                serial=_read(os.path.join(here, "serial")),
-                product=_read(os.path.join(here, "product")),
-                manufacturer=_read(os.path.join(here, "manufacturer")),
-            )
-        here = os.path.dirname(here)
-    return None
+    return UsbInfo(
+        vid=info.vid,
+        pid=info.pid,
+        driver=info.driver,
+        serial=info.serial,
+        product=info.product,
+        manufacturer=info.manufacturer,
+    )
 
 
 def holders(path: str, proc: str = "/proc") -> tuple[tuple[int, str], ...]:

@@ -14,10 +14,17 @@ A backend is imported only when chosen, so a missing optional package fails at
 :func:`open_transport` / :class:`SerialTransport` time, naming the pip extra to install.
 
 Any pyserial URL works: a device path (``/dev/ttyUSB0``, ``/dev/serial/by-id/...``),
-``socket://host:port`` (a raw TCP serial server such as ser2net), ``rfc2217://host:port``.
+``usb:serial=A12345`` / ``usb:VID:PID[:SERIAL]`` (an adapter by its USB identity, see
+:mod:`motorbus.transport.usb`), ``socket://host:port`` (a raw TCP serial server such as
+ser2net), ``rfc2217://host:port``.
 RFC 2217 does not work with the two pyserial-family backends (a known upstream bug), and
 serialx waits for a modem-state acknowledgement that ser2net does not send for a pty;
 prefer ``socket://`` with a raw-TCP ser2net port.
+
+The URL is resolved at every :meth:`SerialTransport.open` - the first and each reconnect
+of a bus: a ``usb:`` URL to the node of the adapter it names, a symlink to its device -
+so an adapter that comes back under another name (``/dev/ttyUSB1`` after an unplug) is
+found again; ``SerialTransport.device`` tells which node was opened.
 
 One process, one port: a device path is opened with an exclusive lock (``flock``, the
 lock pyserial's ``exclusive=True`` and serialx take, so other pyserial and serialx
@@ -42,7 +49,7 @@ from typing import Any, cast
 
 from motorbus.errors import BusClosedError, LocalProtocolError, PortInUseError
 from motorbus.protocol.base import check_flag
-from motorbus.transport import direct_io
+from motorbus.transport import direct_io, usb
 from motorbus.transport.base import CountingTransport, DataCallback, LostCallback, Transport
 from motorbus.transport.memory import MEMORY_SCHEME, lookup_memory_link
 from motorbus.validation import check_baud
@@ -76,7 +83,7 @@ CLOSE_TIMEOUT_S = 1.0
 #: Reads ``drain_input`` makes at most (each up to the backend's read size).
 DRAIN_READS_MAX = 8
 #: Where the Linux usb-serial drivers publish an adapter's receive latency timer (ms).
-USB_SERIAL_SYSFS = "/sys/bus/usb-serial/devices"
+USB_SERIAL_SYSFS = usb.USB_SERIAL_SYSFS
 #: Where Linux lists the file locks held, with the PID of each holder.
 PROC_LOCKS = "/proc/locks"
 #: Longest command line quoted in a "port in use" error.
@@ -141,12 +148,7 @@ def usb_serial_name(url: str) -> str | None:
 
 def read_latency_timer_ms(tty_name: str) -> int | None:
     """Return the receive latency timer of a usb-serial adapter in ms, or None if unknown."""
-    path = os.path.join(USB_SERIAL_SYSFS, tty_name, "latency_timer")
-    try:
-        with open(path, encoding="ascii") as f:
-            return int(f.read().strip())
-    except (OSError, ValueError):
-        return None
+    return usb.read_latency_timer_ms(tty_name, USB_SERIAL_SYSFS)
 
 
 def is_device_path(url: str) -> bool:
@@ -295,7 +297,8 @@ class SerialTransport(CountingTransport):
         """Describe a port; nothing is opened until :meth:`open`.
 
         Args:
-            url: a device path or pyserial URL (``socket://host:port``, ...).
+            url: a device path, ``usb:`` URL (checked here, resolved at each open) or
+                pyserial URL (``socket://host:port``, ...).
             baudrate: line speed in bits per second (passed to every backend).
             backend: one of :data:`BACKENDS`.
             rs485: let the kernel drive the RS-485 direction line (TIOCSRS485).
@@ -306,9 +309,12 @@ class SerialTransport(CountingTransport):
                 get part of the replies.
 
         Raises:
-            LocalProtocolError: unknown backend, bad baudrate, or RS-485 with serialx.
+            LocalProtocolError: unknown backend, bad baudrate, RS-485 with serialx, or a
+                malformed ``usb:`` URL.
             ImportError: the backend's package is missing (names the pip extra).
         """
+        if isinstance(url, str) and usb.is_usb_url(url):
+            usb.parse_usb_url(url)
         # A plausible serial rate (motorbus.validation): 10**12 used to reach the OS.
         baudrate = check_baud("baudrate", baudrate)
         rs485, remove_echo = check_flag("rs485", rs485), check_flag("remove_echo", remove_echo)
@@ -328,6 +334,8 @@ class SerialTransport(CountingTransport):
         self.low_latency = low_latency
         self.share = share
         self.latency_timer_ms: int | None = None
+        #: The device node (or URL) the last open resolved ``url`` to; "" before.
+        self.device = ""
         self._transport: asyncio.Transport | None = None
         #: ``drain_input``'s reader and fd, looked up once per opened backend transport
         #: (every request calls it: no attribute walk and fileno() call each time).
@@ -347,10 +355,13 @@ class SerialTransport(CountingTransport):
         return self._transport is not None
 
     async def open(self, on_data: DataCallback, on_lost: LostCallback) -> None:
-        """Open the port, apply RS-485 and low-latency settings, start reading.
+        """Resolve the URL afresh, open the port, apply RS-485 and low-latency settings,
+        start reading.
 
         Raises:
             LocalProtocolError: already open.
+            OSError: no USB adapter matches a ``usb:`` URL, or several do (the message
+                lists them); the bus retries at its next reconnect attempt.
             PortInUseError: another open holds the port's exclusive lock (an ``OSError``
                 naming the holder where the system tells); ``share=True`` opts out.
             OSError: the port cannot be opened or configured (``serial.SerialException``
@@ -359,16 +370,20 @@ class SerialTransport(CountingTransport):
         self._refuse_if_open()
         loop = asyncio.get_running_loop()
         adapter = _Adapter(self)
+        device = usb.resolve_port(self.url)
+        if device != self.url:
+            _log.debug("%s: opening %s", self.url, device)
         try:
             transport, _ = await self._connect(
-                loop, lambda: adapter, self.url, baudrate=self.baudrate, **self._lock_options()
+                loop, lambda: adapter, device, baudrate=self.baudrate, **self._lock_options()
             )
         except OSError as err:
-            if not self.share and is_device_path(self.url) and _is_lock_refusal(err):
-                raise port_in_use_error(self.url, port_lock_holders(self.url)) from err
+            if not self.share and is_device_path(device) and _is_lock_refusal(err):
+                raise port_in_use_error(self.url, port_lock_holders(device)) from err
             raise
         except Exception as err:
             raise OSError(f"cannot open {self.url} with backend {self.backend!r}: {err}") from err
+        self.device = device
         self._transport = cast(asyncio.Transport, transport)
         _report_write_errors_as_losses(self._transport, self.url)
         self._adapter = adapter
@@ -395,11 +410,11 @@ class SerialTransport(CountingTransport):
         if self.backend == "serialx" and hasattr(transport, "max_size"):
             transport.max_size = SERIALX_MAX_READ
         pyserial = transport.get_extra_info("serial")
-        if self.backend == "fast" and is_device_path(self.url):
+        if self.backend == "fast" and is_device_path(self.device):
             direct_io.install(pyserial)  # one syscall a read and a write
         if self.rs485:
             self._set_rs485(pyserial)
-        tty_name = usb_serial_name(self.url)
+        tty_name = usb_serial_name(self.device)
         if tty_name is None:
             self.latency_timer_ms = None
             return
@@ -442,7 +457,7 @@ class SerialTransport(CountingTransport):
             ms,
             deadline_s * 1000.0,
             USB_SERIAL_SYSFS,
-            usb_serial_name(self.url),
+            usb_serial_name(self.device or self.url),
         )
         return True
 
