@@ -132,6 +132,7 @@ ALLOWED: dict[str, set[str]] = {
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
     "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "sim": {"errors", "protocol", "transport"},
+    "serve": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
 }
 
 
