@@ -54,6 +54,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--name", default="bus", help="the bus name of --port (default: bus)")
     p.add_argument("--backend", default="fast", help="serial backend of --port")
     p.add_argument(
+        "--host-margin-ms",
+        type=float,
+        help="host-latency margin of every reply deadline on --port (default: the library's)",
+    )
+    p.add_argument(
         "--listen",
         default="tcp/127.0.0.1:7447",
         help="the Zenoh endpoint to listen on (default: tcp/127.0.0.1:7447, loopback)",
@@ -98,6 +103,7 @@ def _manager(args: argparse.Namespace) -> BusManager:
         backend=args.backend,
         devices=_split_devices(args.devices or ""),
         guard=bool(args.guard),
+        **({} if args.host_margin_ms is None else {"host_margin_ms": args.host_margin_ms}),
     )
     return manager
 

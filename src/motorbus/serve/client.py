@@ -255,8 +255,11 @@ class ServedBus:
         return None if reply is None else cmd.decode_reply(bytes.fromhex(reply))
 
     def _bound_lease(self) -> ServedLease | None:
+        """The running task's lease on this bus: the newest that is held, or one that
+        ended with the server (its motion is refused: the server holds no lease of
+        this client any more, and nothing moves on its own after a restart)."""
         for lease in reversed(_bound.get()):
-            if lease.bus is self and lease.active:
+            if lease.bus is self and (lease.active or lease.ended):
                 return lease
         return None
 
