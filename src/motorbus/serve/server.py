@@ -56,6 +56,7 @@ __all__ = ["BusServer"]
 log = logging.getLogger("motorbus.serve")
 
 _PRIORITY = {"normal": Priority.NORMAL, "high": Priority.HIGH, "emergency": Priority.EMERGENCY}
+_LEASE_OPS = ("acquire", "add", "hand_over", "release", "release_implicit")
 #: How often the heartbeat check runs, as a share of the liveness timeout.
 _CHECKS_PER_LIVENESS = 10
 
@@ -366,6 +367,10 @@ class BusServer:
         bus = self._bus(name)
         client = self._client(payload)
         op = k.field_of(payload, "op", str)
+        if op not in _LEASE_OPS:
+            raise k.PayloadError(
+                f"op={op!r}: allowed {', '.join(_LEASE_OPS)}", field="op", value=op
+            )
         if op == "release_implicit":
             lease = client.implicit.get(name)
             wanted = k.field_of(payload, "keys", list, optional=True)
