@@ -39,3 +39,13 @@ def test_la_status_and_move_through_a_served_bus(
 def test_connect_with_a_port_is_a_usage_error(endpoint: str) -> None:
     out = motorbus_cli("la", "status", "1", "--connect", endpoint, "--port", "/dev/null")
     assert out.returncode == 2 and "--connect" in out.stderr
+
+
+def test_monitor_through_a_served_bus(la_sim: SimProcess, la_server: Child, endpoint: str) -> None:
+    out = motorbus_cli("monitor", "--ids", "1-2", "--count", "2", "--connect", endpoint, "--json")
+    assert out.returncode == 0, out.stderr
+    refreshes = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [r["refresh"] for r in refreshes] == [1, 2]
+    assert [s["id"] for s in refreshes[-1]["statuses"]] == [1, 2]
+    out = motorbus_cli("monitor", "--count", "1", "--connect", endpoint)
+    assert out.returncode == 2 and "--connect needs the IDs" in out.stderr
