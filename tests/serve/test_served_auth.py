@@ -50,3 +50,25 @@ async def test_a_wrong_password_is_refused_and_sends_nothing(
             assert (await InspireLA(site.bus(), 1).status()).id == 1
     finally:
         server.finish()
+
+
+async def test_a_watch_only_server_answers_queries_and_refuses_motion_and_leases(
+    la_sim: SimProcess, endpoint: str
+) -> None:
+    from motorbus.protocol import la
+    from motorbus.serve import ServeRefused
+
+    server = serve(la_sim.path, 921600, "la:1-2", endpoint, "--watch-only")
+    try:
+        async with motorbus.connect(endpoint) as site:
+            bus = site.bus()
+            assert (await InspireLA(bus, 1).status()).id == 1
+            with pytest.raises(ServeRefused, match="only watch"):
+                await InspireLA(bus, 1).move_to(1000)
+            with pytest.raises(ServeRefused, match="only watch"):
+                bus.lease("la:2", owner="arm")
+            assert bus.leases == ()
+        sent = [bytes.fromhex(r["hex"]) for r in la_sim.log_records()]
+        assert la.MoveTo(1, 1000, True).encode() not in sent
+    finally:
+        server.finish()
