@@ -8,9 +8,10 @@ baud):
 * round trip of a status query (``InspireLA.status``): embedded (a ``Bus`` in this
   process) and served (``motorbus serve`` in its own process, this process a client
   through ``motorbus.connect`` on loopback), p50/p99 of ``--requests`` each, same run;
-* the deadman: a client process moves la:1 and is killed with SIGKILL; the time from
-  the kill to the simulator logging the pause (the last safe frame), polled every
-  0.5 ms (an upper bound by up to the poll period and the simulator's log write).
+* the deadman: a client process moves la:1 and is killed with SIGKILL (or frozen with
+  SIGSTOP: a client gone silent); the time from the signal to the simulator logging
+  the pause (the last safe frame), polled every 0.5 ms (an upper bound by up to the
+  poll period and the simulator's log write).
 
 Prints a table and writes ``benchmarks/results/serve.json``.  Not yet measured: many
 buses per server, server CPU per bus-tick (served streams are not done).
@@ -102,7 +103,7 @@ def pause_logged(log: Path, offset: int) -> tuple[bool, int]:
     return False, offset + end
 
 
-def deadman(log: Path, endpoint: str, target: int) -> float:
+def deadman(log: Path, endpoint: str, target: int, sig: int = signal.SIGKILL) -> float:
     child = subprocess.Popen(
         [sys.executable, "-c", CHILD, endpoint, str(target)],
         stdout=subprocess.PIPE,
@@ -116,7 +117,7 @@ def deadman(log: Path, endpoint: str, target: int) -> float:
         time.sleep(0.2)
         _, offset = pause_logged(log, 0)
         killed = time.monotonic()
-        os.kill(child.pid, signal.SIGKILL)
+        os.kill(child.pid, sig)
         deadline = killed + 10
         while True:
             seen, offset = pause_logged(log, offset)
@@ -154,6 +155,10 @@ def main(argv: list[str] | None = None) -> int:
                 server.stdout.readline()
                 srv = asyncio.run(served(endpoint, args.requests))
                 kills = [deadman(log, endpoint, 500 + 100 * i) for i in range(args.kills)]
+                stops = [
+                    deadman(log, endpoint, 550 + 100 * i, signal.SIGSTOP)
+                    for i in range(max(1, args.kills // 2))
+                ]
             finally:
                 server.terminate()
                 server.wait(15)
@@ -170,6 +175,12 @@ def main(argv: list[str] | None = None) -> int:
             "max": max(kills) * ms,
             "runs": [k * ms for k in kills],
         },
+        "deadman_sigstop_ms": {
+            "liveness_s": 1.0,
+            "median": statistics.median(stops) * ms,
+            "max": max(stops) * ms,
+            "runs": [k * ms for k in stops],
+        },
     }
     print(f"{'status round trip':28} {'p50 ms':>8} {'p99 ms':>8}")
     for name in ("embedded", "served"):
@@ -181,6 +192,12 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"deadman SIGKILL -> pause at the simulator: median {dm['median']:.1f} ms, "
         f"max {dm['max']:.1f} ms over {args.kills} kills (goal <= 50 ms)"
+    )
+    ds = report["deadman_sigstop_ms"]
+    assert isinstance(ds, dict)
+    print(
+        f"deadman SIGSTOP -> pause at the simulator: median {ds['median']:.0f} ms, "
+        f"max {ds['max']:.0f} ms over {len(stops)} freezes (--liveness 1 s)"
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
