@@ -136,6 +136,7 @@ ALLOWED: dict[str, set[str]] = {
     "blocking": _LIBRARY_BASE
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
     "sim": {"errors", "protocol", "transport"},
+    "serve": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
 }
 
 

@@ -46,7 +46,7 @@ PUBLIC = (
     "motorbus.guard",
 )
 #: Tools built on the library, whose packages export their public names.
-TOOLS = ("motorbus.rig", "motorbus.dashboard")
+TOOLS = ("motorbus.rig", "motorbus.dashboard", "motorbus.serve")
 SIMULATOR_COMMANDS = {"sim.py", "demo.py"}
 
 

@@ -51,6 +51,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.process_groups": ("ProcessGroup",),
     "motorbus.protocol.base": ("Family",),
     "motorbus.realtime": ("RealtimeReport",),
+    "motorbus.serve.client": ("connect",),
     "motorbus.shutdown": ("install_signal_handlers", "run"),
     "motorbus.streams": ("PERIOD_MAX_S", "PERIOD_MIN_S", "SafeAction", "Stream", "Streamer"),
     "motorbus.transport.base": ("DataCallback", "LostCallback", "Transport", "TransportStats"),
@@ -109,6 +110,7 @@ if TYPE_CHECKING:
     from motorbus.process_groups import ProcessGroup as ProcessGroup
     from motorbus.protocol.base import Family as Family
     from motorbus.realtime import RealtimeReport as RealtimeReport
+    from motorbus.serve.client import connect as connect
     from motorbus.shutdown import install_signal_handlers as install_signal_handlers
     from motorbus.shutdown import run as run
     from motorbus.streams import PERIOD_MAX_S as PERIOD_MAX_S

@@ -28,8 +28,9 @@ import os
 import re
 from collections.abc import AsyncIterator, Iterable
 from contextlib import asynccontextmanager
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
+import motorbus
 from motorbus import (
     BACKENDS,
     DEFAULT_BACKEND,
@@ -125,7 +126,11 @@ def add_process_option(parser: argparse.ArgumentParser) -> None:
 
 
 def add_bus_options(
-    parser: argparse.ArgumentParser, *, default_baud: int | None, json_option: bool = True
+    parser: argparse.ArgumentParser,
+    *,
+    default_baud: int | None,
+    json_option: bool = True,
+    connect: bool = False,
 ) -> None:
     """Add ``--port``, ``--baud``, ``--backend``, ``--bus-file``, ``--bus`` (and ``--json``).
 
@@ -137,6 +142,8 @@ def add_bus_options(
         default_baud: the family's usual baud rate in bit/s; ``None`` when the command
             picks it later (``capture`` chooses by ``--family``).
         json_option: also add ``--json``.
+        connect: also add ``--connect ENDPOINT``: use a bus that ``motorbus serve``
+            serves there (``--bus NAME`` where it serves several) instead of a port.
     """
     parser.add_argument(
         "--port",
@@ -164,6 +171,13 @@ def add_bus_options(
         help=f"the [[bus]] table of the bus file to use (default: ${BUS_ENV}; "
         "needed if the file has several)",
     )
+    if connect:
+        parser.add_argument(
+            "--connect",
+            metavar="ENDPOINT",
+            help="use the bus a `motorbus serve` serves at this Zenoh endpoint "
+            "(e.g. tcp/127.0.0.1:7447; --bus NAME where it serves several)",
+        )
     add_realtime_option(parser)
     parser.set_defaults(_default_baud=default_baud)
     if json_option:
@@ -353,6 +367,13 @@ async def open_bus(
         OSError: the port cannot be opened (the message names it), or the kernel
             refused the CPUs of the ``--process`` group (the message names the group).
     """
+    endpoint = getattr(args, "connect", None)
+    if endpoint:
+        if args.port or args.bus_file:
+            raise UsageError("--connect uses a served bus: give it without --port or --bus-file")
+        async with served_bus(endpoint, args.bus) as bus:
+            yield bus
+        return
     transport = open_port(args)
     pinning = _pin(getattr(args, _GROUP_ATTR, None))  # before the bus opens, as BusManager
     try:
@@ -361,6 +382,19 @@ async def open_bus(
     finally:
         if pinning is not None:
             pinning.restore()
+
+
+@asynccontextmanager
+async def served_bus(endpoint: str, name: str | None) -> AsyncIterator[Bus]:
+    """The bus ``name`` of the ``motorbus serve`` at ``endpoint`` (a ``ServedBus``: it
+    has the members of ``Bus`` that the devices use, which is all the commands that
+    take ``--connect`` use)."""
+    try:
+        import zenoh  # noqa: F401  (only to tell a missing extra from other errors)
+    except ImportError:
+        raise UsageError("--connect needs the serve extra: pip install 'motorbus[serve]'") from None
+    async with motorbus.connect(endpoint) as site:
+        yield cast(Bus, site.bus(name))
 
 
 def _pin(group: ProcessGroup | None) -> realtime.Pinning | None:

@@ -107,7 +107,7 @@ def register(subparsers: Any) -> None:
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    add_bus_options(parser, default_baud=LA_BAUD)
+    add_bus_options(parser, default_baud=LA_BAUD, connect=True)
     parser.set_defaults(func=run)
 
 

@@ -87,6 +87,7 @@ COMMANDS: dict[str, str] = {
     "replay": "print a frame log, or send its requests again through a bus",
     "rig": "characterise LA actuators: step, tracking, latency, repeatability; compare runs",
     "dashboard": "live web page of every bus and device (plots, faults, e-stop)",
+    "serve": "own the ports and serve the buses to other programs (Zenoh)",
 }
 
 #: Modules that each contribute one command (the command of the same name), in help order.

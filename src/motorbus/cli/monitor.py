@@ -93,7 +93,7 @@ def register(subparsers: Any) -> None:
         help="with --listen: the bus's family (default la)",
     )
     p.add_argument("--seconds", type=float, help="with --listen: stop after this long")
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     add_process_option(p)
     p.set_defaults(func=run)
 
@@ -124,6 +124,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--plot and --json do not go together: choose one")
     if plot_mode == "window":
         plot.check_window()
+    if getattr(args, "connect", None) and ids is None:
+        raise UsageError("--connect needs the IDs to watch: a scan is not served yet")
     try:
         return asyncio.run(_monitor(args, ids))
     except KeyboardInterrupt:

@@ -1,0 +1,156 @@
+"""``motorbus serve``: own the ports, and serve the buses to other programs over Zenoh.
+
+Examples::
+
+    motorbus serve buses.toml                    # every bus of the file
+    motorbus serve buses.toml --process arms     # one process group, on its CPUs
+    motorbus serve --port /dev/ttyUSB0 --baud 921600 --devices la:1-3 --name arm
+    motorbus serve buses.toml --listen tcp/0.0.0.0:7447 --zenoh-config server.json5
+
+Needs the serve extra: pip install 'motorbus[serve]'.  One process owns the ports and
+everything that must stay next to the wire (spacing, deadlines, the reassembler,
+leases and their safe ends, --guard, real-time mode); programs use the buses with
+``motorbus.connect(ENDPOINT)``.  It listens on loopback unless --listen says otherwise
+(beyond loopback, give a Zenoh configuration with TLS and access control: docs/serve.md).
+When it is ready it prints the endpoint it listens on, on a line of its own.
+
+A client's leases end with their safe actions when the client ends, however it ends,
+or falls silent for --liveness seconds (default 1).  --watch-only lets clients query
+and watch but never move a device.  Ctrl-C or SIGTERM ends it (exit code 0) after the
+safe actions of every lease.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from typing import Any
+
+from motorbus import BusManager, load_bus_file
+from motorbus import run as run_safely
+from motorbus.errors import UsageError
+
+__all__ = ["EXTRA_MESSAGE", "register", "run"]
+
+EXTRA_MESSAGE = "motorbus serve needs the serve extra: pip install 'motorbus[serve]'"
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``serve`` command."""
+    p = subparsers.add_parser(
+        "serve",
+        help="own the ports and serve the buses to other programs (Zenoh)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("bus_file", nargs="?", help="the bus file to serve (every key honoured)")
+    p.add_argument("--process", help="serve this process group of the bus file")
+    p.add_argument("--port", help="serve one port instead of a bus file")
+    p.add_argument("--baud", type=int, help="the port's baud rate (with --port)")
+    p.add_argument(
+        "--devices", help="devices on --port in the bus file's forms, e.g. la:1-3,quad-stepper"
+    )
+    p.add_argument("--name", default="bus", help="the bus name of --port (default: bus)")
+    p.add_argument("--backend", default="fast", help="serial backend of --port")
+    p.add_argument(
+        "--host-margin-ms",
+        type=float,
+        help="host-latency margin of every reply deadline on --port (default: the library's)",
+    )
+    p.add_argument(
+        "--listen",
+        default="tcp/127.0.0.1:7447",
+        help="the Zenoh endpoint to listen on (default: tcp/127.0.0.1:7447, loopback)",
+    )
+    p.add_argument("--zenoh-config", help="a Zenoh configuration file (TLS, access control)")
+    p.add_argument(
+        "--liveness",
+        type=float,
+        default=1.0,
+        help="seconds without a client's heartbeat before its leases end (default 1)",
+    )
+    p.add_argument(
+        "--watch-only", action="store_true", help="clients may query and watch, never move"
+    )
+    p.add_argument("--guard", action="store_true", help="run the guard process beside the buses")
+    p.set_defaults(func=run)
+
+
+def _manager(args: argparse.Namespace) -> BusManager:
+    if args.bus_file and args.port:
+        raise UsageError("give a bus file or --port, not both")
+    if args.bus_file:
+        if args.baud or args.devices:
+            raise UsageError("--baud and --devices go with --port; the bus file lists them")
+        loaded = load_bus_file(args.bus_file)
+        manager = BusManager()
+        manager.process = None if args.process is None else loaded.group(args.process)
+        for spec in loaded.specs_of(args.process):
+            manager.add_spec(spec)
+        return manager
+    if not args.port:
+        raise UsageError("give a bus file to serve, or --port (with --baud and --devices)")
+    if args.process:
+        raise UsageError("--process chooses buses of a bus file; give the bus file")
+    if not args.baud:
+        raise UsageError("--port needs --baud")
+    manager = BusManager()
+    manager.add_bus(
+        args.name,
+        args.port,
+        baud=args.baud,
+        backend=args.backend,
+        devices=_split_devices(args.devices or ""),
+        guard=bool(args.guard),
+        **({} if args.host_margin_ms is None else {"host_margin_ms": args.host_margin_ms}),
+    )
+    return manager
+
+
+def _split_devices(text: str) -> list[str]:
+    """``la:1,3,quad-stepper`` -> ``["la:1,3", "quad-stepper"]`` (IDs stay with their la)."""
+    out: list[str] = []
+    for part in (p.strip() for p in text.split(",") if p.strip()):
+        if out and out[-1].startswith("la:") and (part[0].isdigit()):
+            out[-1] += "," + part
+        else:
+            out.append(part)
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``motorbus serve``; 0 after Ctrl-C or SIGTERM, 2 without the extra."""
+    try:
+        import zenoh  # noqa: F401  (only to tell a missing extra from other errors)
+    except ImportError:
+        print(EXTRA_MESSAGE, file=sys.stderr)
+        return 2
+    from motorbus.serve import BusServer
+    from motorbus.serve.zconf import check_endpoint
+
+    check_endpoint("--listen", args.listen)
+    manager = _manager(args)
+    if args.guard:
+        for spec in manager.specs.values():
+            spec.guard = True
+
+    async def serve() -> None:
+        async with manager:
+            server = BusServer(
+                manager.buses,
+                listen=args.listen,
+                liveness=args.liveness,
+                zenoh_config=args.zenoh_config,
+                watch_only=args.watch_only,
+            )
+            async with server:
+                print(f"serving {', '.join(manager.buses)} on {args.listen}", flush=True)
+                await asyncio.Event().wait()
+
+    try:
+        run_safely(serve())
+    except SystemExit as end:
+        if end.code not in (130, 143):
+            raise
+    return 0

@@ -1,0 +1,224 @@
+"""The key expressions and payloads of a served bus, version 1 (pure: no I/O, no Zenoh).
+
+A served bus (``motorbus serve``) speaks over Eclipse Zenoh.  Everything lives under
+``motorbus/v1/``; a change that an old client could misread gets a new version prefix.
+Every payload is one UTF-8 JSON object; frames travel as hex strings of their exact
+bytes (``"55aa0301..."``), so a program in any language with a Zenoh binding and a
+JSON parser can use a served bus (docs/serve.md lists every key and field).
+
+Keys (``{bus}`` is a bus name, ``{client}`` a client id, both single key chunks):
+
+* ``motorbus/v1/info`` (query): the server's instance id, liveness timeout and buses.
+* ``motorbus/v1/bus/{bus}/request`` (query): one request frame; the reply is the reply
+  frame, or an error.
+* ``motorbus/v1/bus/{bus}/lease`` (query): acquire, add to, release, hand over leases.
+* ``motorbus/v1/bus/{bus}/leases`` (query, and a publication on every change): who
+  holds which device.
+* ``motorbus/v1/bus/{bus}/stats`` (query): the bus's counters.
+* ``motorbus/v1/bus/{bus}/event/{kind}`` (publications): device events.
+* ``motorbus/v1/client/{client}`` (liveliness token) and
+  ``motorbus/v1/client/{client}/alive`` (heartbeat publication): the deadman.
+* ``motorbus/v1/server/{instance}`` (liveliness token): the server is up.
+
+This module builds and checks those payloads; ``motorbus.serve.server`` and
+``motorbus.serve.client`` move them.  A payload that does not fit is refused with
+``PayloadError`` naming the field, the value and what is allowed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from motorbus.errors import LocalProtocolError
+from motorbus.protocol import la, project_stepper, quad_stepper
+from motorbus.protocol.base import Command, Family, format_hex
+
+__all__ = [
+    "CLIENT_PREFIX",
+    "ERROR_KINDS",
+    "LIVENESS_DEFAULT_S",
+    "LIVENESS_MAX_S",
+    "LIVENESS_MIN_S",
+    "PREFIX",
+    "PRIORITIES",
+    "VERSION",
+    "PayloadError",
+    "bus_key",
+    "check_chunk",
+    "client_key",
+    "decode_frame",
+    "decode_json",
+    "encode_json",
+    "error_payload",
+    "field_of",
+    "hex_field",
+    "server_key",
+]
+
+#: The protocol version in every key: ``motorbus/v1/...``.
+VERSION = 1
+PREFIX = f"motorbus/v{VERSION}"
+CLIENT_PREFIX = f"{PREFIX}/client"
+
+#: How long a client may stay silent (no heartbeat) before the server ends its leases
+#: with their safe actions.  A client heartbeats four times per timeout.
+LIVENESS_DEFAULT_S = 1.0
+LIVENESS_MIN_S = 0.1
+LIVENESS_MAX_S = 60.0
+
+#: Request priorities by name (``motorbus.Priority``'s members, lower case).
+PRIORITIES = ("normal", "high", "emergency")
+
+#: The ``error`` names a reply may carry; each maps to the exception the client raises.
+ERROR_KINDS = (
+    "bad_payload",  # LocalProtocolError: a field is missing, of the wrong type or range
+    "unknown_key",  # LocalProtocolError: no such bus, operation or lease
+    "lease_conflict",  # LeaseConflictError: holder in "owner"
+    "lease_gone",  # BusClosedError: the lease ended (server restart, client expired)
+    "timeout",  # ReplyTimeoutError
+    "not_sent",  # NotSentError
+    "closed",  # BusClosedError
+    "remote",  # RemoteProtocolError: the device's reply did not decode
+    "refused",  # PermissionError: the server lets this client only watch
+    "internal",  # anything else, with its message
+)
+
+#: One key chunk: no ``/``, no Zenoh wildcard or selector characters.
+_CHUNK = re.compile(r"^[A-Za-z0-9_.\-:@+=]{1,128}$")
+
+_DECODERS: dict[Family, Any] = {
+    Family.LA: la.decode_request,
+    Family.PROJECT_STEPPER: project_stepper.decode_request,
+    Family.QUAD_STEPPER: quad_stepper.decode_request,
+}
+
+
+class PayloadError(LocalProtocolError):
+    """A payload of the served-bus protocol that does not fit (names field and value)."""
+
+
+def check_chunk(field: str, value: object) -> str:
+    """A bus name or client id usable as one key chunk (letters, digits, ``_.-:@+=``)."""
+    if not isinstance(value, str) or not _CHUNK.match(value):
+        raise PayloadError(
+            f"{field}={value!r} is not usable in a key: 1..128 of letters, digits and _.-:@+=",
+            field=field,
+            value=value,
+        )
+    return value
+
+
+def bus_key(bus: str, what: str) -> str:
+    """``motorbus/v1/bus/{bus}/{what}`` (``what``: request, lease, leases, stats, event/*)."""
+    return f"{PREFIX}/bus/{check_chunk('bus', bus)}/{what}"
+
+
+def client_key(client: str) -> str:
+    """The liveliness token key of a client."""
+    return f"{CLIENT_PREFIX}/{check_chunk('client', client)}"
+
+
+def server_key(instance: str) -> str:
+    """The liveliness token key of a server instance."""
+    return f"{PREFIX}/server/{check_chunk('instance', instance)}"
+
+
+def encode_json(value: Mapping[str, Any]) -> bytes:
+    """A payload as compact UTF-8 JSON."""
+    return json.dumps(value, separators=(",", ":"), allow_nan=False).encode()
+
+
+def decode_json(raw: bytes) -> dict[str, Any]:
+    """A payload as a JSON object; anything else is a ``PayloadError``."""
+    try:
+        value = json.loads(bytes(raw).decode("utf-8"))
+    except (UnicodeDecodeError, ValueError) as err:
+        raise PayloadError(f"payload is not UTF-8 JSON: {err}", field="payload") from None
+    if not isinstance(value, dict):
+        raise PayloadError(
+            f"payload must be a JSON object, got {type(value).__name__}", field="payload"
+        )
+    return value
+
+
+def field_of(
+    payload: Mapping[str, Any],
+    name: str,
+    kind: type | tuple[type, ...],
+    *,
+    optional: bool = False,
+    default: Any = None,
+) -> Any:
+    """``payload[name]``, checked to be of ``kind`` (``bool`` is never an int here)."""
+    if name not in payload or payload[name] is None:
+        if optional:
+            return default
+        raise PayloadError(f"payload has no {name!r}", field=name)
+    value = payload[name]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    ok = False if isinstance(value, bool) and bool not in kinds else isinstance(value, kinds)
+    if ok and isinstance(value, float) and not math.isfinite(value):
+        ok = False
+    if not ok:
+        allowed = " or ".join(k.__name__ for k in kinds)
+        raise PayloadError(f"{name}={value!r} must be {allowed}", field=name, value=value)
+    return value
+
+
+def hex_field(payload: Mapping[str, Any], name: str) -> bytes:
+    """A frame given as a hex string."""
+    text = field_of(payload, name, str)
+    try:
+        return bytes.fromhex(text)
+    except ValueError:
+        raise PayloadError(f"{name}={text!r} is not a hex string", field=name, value=text) from None
+
+
+def decode_frame(raw: bytes, families: Sequence[Family], field: str = "frame") -> Command[object]:
+    """The command a request frame encodes, for a bus carrying ``families``.
+
+    The frame's header and length say its family; it is decoded by that family's
+    ``decode_request`` and must re-encode to the same bytes.
+
+    Raises:
+        PayloadError: not a request frame of a family the bus carries (names the field).
+    """
+    errors = []
+    for family in families:
+        try:
+            cmd: Command[object] = _DECODERS[family](raw)
+        except (LocalProtocolError, ValueError, IndexError) as err:
+            errors.append(f"{family.value}: {err}")
+            continue
+        except Exception as err:  # RemoteProtocolError and the like: not this family
+            errors.append(f"{family.value}: {err}")
+            continue
+        if cmd.encode() != bytes(raw):
+            errors.append(f"{family.value}: does not re-encode to the same bytes")
+            continue
+        return cmd
+    raise PayloadError(
+        f"{field}={format_hex(raw) or '(empty)'} is not a request frame of this bus "
+        f"({'; '.join(errors) or 'no family'})",
+        field=field,
+        value=format_hex(raw),
+    )
+
+
+def error_payload(
+    kind: str, message: str, *, field: str | None = None, value: object = None, **extra: Any
+) -> dict[str, Any]:
+    """The JSON object of an error reply (``kind`` one of ``ERROR_KINDS``)."""
+    if kind not in ERROR_KINDS:
+        raise ValueError(f"unknown error kind {kind!r}")
+    out: dict[str, Any] = {"ok": False, "error": kind, "message": message}
+    if field is not None:
+        out["field"] = field
+    if value is not None:
+        out["value"] = value if isinstance(value, int | float | str | bool) else repr(value)
+    out.update(extra)
+    return out

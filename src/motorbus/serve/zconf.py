@@ -1,0 +1,80 @@
+"""Zenoh: importing it (an optional extra), and the session configurations of a server
+and of a client."""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from motorbus.errors import LocalProtocolError, MotorbusError
+
+__all__ = [
+    "DEFAULT_LISTEN",
+    "EXTRA_HINT",
+    "ServeUnavailable",
+    "check_endpoint",
+    "client_config",
+    "server_config",
+    "zenoh",
+]
+
+#: Where ``motorbus serve`` listens unless told: loopback only.
+DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
+EXTRA_HINT = "pip install 'motorbus[serve]'"
+_PROTOCOLS = ("tcp", "tls", "udp", "quic", "unixsock-stream", "ws")
+
+
+class ServeUnavailable(MotorbusError, ImportError):
+    """Eclipse Zenoh (the ``serve`` extra) is not installed."""
+
+
+def zenoh() -> Any:
+    """The ``zenoh`` module; ``ServeUnavailable`` naming the extra if it is missing."""
+    try:
+        import zenoh as module
+    except ImportError:
+        raise ServeUnavailable(
+            f"serving a bus needs Eclipse Zenoh, the serve extra: {EXTRA_HINT}"
+        ) from None
+    return module
+
+
+def check_endpoint(field: str, value: object) -> str:
+    """A Zenoh endpoint such as ``tcp/127.0.0.1:7447``."""
+    if not isinstance(value, str) or "/" not in value or value.split("/", 1)[0] not in _PROTOCOLS:
+        raise LocalProtocolError(
+            f"{field}={value!r} is not a Zenoh endpoint: PROTOCOL/ADDRESS with PROTOCOL one "
+            f"of {', '.join(_PROTOCOLS)}, e.g. {DEFAULT_LISTEN}",
+            field=field,
+            value=value,
+        )
+    return value
+
+
+def _base(config_file: str | None) -> Any:
+    z = zenoh()
+    config = z.Config.from_file(config_file) if config_file else z.Config()
+    if not config_file:
+        # Hermetic unless a configuration file asks for discovery: no multicast.
+        config.insert_json5("scouting/multicast/enabled", "false")
+    return config
+
+
+def server_config(listen: str, config_file: str | None = None) -> Any:
+    """A peer that listens on ``listen`` (a configuration file may add TLS, access
+    control, more endpoints)."""
+    config = _base(config_file)
+    config.insert_json5("mode", json.dumps("peer"))
+    config.insert_json5("listen/endpoints", json.dumps([check_endpoint("listen", listen)]))
+    return config
+
+
+def client_config(connect: str, config_file: str | None = None, lease_s: float = 1.0) -> Any:
+    """A client session connected to ``connect``.  Its link lease (how soon the server
+    notices a frozen client at the Zenoh level) is ``lease_s``; the server's own
+    heartbeat check is the authority (``motorbus.serve.server``)."""
+    config = _base(config_file)
+    config.insert_json5("mode", json.dumps("client"))
+    config.insert_json5("connect/endpoints", json.dumps([check_endpoint("endpoint", connect)]))
+    config.insert_json5("transport/link/tx/lease", str(max(100, int(lease_s * 1000))))
+    return config

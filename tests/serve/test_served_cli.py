@@ -1,0 +1,51 @@
+"""``--connect``: the command-line tools on a served bus, the server owning the port."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+from motorbus.protocol import la
+from motorbus.sim import SimProcess
+from tests.serve.conftest import Child
+
+
+def motorbus_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "motorbus", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_la_status_and_move_through_a_served_bus(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    # The port is the server's: a second opener is refused; --connect goes through it.
+    out = motorbus_cli("la", "status", "1-2", "--connect", endpoint, "--json")
+    assert out.returncode == 0, out.stderr
+    assert [json.loads(line)["id"] for line in out.stdout.splitlines()] == [1, 2]
+    out = motorbus_cli("la", "move", "2", "1234", "--connect", endpoint)
+    assert out.returncode == 0, out.stderr
+    sent = [bytes.fromhex(r["hex"]) for r in la_sim.log_records() if r["direction"] == "request"]
+    assert la.MoveTo(2, 1234, True).encode() in sent
+    # A one-shot move is kept on purpose (released with hold): no pause after it.
+    assert sent[-1] == la.MoveTo(2, 1234, True).encode()
+
+
+def test_connect_with_a_port_is_a_usage_error(endpoint: str) -> None:
+    out = motorbus_cli("la", "status", "1", "--connect", endpoint, "--port", "/dev/null")
+    assert out.returncode == 2 and "--connect" in out.stderr
+
+
+def test_monitor_through_a_served_bus(la_sim: SimProcess, la_server: Child, endpoint: str) -> None:
+    out = motorbus_cli("monitor", "--ids", "1-2", "--count", "2", "--connect", endpoint, "--json")
+    assert out.returncode == 0, out.stderr
+    refreshes = [json.loads(line) for line in out.stdout.splitlines()]
+    assert [r["refresh"] for r in refreshes] == [1, 2]
+    assert [s["id"] for s in refreshes[-1]["statuses"]] == [1, 2]
+    out = motorbus_cli("monitor", "--count", "1", "--connect", endpoint)
+    assert out.returncode == 2 and "--connect needs the IDs" in out.stderr
