@@ -38,12 +38,12 @@ from tests.fakeclock import rig
 from tests.waiting import eventually
 
 #: Calls of one 10 ms tick of 15 actuators (one 0xF3 broadcast), steady state.
-TICK_BUDGET = 340
+TICK_BUDGET = 330
 #: Calls of one ``bus.request`` of an LA status, from the call to its decoded reply.
 REQUEST_BUDGET = 280
 #: The same on the default timer with default settings: no spin on the clock (353 and
 #: 278 now; ~1,100 and ~550 while it spun by default).
-TIMER_TICK_BUDGET = 380
+TIMER_TICK_BUDGET = 370
 TIMER_REQUEST_BUDGET = 300
 
 _PACKAGE = os.path.dirname(motorbus.__file__) + os.sep
