@@ -225,11 +225,13 @@ class BusEngine:
     # on time.
 
     def _pump(self) -> None:
+        # ``self._timer or self.timer`` on the hot paths: the attribute once the bus has
+        # its timer, without the property's call (issue 40 counts the calls).
         if self._pumping:
             return  # called back from inside a transmission: the loop below goes on
         self._pumping = True
         try:
-            matcher, schedule, timer = self._matcher, self._schedule, self.timer
+            matcher, schedule, timer = self._matcher, self._schedule, (self._timer or self.timer)
             while schedule.heap and matcher.pending is None and self.state is BusState.OPEN:
                 decision = schedule.poll(timer.now())
                 if decision is None:
@@ -250,7 +252,7 @@ class BusEngine:
         stream tick at its deadline): a write from here does not run it again.  A job
         that waits runs it at its write, whenever that is.
         """
-        schedule, timer = self._schedule, self.timer
+        schedule, timer = self._schedule, (self._timer or self.timer)
         job.seq = schedule.next_seq()
         # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
         timer.hold_arming()
@@ -286,7 +288,9 @@ class BusEngine:
                 return
             handle.cancel()
         self._pump_at = start
-        self._pump_handle = self.timer.call_at(start, self._on_pump_timer, precise=precise)
+        self._pump_handle = (self._timer or self.timer).call_at(
+            start, self._on_pump_timer, precise=precise
+        )
 
     def _on_pump_timer(self) -> None:
         self._pump_handle = None
@@ -366,7 +370,7 @@ class BusEngine:
             self._matcher.sent(job)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
-        timer = self.timer
+        timer = self._timer or self.timer
         before = timer.now()
         try:
             self.transport.write(job.raw)
@@ -481,7 +485,7 @@ class BusEngine:
     # -- reader ------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
-        timer = self.timer
+        timer = self._timer or self.timer
         # A reply cancels its deadline and the freed bus schedules its next write: the
         # timer is re-armed once, after both.
         timer.hold_arming()
