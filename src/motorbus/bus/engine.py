@@ -134,7 +134,9 @@ class PreparedSubmit(Generic[R]):
     def send(self) -> asyncio.Future[R]:
         """Queue it now (an idle bus writes it before this returns); once only.
 
-        Returns the future of its decoded reply, as ``Bus.submit`` does.
+        Returns the future of its decoded reply, as ``Bus.submit`` does; it resolves
+        to None at once if the ``refresh`` (run here, and again at a later write if the
+        frame must wait) drops the frame.
 
         Raises:
             BusClosedError: the bus is no longer open, or is closing (motion).
