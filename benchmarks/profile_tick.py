@@ -6,7 +6,11 @@ prints the functions that take the most CPU, in microseconds per tick (self time
 cumulative), plus, measured without the profiler in the same run, the process CPU per
 tick and how long after each tick's deadline the bus called the transport's ``write``
 with the tick's frame (the Python work at the deadline; the kernel's own view of the
-write is ``bench_late_ticks.py``'s).  Writes ``benchmarks/results/profile_tick.json``.
+write is ``bench_late_ticks.py``'s), and the calls a tick (every Python and C function
+call cProfile saw in this process, the loop's own included, over the ticks: a count,
+which does not move with the machine; this tick also carries a status poll, so it is
+more than ``tests/bus/test_call_budget.py``'s bare tick).
+Writes ``benchmarks/results/profile_tick.json``.
 
 Usage: ``python benchmarks/profile_tick.py [--seconds 5] [--top 25] [--out PATH]``
 """
@@ -109,6 +113,7 @@ def main() -> int:
             }
         )
     rows.sort(key=lambda r: r["self_us_per_tick"], reverse=True)
+    calls_per_tick = sum(r["calls_per_tick"] for r in rows)
     per_tick_us = plain["cpu_s"] / max(1, plain["ticks"]) * 1e6
     print(
         f"process CPU per tick without the profiler: {per_tick_us:.0f} us "
@@ -116,6 +121,7 @@ def main() -> int:
         f"{plain['timer_wakeups_per_tick']:.2f} wake-ups and "
         f"{plain['timer_spin_us_per_tick']:.0f} us of spin a tick"
     )
+    print(f"calls a tick under cProfile (Python and C functions): {calls_per_tick:.0f}")
     late = plain["write_after_deadline_us"]
     print(
         f"tick frame's write() called after the deadline: p50 {late['p50']:.0f} us, "
@@ -129,7 +135,15 @@ def main() -> int:
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(
-        json.dumps({"cpu_us_per_tick": per_tick_us, "plain": plain, "top": rows[:100]}, indent=2)
+        json.dumps(
+            {
+                "cpu_us_per_tick": per_tick_us,
+                "calls_per_tick": calls_per_tick,
+                "plain": plain,
+                "top": rows[:100],
+            },
+            indent=2,
+        )
     )
     print(f"wrote {args.out}")
     return 0

@@ -642,6 +642,19 @@ def requested() -> int | None:
     return _process.requested
 
 
+def wanted() -> bool:
+    """Whether real-time mode is on or asked for (:func:`enable`, :func:`request`,
+    ``MOTORBUS_REALTIME``): the bus timer then spins before precise deadlines
+    (``motorbus.bus.timer.spin_asked``).  A malformed ``MOTORBUS_REALTIME`` asks for
+    nothing here; :func:`on_bus_open` reports it."""
+    if _process.applied is not None or _process.requested is not None or _gc.active:
+        return True
+    try:
+        return parse_setting(os.environ.get(ENV_VAR)) is not None
+    except LocalProtocolError:
+        return False
+
+
 def on_bus_open() -> RealtimeReport | None:
     """Honour ``--realtime`` / ``MOTORBUS_REALTIME`` once per process (``Bus.open`` calls it).
 

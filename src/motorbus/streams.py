@@ -605,25 +605,25 @@ class Streamer:
             futures = []
             try:
                 for build, ready in prepared:
-                    first = build()
-                    if first is None:
-                        continue
-                    if ready is not None and first is ready.job.cmd:
-                        futures.append(ready.send())
-                        continue
-                    futures.append(
-                        self.bus.submit(
-                            first,
+                    if ready is None:  # refused ahead: prepared now, or refused again
+                        frame = build()
+                        if frame is None:
+                            continue
+                        ready = self.bus.prepare(
+                            frame,
                             priority=Priority.HIGH,
                             reserved=True,
                             refresh=build,
                             lease=self.lease,
                         )
-                    )
+                    # One path: send() re-checks the frame (its refresh) and writes it.
+                    future = ready.send()
+                    if ready.job.attempts or not future.done():
+                        futures.append(future)  # written, or waiting its turn
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
-            if futures and futures[0].done():  # an idle bus wrote it inside submit()
+            if futures and futures[0].done():  # an idle bus wrote it inside send()
                 sent.append(self.bus.timer.now())
             fired.set_result(futures)
 

@@ -327,3 +327,32 @@ def test_bad_own_safe_commands_are_refused_and_nothing_is_held(
         table.acquire("rig", ["la:1"], pause_for, safe_commands=commands)  # type: ignore[arg-type]
     assert info.value.field == "safe_commands"
     assert table.snapshot() == ()
+
+
+def test_the_same_motion_every_tick_owes_again_whatever_changed_in_between() -> None:
+    """The table remembers a claim and a motion that changed nothing, so a stream's
+    ticks skip the per-device work (issue 40); anything in between still counts."""
+    table = LeaseTable()
+    lease = table.acquire("stream", ["la:1", "la:2"], pause_for)
+    keys = ("la:1", "la:2")
+    frame = la.Broadcast(la.BroadcastMode.FOLLOW, ((1, 500), (2, 600)))
+    pause1, pause2 = (la.Control(i, la.ControlAction.PAUSE) for i in (1, 2))
+    for _ in range(3):  # ticks: claimed and moved, owing both pauses
+        assert table.claim(keys, lease) is False
+        table.moved(frame)
+    assert table.owed("la:1") == (pause1,) and table.owed("la:2") == (pause2,)
+    table.sent(pause1)  # paid between two ticks ...
+    assert table.owed("la:1") == ()
+    table.moved(frame)  # ... and owed again by the next
+    assert table.owed("la:1") == (pause1,)
+    assert table.release(lease, hold=False, keys=["la:2"]) == [pause2]
+    # la:2 is free now: the remembered claim no longer holds, the lease takes it again.
+    assert table.claim(keys, lease) is True
+    other = table.acquire("rig", ["la:3"], pause_for)
+    with pytest.raises(LeaseConflictError):
+        table.claim(("la:1", "la:3"), lease)
+    table.moved(frame)
+    assert table.owed("la:2") == (pause2,)
+    assert table.release(other, hold=True) == []
+    lease_keys_released = table.release(lease, hold=False)
+    assert sorted(map(repr, lease_keys_released)) == sorted(map(repr, [pause1, pause2]))

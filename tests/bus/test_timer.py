@@ -542,3 +542,34 @@ def test_one_loop_turn_re_arms_the_timerfd_once_for_all_its_changes(
         timer.close()
 
     run(loop_factory, main())
+
+
+@pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
+async def test_the_timerfd_timer_spins_only_where_asked(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 40: no spin by default; real-time mode or MOTORBUS_TIMER_SPIN_US asks for it."""
+    from motorbus import realtime
+
+    monkeypatch.delenv("MOTORBUS_TIMER_SPIN_US", raising=False)
+    monkeypatch.delenv(realtime.ENV_VAR, raising=False)
+    monkeypatch.setattr(realtime._process, "requested", None)
+    monkeypatch.setattr(realtime._process, "applied", None)
+    monkeypatch.setattr(realtime._gc, "active", False)
+    timers = []
+    try:
+        plain = TimerfdTimer()
+        timers.append(plain)
+        assert plain.lead == 0.0
+        deadline = plain.now() + 0.002
+        await plain.sleep_until(deadline)
+        assert plain.spin_seconds == 0.0 and plain.wakeups >= 1
+        monkeypatch.setenv(realtime.ENV_VAR, "1")  # asked for: the next timer spins
+        asked = TimerfdTimer()
+        timers.append(asked)
+        assert asked.lead >= TimerfdTimer.SPIN_LEAD_MIN_S
+        monkeypatch.setenv("MOTORBUS_TIMER_SPIN_US", "0")  # ... unless told not to
+        off = TimerfdTimer()
+        timers.append(off)
+        assert off.lead == 0.0
+    finally:
+        for t in timers:
+            t.close()

@@ -215,3 +215,47 @@ def test_tick_timing_counts_missing_frames_not_rounding_artifacts() -> None:
     assert tick_timing(jittery, period).missed == 0
     drifting = [k * period * 1.07 for k in range(100)]
     assert tick_timing(drifting, period, by_index=True).drift > 0.06
+
+
+async def test_a_tick_frame_is_built_once_and_checked_once_at_its_deadline(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Issue 40: one path from deadline to wire.  A tick's frame is built when the tick
+    is prepared and checked once at its deadline (``PreparedSubmit.send``), which writes
+    it on an idle bus: no fallback ``submit``, no third build at the write."""
+    import motorbus.streams as streams_mod
+    from motorbus.streaming import model
+
+    builds: list[int] = []
+    made = [0]
+    real_builder = model.broadcast_builder
+    real_prevalidated = la.Broadcast.prevalidated
+
+    def counting_builder(chunk):  # type: ignore[no-untyped-def]
+        build = real_builder(chunk)
+        builds.append(0)
+        index = len(builds) - 1
+
+        def counted():  # type: ignore[no-untyped-def]
+            builds[index] += 1
+            return build()
+
+        return counted
+
+    def counting_prevalidated(*args, **kwargs):  # type: ignore[no-untyped-def]
+        made[0] += 1
+        return real_prevalidated(*args, **kwargs)
+
+    monkeypatch.setattr(streams_mod, "broadcast_builder", counting_builder)
+    monkeypatch.setattr(la.Broadcast, "prevalidated", counting_prevalidated)
+    ticks = 10
+    async with rig() as r:
+        actuators = [InspireLA(r.bus, i) for i in range(1, 16)]
+        streamer = Streamer(r.bus)
+        stream = streamer.follow(actuators, [[1000 + k] * 15 for k in range(ticks)], period=0.01)
+        await stream.wait()
+        await streamer.close()
+        assert stream.stats.ticks == ticks
+        assert r.bus.stats.no_reply_frames == ticks
+    assert builds == [2] * ticks  # built when prepared, checked once when sent
+    assert made[0] == ticks  # one frame object a tick

@@ -502,8 +502,9 @@ class Bus(BusEngine):
         Everything ``submit`` does before queueing is done now (checks, the lease rule,
         encoding, the job); ``PreparedSubmit.send()``, called at the deadline (from a
         timer callback: the stream ticks), only re-checks what may have changed since
-        (the bus still open and not closing; the lease rule again if any lease changed)
-        and queues it.  A ``refresh`` still runs at the moment of the write.  Arguments
+        (the bus still open and not closing; the ``refresh``; the lease rule again if any
+        lease changed) and sends it as ``submit`` does: an idle bus writes it then, as
+        the refresh built it; a frame that must wait runs its refresh again at its write.  Arguments
         and errors as for ``submit`` (without ``start_by``).
         """
         job = self._checked_job(
@@ -532,22 +533,24 @@ class Bus(BusEngine):
         )
 
     def _send_prepared(self, prepared: PreparedSubmit[Any]) -> asyncio.Future[Any]:
-        """``PreparedSubmit.send``: the cheap re-checks, then queue (see ``prepare``)."""
+        """``PreparedSubmit.send``: the cheap re-checks and the refresh, then the one
+        send path (``_queue``; see ``prepare``)."""
         job = prepared.job
         cmd = job.cmd
         if self.state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {self.state.value}")
         if asyncio.get_running_loop() is not self._loop:
             raise self._wrong_loop_error(cmd)
-        if cmd.starts_motion:
-            if self._stopping:
-                raise self._closing_error(cmd)
-            if prepared.lease_version != self._leases.version:
-                # A lease changed since: the rule again, for the frame as it is now.
-                fresh = cmd if job.refresh is None else job.refresh()
-                if fresh is not None:
-                    self._lease_keeper.claim(fresh, prepared.lease)
-        self._send_or_queue(job)
+        if cmd.starts_motion and self._stopping:
+            raise self._closing_error(cmd)
+        # The frame as it is now: checked once here, and written as it is if it goes
+        # out from this call; one that must wait is checked again at its write.
+        if job.refresh is not None and not self._refresh(job):
+            return job.future
+        if job.cmd.starts_motion and prepared.lease_version != self._leases.version:
+            # A lease changed since: the rule again, for the frame as it is now.
+            self._lease_keeper.claim(job.cmd, prepared.lease)
+        self._queue(job, None, checked=True)
         return job.future
 
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:

@@ -134,7 +134,9 @@ class PreparedSubmit(Generic[R]):
     def send(self) -> asyncio.Future[R]:
         """Queue it now (an idle bus writes it before this returns); once only.
 
-        Returns the future of its decoded reply, as ``Bus.submit`` does.
+        Returns the future of its decoded reply, as ``Bus.submit`` does; it resolves
+        to None at once if the ``refresh`` (run here, and again at a later write if the
+        frame must wait) drops the frame.
 
         Raises:
             BusClosedError: the bus is no longer open, or is closing (motion).
@@ -225,11 +227,13 @@ class BusEngine:
     # on time.
 
     def _pump(self) -> None:
+        # ``self._timer or self.timer`` on the hot paths: the attribute once the bus has
+        # its timer, without the property's call (issue 40 counts the calls).
         if self._pumping:
             return  # called back from inside a transmission: the loop below goes on
         self._pumping = True
         try:
-            matcher, schedule, timer = self._matcher, self._schedule, self.timer
+            matcher, schedule, timer = self._matcher, self._schedule, (self._timer or self.timer)
             while schedule.heap and matcher.pending is None and self.state is BusState.OPEN:
                 decision = schedule.poll(timer.now())
                 if decision is None:
@@ -241,43 +245,40 @@ class BusEngine:
         finally:
             self._pumping = False
 
-    def _queue(self, job: BusJob, start_by: float | None) -> None:
-        """Queue a checked job (with its ``start_by`` expiry) and pump."""
-        job.seq = self._schedule.next_seq()
-        timer = self.timer
+    def _queue(self, job: BusJob, start_by: float | None, *, checked: bool = False) -> None:
+        """The one way a checked job goes out (``submit``, ``PreparedSubmit.send``): an
+        idle bus whose rules let it start now writes it here, before this returns;
+        otherwise it is queued (with its ``start_by`` expiry) for ``_pump``.
+
+        ``checked``: its ``refresh`` ran just now, in this same callback (a prepared
+        stream tick at its deadline): a write from here does not run it again.  A job
+        that waits runs it at its write, whenever that is.
+        """
+        schedule, timer = self._schedule, (self._timer or self.timer)
+        job.seq = schedule.next_seq()
         # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
         timer.hold_arming()
         try:
-            if start_by is not None:
-                job.start_by = float(start_by)
-                job.expiry = timer.call_at(
-                    job.start_by, lambda: self._drop_unsent(job), precise=False
-                )
-            self._schedule.push(job)
-            self._pump()  # an idle bus sends right here
-        finally:
-            timer.release_arming()
-
-    def _send_or_queue(self, job: BusJob) -> None:
-        """Write ``job`` now if the bus is idle and its rules allow it, else queue it:
-        what ``_queue`` and ``_pump`` decide for it, with the queue left out when it is
-        empty (a prepared stream tick at its deadline: ``Bus.prepare``)."""
-        schedule, timer = self._schedule, self.timer
-        if schedule.heap or self._matcher.pending is not None or self._pumping:
-            self._queue(job, None)
-            return
-        job.seq = schedule.next_seq()
-        timer.hold_arming()
-        try:
-            now = timer.now()
-            if schedule.start_at(job, now) > now:  # the scheduler's rule, as in _pump
-                schedule.push(job)
-            else:
+            if (
+                not schedule.heap
+                and self._matcher.pending is None
+                and not self._pumping
+                and self.state is BusState.OPEN
+                and schedule.start_at(job, now := timer.now()) <= now
+            ):
+                # What _pump would decide for it, with the queue left out: it is empty.
                 self._pumping = True
                 try:
-                    self._transmit(job)
+                    self._transmit(job, checked=checked)
                 finally:
                     self._pumping = False
+            else:
+                if start_by is not None:
+                    job.start_by = float(start_by)
+                    job.expiry = timer.call_at(
+                        job.start_by, lambda: self._drop_unsent(job), precise=False
+                    )
+                schedule.push(job)
             self._pump()
         finally:
             timer.release_arming()
@@ -289,7 +290,9 @@ class BusEngine:
                 return
             handle.cancel()
         self._pump_at = start
-        self._pump_handle = self.timer.call_at(start, self._on_pump_timer, precise=precise)
+        self._pump_handle = (self._timer or self.timer).call_at(
+            start, self._on_pump_timer, precise=precise
+        )
 
     def _on_pump_timer(self) -> None:
         self._pump_handle = None
@@ -334,21 +337,28 @@ class BusEngine:
         job.future.exception()  # retrieved: a poller that gave up need not await it
         self._pump()  # it may have been the head of the queue
 
-    def _transmit(self, job: BusJob) -> None:
+    def _refresh(self, job: BusJob) -> bool:
+        """Run ``job``'s refresh: False (and its future resolved to None) if it is to be
+        dropped unsent; a frame that changed is encoded again."""
+        assert job.refresh is not None
+        fresh = job.refresh()
+        if fresh is None:
+            self.stats.dropped_by_refresh += 1
+            if not job.future.done():
+                job.future.set_result(None)
+            return False
+        if fresh is not job.cmd:
+            job.cmd = fresh
+            job.raw = fresh.encode()
+            job.after_write = self.occupancy(fresh, len(job.raw)).after_write
+        return True
+
+    def _transmit(self, job: BusJob, *, checked: bool = False) -> None:
         if job.expiry is not None:
             job.expiry.cancel()
             job.expiry = None
-        if job.refresh is not None:
-            fresh = job.refresh()
-            if fresh is None:
-                self.stats.dropped_by_refresh += 1
-                if not job.future.done():
-                    job.future.set_result(None)
-                return
-            if fresh is not job.cmd:
-                job.cmd = fresh
-                job.raw = fresh.encode()
-                job.after_write = self.occupancy(fresh, len(job.raw)).after_write
+        if job.refresh is not None and not checked and not self._refresh(job):
+            return
         cmd = job.cmd
         job.attempts += 1
         expects = cmd.expects_reply
@@ -362,7 +372,7 @@ class BusEngine:
             self._matcher.sent(job)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
-        timer = self.timer
+        timer = self._timer or self.timer
         before = timer.now()
         try:
             self.transport.write(job.raw)
@@ -477,7 +487,7 @@ class BusEngine:
     # -- reader ------------------------------------------------------------------
 
     def _on_data(self, data: bytes) -> None:
-        timer = self.timer
+        timer = self._timer or self.timer
         # A reply cancels its deadline and the freed bus schedules its next write: the
         # timer is re-armed once, after both.
         timer.hold_arming()

@@ -77,6 +77,8 @@ _WILDCARDS = {
     if info.broadcast_id is not None
 }
 
+_WILDCARD_KEYS = frozenset(_WILDCARDS)
+
 #: The explicit leases a task holds (acquired in it, or in the task that started it).
 _current: contextvars.ContextVar[tuple[Lease, ...]] = contextvars.ContextVar(
     "motorbus_leases", default=()
@@ -209,6 +211,12 @@ class LeaseTable:
         #: Counts every change of who holds what (and of the keys seen, which a
         #: wildcard stands for): a claim checked at one version holds at the same one.
         self.version = 0
+        #: Counts every change of what a device owes; with ``version``, it dates the
+        #: memos of the hot paths below (a stream's tick claims and moves the same keys
+        #: every tick): a memo of the same keys at the same dates still holds.
+        self._owed_epoch = 0
+        self._claimed: tuple[Any, ...] = ()  # (keys, lease, version) of a claim that held
+        self._settled: tuple[Any, ...] = ()  # (keys, stops, version, epoch) of a no-op moved
 
     # -- reading ---------------------------------------------------------------------
 
@@ -255,6 +263,7 @@ class LeaseTable:
 
     def _changed(self) -> None:
         self.version += 1
+        self._owed_epoch += 1  # entries came or went, or a safe action changed
         if self._listeners:
             snap = self.snapshot()
             for fn in list(self._listeners):
@@ -391,12 +400,23 @@ class LeaseTable:
             LeaseConflictError: another explicit lease holds one of the keys (nothing
                 changes).
         """
+        claimed = self._claimed
+        if (
+            claimed
+            and claimed[1] is lease
+            and claimed[2] == self.version
+            and claimed[0] == keys
+            and lease.active
+        ):
+            return False  # the hottest path: the same keys as the last tick, nothing changed
         entries = self._entries
         for key in keys:  # the hot path (every stream tick): all held already
             entry = entries.get(key)
             if entry is None or entry.lease is not lease or key in _WILDCARDS:
                 break
         else:
+            if isinstance(keys, tuple):
+                self._claimed = (keys, lease, self.version)
             return False
         changed = False
         keys = self.expand(keys)
@@ -431,9 +451,19 @@ class LeaseTable:
         device it moves, besides what was owed already (``safety.motion_stops``; the
         device's whole safe action where the motion names no smaller stop)."""
         keys = safety.motion_keys(cmd)
-        if any(key in _WILDCARDS for key in keys):
-            keys = self.expand(keys)
         stops = safety.motion_stops(cmd)
+        settled = self._settled
+        if (
+            settled
+            and settled[1] is stops
+            and settled[2] == self.version
+            and settled[3] == self._owed_epoch
+            and settled[0] == keys
+        ):
+            return  # the same motion as the last tick's, and nothing owed changed since
+        memo = (keys, stops, self.version, self._owed_epoch)
+        if not _WILDCARD_KEYS.isdisjoint(keys):
+            keys = self.expand(keys)
         entries = self._entries
         for key in keys:
             entry = entries.get(key)
@@ -446,8 +476,12 @@ class LeaseTable:
                 continue  # the hot path: a streamed actuator owes its pause already
             if not owed:
                 entry.owed = owes
+                self._owed_epoch += 1
             elif owed != owes:
                 entry.owed = tuple(dict.fromkeys((*owed, *owes)))
+                self._owed_epoch += 1
+        if memo[3] == self._owed_epoch:
+            self._settled = memo  # nothing changed: the same motion again is a no-op
 
     def sent(self, cmd: Command[object]) -> None:
         """``cmd`` was written (and answered, if it expects a reply): what it covers of
@@ -464,6 +498,7 @@ class LeaseTable:
         for entry in entries:
             if entry.owed:
                 entry.owed = safety.pending_after(cmd, entry.owed)
+                self._owed_epoch += 1
 
     # -- releasing -------------------------------------------------------------------
 

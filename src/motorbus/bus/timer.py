@@ -42,6 +42,7 @@ __all__ = [
     "TimerHandle",
     "TimerfdTimer",
     "default_timer",
+    "spin_asked",
     "timerfd_available",
 ]
 
@@ -54,6 +55,20 @@ _TFD_NONBLOCK = os.O_NONBLOCK  # timerfd_create(2): same value as O_NONBLOCK
 _TFD_CLOEXEC = getattr(os, "O_CLOEXEC", 0)  # timerfd_create(2): same value as O_CLOEXEC
 _EXPIRY_COUNT_SIZE = 8  # timerfd read(2) returns a uint64 expiry count
 _NS_PER_S = 1_000_000_000
+#: Asks every ``TimerfdTimer`` to spin before precise deadlines, up to this many us.
+SPIN_ENV_VAR = "MOTORBUS_TIMER_SPIN_US"
+
+
+def spin_asked() -> bool:
+    """Whether a ``TimerfdTimer`` made now spins before precise deadlines by default:
+    ``MOTORBUS_TIMER_SPIN_US`` is set (to more than 0), or real-time mode is on or asked
+    for.  Never otherwise: a spin costs CPU on every deadline (issue 40)."""
+    setting = os.environ.get(SPIN_ENV_VAR)
+    if setting:
+        return float(setting) > 0
+    from motorbus import realtime  # the bus package imports it too: not at module load
+
+    return realtime.wanted()
 
 
 class TimerHandle:
@@ -471,22 +486,28 @@ def _deadline_ns(deadline: float) -> int:
 class TimerfdTimer(Timer):
     """Linux timer: one ``timerfd`` on absolute ``CLOCK_MONOTONIC`` deadlines.
 
-    The fd is armed ``spin_lead`` seconds before the earliest pending deadline and
-    watched with ``loop.add_reader``; the wake-up then spins on the clock for the rest.
-    A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us at p99 here
-    (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle machine, whose cores
-    sleep deeply, ~300 us p50 and ~500 us p99 (benchmarks/bench_wakeups.py).
-    Spinning the last part (a lead of 60-500 us that follows the recent lateness of
-    precise deadlines' wake-ups that the loop's own work did not hold up) makes
-    a deadline fire within ~25 us at p99, never early, for at most the lead in CPU per
-    wake-up (bench_wakeups.py: timer callback lateness).  ``spin_lead=0``, or the
-    environment variable ``MOTORBUS_TIMER_SPIN_US=0``, turns spinning off.
+    The fd is armed at the earliest pending deadline and watched with
+    ``loop.add_reader``.  A bare timerfd wake-up is 40-70 us late at p50 and 100-120 us
+    at p99 here (docs/platform.md 1, benchmarks/bench_timer.py) - and on an idle
+    machine, whose cores sleep deeply, ~300 us p50 and ~500 us p99
+    (benchmarks/bench_wakeups.py).  Never early.
+
+    Spinning is only on request: real-time mode (``--realtime``, ``MOTORBUS_REALTIME``,
+    ``motorbus.realtime.enable``, on or asked for when the timer is made), the
+    environment variable ``MOTORBUS_TIMER_SPIN_US`` (the longest lead in us; 0 keeps it
+    off), or ``spin_lead=``.  The fd then fires ``spin_lead`` seconds before a precise
+    deadline (a lead of 60-500 us that follows the recent lateness of precise deadlines'
+    wake-ups that the loop's own work did not hold up) and the wake-up spins on the clock
+    for the rest: a deadline fires within ~25 us at p99, for at most the lead in CPU per
+    wake-up (bench_wakeups.py: timer callback lateness).  By default it did so until
+    issue 40: that spin alone was 1.4x the least loop's CPU (benchmarks/bench_cpu.py).
     ``wakeups``, ``spin_seconds`` and ``arms`` count what that costs.
     """
 
     name = "timerfd"
-    #: The longest the fd fires before a deadline, to spin the rest (seconds).
-    SPIN_LEAD_S = float(os.environ.get("MOTORBUS_TIMER_SPIN_US", "500")) * 1e-6
+    #: The longest the fd fires before a deadline, to spin the rest (seconds), where
+    #: spinning is asked for (``MOTORBUS_TIMER_SPIN_US`` sets it; see the class).
+    SPIN_LEAD_S = float(os.environ.get(SPIN_ENV_VAR) or "500") * 1e-6
     #: The shortest lead, whatever the recent wake-ups did.
     SPIN_LEAD_MIN_S = 60e-6
     #: The lead follows twice the recent worst lateness of the wake-ups armed for a
@@ -505,11 +526,17 @@ class TimerfdTimer(Timer):
     ) -> None:
         """Create the timer and its timerfd for ``loop`` (the running loop by default).
 
+        ``spin_lead``: the longest spin before a precise deadline (s); ``None`` (the
+        default) spins ``SPIN_LEAD_S`` only where spinning is asked for (see the class),
+        else not at all.
+
         Raises:
             OSError: ``timerfd`` is not available.
         """
         super().__init__(loop or asyncio.get_running_loop())
-        self._spin_lead = self.SPIN_LEAD_S if spin_lead is None else spin_lead
+        if spin_lead is None:
+            spin_lead = self.SPIN_LEAD_S if spin_asked() else 0.0
+        self._spin_lead = spin_lead
         self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
         self._api = _api()
         self._fd = self._api.create()
