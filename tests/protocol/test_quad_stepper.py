@@ -353,7 +353,9 @@ RANGES: list[tuple[Callable[[int], object], str, int, int]] = [
 ]
 
 
-@pytest.mark.parametrize(("factory", "name", "lo", "hi"), RANGES, ids=lambda x: str(x))
+@pytest.mark.parametrize(
+    ("factory", "name", "lo", "hi"), RANGES, ids=lambda x: "" if callable(x) else str(x)
+)
 @given(data=st.data())
 def test_out_of_range(
     factory: Callable[[int], object], name: str, lo: int, hi: int, data: st.DataObject
