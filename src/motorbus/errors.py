@@ -8,6 +8,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- LocalProtocolError [ValueError]   you asked for what the protocol cannot say
          |   +-- IdListError                    an ID list ("1-3,7") the grammar refuses
          |   +-- ControlError                   a dashboard control names no such bus/device
+         |   +-- PayloadError                   a served-bus payload that does not fit
          +-- RemoteProtocolError                the peer sent a frame that does not fit
          +-- ReplyTimeoutError [TimeoutError]   no matching reply before the deadline
          +-- ArrivalTimeoutError [TimeoutError] ``move_to(wait=True)``: not there in time
@@ -25,6 +26,9 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- GuardError                         the guard process cannot start (no pidfds)
          +-- UsageError                         CLI: bad command-line input (exit code 2)
          +-- CommandFailed                      CLI: the command ran and failed (exit code 1)
+         +-- ServeRefused [PermissionError]     a served bus lets this client only watch
+         +-- ServeUnavailable [ImportError]     Eclipse Zenoh (the serve extra) is missing
+         +-- ServedRefusal                      (server side) a served request refused
 
 Two families follow h11's split:
 
@@ -61,6 +65,7 @@ __all__ = [
     "LocalProtocolError",
     "MotorbusError",
     "NotSentError",
+    "PayloadError",
     "PortInUseError",
     "ProjectInvalidError",
     "ProjectStopped",
@@ -68,6 +73,9 @@ __all__ = [
     "RemoteProtocolError",
     "ReplyTimeoutError",
     "RigAborted",
+    "ServeRefused",
+    "ServeUnavailable",
+    "ServedRefusal",
     "StreamEnded",
     "UsageError",
     "WrongLoopError",
@@ -257,3 +265,25 @@ class UsageError(MotorbusError):
 
 class CommandFailed(MotorbusError):
     """The command ran and failed for the reason in the message; exit code 1."""
+
+
+class PayloadError(LocalProtocolError):
+    """A payload of the served-bus protocol (``motorbus.serve.keys``) that does not fit;
+    names the field and the value."""
+
+
+class ServeRefused(MotorbusError, PermissionError):
+    """The server lets this client only watch: no motion, no leases (nothing sent)."""
+
+
+class ServeUnavailable(MotorbusError, ImportError):
+    """Eclipse Zenoh (the ``serve`` extra) is not installed."""
+
+
+class ServedRefusal(MotorbusError):
+    """Server side: a served request refused; ``payload`` is the error reply sent to the
+    client (``motorbus.serve.keys.error_payload``)."""
+
+    def __init__(self, payload: dict[str, object]) -> None:
+        super().__init__(str(payload["message"]))
+        self.payload = payload

@@ -131,6 +131,15 @@ TABLE: dict[str, dict[str, Cell | str]] = {
             "--port", "{live}", ready="frame",
         ),
     },
+    "ports": {
+        "missing port": "lists the ports: " + NO_PORT,
+        "port in use": "lists the ports: " + NO_PORT,
+        "bad argument": "takes no option with a value (only --all and --json)",
+        "bad file": "reads no file",
+        "device silent": NO_DEVICE,
+        "regression": NO_COMPARISON,
+        "ctrl-c": "lists the ports and returns at once",
+    },
     "doctor": {
         "missing port": cell(1, "doctor", "--port", "{missing}", "--json"),
         "port in use": cell(
@@ -260,6 +269,27 @@ TABLE: dict[str, dict[str, Cell | str]] = {
         "ctrl-c": cell(
             0, "dashboard", "--ids", "1", "--listen", "127.0.0.1:0", "--port", "{live}",
             ready="stdout",
+        ),
+    },
+    "serve": {
+        "missing port": cell(
+            1, "serve", "--port", "{missing}", "--baud", "921600", "--devices", "la:1",
+            "--listen", "tcp/127.0.0.1:0",
+        ),
+        "port in use": cell(
+            1, "serve", "--port", "{held}", "--baud", "921600", "--devices", "la:1",
+            "--listen", "tcp/127.0.0.1:0",
+        ),
+        "bad argument": cell(
+            2, "serve", "--port", "{live}", "--baud", "921600", "--devices", "la:0",
+        ),
+        "bad file": cell(2, "serve", "{tmp}/missing.toml"),
+        "device silent": "serves a silent device: its clients get the timeouts",
+        "regression": NO_COMPARISON,
+        # A server runs until stopped: Ctrl-C is its ordinary end (its devices paused).
+        "ctrl-c": cell(
+            0, "serve", "--port", "{live}", "--baud", "921600", "--devices", "la:1",
+            "--listen", "tcp/127.0.0.1:0", ready="stdout",
         ),
     },
 }  # fmt: skip

@@ -288,6 +288,16 @@ class BusManager(Proxy[_manager.BusManager]):
         """The LA actuator ``id`` on bus ``bus`` (with the bus's ``la_stroke_mm``)."""
         return InspireLA._on(self.bus(bus), self._aio.la(bus, id))
 
+    def device(self, name: str) -> InspireLA:
+        """The actuator the bus file names ``name``, calibrated
+        (:meth:`motorbus.BusManager.device`).
+
+        Raises:
+            LocalProtocolError: no device of that name (the message lists the names).
+        """
+        aio = self._aio.device(name)
+        return InspireLA._on(self.bus(aio.bus.name), aio)
+
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
         return ProjectStepper(self.bus(bus), motor=self._aio.project_stepper(bus).motor)

@@ -18,6 +18,7 @@ from motorbus.protocol import project_stepper as ps
 
 if TYPE_CHECKING:
     from motorbus.blocking._bus import Bus
+    from motorbus.devices.calibration import Calibration
 
 __all__ = ["InspireLA", "ProjectStepper", "QuadStepper"]
 
@@ -34,15 +35,28 @@ class InspireLA(Proxy[_la.InspireLA]):
         bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.LA``.
         id: the actuator ID, 1..254.
         stroke_mm: the stroke of this model in millimetres (enables the ``_mm`` methods).
+        calibration: units, soft limits, direction, offset (``motorbus.Calibration``).
+        name: the device's name (default ``"la:ID"``), in errors.
 
     Raises:
-        LocalProtocolError: a bad ``id`` or ``stroke_mm`` (nothing is sent).
+        LocalProtocolError: a bad ``id``, ``stroke_mm``, ``calibration`` or ``name``
+            (nothing is sent).
     """
 
     _bus: Bus
 
-    def __init__(self, bus: Bus, id: int, *, stroke_mm: float | None = None) -> None:
-        self._aio = _la.InspireLA(bus.aio, id, stroke_mm=stroke_mm)
+    def __init__(
+        self,
+        bus: Bus,
+        id: int,
+        *,
+        stroke_mm: float | None = None,
+        calibration: Calibration | None = None,
+        name: str | None = None,
+    ) -> None:
+        self._aio = _la.InspireLA(
+            bus.aio, id, stroke_mm=stroke_mm, calibration=calibration, name=name
+        )
         self._runner = bus._runner
         self._bus = bus
 
@@ -71,6 +85,25 @@ class InspireLA(Proxy[_la.InspireLA]):
     def key(self) -> str:
         """The device key, ``"la:ID"`` (stats, leases)."""
         return self._aio.key
+
+    @property
+    def name(self) -> str:
+        """The device's name (a bus file's ``[bus.la.NAME]``), else ``"la:ID"``."""
+        return self._aio.name
+
+    @property
+    def calibration(self) -> Calibration:
+        """Units, soft limits, stroke: every move is checked against the limits."""
+        return self._aio.calibration
+
+    @property
+    def unit(self) -> str:
+        """The unit of positions given without one (``raw`` unless calibrated)."""
+        return self._aio.unit
+
+    to_unit = plain(_la.InspireLA.to_unit)
+    from_unit = plain(_la.InspireLA.from_unit)
+    position_in = coroutine(_la.InspireLA.position_in)
 
     to_mm = plain(_la.InspireLA.to_mm)
     from_mm = plain(_la.InspireLA.from_mm)

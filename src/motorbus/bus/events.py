@@ -141,6 +141,10 @@ class Subscription(Generic[E]):
                 self._waiter = None
         return self._queue.popleft()
 
+    def queued(self) -> list[E]:
+        """The events queued now, left in the queue."""
+        return list(self._queue)
+
     def pending(self) -> list[E]:
         """Take every event already queued, without waiting."""
         out = list(self._queue)

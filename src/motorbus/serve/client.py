@@ -47,6 +47,7 @@ from motorbus.errors import (
     NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
+    ServeRefused,
 )
 from motorbus.protocol import la
 from motorbus.protocol.base import Command, Family, check_flag
@@ -73,10 +74,6 @@ _bound: contextvars.ContextVar[tuple[ServedLease, ...]] = contextvars.ContextVar
 )
 
 
-class ServeRefused(MotorbusError, PermissionError):
-    """The server lets this client only watch: no motion, no leases (nothing sent)."""
-
-
 def error_from(payload: dict[str, Any]) -> Exception:
     """The exception an error reply stands for (``keys.ERROR_KINDS``)."""
     kind = payload.get("error")
@@ -100,6 +97,10 @@ def error_from(payload: dict[str, Any]) -> Exception:
     if kind == "refused":
         return ServeRefused(message)
     return MotorbusError(message)
+
+
+#: Longest a reply waits for the events the server published before it (s).
+EVENT_CATCH_UP_S = 0.5
 
 
 class ServedLease:
@@ -159,6 +160,14 @@ class ServedBus:
         self.events = EventHub()
         self._timer: Timer | None = None
         self._leases: list[ServedLease] = []
+        # Event order against replies: an event publication can overtake the reply of
+        # the request before it (they travel apart).  Events are held while a request is
+        # in flight; a reply says how many events came before it ("events"): those are
+        # published before its caller resumes, the later ones only after it did.
+        self._events_seen = 0
+        self._held: list[tuple[int, BusEvent]] = []
+        self._in_flight = 0
+        self._seen_more: asyncio.Event | None = None
 
     def __repr__(self) -> str:
         return f"ServedBus({self.name!r} at {self.site.endpoint})"
@@ -250,9 +259,64 @@ class ServedBus:
                         f"{type(cmd).__name__} not sent"
                     )
                 body["lease"] = held.number
-        result = await self._query("request", body, extra=timeout or 0.0)
+        self._in_flight += 1
+        try:
+            result = await self._query("request", body, extra=timeout or 0.0)
+        finally:
+            self._in_flight -= 1
+        before = result.get("events")
+        if isinstance(before, int) and not isinstance(before, bool):
+            await self._catch_up(before)
+        self._publish_held(before if isinstance(before, int) else None)
         reply = result.get("reply")
         return None if reply is None else cmd.decode_reply(bytes.fromhex(reply))
+
+    # -- events, in order with the replies -----------------------------------------------
+
+    def _deliver(self, seq: int | None, event: BusEvent) -> None:
+        """An event publication arrived (on the loop)."""
+        if seq is None:  # a server that numbers no events: as it comes
+            self.events.publish(event)
+            return
+        self._events_seen = max(self._events_seen, seq)
+        if self._seen_more is not None:
+            self._seen_more.set()
+        if self._in_flight:
+            self._held.append((seq, event))
+        else:
+            self._publish_held(None)
+            self.events.publish(event)
+
+    async def _catch_up(self, before: int) -> None:
+        """Wait (briefly) for the events the server published before a reply."""
+        deadline = time.monotonic() + EVENT_CATCH_UP_S
+        while self._events_seen < before and (left := deadline - time.monotonic()) > 0:
+            self._seen_more = asyncio.Event()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(left):
+                    await self._seen_more.wait()
+        self._seen_more = None
+
+    def _publish_held(self, before: int | None) -> None:
+        """Publish the held events up to ``before`` now, the rest a few loop turns later:
+        after the caller of the request that just returned has run on (it takes what
+        came before its reply as stale, as ``run_project`` does)."""
+        if not self._held:
+            return
+        self._held.sort(key=lambda item: item[0])
+        now = [e for seq, e in self._held if before is None or seq <= before]
+        self._held = [(seq, e) for seq, e in self._held if before is not None and seq > before]
+        for event in now:
+            self.events.publish(event)
+        if self._held and not self._in_flight:
+            loop = asyncio.get_running_loop()
+            # Three turns: the request's task ends, its awaiting caller runs on (one more
+            # for a caller that wraps it in a task of its own).
+            loop.call_soon(loop.call_soon, loop.call_soon, self._release_held)
+
+    def _release_held(self) -> None:
+        if not self._in_flight:
+            self._publish_held(None)
 
     def _bound_lease(self) -> ServedLease | None:
         """The running task's lease on this bus: the newest that is held, or one that
@@ -481,11 +545,13 @@ class ServedSite:
     def _event_handler(self, bus: ServedBus) -> Any:
         def handle(sample: Any) -> None:
             try:
-                event = event_from(bus.name, k.decode_json(sample.payload.to_bytes()))
+                body = k.decode_json(sample.payload.to_bytes())
+                event = event_from(bus.name, body)
             except (LocalProtocolError, KeyError, ValueError, TypeError):
                 return
             if event is not None:
-                bus.events.publish(event)
+                seq = body.get("seq")
+                bus._deliver(seq if isinstance(seq, int) else None, event)
 
         return handle
 

@@ -33,7 +33,7 @@ import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from motorbus.errors import LocalProtocolError
+from motorbus.errors import LocalProtocolError, PayloadError
 from motorbus.protocol import la, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Family, format_hex
 
@@ -95,10 +95,6 @@ _DECODERS: dict[Family, Any] = {
     Family.PROJECT_STEPPER: project_stepper.decode_request,
     Family.QUAD_STEPPER: quad_stepper.decode_request,
 }
-
-
-class PayloadError(LocalProtocolError):
-    """A payload of the served-bus protocol that does not fit (names field and value)."""
 
 
 def check_chunk(field: str, value: object) -> str:

@@ -35,6 +35,7 @@ from motorbus.bus.events import (
     FaultChanged,
     ProjectFinished,
     QuadDone,
+    Subscription,
 )
 from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.errors import (
@@ -44,6 +45,7 @@ from motorbus.errors import (
     NotSentError,
     RemoteProtocolError,
     ReplyTimeoutError,
+    ServedRefusal,
 )
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, format_hex
@@ -59,14 +61,6 @@ _PRIORITY = {"normal": Priority.NORMAL, "high": Priority.HIGH, "emergency": Prio
 _LEASE_OPS = ("acquire", "add", "hand_over", "release", "release_implicit")
 #: How often the heartbeat check runs, as a share of the liveness timeout.
 _CHECKS_PER_LIVENESS = 10
-
-
-class _Refused(Exception):
-    """An error reply: the payload of ``keys.error_payload``."""
-
-    def __init__(self, payload: dict[str, Any]) -> None:
-        super().__init__(payload["message"])
-        self.payload = payload
 
 
 @dataclass
@@ -127,6 +121,10 @@ class BusServer:
         self._session: Any = None
         self._declared: list[Any] = []
         self._publishers: dict[str, Any] = {}
+        # Per bus: events published so far (the last one's ``seq``), and the forwarder's
+        # subscription (events taken off the bus but not yet published).
+        self._events_out: dict[str, int] = {}
+        self._event_subs: dict[str, Subscription[BusEvent]] = {}
         self._clients: dict[str, _Client] = {}
         self._lease_numbers = 0
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -238,7 +236,7 @@ class BusServer:
                 payload = k.decode_json(raw) if raw else {}
                 result = await handler(*args, payload)
                 query.reply(query.key_expr, k.encode_json({"ok": True, **result}))
-            except _Refused as err:
+            except ServedRefusal as err:
                 query.reply_err(k.encode_json(err.payload))
             except k.PayloadError as err:
                 query.reply_err(
@@ -311,7 +309,15 @@ class BusServer:
             future.cancel()
             raise
         raw = raw_reply(sent)
-        return {"reply": None if raw is None else raw.hex()}
+        return {"reply": None if raw is None else raw.hex(), "events": self._events_so_far(name)}
+
+    def _events_so_far(self, name: str) -> int:
+        """The ``seq`` of the bus's last event before now: published, or taken off the bus
+        and about to be (a reply carries it, so that the client can tell the events that
+        came before the reply from those after, whatever order they arrive in)."""
+        sub = self._event_subs.get(name)
+        queued = [] if sub is None else sub.queued()
+        return self._events_out.get(name, 0) + sum(event_payload(e) is not None for e in queued)
 
     def _motion_lease(
         self, client: _Client, name: str, bus: Bus, cmd: Command[object], number: object
@@ -333,7 +339,7 @@ class BusServer:
 
     def _check_control(self, client: _Client) -> None:
         if self.watch_only:
-            raise _Refused(
+            raise ServedRefusal(
                 k.error_payload(
                     "refused",
                     f"this server lets clients only watch: client {client.id} may not move "
@@ -342,7 +348,7 @@ class BusServer:
             )
         if client.ended:
             why, client.ended = client.ended, ""
-            raise _Refused(
+            raise ServedRefusal(
                 k.error_payload(
                     "lease_gone",
                     f"client {client.id}: {why}; nothing sent (send again to go on)",
@@ -354,7 +360,7 @@ class BusServer:
             raise k.PayloadError(f"lease={number!r} must be an int", field="lease", value=number)
         held = client.explicit.get(number)
         if held is None or held[0] != name or not held[1].active:
-            raise _Refused(
+            raise ServedRefusal(
                 k.error_payload(
                     "lease_gone",
                     f"lease {number} of client {client.id} is not held on bus {name} "
@@ -454,10 +460,12 @@ class BusServer:
     async def _forward_events(self, name: str, bus: Bus) -> None:
         session = self._session
         with bus.events.subscribe(BusEvent) as sub:
+            self._event_subs[name] = sub
             async for event in sub:
                 body = event_payload(event)
                 if body is None:
                     continue
+                body["seq"] = self._events_out[name] = self._events_out.get(name, 0) + 1
                 with contextlib.suppress(Exception):
                     session.put(k.bus_key(name, f"event/{body['kind']}"), k.encode_json(body))
 

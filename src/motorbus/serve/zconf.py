@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from typing import Any
 
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import LocalProtocolError, ServeUnavailable
 
 __all__ = [
     "DEFAULT_LISTEN",
@@ -22,10 +22,6 @@ __all__ = [
 DEFAULT_LISTEN = "tcp/127.0.0.1:7447"
 EXTRA_HINT = "pip install 'motorbus[serve]'"
 _PROTOCOLS = ("tcp", "tls", "udp", "quic", "unixsock-stream", "ws")
-
-
-class ServeUnavailable(MotorbusError, ImportError):
-    """Eclipse Zenoh (the ``serve`` extra) is not installed."""
 
 
 def zenoh() -> Any:
