@@ -64,13 +64,15 @@ def run(cmd: list[str], cwd: Path, timeout: float) -> subprocess.CompletedProces
 
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("version", SUPPORTED, ids=lambda v: f"py{v[0]}.{v[1]}")
-def test_smoke_run_on_each_supported_python(version: tuple[int, int], tmp_path: Path) -> None:
+def test_smoke_run_on_each_supported_python(
+    version: tuple[int, int], tmp_path: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
     python = find_python(version)
     if python is None:
         pytest.skip(f"Python {version[0]}.{version[1]} is not installed on this machine")
     if not packaging.build_available():
         pytest.skip("the 'build' front-end is not installed (pip install .[test])")
-    archive, _ = packaging.sdist()
+    archive, _ = packaging.sdist(tmp_path_factory)
     project = packaging.unpack(archive, tmp_path / "src")
     venv = tmp_path / "venv"
     made = run([python, "-m", "venv", str(venv)], tmp_path, 120)

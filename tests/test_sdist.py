@@ -46,7 +46,7 @@ REQUIRED = (
 
 @pytest.fixture(scope="module")
 def unpacked(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    archive, _ = packaging.sdist()
+    archive, _ = packaging.sdist(tmp_path_factory)
     return packaging.unpack(archive, tmp_path_factory.mktemp("sdist"))
 
 
@@ -61,8 +61,10 @@ def test_sdist_holds_tests_data_docs_examples_benchmarks(unpacked: Path) -> None
     assert not list(unpacked.rglob("__pycache__"))
 
 
-def test_sdist_metadata_and_licence(unpacked: Path) -> None:
-    _, log = packaging.sdist()
+def test_sdist_metadata_and_licence(
+    unpacked: Path, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    _, log = packaging.sdist(tmp_path_factory)
     # setuptools warns about a licence table or licence classifiers: neither may appear
     noisy = [
         line
