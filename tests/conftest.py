@@ -5,12 +5,37 @@ from __future__ import annotations
 
 import gc
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.helpers import PACINGS as PACINGS
 from tests.helpers import sim_bus as sim_bus
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The modules whose tests take longest (fresh venvs with pip installs, mypy, the docs
+#: site, rig runs in real time), slowest first.  They run before the rest: with ``-n``,
+#: a worker busy with one of them leaves the others to the short tests, instead of
+#: running it alone at the end.
+SLOW_FIRST = (
+    "tests/test_interpreters.py",
+    "tests/test_quality.py",
+    "tests/test_docs.py",
+    "tests/test_sdist.py",
+    "tests/cli/test_cli_rig.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The slow modules first (``SLOW_FIRST``), each test otherwise where it was."""
+
+    def rank(item: pytest.Item) -> int:
+        where = item.path.relative_to(ROOT).as_posix() if item.path.is_relative_to(ROOT) else ""
+        return SLOW_FIRST.index(where) if where in SLOW_FIRST else len(SLOW_FIRST)
+
+    items.sort(key=rank)
 
 
 @pytest.fixture

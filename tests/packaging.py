@@ -19,6 +19,14 @@ ROOT = Path(__file__).resolve().parents[1]
 SMOKE_TESTS = ("tests/protocol", "tests/bus/test_timer.py", "tests/bus/test_timer_api.py")
 
 
+def build_available() -> bool:
+    """True if the ``build`` front-end is installed (it is in the test extra)."""
+    out = subprocess.run(
+        [sys.executable, "-m", "build", "--version"], capture_output=True, timeout=60
+    )
+    return out.returncode == 0
+
+
 def built_once(
     tmp_path_factory: pytest.TempPathFactory, name: str, build: Callable[[Path], None]
 ) -> Path:
