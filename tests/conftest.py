@@ -4,6 +4,7 @@ test whose bus leaves tasks running behind it; ``PACINGS``)."""
 from __future__ import annotations
 
 import gc
+import os
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,14 @@ SLOW_FIRST = (
     "tests/test_sdist.py",
     "tests/cli/test_cli_rig.py",
 )
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
+    motion in real time, child processes starting, replies paced at the baud), so one
+    worker a CPU leaves the CPUs idle half the time."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return 2 * (cpus or 1)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
