@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -29,12 +30,34 @@ SLOW_FIRST = (
 )
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    """Give Ctrl-C back to the programs the tests start, if this run was started with it
+    ignored (``nohup``, or ``cmd &`` from a script): they inherit an ignored SIGINT,
+    Python then installs no KeyboardInterrupt for it, and the tests that interrupt a
+    command (tests/cli/test_exit_codes.py) would wait for the command to end by itself.
+    A handler is not inherited: a child starts with the default disposition."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
     motion in real time, child processes starting, replies paced at the baud), so one
     worker a CPU leaves the CPUs idle half the time."""
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
     return 2 * (cpus or 1)
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``-n`` (``--dist load``): work stealing, so that a worker left idle takes tests
+    queued at a busy one; plain load balancing hands out fixed runs of tests, and the
+    worker whose run holds the slow modules (``SLOW_FIRST``) would finish long after
+    the others."""
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import WorkStealingScheduling
+
+    return WorkStealingScheduling(config, log)
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
