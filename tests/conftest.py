@@ -40,6 +40,7 @@ def pytest_configure(config: pytest.Config) -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
     motion in real time, child processes starting, replies paced at the baud), so one
@@ -48,6 +49,7 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     return 2 * (cpus or 1)
 
 
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """``-n`` (``--dist load``): work stealing, so that a worker left idle takes tests
     queued at a busy one; plain load balancing hands out fixed runs of tests, and the
