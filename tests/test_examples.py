@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import os
-import re
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+
+from tests.helpers import stream_rows
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
@@ -43,11 +44,3 @@ def test_example_runs_against_the_simulator(name: str) -> None:
         assert stream_rows(out.stdout) == rows, out.stdout
     else:
         assert EXPECTED[name] in out.stdout
-
-
-def stream_rows(out: str) -> int:
-    """The ticks a stream's summary line (``StreamStats.summary``) counts as sent or
-    skipped."""
-    m = re.search(r"^(\d+) ticks \(\d+ frames\), \d+ late, (\d+) skipped", out, re.M)
-    assert m, out
-    return int(m[1]) + int(m[2])
