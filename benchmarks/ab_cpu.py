@@ -47,7 +47,7 @@ RESULTS = HERE / "results" / "ab_cpu.json"
 sys.path.insert(0, str(HERE))
 
 import bench_cpu  # noqa: E402  (the workload)
-from report_file import write_report  # noqa: E402
+from harness import write_report  # noqa: E402
 
 #: What a child run reports (``bench_cpu.ours``'s keys).
 CHILD_KEYS = (

@@ -73,12 +73,12 @@ from pathlib import Path
 from typing import Any
 
 from baselines import SPIN_S, PolledWork, polled_result, polled_timerfd_loop
+from harness import write_report
 from motorbus import manager
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
 from motorbus.manager import BusManager
 from motorbus.protocol import la
-from report_file import write_report
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "cpu.json"

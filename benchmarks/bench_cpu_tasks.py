@@ -43,8 +43,8 @@ sys.path.insert(0, str(HERE))
 
 import bench_cpu  # noqa: E402  (the workload, the minimal loop and ours)
 from bench_cpu import LEAD_S, PERIOD_S, REPLY_BYTES  # noqa: E402
+from harness import write_report  # noqa: E402
 from motorbus.protocol import la  # noqa: E402
-from report_file import write_report  # noqa: E402
 
 #: How long the poll task waits for a reply before it goes on (the bus's budget is less).
 REPLY_TIMEOUT_S = 0.005

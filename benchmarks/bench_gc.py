@@ -28,14 +28,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import collections
-import datetime
 import json
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
 from typing import Any
+
+from harness import write_report
 
 BAUD = 921600
 N_ACTUATORS = 15
@@ -179,12 +179,8 @@ def main(argv: list[str] | None = None) -> int:
         "results": results,
         "load_avg_before": list(load),
         "load_avg_after": list(os.getloadavg()),
-        "machine": f"{platform.platform()}, {os.cpu_count()} cpus, Python {sys.version.split()[0]}",
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, report)
     return 0
 
 

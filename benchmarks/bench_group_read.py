@@ -42,11 +42,11 @@ import serial
 
 import motorbus
 import motorbus.blocking as mb
+from harness import write_report
 from motorbus.blocking._runner import runner
 from motorbus.protocol import la
 from motorbus.protocol.base import wire_time
 from motorbus.sim.process import SimProcess
-from report_file import write_report
 
 BAUD = 921600
 IDS = list(range(1, 16))

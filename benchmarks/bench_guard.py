@@ -39,7 +39,6 @@ import argparse
 import datetime
 import json
 import os
-import platform
 import random
 import re
 import signal
@@ -51,6 +50,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
 from motorbus import guard as guard_process
 from motorbus.guard import REPORT_ENV
 from motorbus.protocol import la
@@ -222,22 +222,13 @@ def main() -> None:
         )
     report = {
         "benchmark": "guard",
-        "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "machine": {
-            "python": platform.python_version(),
-            "platform": platform.platform(),
-            "cpus": os.cpu_count(),
-            "loadavg": os.getloadavg(),
-        },
         "frame_spacing_ms": guard_process.FRAME_SPACING_S * 1e3,
         "gap_after_reply_ms": guard_process.GAP_AFTER_REPLY_S * 1e3,
         "host_share_ms": guard_process.HOST_SHARE_S * 1e3,
         "spin": args.spin,
         "rows": rows,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, report)
 
 
 if __name__ == "__main__":

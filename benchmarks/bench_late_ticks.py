@@ -48,13 +48,13 @@ from bench_load import (  # README's stream, set up as the load benchmark sets i
     go_realtime,
     trajectory,
 )
+from harness import steal_seconds
 from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
 from late_ticks import CAUSES, LateTick, TickRecords, attribute, summarise
 from motorbus.bus.timer import TimerfdTimer, default_timer
 from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from report_file import steal_seconds
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "late_ticks.json"

@@ -47,7 +47,7 @@ HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "pieces.json"
 sys.path.insert(0, str(HERE))
 
-from report_file import write_report  # noqa: E402
+from harness import write_report  # noqa: E402
 
 N_ACTUATORS = 15
 NEAR_S = 200e-6

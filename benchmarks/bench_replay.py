@@ -22,16 +22,15 @@ import io
 import itertools
 import json
 import os
-import platform
 import signal
 import subprocess
 import sys
 import tempfile
 from contextlib import redirect_stderr, redirect_stdout
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
 from kernel_clock import KernelWriteTrace, grid_jitter
 
 RESULTS = Path(__file__).resolve().parent / "results" / "replay.json"
@@ -121,16 +120,7 @@ def main() -> int:
             print(f"{label:8s}  not measured: {r.get('kernel_why')}")
             continue
         print(f"{label:8s}" + "".join(f"{r[k]!s:>22s}" for k in keys))
-    report = {
-        "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": platform.platform(),
-        "python": platform.python_version(),
-        "period_s": PERIOD_S,
-        "load_average": os.getloadavg(),
-        "runs": runs,
-    }
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
-    RESULTS.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_report(RESULTS, {"period_s": PERIOD_S, "runs": runs})
     return 0
 
 

@@ -40,8 +40,8 @@ REPO = HERE.parent
 RESULTS = HERE / "results" / "safe_stop.json"
 sys.path.insert(0, str(HERE))
 
+from harness import write_report  # noqa: E402
 from motorbus.protocol import la  # noqa: E402  (this checkout's: the simulator's log)
-from report_file import write_report  # noqa: E402
 
 BAUD = 921600
 N_ACTUATORS = 15

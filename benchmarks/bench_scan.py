@@ -26,16 +26,14 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import datetime
-import json
 import os
-import platform
 import statistics
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
 from motorbus import realtime
 from motorbus.bus.bus import MIN_SPACING_S, Bus
 from motorbus.devices.la import ScanReport, scan
@@ -142,8 +140,6 @@ def main(argv: list[str] | None = None) -> int:
         "load_avg_after": list(os.getloadavg()),
         "wall_seconds": time.monotonic() - started,
         "backend": args.backend,
-        "machine": f"{platform.platform()}, {os.cpu_count()} cpus, Python {sys.version.split()[0]}",
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
     print(f"scan of 254 IDs, 3 present (la:100 at 800 us), {BAUD} bit/s over a pty")
     print(
@@ -159,9 +155,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     if rt_report is not None and rt_report["refused"]:
         print(f"realtime refused: {rt_report['refused']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, report)
     return 0
 
 

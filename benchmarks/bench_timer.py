@@ -15,8 +15,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import os
-import platform
 import statistics
 import sys
 import time
@@ -24,6 +22,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from harness import write_report
 from motorbus.bus.timer import LoopTimer, Timer, TimerfdTimer, timerfd_available
 
 PERIODS_S = (0.001, 0.010)
@@ -175,18 +174,13 @@ def main(argv: list[str] | None = None) -> int:
             results.extend(runner.run(run_loop(name, args.seconds, samples)))
     print_table(results)
 
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     report = {
         "benchmark": "timer",
         "seconds_per_run": args.seconds,
-        "python": sys.version.split()[0],
-        "platform": platform.platform(),
-        "cpus": os.cpu_count(),
         "timerfd": timerfd_available(),
         "results": [asdict(r) for r in results],
     }
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"\nwrote {args.out}")
+    write_report(args.out, report)
     if args.samples is not None:
         args.samples.parent.mkdir(parents=True, exist_ok=True)
         text = json.dumps({"unit": "s", "runs": samples}) + "\n"

@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from report_file import steal_seconds, write_report
+from harness import steal_seconds, write_report
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "vcpu_gaps.json"

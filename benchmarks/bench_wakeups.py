@@ -19,16 +19,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
-import platform
 import resource
-import sys
 import time
 import tty
-from datetime import UTC, datetime
 from pathlib import Path
 
+from harness import write_report
 from motorbus.bus.timer import default_timer
 from motorbus.sim.analysis import percentile
 
@@ -212,16 +209,8 @@ def main() -> int:
         "pty_write": writes,
         "transport_write": transport,
         "period_s": PERIOD_S,
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-        },
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

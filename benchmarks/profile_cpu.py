@@ -38,7 +38,7 @@ from collections import Counter
 from pathlib import Path
 
 import bench_cpu
-from report_file import write_report
+from harness import write_report
 
 RESULTS = Path(__file__).resolve().parent / "results" / "profile_cpu.json"
 SHELL = (

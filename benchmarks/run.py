@@ -41,7 +41,7 @@ from typing import Any
 from bench_bus import (
     BACKEND_MODULES,
 )
-from report_file import machine_info, steal_seconds
+from harness import machine_info, steal_seconds
 from run_report import fmt, met_text, render_report
 from run_results import (
     ALL_BACKENDS,

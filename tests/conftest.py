@@ -4,13 +4,72 @@ test whose bus leaves tasks running behind it; ``PACINGS``)."""
 from __future__ import annotations
 
 import gc
+import os
+import signal
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from tests.helpers import PACINGS as PACINGS
 from tests.helpers import sim_bus as sim_bus
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: The modules whose tests take longest (fresh venvs with pip installs, mypy, the docs
+#: site, rig runs in real time), slowest first.  They run before the rest: with ``-n``,
+#: a worker busy with one of them leaves the others to the short tests, instead of
+#: running it alone at the end.
+SLOW_FIRST = (
+    "tests/test_interpreters.py",
+    "tests/test_quality.py",
+    "tests/test_docs.py",
+    "tests/test_sdist.py",
+    "tests/cli/test_cli_rig.py",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Give Ctrl-C back to the programs the tests start, if this run was started with it
+    ignored (``nohup``, or ``cmd &`` from a script): they inherit an ignored SIGINT,
+    Python then installs no KeyboardInterrupt for it, and the tests that interrupt a
+    command (tests/cli/test_exit_codes.py) would wait for the command to end by itself.
+    A handler is not inherited: a child starts with the default disposition."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
+    motion in real time, child processes starting, replies paced at the baud), so one
+    worker a CPU leaves the CPUs idle half the time."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return 2 * (cpus or 1)
+
+
+@pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
+def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
+    """``-n`` (``--dist load``): work stealing, so that a worker left idle takes tests
+    queued at a busy one; plain load balancing hands out fixed runs of tests, and the
+    worker whose run holds the slow modules (``SLOW_FIRST``) would finish long after
+    the others."""
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import WorkStealingScheduling
+
+    return WorkStealingScheduling(config, log)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The slow modules first (``SLOW_FIRST``), each test otherwise where it was."""
+
+    def rank(item: pytest.Item) -> int:
+        where = item.path.relative_to(ROOT).as_posix() if item.path.is_relative_to(ROOT) else ""
+        return SLOW_FIRST.index(where) if where in SLOW_FIRST else len(SLOW_FIRST)
+
+    items.sort(key=rank)
 
 
 @pytest.fixture

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import subprocess
 import sys
 import tty
@@ -43,6 +44,7 @@ __all__ = [
     "raw_pty",
     "rx_frames",
     "sim_bus",
+    "stream_rows",
 ]
 
 #: Simulator pacings, for ``pytest.mark.parametrize("pacing", PACINGS)``.
@@ -107,6 +109,15 @@ def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
         timeout=CLI_TIMEOUT_S,
         env={**base, **(env or {})},
     )
+
+
+def stream_rows(out: str) -> int:
+    """The ticks a stream's summary line in ``out`` (``StreamStats.summary``) counts as
+    sent or skipped: every row of a stream is one or the other (a loaded machine skips
+    a tick that started more than a period late)."""
+    m = re.search(r"^(\d+) ticks \(\d+ frames\), \d+ late, (\d+) skipped", out, re.M)
+    assert m, out
+    return int(m[1]) + int(m[2])
 
 
 def json_lines(out: str) -> list[Any]:

@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from tests import packaging
+
 ROOT = Path(__file__).resolve().parents[1]
 DOC_FILES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 HAS_MKDOCS = all(
@@ -38,13 +40,16 @@ def mkdocs(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
     )
 
 
-@pytest.fixture(scope="module")
-def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The site, built once for the tests that read it (a strict build must pass)."""
-    out = tmp_path_factory.mktemp("site")
+def build_site(out: Path) -> None:
     r = mkdocs("build", "--strict", "--site-dir", str(out))
     assert r.returncode == 0, r.stderr[-4000:]
-    return out
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The site, built once for the tests that read it, whichever worker runs them (a
+    strict build must pass)."""
+    return packaging.built_once(tmp_path_factory, "site", build_site)
 
 
 def api_page(site: Path, name: str) -> str:

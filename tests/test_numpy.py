@@ -26,6 +26,7 @@ from motorbus.protocol.base import check_choice, check_flag, check_int, check_ti
 from motorbus.sim.la import LAModel
 from motorbus.streams import StreamEnded, Streamer
 from motorbus.transport.memory import memory_pair
+from tests.fakeclock import rig as fake_rig
 from tests.helpers import sim_bus
 from tests.test_bad_input import COMMANDS
 
@@ -182,7 +183,8 @@ def _follow_targets(model: LAModel) -> list[int]:
 )
 async def test_follow_takes_a_numpy_period(period: Any) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _sim):
+    async with fake_rig(models=[model]) as r:  # fake time: no tick skipped
+        bus = r.bus
         streamer = Streamer(bus)
         stream = streamer.follow(InspireLA(bus, 1), np.array([700, 800]), period=period)
         assert type(stream.period) is float and stream.period == pytest.approx(float(period))
@@ -196,7 +198,8 @@ async def test_a_2d_array_streams_rows_as_ticks_and_columns_as_actuators() -> No
     # numpy row has __index__, and was taken for one number.
     models = [LAModel(i) for i in (1, 2, 3)]
     rows = np.array([[100.0, 200.4, 300.6], [110.0, 210.0, 310.0], [120.0, 220.0, 320.0]])
-    async with sim_bus(models) as (bus, _sim):
+    async with fake_rig(models=models) as r:  # fake time: no tick skipped
+        bus = r.bus
         streamer = Streamer(bus)
         stream = streamer.follow([InspireLA(bus, i) for i in (1, 2, 3)], rows, period=0.01)
         await asyncio.wait_for(stream.wait(), 5)
@@ -220,7 +223,8 @@ async def test_a_2d_array_streams_rows_as_ticks_and_columns_as_actuators() -> No
 )
 async def test_one_actuator_takes_numpy_targets_in_every_shape(source: Any) -> None:
     model = LAModel(1)
-    async with sim_bus([model]) as (bus, _sim):
+    async with fake_rig(models=[model]) as r:  # fake time: no tick skipped
+        bus = r.bus
         streamer = Streamer(bus)
         stream = streamer.follow(InspireLA(bus, 1), source, period=0.01)
         await asyncio.wait_for(stream.wait(), 5)

@@ -30,7 +30,7 @@ def test_readme_starts_with_demo_and_test_commands() -> None:
     commands = setup_commands()
     assert len(commands) == 2
     assert commands[0].endswith("&& motorbus demo")
-    assert commands[1].endswith("&& python -m pytest -q -p no:cacheprovider")
+    assert commands[1].endswith("&& python -m pytest -q -p no:cacheprovider -n auto")
 
 
 def test_ci_runs_exactly_the_readme_test_command() -> None:

@@ -99,7 +99,9 @@ async def _tick_calls(
 ) -> float:
     actuators = [InspireLA(bus, i) for i in range(1, 16)]
     streamer = Streamer(bus)
-    stream = streamer.follow(actuators, _rows(ticks + 20), period=0.01)
+    # Rows for far more ticks than are counted: ticks a loaded machine skips use rows up,
+    # and a stream that ran out of rows before ``ticks`` were sent would never get there.
+    stream = streamer.follow(actuators, _rows(ticks * 50), period=0.01)
     await wait(lambda: stream.stats.ticks >= 5)
     counter = CallCounter()
     with counter.counting():
@@ -126,8 +128,8 @@ async def test_a_stream_tick_and_a_request_on_the_fake_clock_stay_within_budget(
     async with rig() as r:
 
         async def wait(cond: Callable[[], bool]) -> None:
-            # Polled in real time: the fake clock jumps meanwhile.
-            await eventually(cond, "the stream's ticks", poll=0.0005)
+            # Polled in real time (the fake clock jumps meanwhile), and bounded.
+            await eventually(cond, "the stream's ticks", poll=0.0005, timeout=30)
 
         per_tick = await _tick_calls(r.bus, wait)
         per_request = await _request_calls(r.bus)
@@ -146,7 +148,7 @@ async def test_the_default_timer_adds_no_spin_to_a_tick_or_a_request() -> None:
     async with sim_start as sim, motorbus.Bus(sim.transport, families=[motorbus.Family.LA]) as bus:
 
         async def wait(cond: Callable[[], bool]) -> None:
-            await eventually(cond, "the stream's ticks", poll=0.005)
+            await eventually(cond, "the stream's ticks", poll=0.005, timeout=30)
 
         per_tick = await _tick_calls(bus, wait)
         per_request = await _request_calls(bus)

@@ -122,7 +122,8 @@ MISSING = "/dev/motorbus-no-such-port-{}"
 
 def _group_file(tmp_path: Path, arm_ports: list[str], cpu: int) -> Path:
     """Two buses of group "arms" on ``arm_ports``; a "legs" bus and a bus of no group on
-    ports that do not exist (opening either would fail the open)."""
+    ports that do not exist (opening either would fail the open).  The arms get a 50 ms
+    host margin: pinned to one CPU of a loaded machine, a reply is read late."""
     path = tmp_path / "buses.toml"
     path.write_text(
         f"""
@@ -130,6 +131,7 @@ def _group_file(tmp_path: Path, arm_ports: list[str], cpu: int) -> Path:
 name = "left"
 url = "{arm_ports[0]}"
 baud = 921600
+host_margin_ms = 50
 process = "arms"
 devices = ["la:1"]
 
@@ -142,6 +144,7 @@ baud = 921600
 name = "right"
 url = "{arm_ports[1]}"
 baud = 921600
+host_margin_ms = 50
 process = "arms"
 devices = ["la:1"]
 

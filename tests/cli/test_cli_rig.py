@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from motorbus.sim.process import SimProcess
+from tests import packaging
 from tests.helpers import cli
 
 SPEED, DEAD = 1000.0, 0.012
@@ -23,18 +24,19 @@ SLOW = f"stroke_speed={SPEED * 0.8:g},accel=10000,dead_time={DEAD},position=300"
 QUICK = ["--tests", "step,latency,repeat", "--latency-count", "6", "--repeat-count", "2"]
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Path]]:
-    """One rig run on a nominal actuator, one on an actuator 20 % slower."""
-    base = tmp_path_factory.mktemp("rig")
-    out: dict[str, Path] = {}
+def rig_runs(base: Path) -> None:
     for name, spec in (("golden", TRUTH), ("slow", SLOW)):
         with SimProcess([f"la:1,{spec}"], baud=921600) as sim:
-            folder = base / name
-            r = cli("rig", "1", *QUICK, "--out", str(folder), "--port", sim.path)
+            r = cli("rig", "1", *QUICK, "--out", str(base / name), "--port", sim.path)
             assert r.returncode == 0, r.stderr
-            out[name] = folder
-    yield out
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Path]]:
+    """One rig run on a nominal actuator, one on an actuator 20 % slower; made once for
+    every worker that runs these tests (each takes seconds of simulated motion)."""
+    base = packaging.built_once(tmp_path_factory, "rig-runs", rig_runs)
+    yield {"golden": base / "golden", "slow": base / "slow"}
 
 
 def figures(folder: Path) -> dict[str, float]:

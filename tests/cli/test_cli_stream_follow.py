@@ -61,10 +61,13 @@ def test_stream_enables_estopped_actuators_follows_and_pauses_at_the_end(tmp_pat
         assert cli("la", "estop", "1-2", "--port", sim.path).returncode == 0
         csv_file = write_csv(tmp_path / "out.csv", 40)
         r = cli("stream", str(csv_file), "--ramp", "0", "--json", "--port", sim.path)
-        (summary,) = json_lines(r.stdout)
+        summary, *failed = json_lines(r.stdout)
         # The e-stopped actuators were enabled: they moved out along the rows.
         assert all(p > 1000 + 10 for p in positions(sim)), positions(sim)
         assert r.returncode == (0 if summary["skipped"] == 0 else 1), r.stderr
+        # Ticks a loaded machine skipped fail the stream: one error object after the summary.
+        assert [f["skipped"] for f in failed] == ([summary["skipped"]] if failed else []), r.stdout
+        assert bool(failed) == bool(summary["skipped"]), r.stdout
         assert (summary["enabled"], summary["not_following"]) == (True, [])
         for ident in (1, 2):
             assert last_frame_to(sim, ident) == la.Control(ident, la.ControlAction.PAUSE).encode()

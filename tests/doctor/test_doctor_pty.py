@@ -196,9 +196,13 @@ def test_cli_json_schema_and_exit_status() -> None:
                 "--json",
             ]
         )
-    doc = json.loads(out)
+    # The report, and after it, if a check is red (a loaded machine's replies can be
+    # late), one error object naming the red checks.
+    doc, *failed = [json.loads(line) for line in out.splitlines()]
     assert doc["schema"] == "motorbus-doctor/1"
     assert code == doc["exit_code"]
+    red = [c["check"] for c in doc["checks"] if c["level"] == "red"]
+    assert [(f["code"], f["checks"]) for f in failed] == ([(code, red)] if red else []), out
     assert doc["baud"] == 921600 and doc["period_ms"] == 10.0
     checks = {c["check"]: c for c in doc["checks"]}
     assert {"port", "latency", "echo", "devices", "turnaround la:1", "line", "budget"} <= set(

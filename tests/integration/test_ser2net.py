@@ -54,8 +54,12 @@ SETTLE_TIMEOUT_S = 0.5
 STREAM_TICKS = 30
 STREAM_PERIOD_S = 0.010
 IDS = (1, 2, 3)
-#: How long the RFC 2217 attempt may take before it counts as failed.
+#: How long the RFC 2217 attempt may take before it counts as failed (serialx's open
+#: never completes, so it takes this long every time).
 RFC2217_ATTEMPT_S = 1.0
+#: The pyserial family's attempt ends with its own option timeout; this bounds it, with
+#: room for a loaded machine, where its open alone took over a second.
+RFC2217_PYSERIAL_ATTEMPT_S = 10.0
 #: pyserial's rfc2217 handler waits this long (its ``timeout`` URL option, seconds) for
 #: the server's option replies; its default of 3 s would make the test slow.
 RFC2217_OPTION_TIMEOUT_S = 0.5
@@ -143,11 +147,13 @@ async def test_follow_stream_reaches_the_simulator(
 @pytest.mark.parametrize("backend", BACKEND_PARAMS)
 async def test_rfc2217_accepter_is_reported(ser2net_server: Ser2netServer, backend: str) -> None:
     url = ser2net_server.rfc2217_url
+    attempt_s = RFC2217_ATTEMPT_S
     if backend != "serialx":
         url += f"?timeout={RFC2217_OPTION_TIMEOUT_S}"
+        attempt_s = RFC2217_PYSERIAL_ATTEMPT_S
     try:
         transport = open_transport(url, baudrate=SIM_BAUD, backend=backend)
-        async with asyncio.timeout(RFC2217_ATTEMPT_S):
+        async with asyncio.timeout(attempt_s):
             async with Bus(transport, name="rfc2217", families=[Family.LA]) as bus:
                 status = await bus.request(
                     la.Control(1, la.ControlAction.QUERY_STATUS), timeout=SETTLE_TIMEOUT_S
@@ -166,7 +172,11 @@ async def test_rfc2217_accepter_is_reported(ser2net_server: Ser2netServer, backe
         if backend == "serialx":
             assert isinstance(err, TimeoutError), f"serialx failed in a new way: {err!r}"
         else:
-            assert known in str(err), f"{backend} failed in a new way: {err!r}"
+            # Or ser2net drops the connection while pyserial negotiates (seen when this is
+            # the first RFC 2217 client of a fresh ser2net, as when the test runs alone or
+            # first on its xdist worker): pyserial's next write breaks the pipe.
+            gone = isinstance(err, BrokenPipeError)
+            assert gone or known in str(err), f"{backend} failed in a new way: {err!r}"
         pytest.skip(
             f"rfc2217:// through ser2net does not work with backend {backend!r} "
             f"(known, docs/platform.md section 2; use socket:// with a raw TCP accepter): "

@@ -30,7 +30,8 @@ async def test_fifteen_actuators_one_broadcast_per_tick(pacing: Pacing) -> None:
     models = [LAModel(i) for i in range(1, 16)]
     ticks = 25
     rows = [[trajectory(15, k, i) for i in range(15)] for k in range(ticks)]
-    async with sim_bus(models, pacing=pacing) as (bus, _):
+    async with rig(models=models, pacing=pacing) as r:  # fake time: no tick is skipped
+        bus = r.bus
         actuators = [InspireLA(bus, i) for i in range(1, 16)]
         streamer = Streamer(bus)
         stream = streamer.follow(actuators, rows, period=0.01)

@@ -1,8 +1,8 @@
-"""A benchmark's JSON report: what it says about the machine, and how it is written.
+"""The benchmarks' harness: a JSON report's machine description and date, and its writing.
 
 A module, not a benchmark.  It imports nothing of the other benchmarks, so any of them
 can use it (``run_results.py``, which used to hold :func:`machine_info`, imports every
-benchmark).
+benchmark); the scripts write their reports with :func:`write_report`.
 """
 
 from __future__ import annotations
