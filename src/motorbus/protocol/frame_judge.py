@@ -13,10 +13,10 @@ what it discards; at each candidate header it asks :class:`FrameJudge` what is t
   reads in a ``valid_index.ValidIndex`` so that work per byte stays bounded.
 * ``unexpected_run``: how many bytes a refused stepper reply costs.
 
-The frame sizes and command bytes come from ``protocol/frames.py``; ``finder`` (a
-``candidates.CandidateFinder``) says where a frame may start, by the same command-byte
-rules as the verdicts here.  Sans-I/O, pure: positions in
-``buf`` are relative to the bytes being scanned, whose stream offset is ``base``.
+Every rule comes from ``protocol/rulebook.py`` (headers, lengths, checksums, what a frame
+may be); ``finder`` (a ``candidates.CandidateFinder``) says where a frame may start, by the
+same rules.  Sans-I/O, pure: positions in ``buf`` are relative to the bytes being scanned,
+whose stream offset is ``base``.
 """
 
 from __future__ import annotations
@@ -34,28 +34,28 @@ from motorbus.protocol.base import (
     FrameShape,
     ProjectFinishedMarker,
 )
-from motorbus.protocol.candidates import (
+from motorbus.protocol.candidates import CandidateFinder
+from motorbus.protocol.frames import Frame, Item
+from motorbus.protocol.rulebook import (
+    DUMP_SHAPE,
     FF_ANY,
     FF_REPLY,
     FF_REQUEST,
     FF_REQUEST_ONLY,
-    CandidateFinder,
-)
-from motorbus.protocol.frames import (
-    LA_MAX_LEN,
+    LA_MAY,
     LA_MIN_LEN,
-    PROJECT_B9_MAX,
-    PROJECT_DUMP_SIZE,
+    PROJECT_REQUEST_MAY,
     PROJECT_REQUEST_SIZE,
-    QUAD_ADDRESSES,
+    QUAD_REQUEST_MAY,
     QUAD_REQUEST_SIZE,
-    STEPPER_B3_MAX,
-    STEPPER_FREE_B3_OPCODE,
+    STEPPER_REPLY_SHAPE,
     STEPPER_REPLY_SIZE,
-    Frame,
-    Item,
+    fits,
+    la_claim,
+    la_sum_ok,
+    request_sum_ok,
 )
-from motorbus.protocol.valid_index import ValidIndex, sum8_at
+from motorbus.protocol.valid_index import ValidIndex
 
 __all__ = [
     "COMPLETE",
@@ -69,11 +69,6 @@ __all__ = [
 ]
 
 _QUAD_ONLY_ADDRESSES = frozenset((0x09, 0xBC))  # "all motors" and "save" (doc 001 B.2)
-_DUMP_SHAPE = FrameShape.exact(PROJECT_DUMP_SIZE, 0xFF, 0xAA, 0x3E, frozenset(range(1, 5)), 0, 0)
-#: Without an expectation: any 6-byte reply whose byte 3 is one a reply may carry.
-_ANY_STEPPER_REPLY = FrameShape.exact(
-    STEPPER_REPLY_SIZE, 0xFF, 0xAA, None, frozenset(range(STEPPER_B3_MAX + 1))
-)
 #: First bytes of every header: a buffer ending in one may be cut mid-header.
 HEADER_FIRST_BYTES = frozenset((0x55, 0xAA, 0xFF, 0xEE))
 
@@ -104,11 +99,6 @@ _REASONS = {
 def discard_reason(code: int) -> str:
     """The discard reason for the code of an ``INVALID`` verdict."""
     return _REASONS.get(code, "invalid")
-
-
-def _b3_fits_a_request(buf: bytes, p: int) -> bool:
-    """Byte 3 of the ``FF AA`` at ``p`` is one a request may carry (``protocol/frames.py``)."""
-    return buf[p + 3] <= STEPPER_B3_MAX or buf[p + 2] == STEPPER_FREE_B3_OPCODE
 
 
 #: Builds a ``Frame`` without its Python-level ``__new__`` (one per frame, the hot path).
@@ -169,7 +159,7 @@ class FrameJudge:
         self._quad = quad
         #: The reply shapes without an expectation, in order of preference.
         self._default_shapes = (
-            (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if project else (_ANY_STEPPER_REPLY,)
+            (DUMP_SHAPE, STEPPER_REPLY_SHAPE) if project else (STEPPER_REPLY_SHAPE,)
         )
         self.finder = CandidateFinder(self.headers, self._ff_rule(), quad=quad, project=project)
 
@@ -210,13 +200,13 @@ class FrameJudge:
         length = buf[p + 2]
         if length < LA_MIN_LEN:
             return INVALID, _BAD_LENGTH, None
-        if avail >= 5 and length > LA_MAX_LEN[buf[p + 4]]:
+        if not fits(LA_MAY, buf, p):
             return INVALID, _BAD_COMMAND, None
         total = length + 5
         if avail < total:
             return INCOMPLETE, 0, None
         end = p + total
-        if sum8_at(buf, p + 2, end - 1) != buf[end - 1]:
+        if not la_sum_ok(buf, p, end):
             return INVALID, _BAD_CHECKSUM, None
         return COMPLETE, total, _new(Frame, (Family.LA, direction, buf[p:end]))
 
@@ -235,28 +225,20 @@ class FrameJudge:
 
         With both families possible, the two checksums decide (see the module
         docstring); a candidate is refused if a checksum-valid LA frame starts inside it,
-        if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``), or if it
-        is neither a quad request (byte 2 an address, ``frames.QUAD_ADDRESSES``) nor a
-        project one (byte 9 a step, ``frames.PROJECT_B9_MAX``).
+        or if it may be neither a quad request nor a project one
+        (``rulebook.QUAD_REQUEST_MAY``, ``rulebook.PROJECT_REQUEST_MAY``).
         """
-        if avail >= 4 and buf[p + 3] > STEPPER_B3_MAX and buf[p + 2] != STEPPER_FREE_B3_OPCODE:
-            return INVALID, _BAD_COMMAND, None
-        quad = self._quad and (avail < 3 or buf[p + 2] in QUAD_ADDRESSES)
-        project = self._project and (avail < 10 or buf[p + 9] <= PROJECT_B9_MAX)
+        quad = self._quad and fits(QUAD_REQUEST_MAY, buf, p)
+        project = self._project and fits(PROJECT_REQUEST_MAY, buf, p)
         if not (quad or project):
             return INVALID, _BAD_COMMAND, None
-        quad_ok = (
-            quad
-            and avail >= QUAD_REQUEST_SIZE
-            and sum8_at(buf, p, p + QUAD_REQUEST_SIZE - 1) == buf[p + QUAD_REQUEST_SIZE - 1]
-        )
+        quad_ok = quad and avail >= QUAD_REQUEST_SIZE and request_sum_ok(buf, p, QUAD_REQUEST_SIZE)
         candidates: list[tuple[int, Family]] = []
         waiting = False
         if project:
-            end = p + PROJECT_REQUEST_SIZE
             if avail < PROJECT_REQUEST_SIZE:
                 waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
-            elif sum8_at(buf, p, end - 1) == buf[end - 1]:
+            elif request_sum_ok(buf, p, PROJECT_REQUEST_SIZE):
                 # If the 9-byte checksum holds too, the 11-byte frame is preferred; it
                 # cannot end in the ``FF AA`` of a next frame (see the module docstring).
                 candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
@@ -450,13 +432,8 @@ class FrameJudge:
             due = self._request_due(buf, p, avail)
         else:
             state, _, _ = self._parse_la(buf, p, Direction.REPLY)
-            if avail < 3:
-                due = p + 3
-            elif buf[p + 2] < LA_MIN_LEN or (avail >= 5 and buf[p + 2] > LA_MAX_LEN[buf[p + 4]]):
-                due = -1
-            else:
-                total = buf[p + 2] + 5
-                due = p + total if avail < total else -1
+            total = la_claim(buf, p)
+            due = p + 3 if total == 0 else p + total if avail < total else -1
         valid = state == COMPLETE
         self.index.record(q_abs, valid, due + self.base if due >= 0 else -1)
         return valid
@@ -468,7 +445,9 @@ class FrameJudge:
         the widest window (11 bytes and the header that may start at its last byte) is
         in: at the next byte.  Then: when an LA frame starting inside it is complete.
         """
-        if avail >= 4 and not _b3_fits_a_request(buf, p):
+        if not (self._quad and fits(QUAD_REQUEST_MAY, buf, p)) and not (
+            self._project and fits(PROJECT_REQUEST_MAY, buf, p)
+        ):
             return -1  # never a request
         shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
         if avail < shortest:
@@ -481,16 +460,8 @@ class FrameJudge:
         for header in self._la_headers:
             q = buf.find(header, p + 1, p + window)
             while q >= 0:
-                if n - q < 3:
-                    d = q + 3
-                elif (
-                    buf[q + 2] >= LA_MIN_LEN
-                    and n - q < buf[q + 2] + 5
-                    and (n - q < 5 or buf[q + 2] <= LA_MAX_LEN[buf[q + 4]])
-                ):
-                    d = q + buf[q + 2] + 5
-                else:
-                    d = -1
+                total = la_claim(buf, q)
+                d = q + 3 if total == 0 else q + total if n - q < total else -1
                 if d >= 0 and (due < 0 or d < due):
                     due = d
                 q = buf.find(header, q + 1, p + window)
