@@ -25,7 +25,8 @@ Either way the work per byte is bounded.  Sans-I/O, pure.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from collections.abc import Callable
+from functools import lru_cache, partial
 from typing import NamedTuple
 
 from motorbus.protocol.base import FF_AA, PROJECT_FINISHED_BYTES
@@ -39,6 +40,7 @@ from motorbus.protocol.rulebook import (
     Rule,
     ff_aa_rule,
     fits,
+    la_fits,
 )
 
 __all__ = [
@@ -70,8 +72,9 @@ _Shift = tuple[int, int]
 class _Program(NamedTuple):
     """The rules of one set-up, compiled (``_compile``)."""
 
-    #: By a header's first byte, the rule it keeps.
+    #: By a header's first byte, the rule it keeps, and a check of it (``find``'s).
     rules: tuple[Rule | None, ...]
+    checks: tuple[Callable[[bytes, int], bool], ...]
     #: Per flag group: (translation table to flag bits, pad for bytes not in yet).
     groups: tuple[tuple[bytes, bytes], ...]
     #: Per marked header: its two bytes' shifts, and each conjunction's.
@@ -96,6 +99,10 @@ def _compile(headers: tuple[bytes, ...], ff_rule: int, quad: bool, project: bool
             if h == FF_AA
             else LA_MAY
         )
+    checks: list[Callable[[bytes, int], bool]] = [partial(fits, ())] * 256
+    for h in headers:
+        rule = rules[h[0]] or ()
+        checks[h[0]] = la_fits if rule is LA_MAY else partial(fits, rule)
     marked = [(h, rules[h[0]] or ()) for h in headers if h != PROJECT_FINISHED_BYTES]
     # One flag bit per table (a header byte's, or a rule's), eight to a group.
     slots: dict[tuple[bytes, bool], int] = {}
@@ -141,6 +148,7 @@ def _compile(headers: tuple[bytes, ...], ff_rule: int, quad: bool, project: bool
                     by_anchor[v].append((h, offset, (conj,)))
     return _Program(
         rules=tuple(rules),
+        checks=tuple(checks),
         groups=tuple(groups),
         marked=compiled,
         anchors=bytes(bool(a) for a in by_anchor) if anchored else None,
@@ -222,7 +230,7 @@ class CandidateFinder:
         single = self._single
         headers = self.headers
         cache = self._cache
-        rules = self._program.rules
+        checks = self._program.checks
         while True:
             if single is not None:
                 p = buf.find(single, pos)
@@ -237,7 +245,7 @@ class CandidateFinder:
                         cache[i] = (pos, q)
                     if q >= 0 and (p < 0 or q < p):
                         p = q
-            if p < 0 or fits(rules[buf[p]] or (), buf, p):
+            if p < 0 or checks[buf[p]](buf, p):
                 return p
             self._misses += 1
             if self._misses >= DENSE_AFTER:

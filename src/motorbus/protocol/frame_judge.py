@@ -42,7 +42,6 @@ from motorbus.protocol.rulebook import (
     FF_REPLY,
     FF_REQUEST,
     FF_REQUEST_ONLY,
-    LA_MAY,
     LA_MIN_LEN,
     PROJECT_REQUEST_MAY,
     PROJECT_REQUEST_SIZE,
@@ -52,6 +51,7 @@ from motorbus.protocol.rulebook import (
     STEPPER_REPLY_SIZE,
     fits,
     la_claim,
+    la_fits,
     la_sum_ok,
     request_sum_ok,
 )
@@ -200,7 +200,7 @@ class FrameJudge:
         length = buf[p + 2]
         if length < LA_MIN_LEN:
             return INVALID, _BAD_LENGTH, None
-        if not fits(LA_MAY, buf, p):
+        if not la_fits(buf, p):
             return INVALID, _BAD_COMMAND, None
         total = length + 5
         if avail < total:
@@ -430,11 +430,13 @@ class FrameJudge:
         if buf[p] == 0xFF:
             state, _, _ = self._parse_stepper_request(buf, p, avail, True)
             due = self._request_due(buf, p, avail)
+            valid = state == COMPLETE
         else:
-            state, _, _ = self._parse_la(buf, p, Direction.REPLY)
             total = la_claim(buf, p)
-            due = p + 3 if total == 0 else p + total if avail < total else -1
-        valid = state == COMPLETE
+            if 0 < total <= avail:
+                valid, due = la_sum_ok(buf, p, p + total), -1
+            else:
+                valid, due = False, p + 3 if total == 0 else p + total if total > 0 else -1
         self.index.record(q_abs, valid, due + self.base if due >= 0 else -1)
         return valid
 

@@ -89,11 +89,14 @@ answers kept across reads.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
+from itertools import repeat
 
 from motorbus.protocol.base import (
     LA_REPLY_HEADER,
     LA_REQUEST_HEADER,
+    PROJECT_FINISHED_BYTES,
     Direction,
     Family,
     FrameShape,
@@ -143,6 +146,8 @@ MAX_BUFFER = 1024
 
 #: Builds a NamedTuple item without its Python-level ``__new__`` (the hot path).
 _new = tuple.__new__
+#: A run of ``EE DD`` events.
+_EVENT_RUN = re.compile(b"(?:" + re.escape(PROJECT_FINISHED_BYTES) + b")+").match
 
 
 class Reassembler:
@@ -249,6 +254,7 @@ class Reassembler:
         # The next header that may start a frame (protocol/candidates.py): headers whose
         # command bytes no frame carries are skipped in C, as part of the garbage.
         find = judge.finder.find
+        event_run = _EVENT_RUN
         while pos < n:
             if buf[pos] == la_first and pos + 1 < n and buf[pos + 1] == la_second:
                 pos = self._scan_la_only(buf, pos, out)
@@ -262,12 +268,18 @@ class Reassembler:
             state, size, item = parse_at(buf, p, final)
             if state == COMPLETE:
                 assert item is not None
-                out.append(item)
                 if type(item) is Frame:
+                    out.append(item)
                     stats.frames += 1
+                    pos = p + size
                 else:
-                    stats.events += 1
-                pos = p + size
+                    # A run of ``EE DD`` is a run of events (each pair ends where the next
+                    # may start): taken at once, not a verdict per pair.
+                    run = event_run(buf, p)
+                    pos = run.end() if run else p + 2
+                    count = (pos - p) >> 1
+                    out += repeat(item, count)
+                    stats.events += count
             elif state == INCOMPLETE:
                 later = judge.later_valid_frame(buf, p + 1)
                 if later < 0:

@@ -72,6 +72,7 @@ __all__ = [
     "ff_aa_rule",
     "fits",
     "la_claim",
+    "la_fits",
     "la_sum_ok",
     "request_sum_ok",
     "sum8_at",
@@ -170,12 +171,22 @@ def fits(rule: Rule, buf: bytes, p: int) -> bool:
 LA_MAY = either(
     both(at(4, LA_COMMANDS), at(2, range(LA_SHORT_MAX_LEN + 1))), at(4, LA_ANY_LENGTH_COMMANDS)
 )
-#: Per CMD byte, the largest Len an LA frame with it has (-1: none): ``LA_MAY`` as a lookup,
-#: for the reassembler's one-sum-per-frame path.
+#: Per CMD byte, the largest Len ``LA_MAY`` allows with it (-1: none): the same rule as a
+#: lookup, for the paths that judge one LA header at a time.
 LA_MAX_LEN = tuple(
-    0xFF if cmd in LA_ANY_LENGTH_COMMANDS else LA_SHORT_MAX_LEN if cmd in LA_COMMANDS else -1
+    max(
+        (n for n in range(256) if fits(LA_MAY, bytes((0xAA, 0x55, n, 0, cmd)), 0)),
+        default=-1,
+    )
     for cmd in range(256)
 )
+
+
+def la_fits(buf: bytes, p: int) -> bool:
+    """``fits(LA_MAY, buf, p)``, by ``LA_MAX_LEN``."""
+    return p + 4 >= len(buf) or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]
+
+
 #: Byte 3 of a 6-byte stepper reply (the default expectation).
 STEPPER_REPLY_MAY = at(3, range(STEPPER_B3_MAX + 1))
 #: Byte 3 of any ``FF AA`` request, of either stepper.
@@ -226,7 +237,7 @@ def la_claim(buf: bytes, p: int) -> int:
     if len(buf) - p < 3:
         return 0
     length = buf[p + 2]
-    if length < LA_MIN_LEN or not fits(LA_MAY, buf, p):
+    if length < LA_MIN_LEN or not la_fits(buf, p):
         return -1
     return length + 5
 
