@@ -36,6 +36,7 @@ from motorbus.protocol.rulebook import (
     FF_REPLY,
     FF_REQUEST,
     FF_REQUEST_ONLY,
+    LA_MAX_LEN,
     LA_MAY,
     Rule,
     ff_aa_rule,
@@ -245,7 +246,13 @@ class CandidateFinder:
                         cache[i] = (pos, q)
                     if q >= 0 and (p < 0 or q < p):
                         p = q
-            if p < 0 or checks[buf[p]](buf, p):
+            if p < 0:
+                return p
+            b0 = buf[p]
+            if b0 == 0xAA or b0 == 0x55:  # ``la_fits``, inline: the hot path of every frame
+                if p + 4 >= len(buf) or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]:
+                    return p
+            elif checks[b0](buf, p):
                 return p
             self._misses += 1
             if self._misses >= DENSE_AFTER:

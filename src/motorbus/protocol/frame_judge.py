@@ -42,6 +42,7 @@ from motorbus.protocol.rulebook import (
     FF_REPLY,
     FF_REQUEST,
     FF_REQUEST_ONLY,
+    LA_MAX_LEN,
     LA_MIN_LEN,
     PROJECT_REQUEST_MAY,
     PROJECT_REQUEST_SIZE,
@@ -51,7 +52,6 @@ from motorbus.protocol.rulebook import (
     STEPPER_REPLY_SIZE,
     fits,
     la_claim,
-    la_fits,
     la_sum_ok,
     request_sum_ok,
 )
@@ -62,6 +62,7 @@ __all__ = [
     "HEADER_FIRST_BYTES",
     "INCOMPLETE",
     "INVALID",
+    "REASONS",
     "UNEXPECTED",
     "WAIT",
     "FrameJudge",
@@ -87,7 +88,8 @@ _BAD_CHECKSUM = 2
 UNEXPECTED = 3
 _OVERLAP = 4
 _BAD_COMMAND = 5
-_REASONS = {
+#: The discard reason, by the code of an ``INVALID`` verdict.
+REASONS = {
     _BAD_LENGTH: "bad length",
     _BAD_CHECKSUM: "bad checksum",
     UNEXPECTED: "unexpected reply shape",
@@ -98,7 +100,7 @@ _REASONS = {
 
 def discard_reason(code: int) -> str:
     """The discard reason for the code of an ``INVALID`` verdict."""
-    return _REASONS.get(code, "invalid")
+    return REASONS.get(code, "invalid")
 
 
 #: Builds a ``Frame`` without its Python-level ``__new__`` (one per frame, the hot path).
@@ -200,7 +202,7 @@ class FrameJudge:
         length = buf[p + 2]
         if length < LA_MIN_LEN:
             return INVALID, _BAD_LENGTH, None
-        if not la_fits(buf, p):
+        if avail >= 5 and length > LA_MAX_LEN[buf[p + 4]]:  # ``rulebook.la_fits``, inline
             return INVALID, _BAD_COMMAND, None
         total = length + 5
         if avail < total:

@@ -106,10 +106,10 @@ from motorbus.protocol.frame_judge import (
     COMPLETE,
     HEADER_FIRST_BYTES,
     INCOMPLETE,
+    REASONS,
     UNEXPECTED,
     WAIT,
     FrameJudge,
-    discard_reason,
 )
 from motorbus.protocol.frames import (
     LA_MAX_FRAME,
@@ -255,6 +255,7 @@ class Reassembler:
         # command bytes no frame carries are skipped in C, as part of the garbage.
         find = judge.finder.find
         event_run = _EVENT_RUN
+        reasons = REASONS
         while pos < n:
             if buf[pos] == la_first and pos + 1 < n and buf[pos + 1] == la_second:
                 pos = self._scan_la_only(buf, pos, out)
@@ -290,7 +291,7 @@ class Reassembler:
                 return p
             else:
                 end = judge.unexpected_run(buf, p) if size == UNEXPECTED else p + 1
-                discard(out, buf[p:end], discard_reason(size))
+                discard(out, buf[p:end], reasons[size])
                 pos = end
         if pos >= n:
             return n

@@ -75,7 +75,6 @@ __all__ = [
     "la_fits",
     "la_sum_ok",
     "request_sum_ok",
-    "sum8_at",
 ]
 
 # -- the facts ------------------------------------------------------------------------------
@@ -237,28 +236,25 @@ def la_claim(buf: bytes, p: int) -> int:
     if len(buf) - p < 3:
         return 0
     length = buf[p + 2]
-    if length < LA_MIN_LEN or not la_fits(buf, p):
+    if length < LA_MIN_LEN or (len(buf) - p >= 5 and length > LA_MAX_LEN[buf[p + 4]]):
         return -1
     return length + 5
 
 
 def la_sum_ok(buf: bytes, p: int, end: int) -> bool:
-    """Does the LA frame ``buf[p:end]`` carry the checksum of its bytes 2..end-1?"""
-    return sum8_at(buf, p + 2, end - 1) == buf[end - 1]
+    """Does the LA frame ``buf[p:end]`` carry the 8-bit sum of its bytes 2..end-1?
+
+    Summed in C: ``adler32`` with a start value of 0 sums bytes modulo 65521, and 256
+    bytes sum to at most 65280, so the sum of the first 256 is exact.
+    """
+    start, last = p + 2, end - 1
+    if last - start <= 256:
+        return adler32(buf[start:last], 0) & 0xFF == buf[last]
+    return (adler32(buf[start : start + 256], 0) + sum(buf[start + 256 : last])) & 0xFF == buf[last]
 
 
 def request_sum_ok(buf: bytes, p: int, size: int) -> bool:
-    """Does the ``size``-byte stepper request at ``p`` carry the sum of its bytes before it?"""
+    """Does the ``size``-byte stepper request at ``p`` carry the 8-bit sum of its bytes
+    before it (in C, as ``la_sum_ok``)?"""
     end = p + size
-    return sum8_at(buf, p, end - 1) == buf[end - 1]
-
-
-def sum8_at(buf: bytes, start: int, end: int) -> int:
-    """The 8-bit sum of ``buf[start:end]`` (at most 257 bytes), in C.
-
-    ``adler32`` with a start value of 0 sums the bytes modulo 65521; 256 bytes sum to at
-    most 65280, so the first 256 bytes' sum is exact.
-    """
-    if end - start <= 256:
-        return adler32(buf[start:end], 0) & 0xFF
-    return (adler32(buf[start : start + 256], 0) + sum(buf[start + 256 : end])) & 0xFF
+    return adler32(buf[p : end - 1], 0) & 0xFF == buf[end - 1]
