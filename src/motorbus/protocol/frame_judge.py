@@ -1,22 +1,45 @@
 """What lies at a position of the byte stream: the reassembler's frame-by-frame verdicts.
 
-``protocol/reassembler.py`` walks the stream, keeps the bytes between reads and counts
-what it discards; at each candidate header it asks :class:`FrameJudge` what is there:
+``protocol/reassembler.py`` walks the stream; at each candidate header it asks
+:class:`FrameJudge` what is there (``parse_at``): a complete frame (or ``EE DD``), a frame
+still lacking bytes, a hold, or an invalid candidate with the reason it is one.  Every
+rule it applies is the rulebook's (``protocol/rulebook.py``: headers, lengths, checksums,
+what a frame may be); what it adds is how the families share one stream:
 
-* ``parse_at``: a complete frame (or ``EE DD``), a frame still lacking bytes, a hold
-  (a dump whose header matched, or a checksum-less candidate with an unfinished LA
-  frame inside it), or an invalid candidate with the reason it is one.  The rules by
-  which each family is cut (checksums, expected reply shapes, checksummed frames win
-  over checksum-less ones) are described in ``protocol/reassembler.py``'s docstring.
-* ``later_valid_frame``: the first complete checksum-valid frame after a position,
-  which proves an incomplete header before it garbage.  Its answers are kept across
-  reads in a ``valid_index.ValidIndex`` so that work per byte stays bounded.
-* ``unexpected_run``: how many bytes a refused stepper reply costs.
+* Stepper requests: on a stream that may carry both steppers (a simulator of a mixed bus,
+  ``motorbus decode``), both checksums decide: with 11 bytes at hand the 11-byte frame is
+  taken if its checksum holds, else the 9-byte frame if its checksum holds.  The 11-byte
+  frame can never end in the ``FF AA`` of a next frame while the 9-byte checksum holds: a
+  valid 9-byte frame sums to twice its checksum (even), and ``FF AA`` at bytes 9..10 would
+  need it to sum to ``AA - FF = AB`` (odd).  Limit: with only 9 or 10 bytes at hand and
+  the 9-byte checksum holding, the 9-byte frame is taken at once (a device must not wait
+  for bytes that never come), so an 11-byte request whose byte 2 is also a quad address
+  and whose byte 8 equals the sum of bytes 0..7 (1 in 256) is cut short if the stream
+  pauses right after its byte 8 or 9.
+* Stepper replies carry neither length nor checksum (A0-04, A1-09): only the caller knows
+  what it asked, so it says which reply shapes are acceptable (``Reassembler.expect``);
+  ``expect([])`` means none is, and ``FF AA`` bytes are then discarded as "unexpected
+  reply shape".  Without an expectation any 6-byte reply that keeps the rulebook's reply
+  rule is taken, and ``FF AA 3E P 00 00`` starts a 226-byte dump.
+* Checksummed frames win over checksum-less ones: a 6-byte reply (or a request, whose
+  checksum may hold by accident) at ``p`` is refused ("overlaps an LA frame", one byte) if
+  a complete, checksum-valid LA frame starts at ``p + 1 .. p + size - 1``.  If such an LA
+  frame is still incomplete, the stream waits for it, unless a later valid frame already
+  proves its header garbage, or the stream has ended.  (An LA header whose first byte is
+  the candidate's last byte is not waited for: a request's checksum byte is ``55`` once
+  in 256.)
+* A dump is consumed whole: once its header has matched, the reassembler waits for all
+  226 bytes, and ``EE DD``, ``AA 55`` or ``FF AA`` inside it are data.  On a stream that
+  may carry requests as well a request whose checksum holds is taken first (the 0x3E
+  request starts with the dump header), so a dump whose first 11 (or 9) bytes satisfy a
+  request checksum, 1 in 256 (or 2), is cut there.  A host (``REPLY``) stream never is.
 
-Every rule comes from ``protocol/rulebook.py`` (headers, lengths, checksums, what a frame
-may be); ``finder`` (a ``candidates.CandidateFinder``) says where a frame may start, by the
-same rules.  Sans-I/O, pure: positions in ``buf`` are relative to the bytes being scanned,
-whose stream offset is ``base``.
+``later_valid_frame`` finds the first complete checksum-valid frame after a position
+(which proves an incomplete header before it garbage), from answers kept across reads in
+a ``valid_index.ValidIndex``; ``unexpected_run`` says how many bytes a refused stepper
+reply costs.  ``finder`` (a ``candidates.CandidateFinder``) says where a frame may start,
+by the same rules.  Sans-I/O, pure: positions in ``buf`` are relative to the bytes being
+scanned, whose stream offset is ``base``.
 """
 
 from __future__ import annotations

@@ -20,16 +20,10 @@ What a frame may be (docs/protocols.md A2-01, C.3, A.2; doc 000 A.2/A.4/A.5, doc
 B.2/B.3) is a :data:`Rule`: which values a frame may carry at fixed offsets from its
 header, as any of several conjunctions of ``(offset, table)`` terms (``table`` has 256
 bytes, 1 where the value is allowed).  A byte that has not arrived yet may be anything:
-a rule refuses a header only by bytes already in.
-
-* an LA frame: its CMD (byte 4) is one of the nine command codes, and unless it is a read
-  or a write (01, 02) its Len (byte 2) is at most 0x2E (:data:`LA_MAY`);
-* an ``FF AA`` request: byte 3 is at most 0x0F, unless byte 2 is the 0x8E opcode
-  (:data:`REQUEST_B3_MAY`); a quad request's byte 2 is an address
-  (:data:`QUAD_REQUEST_MAY`), a project request's byte 9 a step (:data:`PROJECT_REQUEST_MAY`);
-* a 6-byte ``FF AA`` reply, without an expectation: byte 3 is at most 0x0F
-  (:data:`STEPPER_REPLY_MAY`; ``Reassembler.expect`` replaces it by reply shapes);
-* ``EE DD``: anything (it is the whole event).
+a rule refuses a header only by bytes already in.  The rules: :data:`LA_MAY`,
+:data:`QUAD_REQUEST_MAY`, :data:`PROJECT_REQUEST_MAY`, :data:`STEPPER_REPLY_MAY` (the
+default expectation: ``Reassembler.expect`` replaces it by reply shapes); ``EE DD`` is
+the whole event.  ``ff_aa_rule`` says which an ``FF AA`` header keeps on a stream.
 
 Sans-I/O, pure data and a few functions.
 """
