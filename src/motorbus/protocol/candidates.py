@@ -73,8 +73,7 @@ _Shift = tuple[int, int]
 class _Program(NamedTuple):
     """The rules of one set-up, compiled (``_compile``)."""
 
-    #: By a header's first byte, the rule it keeps, and a check of it (``find``'s).
-    rules: tuple[Rule | None, ...]
+    #: By a header's first byte, a check of the rule it keeps.
     checks: tuple[Callable[[bytes, int], bool], ...]
     #: Per flag group: (translation table to flag bits, pad for bytes not in yet).
     groups: tuple[tuple[bytes, bytes], ...]
@@ -91,67 +90,51 @@ class _Program(NamedTuple):
 @lru_cache(maxsize=64)
 def _compile(headers: tuple[bytes, ...], ff_rule: int, quad: bool, project: bool) -> _Program:
     """Compile the rules of ``headers`` (built once per set-up, not per reassembler)."""
-    rules: list[Rule | None] = [None] * 256
-    for h in headers:
-        rules[h[0]] = (
-            ANYTHING
-            if h == PROJECT_FINISHED_BYTES
-            else ff_aa_rule(ff_rule, quad=quad, project=project)
-            if h == FF_AA
-            else LA_MAY
-        )
+
+    def rule_of(h: bytes) -> Rule:
+        if h == PROJECT_FINISHED_BYTES:
+            return ANYTHING
+        return ff_aa_rule(ff_rule, quad=quad, project=project) if h == FF_AA else LA_MAY
+
     checks: list[Callable[[bytes, int], bool]] = [partial(fits, ())] * 256
     for h in headers:
-        rule = rules[h[0]] or ()
-        checks[h[0]] = la_fits if rule is LA_MAY else partial(fits, rule)
-    marked = [(h, rules[h[0]] or ()) for h in headers if h != PROJECT_FINISHED_BYTES]
+        checks[h[0]] = la_fits if rule_of(h) is LA_MAY else partial(fits, rule_of(h))
+    marked = [(h, rule_of(h)) for h in headers if h != PROJECT_FINISHED_BYTES]
     # One flag bit per table (a header byte's, or a rule's), eight to a group.
     slots: dict[tuple[bytes, bool], int] = {}
 
-    def slot(table: bytes, header: bool) -> _Shift:
+    def shift(offset: int, table: bytes, header: bool = False) -> _Shift:
         i = slots.setdefault((table, header), len(slots))
-        return i >> 3, i & 7
+        return i >> 3, 8 * offset + (i & 7)
 
-    program = []
-    for h, rule in marked:
-        head = tuple(
-            (*slot(bytes(v == b for v in range(256)), True), offset) for offset, b in enumerate(h)
+    program = tuple(
+        (
+            tuple(shift(o, bytes(v == b for v in range(256)), True) for o, b in enumerate(h)),
+            tuple(tuple(shift(o, t) for o, t in conj) for conj in rule),
         )
-        conjs = tuple(tuple((*slot(t, False), offset) for offset, t in conj) for conj in rule)
-        program.append((head, conjs))
+        for h, rule in marked
+    )
     groups = []
     for g in range((len(slots) + 7) >> 3):
-        table, pad = bytearray(256), 0
+        table, pad = bytes(256), 0
         for (t, header), i in slots.items():
             if i >> 3 == g:
-                for v in range(256):
-                    table[v] |= t[v] << (i & 7)
+                table = bytes(x | y << (i & 7) for x, y in zip(table, t, strict=True))
                 pad |= 0 if header else 1 << (i & 7)
-        groups.append((bytes(table), bytes((pad,)) * 10))
-    compiled = tuple(
-        (
-            tuple((g, 8 * offset + bit) for g, bit, offset in head),
-            tuple(tuple((g, 8 * offset + bit) for g, bit, offset in c) for c in conjs),
-        )
-        for head, conjs in program
-    )
+        groups.append((table, bytes((pad,)) * 10))
     # Anchors: the first term of each conjunction.
     by_anchor: list[list[tuple[bytes, int, Rule]]] = [[] for _ in range(256)]
-    anchored = True
     for h, rule in marked:
-        for conj in rule:
-            if not conj:
-                anchored = False
-                continue
+        for conj in (c for c in rule if c):
             offset, allowed = conj[0]
             for v in range(256):
                 if allowed[v]:
                     by_anchor[v].append((h, offset, (conj,)))
+    anchored = all(conj for _, rule in marked for conj in rule)
     return _Program(
-        rules=tuple(rules),
         checks=tuple(checks),
         groups=tuple(groups),
-        marked=compiled,
+        marked=program,
         anchors=bytes(bool(a) for a in by_anchor) if anchored else None,
         by_anchor=tuple(tuple(a) for a in by_anchor),
         tails=tuple((h, rule, max((c[0][0] for c in rule if c), default=0)) for h, rule in marked),
@@ -262,7 +245,7 @@ class CandidateFinder:
 
     def passes(self, buf: bytes, p: int) -> bool:
         """Does the header at ``p`` (one of ``headers``) keep its rule?"""
-        return fits(self._program.rules[buf[p]] or (), buf, p)
+        return self._program.checks[buf[p]](buf, p)
 
     def marks(self, buf: bytes) -> bytes | bytearray:
         """One byte per byte of ``buf``: 1 where an LA or ``FF AA`` candidate starts, else 0.
