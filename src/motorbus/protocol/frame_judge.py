@@ -453,8 +453,9 @@ class FrameJudge:
         n = len(buf)
         avail = n - p
         if buf[p] == 0xFF:
-            state, _, _ = self._parse_stepper_request(buf, p, avail, True)
-            due = self._request_due(buf, p, avail)
+            state, code, _ = self._parse_stepper_request(buf, p, avail, True)
+            never = state == INVALID and code == _BAD_COMMAND  # no request, whatever follows
+            due = -1 if never else self._request_due(buf, p, avail)
             valid = state == COMPLETE
         else:
             total = la_claim(buf, p)
@@ -466,16 +467,13 @@ class FrameJudge:
         return valid
 
     def _request_due(self, buf: bytes, p: int, avail: int) -> int:
-        """Where a stepper request's verdict (at ``p``) may next change, or -1 if never.
+        """Where the verdict on a candidate that may be a request (at ``p``) may next change,
+        or -1 if never.
 
         Before the shortest request is in, nothing is decided: when it is.  Then, until
         the widest window (11 bytes and the header that may start at its last byte) is
         in: at the next byte.  Then: when an LA frame starting inside it is complete.
         """
-        if not (self._quad and fits(QUAD_REQUEST_MAY, buf, p)) and not (
-            self._project and fits(PROJECT_REQUEST_MAY, buf, p)
-        ):
-            return -1  # never a request
         shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
         if avail < shortest:
             return p + shortest
