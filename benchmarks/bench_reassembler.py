@@ -26,7 +26,9 @@ is bounded work per byte: every kind within 5x of random junk.  A second table c
 work instead of timing it (function calls per byte, cProfile's count): it does not depend
 on the load of a shared machine.
 
-Usage: ``python benchmarks/bench_reassembler.py [--seconds 2] [--quick] [--profile] [--junk-only]``
+Usage: ``python benchmarks/bench_reassembler.py [--seconds 2] [--quick] [--profile] [--junk-only]``;
+``--best-of REPORT...`` prints the least time of each cell over several ``--junk-only``
+reports (sittings), relative to random junk.
 """
 
 from __future__ import annotations
@@ -410,6 +412,27 @@ def junk_table(size: int, repeats: int) -> dict[str, Any]:
     }
 
 
+def best_of(paths: list[Path]) -> dict[str, dict[str, dict[str, float]]]:
+    """Per set-up, read and kind, the least ns per byte over several ``--junk-only``
+    reports (sittings of one tree), and print each kind relative to random junk."""
+    best: dict[str, dict[str, dict[str, float]]] = {}
+    for path in paths:
+        table = json.loads(path.read_text(encoding="utf-8"))["junk"]["ns_per_byte"]
+        for name, reads in table.items():
+            for read, row in reads.items():
+                cell = best.setdefault(name, {}).setdefault(read, {})
+                for kind, ns in row.items():
+                    cell[kind] = min(cell.get(kind, ns), ns)
+    print(f"best of {len(paths)} sittings, relative to random junk (random in ns per byte)")
+    print(f"{'set-up':10} {'read':>5} " + " ".join(f"{k[:11]:>11}" for k in JUNK_KINDS))
+    for name, reads in best.items():
+        for read, row in reads.items():
+            cells = [f"{row[k] / row['random']:>10.1f}x" for k in JUNK_KINDS]
+            cells[JUNK_KINDS.index("random")] = f"{row['random']:>8.1f} ns"
+            print(f"{name:10} {read:>5} " + " ".join(cells))
+    return best
+
+
 # -- reporting ----------------------------------------------------------------------------------
 
 
@@ -429,7 +452,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", action="store_true", help="profile the decoding pass")
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON report path")
     parser.add_argument("--junk-only", action="store_true", help="only the time-per-byte table")
+    parser.add_argument(
+        "--best-of", type=Path, nargs="+", help="only print the least ns of these reports"
+    )
     args = parser.parse_args(argv)
+    if args.best_of:
+        best_of(args.best_of)
+        return 0
     junk_size = JUNK_BYTES // 4 if args.quick else JUNK_BYTES
     if args.junk_only:
         junk = junk_table(junk_size, args.repeats)
