@@ -1,54 +1,47 @@
-"""Where a frame may start: the reassembler's candidate headers, sorted out at C speed.
+"""Where a frame may start: the rulebook's rules, compiled to marks made in C.
 
-The reassembler judges each candidate header in Python (``protocol/frame_judge.py``), at
-about a microsecond each.  Junk dense in header bytes (``AA 55 AA 55 ...``) holds a header
-every few bytes, so judging them all costs hundreds of nanoseconds a byte, against a few
-for junk that ``bytes.find`` skips.  Most such headers cannot start a frame whatever
-follows them, because a byte the manuals fix does not fit (``protocol/frames.py``):
+The judge (``protocol/frame_judge.py``) costs about a microsecond per candidate header, and
+junk dense in header bytes (``AA 55 AA 55 ...``) holds a header every few bytes.  Most such
+headers break a rule of ``protocol/rulebook.py`` (what a frame may be) whatever follows
+them; :class:`CandidateFinder` passes over those as garbage, and the judge, reading the same
+rules, would refuse them.  A byte that has not arrived yet may be anything: a header near
+the end of the buffer stays a candidate until its bytes come.
 
-* an LA frame (``AA 55``, ``55 AA``): its CMD byte (byte 4) is one of the nine command
-  codes, and unless it is a read or a write (01, 02) its Len (byte 2) is at most 0x2E;
-* an ``FF AA`` request: byte 3 is at most 0x0F, unless byte 2 is the 0x8E opcode; on
-  a stream of requests only (``FF_REQUEST_ONLY``), byte 2 is also a quad address or
-  byte 9 a project step (``frames.QUAD_ADDRESSES``, ``frames.PROJECT_B9_MAX``);
-* an ``FF AA`` reply under the default expectation: byte 3 is at most 0x0F.  Under an
-  explicit expectation (``Reassembler.expect``) every ``FF AA`` is a candidate: the
-  shapes decide, in the judge, which discards what they refuse with its reason;
-* ``EE DD``: always a candidate.
+It starts with ``bytes.find`` and ``rulebook.fits`` per header; once a buffer has shown a
+few headers that fail (``DENSE_AFTER``), it marks every passing position of the buffer at
+once and from then on finds each candidate with ``bytes.find`` in those marks.  It marks in
+one of two ways, whichever is cheaper for the buffer at hand:
 
-The judge applies the same rules, so what is skipped here is what it would refuse.  A
-skipped header is part of the garbage around it.  A byte that has not arrived yet may be
-anything: a header near the end of the buffer stays a candidate until its bytes come.
-
-:class:`CandidateFinder` finds the next header that passes.  It starts with ``bytes.find``
-and a check in Python per header; once a buffer has shown a few headers that fail
-(``DENSE_AFTER``), it marks every passing position of the buffer at once and from then on
-finds each candidate with ``bytes.find`` in those marks.  It marks in one of two ways,
-whichever is cheaper for the buffer at hand:
-
-* **from the anchors**: every rule fixes one byte after the header (an LA frame's CMD, an
-  ``FF AA`` frame's byte 3, or byte 2 for the 0x8E request), and junk dense in headers is
-  seldom dense in those bytes too.  A translation table finds them in C; each is checked
-  in Python against the header before it.  Used when anchors are at most one byte in
-  ``2 ** ANCHOR_SHIFT``;
-* **in C throughout**: each byte's flags become one big integer, and the rules are a few
-  shifts and ANDs over it: a fixed cost per byte, however dense the anchors are.
+* **from the anchors**: the first term of each conjunction of a rule (an LA frame's CMD, an
+  ``FF AA`` frame's byte 3, or byte 2 for the 0x8E request) is its anchor, and junk dense in
+  headers is seldom dense in those bytes too.  A translation table finds them in C; each is
+  checked in Python against the header before it.  Used when anchors are at most one byte
+  in ``2 ** ANCHOR_SHIFT``;
+* **in C throughout**: each byte's flags (one bit per table of the rules) become one big
+  integer, and the rules are shifts, ANDs and ORs over it: a fixed cost per byte.
 
 Either way the work per byte is bounded.  Sans-I/O, pure.
 """
 
 from __future__ import annotations
 
-from motorbus.protocol.base import FF_AA, LA_REPLY_HEADER, LA_REQUEST_HEADER, PROJECT_FINISHED_BYTES
-from motorbus.protocol.frames import (
-    LA_ANY_LENGTH_COMMANDS,
-    LA_COMMANDS,
+from collections.abc import Callable
+from functools import lru_cache, partial
+from typing import NamedTuple
+
+from motorbus.protocol.base import FF_AA, PROJECT_FINISHED_BYTES
+from motorbus.protocol.rulebook import (
+    ANYTHING,
+    FF_ANY,
+    FF_REPLY,
+    FF_REQUEST,
+    FF_REQUEST_ONLY,
     LA_MAX_LEN,
-    LA_SHORT_MAX_LEN,
-    PROJECT_B9_MAX,
-    QUAD_ADDRESSES,
-    STEPPER_B3_MAX,
-    STEPPER_FREE_B3_OPCODE,
+    LA_MAY,
+    Rule,
+    ff_aa_rule,
+    fits,
+    la_fits,
 )
 
 __all__ = [
@@ -61,21 +54,11 @@ __all__ = [
     "CandidateFinder",
 ]
 
-# What an ``FF AA`` header must show to be a candidate (``CandidateFinder.ff_rule``).
-#: Anything (explicit reply shapes decide in the judge).
-FF_ANY = 0
-#: Byte 3 at most 0x0F (a reply under the default expectation).
-FF_REPLY = 1
-#: Byte 3 at most 0x0F, or byte 2 is 0x8E (a request or a reply: ``motorbus decode``).
-FF_REQUEST = 2
-#: ``FF_REQUEST``, and byte 2 a quad address or byte 9 a project step (a request only).
-FF_REQUEST_ONLY = 3
-
 #: Headers that fail, in one buffer, before the finder marks the whole buffer at once
 #: (one, if the buffer before was marked).
 DENSE_AFTER = 2
 #: Marks come from the anchors when they are at most one byte in ``2 ** ANCHOR_SHIFT``:
-#: a Python check per anchor (~0.15 us) against ~3 ns per byte in C
+#: a Python check per anchor (~0.3 us) against a few ns per byte in C
 #: (benchmarks/bench_reassembler.py).
 ANCHOR_SHIFT = 5
 #: Bytes at the start of a buffer whose anchors are counted before checking any.
@@ -83,63 +66,79 @@ _PROBE = 256
 #: A header not searched for yet in the buffer: "searched from" beyond any position.
 _UNSEARCHED = (1 << 62, -1)
 
-# One flag bit per byte value the rules look at (EE DD has no rule: it is found apart).
-_AA, _55, _FF, _LOW, _8E, _CMD, _ANY_LEN, _SHORT = (1 << i for i in range(8))
-_FLAGS = bytes(
-    (v == 0xAA) * _AA
-    | (v == 0x55) * _55
-    | (v == 0xFF) * _FF
-    | (v <= STEPPER_B3_MAX) * _LOW
-    | (v == STEPPER_FREE_B3_OPCODE) * _8E
-    | (v in LA_COMMANDS) * _CMD
-    | (v in LA_ANY_LENGTH_COMMANDS) * _ANY_LEN
-    | (v <= LA_SHORT_MAX_LEN) * _SHORT
-    for v in range(256)
-)
-#: Bytes past the end of the buffer: any value may still come, so every rule on a value
-#: passes (no header byte does: a header must be there).
-_PAD = bytes((_LOW | _8E | _CMD | _ANY_LEN | _SHORT,)) * 4
-# The request-only rule's flags, in a second table (the first has no bit left).
-_QUAD_ADDRESS, _STEP = 1, 2
-_REQUEST_FLAGS = bytes(
-    (v in QUAD_ADDRESSES) * _QUAD_ADDRESS | (v <= PROJECT_B9_MAX) * _STEP for v in range(256)
-)
-_REQUEST_PAD = bytes((_QUAD_ADDRESS | _STEP,)) * 10
+#: A term compiled for ``marks_in_c``: (flag group, right shift bringing its flag to bit 0).
+_Shift = tuple[int, int]
 
 
-def _anchor_table_for(la: bool, ff: bool, ff_8e: bool) -> bytes:
-    """1 for each byte value that anchors a rule: an LA CMD, an ``FF AA`` byte 3, 0x8E."""
-    return bytes(
-        (la and v in LA_COMMANDS)
-        or (ff and v <= STEPPER_B3_MAX)
-        or (ff_8e and v == STEPPER_FREE_B3_OPCODE)
-        for v in range(256)
+class _Program(NamedTuple):
+    """The rules of one set-up, compiled (``_compile``)."""
+
+    #: By a header's first byte, a check of the rule it keeps.
+    checks: tuple[Callable[[bytes, int], bool], ...]
+    #: Per flag group: (translation table to flag bits, pad for bytes not in yet).
+    groups: tuple[tuple[bytes, bytes], ...]
+    #: Per marked header: its two bytes' shifts, and each conjunction's.
+    marked: tuple[tuple[tuple[_Shift, ...], tuple[tuple[_Shift, ...], ...]], ...]
+    #: 1 for a byte value that anchors a conjunction; ``None`` if one has no anchor.
+    anchors: bytes | None
+    #: By anchor value: (header, the anchor's offset, the conjunction it anchors, as a rule).
+    by_anchor: tuple[tuple[tuple[bytes, int, Rule], ...], ...]
+    #: (header, its rule, how far from its farthest anchor it starts).
+    tails: tuple[tuple[bytes, Rule, int], ...]
+
+
+@lru_cache(maxsize=64)
+def _compile(headers: tuple[bytes, ...], ff_rule: int, quad: bool, project: bool) -> _Program:
+    """Compile the rules of ``headers`` (built once per set-up, not per reassembler)."""
+
+    def rule_of(h: bytes) -> Rule:
+        if h == PROJECT_FINISHED_BYTES:
+            return ANYTHING
+        return ff_aa_rule(ff_rule, quad=quad, project=project) if h == FF_AA else LA_MAY
+
+    checks: list[Callable[[bytes, int], bool]] = [partial(fits, ())] * 256
+    for h in headers:
+        checks[h[0]] = la_fits if rule_of(h) is LA_MAY else partial(fits, rule_of(h))
+    marked = [(h, rule_of(h)) for h in headers if h != PROJECT_FINISHED_BYTES]
+    # One flag bit per table (a header byte's, or a rule's), eight to a group.
+    slots: dict[tuple[bytes, bool], int] = {}
+
+    def shift(offset: int, table: bytes, header: bool = False) -> _Shift:
+        i = slots.setdefault((table, header), len(slots))
+        return i >> 3, 8 * offset + (i & 7)
+
+    program = tuple(
+        (
+            tuple(shift(o, bytes(v == b for v in range(256)), True) for o, b in enumerate(h)),
+            tuple(tuple(shift(o, t) for o, t in conj) for conj in rule),
+        )
+        for h, rule in marked
     )
-
-
-#: The anchor tables, by (LA headers?, ``FF AA``?, its 0x8E rule?): built once, not per
-#: reassembler (a bus makes one per connection, the simulator one per request).
-_ANCHOR_TABLES = {
-    (la, ff, ff_8e): _anchor_table_for(la, ff, ff_8e)
-    for la in (False, True)
-    for ff in (False, True)
-    for ff_8e in (False, True)
-}
-
-
-def _at(offset: int, flag: int) -> int:
-    """The right shift that brings ``flag`` of the byte at ``p + offset`` to bit 0 of byte ``p``."""
-    return 8 * offset + flag.bit_length() - 1
-
-
-# The shifts of the rules (see ``_at``): a header's two bytes, LA Len and CMD, stepper
-# bytes 2 and 3.
-_AA_AT_1 = _at(1, _AA)
-_55_AT_0, _55_AT_1 = _at(0, _55), _at(1, _55)
-_FF_AT_0 = _at(0, _FF)
-_CMD_AT_4, _ANY_LEN_AT_4, _SHORT_AT_2 = _at(4, _CMD), _at(4, _ANY_LEN), _at(2, _SHORT)
-_LOW_AT_3, _8E_AT_2 = _at(3, _LOW), _at(2, _8E)
-_QUAD_ADDRESS_AT_2, _STEP_AT_9 = _at(2, _QUAD_ADDRESS), _at(9, _STEP)
+    groups = []
+    for g in range((len(slots) + 7) >> 3):
+        table, pad = bytes(256), 0
+        for (t, header), i in slots.items():
+            if i >> 3 == g:
+                table = bytes(x | y << (i & 7) for x, y in zip(table, t, strict=True))
+                pad |= 0 if header else 1 << (i & 7)
+        groups.append((table, bytes((pad,)) * 10))
+    # Anchors: the first term of each conjunction.
+    by_anchor: list[list[tuple[bytes, int, Rule]]] = [[] for _ in range(256)]
+    for h, rule in marked:
+        for conj in (c for c in rule if c):
+            offset, allowed = conj[0]
+            for v in range(256):
+                if allowed[v]:
+                    by_anchor[v].append((h, offset, (conj,)))
+    anchored = all(conj for _, rule in marked for conj in rule)
+    return _Program(
+        checks=tuple(checks),
+        groups=tuple(groups),
+        marked=program,
+        anchors=bytes(bool(a) for a in by_anchor) if anchored else None,
+        by_anchor=tuple(tuple(a) for a in by_anchor),
+        tails=tuple((h, rule, max((c[0][0] for c in rule if c), default=0)) for h, rule in marked),
+    )
 
 
 class CandidateFinder:
@@ -147,26 +146,23 @@ class CandidateFinder:
 
     Args:
         headers: the headers the stream may carry (``FrameJudge.headers``).
-        ff_rule: what an ``FF AA`` header must show (``FF_ANY``, ``FF_REPLY``,
-            ``FF_REQUEST``, ``FF_REQUEST_ONLY``); the judge sets it again when the
-            expectation changes.
+        ff_rule: what an ``FF AA`` header must keep (``rulebook.FF_ANY`` ...); the judge
+            sets it again when the expectation changes.
         quad, project: whether the stream may carry requests of that stepper (for
             ``FF_REQUEST_ONLY``).
     """
 
     __slots__ = (
-        "_anchors",
         "_buf",
         "_cache",
         "_ee_dd",
         "_ff_rule",
-        "_marked_headers",
         "_marks",
         "_misses",
         "_ones",
+        "_program",
         "_project",
         "_quad",
-        "_rules",
         "_single",
         "headers",
     )
@@ -175,13 +171,12 @@ class CandidateFinder:
         self, headers: tuple[bytes, ...], ff_rule: int, *, quad: bool = True, project: bool = True
     ) -> None:
         self.headers = headers
-        self._ff_rule = ff_rule
         self._quad = quad
         self._project = project
-        #: Index of ``EE DD`` in ``headers`` (marked apart from the rules), or -1.
-        self._ee_dd = (
-            headers.index(PROJECT_FINISHED_BYTES) if PROJECT_FINISHED_BYTES in headers else -1
-        )
+        self._ff_rule = ff_rule
+        self._program = _compile(headers, ff_rule, quad, project)
+        #: Whether ``EE DD`` is one of the headers (marked apart from the rules).
+        self._ee_dd = PROJECT_FINISHED_BYTES in headers
         #: The only header, if there is one (one ``bytes.find``, no cache).
         self._single = headers[0] if len(headers) == 1 else None
         #: The buffer the cache and marks below are about (``None``: none yet).
@@ -191,17 +186,10 @@ class CandidateFinder:
         self._marks: bytes | bytearray | None = None
         self._misses = 0
         self._ones = (0, 0)
-        self._anchors = self._anchor_table()
-        self._rules = self._rules_now()
-        #: The headers the marks show (``EE DD`` is found apart), each with how far from
-        #: its anchor it starts: one that starts this close to the end passes the rules.
-        self._marked_headers = tuple(
-            (h, 3 if h == FF_AA else 4) for h in headers if h != PROJECT_FINISHED_BYTES
-        )
 
     @property
     def ff_rule(self) -> int:
-        """What an ``FF AA`` header must show to be a candidate."""
+        """What an ``FF AA`` header must keep to be a candidate."""
         return self._ff_rule
 
     @ff_rule.setter
@@ -209,8 +197,7 @@ class CandidateFinder:
         if rule != self._ff_rule:
             self._ff_rule = rule
             self._buf = None  # what was found in the buffer was found by the old rule
-            self._anchors = self._anchor_table()
-            self._rules = self._rules_now()
+            self._program = _compile(self.headers, rule, self._quad, self._project)
 
     def find(self, buf: bytes, pos: int) -> int:
         """Position of the first candidate header at or after ``pos`` in ``buf``, or -1."""
@@ -227,7 +214,7 @@ class CandidateFinder:
         single = self._single
         headers = self.headers
         cache = self._cache
-        n = len(buf)
+        checks = self._program.checks
         while True:
             if single is not None:
                 p = buf.find(single, pos)
@@ -244,24 +231,12 @@ class CandidateFinder:
                         p = q
             if p < 0:
                 return p
-            # ``passes``, inline: this is the hot path of every frame.
             b0 = buf[p]
-            if b0 == 0xAA or b0 == 0x55:
-                if p + 4 >= n or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]:
+            if b0 == 0xAA or b0 == 0x55:  # ``la_fits``, inline: the hot path of every frame
+                if p + 4 >= len(buf) or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]:
                     return p
-            elif b0 != 0xFF:
-                return p  # EE DD
-            elif (
-                p + 3 >= n
-                or buf[p + 3] <= STEPPER_B3_MAX
-                or self._ff_rule == FF_ANY
-                or (self._ff_rule >= FF_REQUEST and buf[p + 2] == STEPPER_FREE_B3_OPCODE)
-            ) and (
-                self._ff_rule != FF_REQUEST_ONLY
-                or (self._quad and (p + 2 >= n or buf[p + 2] in QUAD_ADDRESSES))
-                or (self._project and (p + 9 >= n or buf[p + 9] <= PROJECT_B9_MAX))
-            ):
-                return p  # ``request_fits``, inline: every request of a simulator
+            elif checks[b0](buf, p):
+                return p
             self._misses += 1
             if self._misses >= DENSE_AFTER:
                 marks = self._marks = self._all_marks(buf)
@@ -269,28 +244,8 @@ class CandidateFinder:
             pos = p + 1
 
     def passes(self, buf: bytes, p: int) -> bool:
-        """Does the header at ``p`` (one of ``headers``) pass the rules, in Python?"""
-        n = len(buf)
-        b0 = buf[p]
-        if b0 == 0xFF:
-            rule = self._ff_rule
-            return (
-                p + 3 >= n
-                or rule == FF_ANY
-                or buf[p + 3] <= STEPPER_B3_MAX
-                or (rule >= FF_REQUEST and buf[p + 2] == STEPPER_FREE_B3_OPCODE)
-            ) and (rule != FF_REQUEST_ONLY or self.request_fits(buf, p))
-        if b0 == 0xEE:
-            return True
-        return p + 4 >= n or buf[p + 2] <= LA_MAX_LEN[buf[p + 4]]
-
-    def request_fits(self, buf: bytes, p: int) -> bool:
-        """May the ``FF AA`` at ``p`` be a quad request (byte 2 an address) or a project
-        one (byte 9 a step)?  A byte not yet in ``buf`` may be anything."""
-        n = len(buf)
-        return (self._quad and (p + 2 >= n or buf[p + 2] in QUAD_ADDRESSES)) or (
-            self._project and (p + 9 >= n or buf[p + 9] <= PROJECT_B9_MAX)
-        )
+        """Does the header at ``p`` (one of ``headers``) keep its rule?"""
+        return self._program.checks[buf[p]](buf, p)
 
     def marks(self, buf: bytes) -> bytes | bytearray:
         """One byte per byte of ``buf``: 1 where an LA or ``FF AA`` candidate starts, else 0.
@@ -298,7 +253,7 @@ class CandidateFinder:
         From the anchors when they are sparse enough, else in C throughout (see the
         module docstring); the two agree byte for byte.
         """
-        table = self._anchors
+        table = self._program.anchors
         if table is not None:
             anchors = buf.translate(table)
             # A first look at the density: random junk is dense in anchors, and checking
@@ -313,7 +268,7 @@ class CandidateFinder:
         self, buf: bytes, anchors: bytes, most: int | None = None
     ) -> bytearray | None:
         """``marks``, from the anchor bytes (1 in ``anchors``, ``buf`` translated by
-        ``_anchor_table``): each is checked against the header it would complete.
+        ``_anchor_table``): each is checked with the conjunctions it anchors.
 
         ``None`` once more than ``most`` anchors have come (``marks_in_c`` is cheaper
         then): the work spent is bounded by ``most`` checks.
@@ -321,112 +276,62 @@ class CandidateFinder:
         n = len(buf)
         budget = n if most is None else most
         marks = bytearray(n)
-        la_reply, la_request, ff, ff_8e, request_only = self._rules
-        request_fits = self.request_fits
-        max_len = LA_MAX_LEN
+        program = self._program
+        by_anchor = program.by_anchor
         find = anchors.find
         q = find(1)
         while q >= 0:
             budget -= 1
             if budget < 0:
                 return None
-            v = buf[q]
-            p = q - 4
-            if p >= 0 and buf[p + 2] <= max_len[v]:
-                b0, b1 = buf[p], buf[p + 1]
-                if (la_reply and b0 == 0xAA and b1 == 0x55) or (
-                    la_request and b0 == 0x55 and b1 == 0xAA
-                ):
-                    marks[p] = 1
-            if ff:
-                if v <= STEPPER_B3_MAX:
-                    p = q - 3
-                else:
-                    p = q - 2 if ff_8e and v == STEPPER_FREE_B3_OPCODE else -1
-                if (
-                    p >= 0
-                    and buf[p] == 0xFF
-                    and buf[p + 1] == 0xAA
-                    and (not request_only or request_fits(buf, p))
-                ):
+            for header, offset, conj in by_anchor[buf[q]]:
+                p = q - offset
+                if p >= 0 and buf.startswith(header, p) and fits(conj, buf, p):
                     marks[p] = 1
             q = find(1, q + 1)
-        # Headers whose anchor has not arrived yet: the rules pass them (``passes``).
-        for header, due in self._marked_headers:
+        # Headers whose farthest anchor has not arrived yet: their rule with what is in.
+        for header, rule, due in program.tails:
             p = buf.find(header, n - due if n > due else 0)
             while p >= 0:
-                if header != FF_AA or not request_only or request_fits(buf, p):
+                if fits(rule, buf, p):
                     marks[p] = 1
                 p = buf.find(header, p + 1)
         return marks
 
     def marks_in_c(self, buf: bytes) -> bytes:
-        """``marks``, in C throughout: each byte's flags (a translation table) become
-        one integer, in which a shift by ``8 * offset + bit`` brings the flag of byte
-        ``p + offset`` to bit 0 of byte ``p``; the rules are ANDs and ORs of such shifts.
+        """``marks``, in C throughout: each byte's flags (a translation table per group of
+        eight) become one integer, in which a shift by ``8 * offset + bit`` brings the flag
+        of byte ``p + offset`` to bit 0 of byte ``p``; a rule is ORs of ANDs of such shifts.
         (Only bit 0 of each byte is kept: the other bits of a result byte mean nothing.)
         """
         n = len(buf)
-        flags = int.from_bytes(buf.translate(_FLAGS) + _PAD, "little")
-        headers = self.headers
-        la = 0
-        if LA_REPLY_HEADER in headers:
-            la = flags & (flags >> _55_AT_1)  # AA is flag bit 0 of byte p itself: no shift
-        if LA_REQUEST_HEADER in headers:
-            la |= (flags >> _55_AT_0) & (flags >> _AA_AT_1)
-        if la:
-            la &= (flags >> _CMD_AT_4) & ((flags >> _SHORT_AT_2) | (flags >> _ANY_LEN_AT_4))
-        ff = 0
-        if FF_AA in headers:
-            ff = (flags >> _FF_AT_0) & (flags >> _AA_AT_1)
-            if self._ff_rule == FF_REPLY:
-                ff &= flags >> _LOW_AT_3
-            elif self._ff_rule >= FF_REQUEST:
-                ff &= (flags >> _LOW_AT_3) | (flags >> _8E_AT_2)
-            if self._ff_rule == FF_REQUEST_ONLY and ff:
-                ff &= self._requests_in_c(buf)
+        program = self._program
+        flags = [int.from_bytes(buf.translate(t) + pad, "little") for t, pad in program.groups]
+        found = 0
+        for head, conjs in program.marked:
+            at = -1
+            for g, shift in head:
+                at &= flags[g] >> shift
+            if not at:
+                continue
+            for conj in conjs:
+                m = at
+                for g, shift in conj:
+                    m &= flags[g] >> shift
+                found |= m
         if self._ones[0] != n:
             self._ones = (n, int.from_bytes(b"\x01" * n, "little"))
-        return ((la | ff) & self._ones[1]).to_bytes(n, "little")
-
-    def _requests_in_c(self, buf: bytes) -> int:
-        """Bit 0 of byte ``p`` set where an ``FF AA`` at ``p`` may be a request by byte 2
-        (a quad address) or byte 9 (a project step), as ``marks_in_c`` combines them."""
-        flags = int.from_bytes(buf.translate(_REQUEST_FLAGS) + _REQUEST_PAD, "little")
-        fits = 0
-        if self._quad:
-            fits = flags >> _QUAD_ADDRESS_AT_2
-        if self._project:
-            fits |= flags >> _STEP_AT_9
-        return fits
-
-    def _rules_now(self) -> tuple[bool, bool, bool, bool, bool]:
-        """Which rules ``marks_from_anchors`` applies: LA replies, LA requests, ``FF AA``,
-        its 0x8E exception, its request-only rule."""
-        headers = self.headers
-        ff = FF_AA in headers
-        return (
-            LA_REPLY_HEADER in headers,
-            LA_REQUEST_HEADER in headers,
-            ff,
-            ff and self._ff_rule >= FF_REQUEST,
-            self._ff_rule == FF_REQUEST_ONLY,
-        )
+        return (found & self._ones[1]).to_bytes(n, "little")
 
     def _anchor_table(self) -> bytes | None:
         """Translation table: 1 for a byte that may anchor a candidate, else 0; ``None``
         when some header has no anchor (``FF AA`` under ``FF_ANY``)."""
-        headers = self.headers
-        ff = FF_AA in headers
-        if ff and self._ff_rule == FF_ANY:
-            return None
-        la = LA_REPLY_HEADER in headers or LA_REQUEST_HEADER in headers
-        return _ANCHOR_TABLES[la, ff, ff and self._ff_rule >= FF_REQUEST]
+        return self._program.anchors
 
     def _all_marks(self, buf: bytes) -> bytes | bytearray:
         """``marks``, plus every ``EE DD`` when it is one of the headers."""
         marks = self.marks(buf)
-        if self._ee_dd >= 0:
+        if self._ee_dd:
             q = buf.find(PROJECT_FINISHED_BYTES)
             if q >= 0:
                 marks = bytearray(marks)

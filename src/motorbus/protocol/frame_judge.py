@@ -1,22 +1,45 @@
 """What lies at a position of the byte stream: the reassembler's frame-by-frame verdicts.
 
-``protocol/reassembler.py`` walks the stream, keeps the bytes between reads and counts
-what it discards; at each candidate header it asks :class:`FrameJudge` what is there:
+``protocol/reassembler.py`` walks the stream; at each candidate header it asks
+:class:`FrameJudge` what is there (``parse_at``): a complete frame (or ``EE DD``), a frame
+still lacking bytes, a hold, or an invalid candidate with the reason it is one.  Every
+rule it applies is the rulebook's (``protocol/rulebook.py``: headers, lengths, checksums,
+what a frame may be); what it adds is how the families share one stream:
 
-* ``parse_at``: a complete frame (or ``EE DD``), a frame still lacking bytes, a hold
-  (a dump whose header matched, or a checksum-less candidate with an unfinished LA
-  frame inside it), or an invalid candidate with the reason it is one.  The rules by
-  which each family is cut (checksums, expected reply shapes, checksummed frames win
-  over checksum-less ones) are described in ``protocol/reassembler.py``'s docstring.
-* ``later_valid_frame``: the first complete checksum-valid frame after a position,
-  which proves an incomplete header before it garbage.  Its answers are kept across
-  reads in a ``valid_index.ValidIndex`` so that work per byte stays bounded.
-* ``unexpected_run``: how many bytes a refused stepper reply costs.
+* Stepper requests: on a stream that may carry both steppers (a simulator of a mixed bus,
+  ``motorbus decode``), both checksums decide: with 11 bytes at hand the 11-byte frame is
+  taken if its checksum holds, else the 9-byte frame if its checksum holds.  The 11-byte
+  frame can never end in the ``FF AA`` of a next frame while the 9-byte checksum holds: a
+  valid 9-byte frame sums to twice its checksum (even), and ``FF AA`` at bytes 9..10 would
+  need it to sum to ``AA - FF = AB`` (odd).  Limit: with only 9 or 10 bytes at hand and
+  the 9-byte checksum holding, the 9-byte frame is taken at once (a device must not wait
+  for bytes that never come), so an 11-byte request whose byte 2 is also a quad address
+  and whose byte 8 equals the sum of bytes 0..7 (1 in 256) is cut short if the stream
+  pauses right after its byte 8 or 9.
+* Stepper replies carry neither length nor checksum (A0-04, A1-09): only the caller knows
+  what it asked, so it says which reply shapes are acceptable (``Reassembler.expect``);
+  ``expect([])`` means none is, and ``FF AA`` bytes are then discarded as "unexpected
+  reply shape".  Without an expectation any 6-byte reply that keeps the rulebook's reply
+  rule is taken, and ``FF AA 3E P 00 00`` starts a 226-byte dump.
+* Checksummed frames win over checksum-less ones: a 6-byte reply (or a request, whose
+  checksum may hold by accident) at ``p`` is refused ("overlaps an LA frame", one byte) if
+  a complete, checksum-valid LA frame starts at ``p + 1 .. p + size - 1``.  If such an LA
+  frame is still incomplete, the stream waits for it, unless a later valid frame already
+  proves its header garbage, or the stream has ended.  (An LA header whose first byte is
+  the candidate's last byte is not waited for: a request's checksum byte is ``55`` once
+  in 256.)
+* A dump is consumed whole: once its header has matched, the reassembler waits for all
+  226 bytes, and ``EE DD``, ``AA 55`` or ``FF AA`` inside it are data.  On a stream that
+  may carry requests as well a request whose checksum holds is taken first (the 0x3E
+  request starts with the dump header), so a dump whose first 11 (or 9) bytes satisfy a
+  request checksum, 1 in 256 (or 2), is cut there.  A host (``REPLY``) stream never is.
 
-The frame sizes and command bytes come from ``protocol/frames.py``; ``finder`` (a
-``candidates.CandidateFinder``) says where a frame may start, by the same command-byte
-rules as the verdicts here.  Sans-I/O, pure: positions in
-``buf`` are relative to the bytes being scanned, whose stream offset is ``base``.
+``later_valid_frame`` finds the first complete checksum-valid frame after a position
+(which proves an incomplete header before it garbage), from answers kept across reads in
+a ``valid_index.ValidIndex``; ``unexpected_run`` says how many bytes a refused stepper
+reply costs.  ``finder`` (a ``candidates.CandidateFinder``) says where a frame may start,
+by the same rules.  Sans-I/O, pure: positions in ``buf`` are relative to the bytes being
+scanned, whose stream offset is ``base``.
 """
 
 from __future__ import annotations
@@ -34,34 +57,35 @@ from motorbus.protocol.base import (
     FrameShape,
     ProjectFinishedMarker,
 )
-from motorbus.protocol.candidates import (
+from motorbus.protocol.candidates import CandidateFinder
+from motorbus.protocol.frames import Frame, Item
+from motorbus.protocol.rulebook import (
+    DUMP_SHAPE,
     FF_ANY,
     FF_REPLY,
     FF_REQUEST,
     FF_REQUEST_ONLY,
-    CandidateFinder,
-)
-from motorbus.protocol.frames import (
     LA_MAX_LEN,
     LA_MIN_LEN,
-    PROJECT_B9_MAX,
-    PROJECT_DUMP_SIZE,
+    PROJECT_REQUEST_MAY,
     PROJECT_REQUEST_SIZE,
-    QUAD_ADDRESSES,
+    QUAD_REQUEST_MAY,
     QUAD_REQUEST_SIZE,
-    STEPPER_B3_MAX,
-    STEPPER_FREE_B3_OPCODE,
+    STEPPER_REPLY_SHAPE,
     STEPPER_REPLY_SIZE,
-    Frame,
-    Item,
+    fits,
+    la_claim,
+    la_sum_ok,
+    request_sum_ok,
 )
-from motorbus.protocol.valid_index import ValidIndex, sum8_at
+from motorbus.protocol.valid_index import ValidIndex
 
 __all__ = [
     "COMPLETE",
     "HEADER_FIRST_BYTES",
     "INCOMPLETE",
     "INVALID",
+    "REASONS",
     "UNEXPECTED",
     "WAIT",
     "FrameJudge",
@@ -69,11 +93,6 @@ __all__ = [
 ]
 
 _QUAD_ONLY_ADDRESSES = frozenset((0x09, 0xBC))  # "all motors" and "save" (doc 001 B.2)
-_DUMP_SHAPE = FrameShape.exact(PROJECT_DUMP_SIZE, 0xFF, 0xAA, 0x3E, frozenset(range(1, 5)), 0, 0)
-#: Without an expectation: any 6-byte reply whose byte 3 is one a reply may carry.
-_ANY_STEPPER_REPLY = FrameShape.exact(
-    STEPPER_REPLY_SIZE, 0xFF, 0xAA, None, frozenset(range(STEPPER_B3_MAX + 1))
-)
 #: First bytes of every header: a buffer ending in one may be cut mid-header.
 HEADER_FIRST_BYTES = frozenset((0x55, 0xAA, 0xFF, 0xEE))
 
@@ -92,7 +111,8 @@ _BAD_CHECKSUM = 2
 UNEXPECTED = 3
 _OVERLAP = 4
 _BAD_COMMAND = 5
-_REASONS = {
+#: The discard reason, by the code of an ``INVALID`` verdict.
+REASONS = {
     _BAD_LENGTH: "bad length",
     _BAD_CHECKSUM: "bad checksum",
     UNEXPECTED: "unexpected reply shape",
@@ -103,12 +123,7 @@ _REASONS = {
 
 def discard_reason(code: int) -> str:
     """The discard reason for the code of an ``INVALID`` verdict."""
-    return _REASONS.get(code, "invalid")
-
-
-def _b3_fits_a_request(buf: bytes, p: int) -> bool:
-    """Byte 3 of the ``FF AA`` at ``p`` is one a request may carry (``protocol/frames.py``)."""
-    return buf[p + 3] <= STEPPER_B3_MAX or buf[p + 2] == STEPPER_FREE_B3_OPCODE
+    return REASONS.get(code, "invalid")
 
 
 #: Builds a ``Frame`` without its Python-level ``__new__`` (one per frame, the hot path).
@@ -169,7 +184,7 @@ class FrameJudge:
         self._quad = quad
         #: The reply shapes without an expectation, in order of preference.
         self._default_shapes = (
-            (_DUMP_SHAPE, _ANY_STEPPER_REPLY) if project else (_ANY_STEPPER_REPLY,)
+            (DUMP_SHAPE, STEPPER_REPLY_SHAPE) if project else (STEPPER_REPLY_SHAPE,)
         )
         self.finder = CandidateFinder(self.headers, self._ff_rule(), quad=quad, project=project)
 
@@ -210,13 +225,13 @@ class FrameJudge:
         length = buf[p + 2]
         if length < LA_MIN_LEN:
             return INVALID, _BAD_LENGTH, None
-        if avail >= 5 and length > LA_MAX_LEN[buf[p + 4]]:
+        if avail >= 5 and length > LA_MAX_LEN[buf[p + 4]]:  # ``rulebook.la_fits``, inline
             return INVALID, _BAD_COMMAND, None
         total = length + 5
         if avail < total:
             return INCOMPLETE, 0, None
         end = p + total
-        if sum8_at(buf, p + 2, end - 1) != buf[end - 1]:
+        if not la_sum_ok(buf, p, end):
             return INVALID, _BAD_CHECKSUM, None
         return COMPLETE, total, _new(Frame, (Family.LA, direction, buf[p:end]))
 
@@ -235,28 +250,20 @@ class FrameJudge:
 
         With both families possible, the two checksums decide (see the module
         docstring); a candidate is refused if a checksum-valid LA frame starts inside it,
-        if its byte 3 is none a request carries (``frames.STEPPER_B3_MAX``), or if it
-        is neither a quad request (byte 2 an address, ``frames.QUAD_ADDRESSES``) nor a
-        project one (byte 9 a step, ``frames.PROJECT_B9_MAX``).
+        or if it may be neither a quad request nor a project one
+        (``rulebook.QUAD_REQUEST_MAY``, ``rulebook.PROJECT_REQUEST_MAY``).
         """
-        if avail >= 4 and buf[p + 3] > STEPPER_B3_MAX and buf[p + 2] != STEPPER_FREE_B3_OPCODE:
-            return INVALID, _BAD_COMMAND, None
-        quad = self._quad and (avail < 3 or buf[p + 2] in QUAD_ADDRESSES)
-        project = self._project and (avail < 10 or buf[p + 9] <= PROJECT_B9_MAX)
+        quad = self._quad and fits(QUAD_REQUEST_MAY, buf, p)
+        project = self._project and fits(PROJECT_REQUEST_MAY, buf, p)
         if not (quad or project):
             return INVALID, _BAD_COMMAND, None
-        quad_ok = (
-            quad
-            and avail >= QUAD_REQUEST_SIZE
-            and sum8_at(buf, p, p + QUAD_REQUEST_SIZE - 1) == buf[p + QUAD_REQUEST_SIZE - 1]
-        )
+        quad_ok = quad and avail >= QUAD_REQUEST_SIZE and request_sum_ok(buf, p, QUAD_REQUEST_SIZE)
         candidates: list[tuple[int, Family]] = []
         waiting = False
         if project:
-            end = p + PROJECT_REQUEST_SIZE
             if avail < PROJECT_REQUEST_SIZE:
                 waiting = not quad_ok  # a valid 9-byte frame is taken rather than waited on
-            elif sum8_at(buf, p, end - 1) == buf[end - 1]:
+            elif request_sum_ok(buf, p, PROJECT_REQUEST_SIZE):
                 # If the 9-byte checksum holds too, the 11-byte frame is preferred; it
                 # cannot end in the ``FF AA`` of a next frame (see the module docstring).
                 candidates.append((PROJECT_REQUEST_SIZE, Family.PROJECT_STEPPER))
@@ -446,30 +453,27 @@ class FrameJudge:
         n = len(buf)
         avail = n - p
         if buf[p] == 0xFF:
-            state, _, _ = self._parse_stepper_request(buf, p, avail, True)
-            due = self._request_due(buf, p, avail)
+            state, code, _ = self._parse_stepper_request(buf, p, avail, True)
+            never = state == INVALID and code == _BAD_COMMAND  # no request, whatever follows
+            due = -1 if never else self._request_due(buf, p, avail)
+            valid = state == COMPLETE
         else:
-            state, _, _ = self._parse_la(buf, p, Direction.REPLY)
-            if avail < 3:
-                due = p + 3
-            elif buf[p + 2] < LA_MIN_LEN or (avail >= 5 and buf[p + 2] > LA_MAX_LEN[buf[p + 4]]):
-                due = -1
+            total = la_claim(buf, p)
+            if 0 < total <= avail:
+                valid, due = la_sum_ok(buf, p, p + total), -1
             else:
-                total = buf[p + 2] + 5
-                due = p + total if avail < total else -1
-        valid = state == COMPLETE
+                valid, due = False, p + 3 if total == 0 else p + total if total > 0 else -1
         self.index.record(q_abs, valid, due + self.base if due >= 0 else -1)
         return valid
 
     def _request_due(self, buf: bytes, p: int, avail: int) -> int:
-        """Where a stepper request's verdict (at ``p``) may next change, or -1 if never.
+        """Where the verdict on a candidate that may be a request (at ``p``) may next change,
+        or -1 if never.
 
         Before the shortest request is in, nothing is decided: when it is.  Then, until
         the widest window (11 bytes and the header that may start at its last byte) is
         in: at the next byte.  Then: when an LA frame starting inside it is complete.
         """
-        if avail >= 4 and not _b3_fits_a_request(buf, p):
-            return -1  # never a request
         shortest = QUAD_REQUEST_SIZE if self._quad else PROJECT_REQUEST_SIZE
         if avail < shortest:
             return p + shortest
@@ -481,16 +485,8 @@ class FrameJudge:
         for header in self._la_headers:
             q = buf.find(header, p + 1, p + window)
             while q >= 0:
-                if n - q < 3:
-                    d = q + 3
-                elif (
-                    buf[q + 2] >= LA_MIN_LEN
-                    and n - q < buf[q + 2] + 5
-                    and (n - q < 5 or buf[q + 2] <= LA_MAX_LEN[buf[q + 4]])
-                ):
-                    d = q + buf[q + 2] + 5
-                else:
-                    d = -1
+                total = la_claim(buf, q)
+                d = q + 3 if total == 0 else q + total if n - q < total else -1
                 if d >= 0 and (due < 0 or d < due):
                     due = d
                 q = buf.find(header, q + 1, p + window)

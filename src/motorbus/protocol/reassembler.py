@@ -4,96 +4,41 @@ Sans-I/O: ``feed(bytes)`` returns what the bytes completed - frames, the project
 stepper's ``EE DD`` event, and runs of discarded bytes - and keeps the rest for the
 next call.  No clock, no asyncio; it never raises on any input.
 
-How each family is framed
--------------------------
-* LA frames (``55 AA`` requests, ``AA 55`` replies) carry their length
-  (``Len = total - 5``, docs/protocols.md A2-01) and a checksum, so they are validated on
-  their own.  Their CMD byte is one of the manual's nine command codes (C.3), and only a
-  read or a write (01, 02) is longer than a 15-entry broadcast (Len 0x2E): a header
-  followed by anything else is no frame, whatever its checksum.  A header whose length
-  or checksum is wrong costs one byte: the search for the next header starts at the
-  following byte.
-* Stepper requests (``FF AA``, 11 bytes for the project stepper, 9 for the quad
-  stepper) carry a checksum (the 8-bit sum of every byte before it) and are
-  validated the same way; their byte 3 is at most 0x0F (a command, project, step or
-  value), except after the 0x8E opcode (a repeat count).  A quad request's byte 2 is
-  an address (motor 1..4, 09 all, 00 I/O, BC save) and a project request's byte 9 a
-  step (1..10) or 00: a candidate that can be neither is no request, whatever its
-  checksums.  On a stream that may carry
-  both (a simulator of a mixed bus, ``motorbus decode``), both checksums decide: with
-  11 bytes at hand the 11-byte frame is taken if its checksum holds (whether or not
-  the 9-byte one holds too), else the 9-byte frame if its checksum holds.  The
-  11-byte frame can never end in the ``FF AA`` of a next frame while the 9-byte
-  checksum holds: a valid 9-byte frame sums to twice its checksum (an even number),
-  and ``FF AA`` at bytes 9..10 would need it to sum to ``AA - FF = AB`` (odd).
-  Limit: with only 9 or 10 bytes at hand and the 9-byte checksum holding, the 9-byte
-  frame is taken at once (a device must not wait for bytes that never come), so an
-  11-byte request whose byte 2 is also a quad address and whose byte 8 happens to
-  equal the sum of bytes 0..7 (1 in 256) is cut short if the stream pauses right
-  after its byte 8 or 9.
-* Stepper replies (``FF AA`` + 4 bytes, or the 226-byte project dump) carry neither
-  length nor checksum (A0-04, A1-09).  Only the caller knows what it asked, so it
-  tells the reassembler which reply shapes are acceptable right now with
-  :meth:`Reassembler.expect`; ``expect([])`` means none is, and ``FF AA`` bytes are
-  then discarded as "unexpected reply shape".  Without an expectation
-  (``expect(None)``, the default) any 6-byte ``FF AA`` frame whose byte 3 is at most
-  0x0F (as in every reply of both manuals) is taken, and ``FF AA 3E P 00 00`` starts a
-  226-byte dump.
-* Checksummed frames win over checksum-less ones.  A 6-byte stepper reply (or a
-  stepper request, whose checksum may hold by accident) at ``p`` is refused
-  ("overlaps an LA frame", one byte) if a complete, checksum-valid LA frame starts
-  at ``p + 1 .. p + size - 1``: a stray ``FF`` before an ``AA 55`` status costs that
-  byte, not the status.  If such an LA frame is still incomplete, the stream waits
-  for it, unless a later valid frame already proves its header garbage, or the
-  stream has ended; an LA frame that turns out invalid leaves the stepper frame
-  to be taken.  (An LA header whose first byte is the candidate's last byte is not
-  waited for: a request's checksum byte is ``55`` once in 256.)
-* A dump is consumed whole: once an acceptable dump header ``FF AA 3E P 00 00`` has
-  matched, the reassembler waits for all 226 bytes, and ``EE DD``, ``AA 55`` or
-  ``FF AA`` inside it are data.  On a stream that may carry requests as well
-  (``motorbus decode --direction any``, the default) a request whose checksum holds is
-  taken first, since the 0x3E request itself starts with the dump header; so a dump
-  whose first 11 (or, with the quad stepper possible, 9) bytes happen to satisfy a
-  request checksum, 1 dump in 256 (or 2), is cut there.  A host (``REPLY``) stream
-  never is.
-* ``EE DD`` (project finished, A0-06) is recognised only where a frame may start,
-  never inside a frame.
-
-A header that claims more bytes than have arrived waits for them - unless a later,
-complete, checksum-valid frame is already in the buffer, which proves the header was
-garbage; the reassembler then skips to that frame instead of stalling behind it.
+What a frame is, per family (headers, lengths, checksums, what its bytes may be), is
+stated once, in ``protocol/rulebook.py``; how candidates are judged (mixed streams,
+checksummed frames winning over checksum-less ones, expected reply shapes, the dump) in
+``protocol/frame_judge.py``.  This module walks the stream: at each candidate header
+(``protocol/candidates.py`` passes over the headers no rule lets start a frame, in C) it
+takes the judge's verdict; a header whose frame is invalid costs one byte, and the search
+for the next header starts at the following byte.  A header that claims more bytes than
+have arrived waits for them - unless a later, complete, checksum-valid frame is already in
+the buffer, which proves the header was garbage; the reassembler then skips to that frame
+instead of stalling behind it.  ``EE DD`` is recognised only where a frame may start.
 
 Work per input byte is bounded whatever the junk and however the stream is read: the
-search for that later frame is kept across ``feed`` calls (``valid_index.ValidIndex``:
-each candidate header is judged when first seen and again only when bytes its verdict
-depends on arrive), checksums are summed in C, and a run of discarded bytes is joined
-once.  ``tests/protocol/test_reassembler_work.py`` counts the calls per byte.  And it is
-small: a header whose command byte no frame carries (the rules above) is skipped in C,
-as part of the garbage around it, by ``candidates.CandidateFinder``, so junk dense in
-header bytes costs a few nanoseconds a byte more than junk without them, not a Python
-verdict every few bytes.  Junk built to pass those rules still costs a verdict per
-header (``benchmarks/bench_reassembler.py`` measures both).
+search for that later frame is kept across ``feed`` calls (``valid_index.ValidIndex``),
+headers no rule allows are skipped in C, a run of ``EE DD`` events is taken at once, and
+a run of discarded bytes is joined once.  Junk built to pass every rule but the checksum
+costs a verdict per header.  ``tests/protocol/test_reassembler_work.py`` and
+``test_reassembler_calls.py`` count the calls per byte; ``benchmarks/bench_reassembler.py``
+times every kind of junk against random junk.
 
 Accounting: the items ``feed`` returns cover the bytes it consumed contiguously and
 in order (``ProjectFinishedMarker.raw`` is ``EE DD``), so the stream offset of an item is
 the sum of ``len(raw)`` of the items before it; every byte fed is in a frame, an
-event, a discarded run, or the buffer.
-
-Where it lives: this module walks the stream (the buffer between reads, the scan loop,
-the discarded runs and their counters); ``protocol/frame_judge.py`` says what lies at
-each candidate header, by the rules above; ``protocol/candidates.py`` finds the headers
-worth a verdict; ``protocol/frames.py`` holds the items returned (``Frame``,
-``Discarded``), the frame sizes and command bytes; ``protocol/valid_index.py`` the
-answers kept across reads.
+event, a discarded run, or the buffer.  ``protocol/frames.py`` holds the items returned.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable, Sequence
+from itertools import repeat
 
 from motorbus.protocol.base import (
     LA_REPLY_HEADER,
     LA_REQUEST_HEADER,
+    PROJECT_FINISHED_BYTES,
     Direction,
     Family,
     FrameShape,
@@ -103,10 +48,10 @@ from motorbus.protocol.frame_judge import (
     COMPLETE,
     HEADER_FIRST_BYTES,
     INCOMPLETE,
+    REASONS,
     UNEXPECTED,
     WAIT,
     FrameJudge,
-    discard_reason,
 )
 from motorbus.protocol.frames import (
     LA_MAX_FRAME,
@@ -143,6 +88,8 @@ MAX_BUFFER = 1024
 
 #: Builds a NamedTuple item without its Python-level ``__new__`` (the hot path).
 _new = tuple.__new__
+#: A run of ``EE DD`` events.
+_EVENT_RUN = re.compile(b"(?:" + re.escape(PROJECT_FINISHED_BYTES) + b")+").match
 
 
 class Reassembler:
@@ -249,6 +196,8 @@ class Reassembler:
         # The next header that may start a frame (protocol/candidates.py): headers whose
         # command bytes no frame carries are skipped in C, as part of the garbage.
         find = judge.finder.find
+        event_run = _EVENT_RUN
+        reasons = REASONS
         while pos < n:
             if buf[pos] == la_first and pos + 1 < n and buf[pos + 1] == la_second:
                 pos = self._scan_la_only(buf, pos, out)
@@ -262,12 +211,18 @@ class Reassembler:
             state, size, item = parse_at(buf, p, final)
             if state == COMPLETE:
                 assert item is not None
-                out.append(item)
                 if type(item) is Frame:
+                    out.append(item)
                     stats.frames += 1
+                    pos = p + size
                 else:
-                    stats.events += 1
-                pos = p + size
+                    # A run of ``EE DD`` is a run of events (each pair ends where the next
+                    # may start): taken at once, not a verdict per pair.
+                    run = event_run(buf, p)
+                    pos = run.end() if run else p + 2
+                    count = (pos - p) >> 1
+                    out += repeat(item, count)
+                    stats.events += count
             elif state == INCOMPLETE:
                 later = judge.later_valid_frame(buf, p + 1)
                 if later < 0:
@@ -278,7 +233,7 @@ class Reassembler:
                 return p
             else:
                 end = judge.unexpected_run(buf, p) if size == UNEXPECTED else p + 1
-                discard(out, buf[p:end], discard_reason(size))
+                discard(out, buf[p:end], reasons[size])
                 pos = end
         if pos >= n:
             return n

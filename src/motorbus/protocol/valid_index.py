@@ -12,20 +12,8 @@ from __future__ import annotations
 
 import heapq
 from bisect import bisect_left
-from zlib import adler32
 
-__all__ = ["ValidIndex", "sum8_at"]
-
-
-def sum8_at(buf: bytes, start: int, end: int) -> int:
-    """The 8-bit sum of ``buf[start:end]`` (at most 257 bytes), in C.
-
-    ``adler32`` with a start value of 0 sums the bytes modulo 65521; 256 bytes sum to at
-    most 65280, so the first 256 bytes' sum is exact.
-    """
-    if end - start <= 256:
-        return adler32(buf[start:end], 0) & 0xFF
-    return (adler32(buf[start : start + 256], 0) + sum(buf[start + 256 : end])) & 0xFF
+__all__ = ["ValidIndex"]
 
 
 class ValidIndex:
