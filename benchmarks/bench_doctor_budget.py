@@ -26,7 +26,8 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from motorbus import DoctorConfig, diagnose, realtime
+from motorbus import DoctorConfig, diagnose
+from motorbus.runtime import realtime
 from motorbus.sim.process import SimProcess
 
 BAUD = 921600

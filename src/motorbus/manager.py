@@ -26,8 +26,6 @@ from typing import Any
 
 import anyio
 
-from motorbus import guard as guard_process
-from motorbus import realtime, shutdown
 from motorbus.bus.bus import Bus
 from motorbus.bus.lease_shell import send_together
 from motorbus.busfile import (
@@ -45,10 +43,12 @@ from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
-from motorbus.process_groups import ProcessGroup, choose_group
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
-from motorbus.shutdown import deferred_interrupts
+from motorbus.runtime import guard as guard_process
+from motorbus.runtime import realtime, shutdown
+from motorbus.runtime.process_groups import ProcessGroup, choose_group
+from motorbus.runtime.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Stream, Streamer
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import open_transport

@@ -13,7 +13,7 @@ import logging
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from typing import Protocol
 
-from motorbus import shutdown
+from motorbus import lifecycle
 from motorbus.bus import leases as _leases
 from motorbus.bus.leases import Lease, LeaseTable, SafeCommandsForKey
 from motorbus.bus.schedule import Priority
@@ -21,7 +21,14 @@ from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 
-__all__ = ["SAFE_STOP_RETRIES", "LeaseKeeper", "SafeRequest", "raise_unexpected", "send_together"]
+__all__ = [
+    "SAFE_STOP_RETRIES",
+    "LeaseKeeper",
+    "SafeRequest",
+    "raise_unexpected",
+    "send_together",
+    "together",
+]
 
 log = logging.getLogger("motorbus.bus")
 
@@ -205,7 +212,7 @@ class LeaseKeeper:
                     )
             raise_unexpected(results)
 
-        with shutdown.deferred_interrupts():
+        with lifecycle.deferred_interrupts():
             await finish_shielded(asyncio.ensure_future(send_all()))
 
 
@@ -233,6 +240,23 @@ def raise_unexpected(results: Iterable[object]) -> None:
     for result in results:
         if isinstance(result, BaseException) and not isinstance(result, MotorbusError | OSError):
             raise result
+
+
+async def together(
+    awaitables: Sequence[Awaitable[object]], failed: Callable[[int, Exception], None]
+) -> BaseException | None:
+    """Await every one of ``awaitables`` at once, so that a silent device behind one
+    holds up no other's stop.  Each that fails with an ``Exception`` goes to ``failed``
+    (with its index) and stops nothing; the first other ``BaseException`` is returned,
+    for the caller to raise once its own closing is done."""
+    outcomes = await asyncio.gather(*awaitables, return_exceptions=True)
+    interrupted: BaseException | None = None
+    for i, outcome in enumerate(outcomes):
+        if isinstance(outcome, Exception):
+            failed(i, outcome)
+        elif isinstance(outcome, BaseException) and interrupted is None:
+            interrupted = outcome
+    return interrupted
 
 
 async def finish_shielded(fut: asyncio.Future[None]) -> None:

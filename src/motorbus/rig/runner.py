@@ -31,6 +31,7 @@ from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.rig.analysis import (
     RepeatFigures,
@@ -45,7 +46,6 @@ from motorbus.rig.analysis import (
 )
 from motorbus.rig.plan import RigPlan
 from motorbus.rig.sampler import RigAborted, Sampler
-from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import Streamer
 
 __all__ = ["DeviceResult", "Failure", "Progress", "RigResult", "run_rig"]

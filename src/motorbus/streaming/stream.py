@@ -22,8 +22,8 @@ from motorbus.bus.events import BusEvent, Subscription
 from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import StreamEnded
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
-from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GapPolicy,
