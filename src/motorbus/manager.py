@@ -27,7 +27,6 @@ from typing import Any
 import anyio
 
 from motorbus.bus.bus import Bus
-from motorbus.bus.lease_shell import send_together
 from motorbus.busfile import (
     BusSpec,
     DeviceSpec,
@@ -396,23 +395,17 @@ class BusManager:
         """The stop commands of every device on bus ``name``, each with its report entry."""
         spec = self.specs[name]
         bus = self.buses[name]
-        action = SafeAction(spec.la_safe_action)
+        action = SafeAction(spec.la_safe_action).value
         plan: list[tuple[DeviceStop, Command[object]]] = []
         for dev in spec.devices:
-            devices: list[Any]
             try:
-                if dev.kind == "la":
-                    devices = [InspireLA(bus, i) for i in dev.ids]
-                elif dev.kind == "project_stepper":
-                    devices = [ProjectStepper(bus, motor=dev.motor)]
-                else:
-                    devices = [QuadStepper(bus)]
-                for device in devices:
-                    key = f"la:{device.id}" if dev.kind == "la" else dev.kind
-                    commands = (
-                        device.safe_stop_commands(action)
-                        if dev.kind == "la"
-                        else device.safe_stop_commands()
+                # The bus's lease table defines every safe action (the steppers know one
+                # way to stop: pause and e-stop both send it).
+                keys = [f"la:{i}" for i in dev.ids] if dev.kind == "la" else [dev.kind]
+                for key in keys:
+                    motor = dev.motor if dev.kind == "project_stepper" else None
+                    commands = bus.lease_keeper.safe_commands(
+                        key, action if dev.kind == "la" else "pause", motor=motor
                     )
                     for cmd in commands:
                         entry = DeviceStop(name, key, _describe(cmd))
@@ -425,7 +418,8 @@ class BusManager:
     async def _run_stop_plan(
         self, name: str, plan: list[tuple[DeviceStop, Command[object]]]
     ) -> None:
-        results = await send_together(self.buses[name].request, [cmd for _, cmd in plan])
+        keeper = self.buses[name].lease_keeper
+        results = await keeper.send_stop([cmd for _, cmd in plan], who="BusManager")
         for (entry, cmd), result in zip(plan, results, strict=True):
             if isinstance(result, BaseException):
                 entry.outcome, entry.detail = "failed", str(result)

@@ -36,10 +36,14 @@ BUS_ONLY_PROGRAM = textwrap.dedent(
     from motorbus.protocol.base import Family
     from motorbus.transport.serial import open_transport
 
+    def say(when: str) -> None:
+        loaded = "motorbus.runtime.hooks" in sys.modules
+        print(f"runtime {when}: {loaded}", file=sys.stderr, flush=True)
+
     async def main(port: str) -> None:
-        print("runtime before open:", "motorbus.runtime.hooks" in sys.modules, file=sys.stderr, flush=True)
+        say("before open")
         async with Bus(open_transport(port, baudrate=921600), families=[Family.LA]) as bus:
-            print("runtime after open:", "motorbus.runtime.hooks" in sys.modules, file=sys.stderr, flush=True)
+            say("after open")
             await InspireLA(bus, 2).move_to(1500, wait=False)
             print("streaming", flush=True)
             await asyncio.sleep(3600)
@@ -127,8 +131,9 @@ async def test_the_hooks_the_runtime_installs_are_what_the_bus_calls() -> None:
         def realtime_wanted(self) -> bool:
             return False
 
-        def idle(self, budget_s: float) -> None:
+        def idle(self, budget_s: float) -> object:
             calls.append(("idle", budget_s))
+            return None
 
     previous = lifecycle.install(Recording())
     try:

@@ -609,6 +609,11 @@ class Bus(BusEngine):
         )
 
     @property
+    def lease_keeper(self) -> LeaseKeeper:
+        """The one place that defines and sends this bus's safe actions (``stop``)."""
+        return self._lease_keeper
+
+    @property
     def leases(self) -> tuple[LeaseInfo, ...]:
         """Every leased device now: key, owner and the frames of its safe action."""
         return self._leases.snapshot()

@@ -80,10 +80,6 @@ class ProjectStepper:
         """
         await self.bus.release([KEY], hold=hold)
 
-    async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
-        for cmd in commands:
-            await self.bus.request(cmd)
-
     # -- projects ------------------------------------------------------------------
 
     async def upload(

@@ -33,8 +33,8 @@ class RuntimeHooks:
     def realtime_wanted(self) -> bool:
         return realtime.wanted()
 
-    def idle(self, budget_s: float) -> None:
-        realtime.idle_hook(budget_s)
+    #: Called on every stream tick: the function itself, one call (``lifecycle.idle``).
+    idle = staticmethod(realtime.idle_hook)
 
 
 lifecycle.install(RuntimeHooks())
