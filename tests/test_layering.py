@@ -199,6 +199,13 @@ def test_the_library_does_not_import_the_runtime() -> None:
     assert bad == []
 
 
+def test_the_seam_to_the_runtime_is_pure() -> None:
+    # motorbus.lifecycle only holds the hooks; signals and the loop are the runtime's.
+    forbidden = {"asyncio", "anyio", "signal", "threading", "os", "time", "motorbus"}
+    bad = {n.split(".")[0] for n in imports_of(SRC / "lifecycle.py")} & forbidden
+    assert not bad, f"lifecycle.py imports {bad}"
+
+
 def _imported_names(path: Path) -> set[str]:
     """Modules named in ``importlib.import_module("...")`` and ``sys.modules.get("...")``
     calls: the ways around an import statement."""
