@@ -8,11 +8,11 @@ times every collection, by generation and by who ran it:
 
 * ``auto``: the interpreter, in the middle of whatever was allocating - the tick's
   own work, in this process;
-* ``idle``: ``motorbus.realtime.idle_hook()``, called by a side task half-way
+* ``idle``: ``motorbus.runtime.realtime.idle_hook()``, called by a side task half-way
   between ticks (the place the stream loop will call it from).
 
 Mode ``default`` runs as the library does without real-time mode; mode ``realtime``
-calls ``motorbus.realtime.enable()`` first (SCHED_FIFO, mlockall, ``gc.freeze()``,
+calls ``motorbus.runtime.realtime.enable()`` first (SCHED_FIFO, mlockall, ``gc.freeze()``,
 automatic full collections off); mode ``gc-only`` does too, but SCHED_FIFO is refused
 (as on a machine without the right) and memory is not locked, so only the collector
 control differs from ``default``.  Each mode runs in a fresh interpreter.  The claim
@@ -50,8 +50,8 @@ MODES = ("default", "gc-only", "realtime")
 
 
 async def child_run(mode: str, seconds: float) -> dict[str, Any]:
-    from motorbus import realtime
     from motorbus.manager import BusManager
+    from motorbus.runtime import realtime
     from motorbus.sim.process import SimProcess
 
     history: collections.deque[dict[str, Any]] = collections.deque(maxlen=HISTORY_TICKS)

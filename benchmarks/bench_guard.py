@@ -51,9 +51,9 @@ from pathlib import Path
 from typing import Any
 
 from harness import write_report
-from motorbus import guard as guard_process
-from motorbus.guard import REPORT_ENV
 from motorbus.protocol import la
+from motorbus.runtime import guard as guard_process
+from motorbus.runtime.guard import REPORT_ENV
 from motorbus.sim.process import SimProcess
 
 HERE = Path(__file__).resolve().parent

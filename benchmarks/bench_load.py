@@ -5,7 +5,7 @@ README's stream (15 actuators at 10 ms, 0xF3 broadcasts, ``poll_status=True``) r
 processes keep both cores busy, twice in the same run:
 
 * ``plain``: the bus process as it comes (SCHED_OTHER);
-* ``rt``: the bus process under SCHED_FIFO priority 50.  ``motorbus.realtime.enable()``
+* ``rt``: the bus process under SCHED_FIFO priority 50.  ``motorbus.runtime.realtime.enable()``
   is used if this motorbus has it, else ``os.sched_setscheduler`` directly (the report
   says which, under ``rt_method``).
 
@@ -88,7 +88,7 @@ def go_realtime() -> str:
     """Put this process under SCHED_FIFO; return how (or raise OSError)."""
     realtime: Any
     try:
-        from motorbus import realtime
+        from motorbus.runtime import realtime
     except ImportError:
         realtime = None
     if realtime is not None and hasattr(realtime, "enable"):
@@ -99,10 +99,13 @@ def go_realtime() -> str:
         # enable() sets SCHED_FIFO with reset-on-fork (children stay ordinary).
         policy = os.sched_getscheduler(0) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
         if policy == os.SCHED_FIFO:
-            return "motorbus.realtime.enable()"
+            return "motorbus.runtime.realtime.enable()"
         # enable() chose another policy or priority: fall through and set it ourselves.
     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(RT_PRIORITY))
-    return f"os.sched_setscheduler(SCHED_FIFO, {RT_PRIORITY}) (motorbus.realtime not available)"
+    return (
+        f"os.sched_setscheduler(SCHED_FIFO, {RT_PRIORITY}) "
+        "(motorbus.runtime.realtime not available)"
+    )
 
 
 async def stream(path: str, seconds: float) -> dict[str, Any]:

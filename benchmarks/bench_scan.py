@@ -7,7 +7,7 @@ la:100 at the manual's slowest turnaround (800 us every time) and la:254; the ot
 * ``before``: the old scan - one pass, a fixed 10 ms budget per ID;
 * ``after``: the adaptive budget (wire time + 800 us + host allowance, following the
   replies measured) and a second pass over the missing IDs;
-* ``after --realtime``: the same inside ``motorbus.realtime.enable()`` (SCHED_FIFO,
+* ``after --realtime``: the same inside ``motorbus.runtime.realtime.enable()`` (SCHED_FIFO,
   locked memory, GC control), undone afterwards; refused rights are reported.
 
 Each mode runs ``--runs`` times, alternating, on the same simulator.  Reported: scan
@@ -34,11 +34,11 @@ from pathlib import Path
 from typing import Any
 
 from harness import write_report
-from motorbus import realtime
 from motorbus.bus.bus import MIN_SPACING_S, Bus
 from motorbus.devices.la import ScanReport, scan
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, wire_time
+from motorbus.runtime import realtime
 from motorbus.sim.process import SimProcess
 from motorbus.transport.serial import open_transport
 

@@ -1,7 +1,8 @@
 """The dependency direction: errors <- protocol <- transport <- bus <- devices <- streaming
 <- streams <- busfile <- manager <- cli, with the simulator beside the library (protocol
-and transport only), the tools (rig, doctor, dashboard, guard) on top, and the bus
-file's process groups (process_groups: errors and realtime only) below the bus file.
+and transport only), the tools (rig, doctor, dashboard) on top, and the process runtime
+(runtime: signals, the guard, real-time mode, process groups) above the library's core:
+the bus, devices and streams reach it only through the seam ``motorbus.lifecycle``.
 
 Every import between motorbus subpackages points down this list, without exception.
 """
@@ -107,26 +108,24 @@ def test_simulator_models_are_pure() -> None:
             assert not bad, f"sim/{name} imports {bad}"
 
 
-_LIBRARY_BASE = {"errors", "protocol", "validation", "realtime", "shutdown"}
+_LIBRARY_BASE = {"errors", "protocol", "validation", "lifecycle"}
 #: What each part of motorbus may import from the others (its own part always).
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "protocol": {"errors"},
     "validation": {"errors", "protocol"},
-    "realtime": {"errors"},
-    "shutdown": {"errors", "guard"},
-    # transport: only motorbus.transport.usb, to find a usb: URL's adapter when it acts.
-    "guard": {"errors", "protocol", "transport"},
+    "lifecycle": set(),
+    # The process runtime: the guard's transport is motorbus.transport.usb only (to find
+    # a usb: URL's adapter when it acts); shutdown shares the bus's ``together``.
+    "runtime": {"errors", "protocol", "transport", "bus", "lifecycle"},
     "transport": {"errors", "protocol", "validation"},
     "bus": _LIBRARY_BASE | {"transport"},
     "devices": _LIBRARY_BASE | {"transport", "bus"},
     "streaming": _LIBRARY_BASE | {"transport", "bus", "devices"},
     "streams": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming"},
-    "process_groups": {"errors", "realtime"},
-    "busfile": _LIBRARY_BASE
-    | {"transport", "bus", "devices", "streaming", "streams", "process_groups"},
+    "busfile": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams", "runtime"},
     "manager": _LIBRARY_BASE
-    | {"transport", "bus", "devices", "streaming", "streams", "process_groups", "busfile", "guard"},
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "runtime"},
     # Tools built on the library (never imported by it): they use it, and nothing else.
     "rig": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     "doctor": _LIBRARY_BASE
@@ -134,7 +133,7 @@ ALLOWED: dict[str, set[str]] = {
     "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
     # The blocking API: a view of the library, on a thread of its own.
     "blocking": _LIBRARY_BASE
-    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager", "runtime"},
     "sim": {"errors", "protocol", "transport"},
     "serve": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
 }
@@ -172,6 +171,67 @@ def test_every_import_points_down_the_layers() -> None:
         for target in _motorbus_parts(path) - {part} - ALLOWED[part]:
             bad.append(f"{path.relative_to(SRC)} -> {target}")
     assert bad == []
+
+
+#: The library below the process runtime: none of it imports motorbus.runtime (it calls
+#: motorbus.lifecycle, which the runtime fills).
+BELOW_THE_RUNTIME = ("protocol", "transport", "bus", "devices", "streaming", "streams")
+
+
+def test_the_library_does_not_import_the_runtime() -> None:
+    bad = []
+    for part in BELOW_THE_RUNTIME:
+        paths = [SRC / f"{part}.py"] if (SRC / f"{part}.py").exists() else []
+        paths += sorted((SRC / part).rglob("*.py")) if (SRC / part).is_dir() else []
+        assert paths, part
+        for path in paths:
+            names = imports_of(path)
+            tree = ast.parse(path.read_text(encoding="utf-8"))
+            for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom) and node.module == "motorbus":
+                    names |= {f"motorbus.{a.name}" for a in node.names}
+            names |= {n for n in _imported_names(path) if n.startswith("motorbus.")}
+            bad += [
+                f"{path.relative_to(SRC)} -> {n}"
+                for n in sorted(names)
+                if n == "motorbus.runtime" or n.startswith("motorbus.runtime.")
+            ]
+    assert bad == []
+
+
+def test_the_seam_to_the_runtime_is_pure() -> None:
+    # motorbus.lifecycle only holds the hooks; signals and the loop are the runtime's.
+    forbidden = {"asyncio", "anyio", "signal", "threading", "os", "time", "motorbus"}
+    bad = {n.split(".")[0] for n in imports_of(SRC / "lifecycle.py")} & forbidden
+    assert not bad, f"lifecycle.py imports {bad}"
+
+
+def _imported_names(path: Path) -> set[str]:
+    """Modules named in ``importlib.import_module("...")`` and ``sys.modules.get("...")``
+    calls: the ways around an import statement."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if not isinstance(node, ast.Call) or not node.args:
+            continue
+        first = node.args[0]
+        if isinstance(first, ast.Constant) and isinstance(first.value, str):
+            func = ast.unparse(node.func)
+            if func.endswith(("import_module", "__import__", "sys.modules.get")):
+                names.add(first.value)
+    return names
+
+
+def test_the_runtime_layering_test_sees_a_runtime_import(tmp_path: Path) -> None:
+    # The check above would pass on anything if it read imports wrongly.
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "from motorbus import runtime\n"
+        "import importlib\n"
+        "importlib.import_module('motorbus.runtime.shutdown')\n",
+        encoding="utf-8",
+    )
+    assert "motorbus.runtime.shutdown" in _imported_names(sample)
+    assert _motorbus_parts(sample) == {"runtime"}
 
 
 def test_the_bus_imports_no_devices_streams_or_manager() -> None:

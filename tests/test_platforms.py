@@ -14,7 +14,7 @@ import anyio, serial, serial_asyncio_fast
 sys.platform = "win32"
 del signal.SIGHUP
 sys.modules["resource"] = None
-import motorbus, motorbus.shutdown as shutdown, motorbus.realtime
+import motorbus, motorbus.runtime.shutdown as shutdown, motorbus.runtime.realtime
 from motorbus import Bus, BusManager, InspireLA, Streamer, run
 print([s.name for s in shutdown.STOP_SIGNALS])
 """

@@ -36,14 +36,13 @@ def test_all_is_made_from_the_exports_and_every_name_loads() -> None:
 
 
 #: What the command line may import: the package itself, its public modules and,
-#: for the commands that run simulators, ``motorbus.sim`` (``motorbus.guard`` is public:
-#: ``--guard`` starts it).
+#: for the commands that run simulators, ``motorbus.sim`` (the process runtime is public:
+#: ``--guard`` starts its guard, ``--realtime`` its real-time mode).
 PUBLIC = (
     "motorbus.errors",
-    "motorbus.realtime",
+    "motorbus.runtime",
     "motorbus.protocol",
     "motorbus.cli",
-    "motorbus.guard",
 )
 #: Tools built on the library, whose packages export their public names.
 TOOLS = ("motorbus.rig", "motorbus.dashboard", "motorbus.serve")

@@ -13,6 +13,18 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
+
+def _load_runtime() -> None:
+    # Signals, the guard and real-time mode (motorbus.runtime) come with every bus:
+    # motorbus.lifecycle calls this the first time the library needs them (the first
+    # Bus.open), so a program that never imports the runtime still gets its safety.
+    importlib.import_module("motorbus.runtime.hooks")
+
+
+from motorbus import lifecycle as _lifecycle  # noqa: E402 (after the loader it is given)
+
+_lifecycle.set_loader(_load_runtime)
+
 #: The public names and the module each is loaded from on first use, so that
 #: ``import motorbus.protocol`` (sans-I/O) does not pull in asyncio and the serial
 #: backends through this package's __init__.  The one list: ``__all__`` is made from it,
@@ -48,11 +60,11 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     ),
     "motorbus.busfile": ("BusFile", "BusSpec", "default_bus_file", "load_bus_file"),
     "motorbus.manager": ("BusManager", "DeviceStop", "StopReport"),
-    "motorbus.process_groups": ("ProcessGroup",),
+    "motorbus.runtime.process_groups": ("ProcessGroup",),
     "motorbus.protocol.base": ("Family",),
-    "motorbus.realtime": ("RealtimeReport",),
+    "motorbus.runtime.realtime": ("RealtimeReport",),
     "motorbus.serve.client": ("connect",),
-    "motorbus.shutdown": ("install_signal_handlers", "run"),
+    "motorbus.runtime.shutdown": ("install_signal_handlers", "run"),
     "motorbus.streams": ("PERIOD_MAX_S", "PERIOD_MIN_S", "SafeAction", "Stream", "Streamer"),
     "motorbus.transport.base": ("DataCallback", "LostCallback", "Transport", "TransportStats"),
     "motorbus.transport.serial": ("BACKENDS", "DEFAULT_BACKEND", "open_transport"),
@@ -107,12 +119,12 @@ if TYPE_CHECKING:
     from motorbus.manager import BusManager as BusManager
     from motorbus.manager import DeviceStop as DeviceStop
     from motorbus.manager import StopReport as StopReport
-    from motorbus.process_groups import ProcessGroup as ProcessGroup
     from motorbus.protocol.base import Family as Family
-    from motorbus.realtime import RealtimeReport as RealtimeReport
+    from motorbus.runtime.process_groups import ProcessGroup as ProcessGroup
+    from motorbus.runtime.realtime import RealtimeReport as RealtimeReport
+    from motorbus.runtime.shutdown import install_signal_handlers as install_signal_handlers
+    from motorbus.runtime.shutdown import run as run
     from motorbus.serve.client import connect as connect
-    from motorbus.shutdown import install_signal_handlers as install_signal_handlers
-    from motorbus.shutdown import run as run
     from motorbus.streams import PERIOD_MAX_S as PERIOD_MAX_S
     from motorbus.streams import PERIOD_MIN_S as PERIOD_MIN_S
     from motorbus.streams import SafeAction as SafeAction

@@ -74,7 +74,7 @@ group may have a table of its own:
                     buses is refused: it is a typo)
 cpus                list of distinct CPU numbers 0..N-1 (N: ``os.cpu_count()`` of the
                     machine loading the file), at least one; on open, every thread of
-                    the program runs on them (:func:`motorbus.realtime.pin`; Linux),
+                    the program runs on them (:func:`motorbus.runtime.realtime.pin`; Linux),
                     and closing the buses gives the threads their CPUs back
 ==================  ===============================================================
 
@@ -103,17 +103,17 @@ from motorbus.devices.calibration import (
     parse_named,
 )
 from motorbus.errors import LocalProtocolError
-from motorbus.process_groups import (
-    ProcessGroup,
-    check_group_name,
-    check_group_table,
-    choose_group,
-)
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Family, check_flag, check_int
 from motorbus.protocol.families import FAMILIES, STEPPER_DEFAULT_BAUD
 from motorbus.protocol.ids import IdListError, parse_id_items
+from motorbus.runtime.process_groups import (
+    ProcessGroup,
+    check_group_name,
+    check_group_table,
+    choose_group,
+)
 from motorbus.streams import SafeAction
 from motorbus.transport.serial import BACKENDS
 from motorbus.transport.usb import is_usb_url, parse_usb_url

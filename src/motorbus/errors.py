@@ -255,7 +255,7 @@ class ProjectInvalidError(MotorbusError):
 
 
 class GuardError(MotorbusError):
-    """The guard process (``motorbus.guard``) cannot watch this program: no pidfds on
+    """The guard process (``motorbus.runtime.guard``) cannot watch this program: no pidfds on
     this system (not Linux 5.3+), or the process did not start."""
 
 

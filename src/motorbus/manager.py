@@ -26,10 +26,7 @@ from typing import Any
 
 import anyio
 
-from motorbus import guard as guard_process
-from motorbus import realtime, shutdown
 from motorbus.bus.bus import Bus
-from motorbus.bus.lease_shell import send_together
 from motorbus.busfile import (
     BusSpec,
     DeviceSpec,
@@ -45,10 +42,12 @@ from motorbus.devices.la import InspireLA
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
-from motorbus.process_groups import ProcessGroup, choose_group
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
-from motorbus.shutdown import deferred_interrupts
+from motorbus.runtime import guard as guard_process
+from motorbus.runtime import realtime, shutdown
+from motorbus.runtime.process_groups import ProcessGroup, choose_group
+from motorbus.runtime.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Stream, Streamer
 from motorbus.transport.base import Transport
 from motorbus.transport.serial import open_transport
@@ -396,23 +395,17 @@ class BusManager:
         """The stop commands of every device on bus ``name``, each with its report entry."""
         spec = self.specs[name]
         bus = self.buses[name]
-        action = SafeAction(spec.la_safe_action)
+        action = SafeAction(spec.la_safe_action).value
         plan: list[tuple[DeviceStop, Command[object]]] = []
         for dev in spec.devices:
-            devices: list[Any]
             try:
-                if dev.kind == "la":
-                    devices = [InspireLA(bus, i) for i in dev.ids]
-                elif dev.kind == "project_stepper":
-                    devices = [ProjectStepper(bus, motor=dev.motor)]
-                else:
-                    devices = [QuadStepper(bus)]
-                for device in devices:
-                    key = f"la:{device.id}" if dev.kind == "la" else dev.kind
-                    commands = (
-                        device.safe_stop_commands(action)
-                        if dev.kind == "la"
-                        else device.safe_stop_commands()
+                # The bus's lease table defines every safe action (the steppers know one
+                # way to stop: pause and e-stop both send it).
+                keys = [f"la:{i}" for i in dev.ids] if dev.kind == "la" else [dev.kind]
+                for key in keys:
+                    motor = dev.motor if dev.kind == "project_stepper" else None
+                    commands = bus.lease_keeper.safe_commands(
+                        key, action if dev.kind == "la" else "pause", motor=motor
                     )
                     for cmd in commands:
                         entry = DeviceStop(name, key, _describe(cmd))
@@ -425,7 +418,8 @@ class BusManager:
     async def _run_stop_plan(
         self, name: str, plan: list[tuple[DeviceStop, Command[object]]]
     ) -> None:
-        results = await send_together(self.buses[name].request, [cmd for _, cmd in plan])
+        keeper = self.buses[name].lease_keeper
+        results = await keeper.send_stop([cmd for _, cmd in plan], who="BusManager")
         for (entry, cmd), result in zip(plan, results, strict=True):
             if isinstance(result, BaseException):
                 entry.outcome, entry.detail = "failed", str(result)

@@ -59,13 +59,13 @@ import math
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from motorbus import realtime
+from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
-from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.budget import StreamBudget, tick_cost
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
@@ -390,11 +390,11 @@ class Streamer:
             await self._serve_tick(due, deadline)
             if self.streams:
                 # Idle time until the next tick: where real-time mode runs the garbage
-                # collector's full collections (a no-op otherwise; motorbus.realtime).
+                # collector's full collections (a no-op otherwise; motorbus.lifecycle.idle).
                 upcoming = min(s.origin + s.next_tick * s.period for s in self.streams)
                 idle = upcoming - PREPARE_S - timer.now()
                 if idle > 0:
-                    realtime.idle_hook(idle)
+                    lifecycle.idle(idle)
 
     async def _serve_tick(self, due: list[Stream], deadline: float) -> None:
         """Prepare the tick's frames ahead of ``deadline``, send them at it, then

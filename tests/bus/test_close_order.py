@@ -152,8 +152,8 @@ async def test_stop_everything_closes_the_buses_together() -> None:
     """The way out of ``motorbus.run`` (a signal): two buses, and la:1 on bus A does not
     answer, so its pause is retried after a long late guard (0.5 s).  Bus B's pause
     does not wait for bus A's retries."""
-    from motorbus import shutdown
     from motorbus.errors import ReplyTimeoutError
+    from motorbus.runtime import shutdown
     from motorbus.sim.la import LAModel
 
     with (

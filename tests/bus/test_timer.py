@@ -547,7 +547,7 @@ def test_one_loop_turn_re_arms_the_timerfd_once_for_all_its_changes(
 @pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
 async def test_the_timerfd_timer_spins_only_where_asked(monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 40: no spin by default; real-time mode or MOTORBUS_TIMER_SPIN_US asks for it."""
-    from motorbus import realtime
+    from motorbus.runtime import realtime
 
     monkeypatch.delenv("MOTORBUS_TIMER_SPIN_US", raising=False)
     monkeypatch.delenv(realtime.ENV_VAR, raising=False)

@@ -89,7 +89,7 @@ def test_la_status_imports_the_la_command_only(tmp_path: Path) -> None:
     for name in (
         "aiohttp",
         "motorbus.dashboard",
-        "motorbus.guard",  # only with --guard
+        "motorbus.runtime.guard",  # only with --guard
         "motorbus.busfile",  # only when a bus file applies
         "motorbus.protocol.project_stepper",
         "motorbus.protocol.quad_stepper",

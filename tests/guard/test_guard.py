@@ -13,10 +13,16 @@ from typing import Any
 
 import pytest
 
-from motorbus import guard as guard_process
 from motorbus.errors import GuardError, LocalProtocolError
-from motorbus.guard import GuardDevice, GuardPort, GuardState, port_message, send_safe_frames
 from motorbus.protocol import la
+from motorbus.runtime import guard as guard_process
+from motorbus.runtime.guard import (
+    GuardDevice,
+    GuardPort,
+    GuardState,
+    port_message,
+    send_safe_frames,
+)
 from motorbus.sim.process import SimProcess
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -265,7 +271,7 @@ def test_sigkill_without_the_guard_leaves_motion_as_the_last_frame(
 
 def test_a_clean_end_lets_the_guard_go_without_sending_anything(tmp_path: Path) -> None:
     code = (
-        "import motorbus, motorbus.guard as g\n"
+        "import motorbus, motorbus.runtime.guard as g\n"
         "async def main():\n"
         "    guard = g.active_guard()\n"
         "    print(guard.proc.pid, flush=True)\n"

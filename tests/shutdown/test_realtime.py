@@ -1,4 +1,4 @@
-"""``motorbus.realtime``: what enable() applies, what it does when refused, GC control,
+"""``motorbus.runtime.realtime``: what enable() applies, what it does when refused, GC control,
 ``MOTORBUS_REALTIME`` and ``--realtime``.
 
 This sandbox runs as root, so the real ``enable()`` succeeds here: the tests that call
@@ -22,12 +22,12 @@ from typing import Any
 
 import pytest
 
-from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState
 from motorbus.bus.timer import default_timer
 from motorbus.cli.main import build_parser
 from motorbus.errors import LocalProtocolError
 from motorbus.manager import BusManager
+from motorbus.runtime import realtime
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from tests.helpers import affinities, affinity_kept
@@ -68,7 +68,7 @@ def test_enable_applies_everything_and_disable_undoes_it() -> None:
     r = run_child(
         """
         import gc, json, os
-        from motorbus import realtime
+        from motorbus.runtime import realtime
         threshold = gc.get_threshold()
         report = realtime.enable(60, cpus=[0])
         during = {
@@ -117,7 +117,7 @@ def test_a_child_process_of_a_realtime_process_is_an_ordinary_one() -> None:
     r = run_child(
         """
         import json, os, subprocess, sys
-        from motorbus import realtime
+        from motorbus.runtime import realtime
         report = realtime.enable(lock_memory=False, freeze_gc=False)
         child = subprocess.run([sys.executable, "-c", "import os; print(os.sched_getscheduler(0))"],
                                capture_output=True, text=True).stdout.strip()
@@ -327,7 +327,7 @@ def test_collect_when_idle_defers_a_collection_that_does_not_fit(
 # reach the old generation), and an idle call between ticks.
 GC_WORKLOAD = """
     import gc, json, os
-    from motorbus import realtime
+    from motorbus.runtime import realtime
     os.sched_setscheduler = lambda *args: None  # GC control only: no SCHED_FIFO here
     if {controlled}:
         realtime.enable(lock_memory=False)

@@ -10,8 +10,8 @@ from typing import Any
 
 import pytest
 
-from motorbus import shutdown
-from motorbus.shutdown import deferred_interrupts, install_signal_handlers
+from motorbus.runtime import shutdown
+from motorbus.runtime.shutdown import deferred_interrupts, install_signal_handlers
 
 
 def test_ctrl_c_inside_a_safe_stop_is_delivered_after_it() -> None:

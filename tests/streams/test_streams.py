@@ -9,10 +9,10 @@ import math
 
 import pytest
 
-from motorbus import realtime
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
+from motorbus.runtime import realtime
 from motorbus.sim.bus import Pacing
 from motorbus.sim.la import LAModel
 from motorbus.streams import SafeAction, StreamEnded, Streamer

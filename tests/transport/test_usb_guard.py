@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from motorbus.guard import GuardDevice, GuardPort, send_safe_frames
+from motorbus.runtime.guard import GuardDevice, GuardPort, send_safe_frames
 from motorbus.transport import usb
 from tests.transport.fake_sysfs import CH340, FT232R, FakeSysfs
 from tests.transport.test_serial_transport import Pty

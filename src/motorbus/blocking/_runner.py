@@ -9,7 +9,7 @@ Safe ends (docs/blocking.md):
 
 * ``KeyboardInterrupt`` (Ctrl-C) while a blocking call waits: the call is cancelled,
   every bus and ``BusManager`` open on this loop is closed safely
-  (``motorbus.shutdown.stop_everything``: streams stop, leases get their safe action,
+  (``motorbus.runtime.shutdown.stop_everything``: streams stop, leases get their safe action,
   ports close), then the interrupt is raised again.  A further Ctrl-C during that
   stop is logged and absorbed (the stop takes milliseconds and must finish).
 * Interpreter exit (``atexit``): the same stop for whatever is still open.
@@ -27,7 +27,7 @@ from typing import Any, TypeVar
 
 from motorbus.blocking._signals import protect
 from motorbus.errors import BusClosedError, WrongLoopError
-from motorbus.shutdown import STOP_EVERYTHING_TIMEOUT_S, stop_everything
+from motorbus.runtime.shutdown import STOP_EVERYTHING_TIMEOUT_S, stop_everything
 
 __all__ = ["Runner", "runner"]
 

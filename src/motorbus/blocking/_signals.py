@@ -2,7 +2,7 @@
 signal would.
 
 An asyncio program gets this from motorbus while a bus is open
-(``motorbus.shutdown``); a blocking program's loop runs on a thread of its own, where
+(``motorbus.runtime.shutdown``); a blocking program's loop runs on a thread of its own, where
 Python delivers no signals, so the first blocking bus opened from the main thread
 installs these handlers there, for the signals whose disposition is still the default
 (a program's own handlers are left alone; ``MOTORBUS_SIGNALS=0`` leaves every signal
@@ -32,7 +32,7 @@ _stopping = False
 
 
 def _enabled() -> bool:
-    # The same switch as motorbus.shutdown's: MOTORBUS_SIGNALS=0 keeps motorbus away.
+    # The same switch as motorbus.runtime.shutdown's: MOTORBUS_SIGNALS=0 keeps motorbus away.
     return os.environ.get("MOTORBUS_SIGNALS", "1").strip() not in ("0", "off", "no", "false")
 
 

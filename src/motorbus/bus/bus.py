@@ -56,11 +56,11 @@ from collections.abc import Awaitable, Callable, Iterable, Mapping
 from types import MappingProxyType, TracebackType
 from typing import Any, TypeVar
 
-from motorbus import realtime, shutdown
+from motorbus import lifecycle
 from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refresh
 from motorbus.bus.engine import PreparedSubmit as PreparedSubmit
 from motorbus.bus.events import BusStateChanged
-from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded
+from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded, together
 from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.bus.occupancy import (
     BusTiming,
@@ -214,10 +214,10 @@ class Bus(BusEngine):
         self._stopping = False
         self._loop = asyncio.get_running_loop()
         self._new_reassembler()
-        realtime.on_bus_open()  # MOTORBUS_REALTIME / --realtime, once per process
+        lifecycle.bus_opening(self)  # the runtime: MOTORBUS_REALTIME / --realtime
         await self.transport.open(self._on_data, self._on_lost)
         self.state = BusState.OPEN
-        shutdown.register_bus(self)
+        lifecycle.bus_opened(self)  # the runtime: SIGTERM/SIGHUP, a running guard
         self._check_adapter_latency()
         self._publish_state("open")
 
@@ -251,7 +251,7 @@ class Bus(BusEngine):
 
         Idempotent, and safe to call from several tasks at once (they all wait for the
         one close).  Ctrl-C during the safe stop is deferred until it is done
-        (``motorbus.shutdown.deferred_interrupts``).
+        (``motorbus.lifecycle.deferred_interrupts``).
         """
         task = self._close_task
         if task is None:
@@ -264,7 +264,7 @@ class Bus(BusEngine):
 
     async def _close(self) -> None:
         interrupted: BaseException | None = None  # a hook's, raised once the port closed
-        with shutdown.deferred_interrupts():
+        with lifecycle.deferred_interrupts():
             # From here no motion is queued or sent: what is queued is dropped unsent,
             # what is submitted is refused, so nothing can follow the safe stops.
             self._stopping = True
@@ -276,7 +276,7 @@ class Bus(BusEngine):
                     log.error("bus %s: a close hook failed: %s", self.name, err)
 
                 hooks = [hook() for hook in list(self._close_hooks)]
-                interrupted = await shutdown.together(hooks, failed)
+                interrupted = await together(hooks, failed)
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
             self._drop_queued_motion()
@@ -295,7 +295,7 @@ class Bus(BusEngine):
         try:
             await self.transport.close()
         finally:
-            shutdown.unregister_bus(self)
+            lifecycle.bus_closed(self)
             if self.state is not BusState.CLOSED:
                 self.state = BusState.CLOSED
                 self._publish_state("closed")
@@ -607,6 +607,11 @@ class Bus(BusEngine):
             bind=check_flag("bind", bind),
             safe_commands=safe_commands,
         )
+
+    @property
+    def lease_keeper(self) -> LeaseKeeper:
+        """The one place that defines and sends this bus's safe actions (``stop``)."""
+        return self._lease_keeper
 
     @property
     def leases(self) -> tuple[LeaseInfo, ...]:

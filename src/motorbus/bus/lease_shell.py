@@ -1,9 +1,14 @@
-"""The bus's side of the leases: acquiring for an owner, the rule at submit, and sending
-the safe actions when leases end (``motorbus.bus.leases`` is the pure table).
+"""The bus's side of the leases: acquiring for an owner, the rule at submit, and the one
+place that defines and sends safe actions (``motorbus.bus.leases`` is the pure table).
 
-``Bus`` holds one ``LeaseKeeper`` and calls it from two places: ``submit`` (``claim``,
-for every command that starts motion) and ``close`` (``end_all``, after the streams
-stopped and before the port closes).
+``Bus`` holds one ``LeaseKeeper`` (``bus.lease_keeper``) and calls it from two places:
+``submit`` (``claim``, for every command that starts motion) and ``close``
+(``end_all``, after the streams stopped and before the port closes).  Every other
+ending asks it too, never building stop frames of its own: a stream's end and the rig
+(``stop``), ``BusManager.stop_all_devices`` (``safe_commands`` for its report, then
+``send_stop``), the dashboard's close (``stop``); ``motorbus.runtime.shutdown`` closes
+the buses and managers (so ``end_all`` and the manager), and the guard process sends
+the frames the table publishes (``bus.leases``' ``safe_frames``).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ import logging
 from collections.abc import Awaitable, Callable, Iterable, Sequence
 from typing import Protocol
 
-from motorbus import shutdown
+from motorbus import lifecycle
 from motorbus.bus import leases as _leases
 from motorbus.bus.leases import Lease, LeaseTable, SafeCommandsForKey
 from motorbus.bus.schedule import Priority
@@ -21,7 +26,14 @@ from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 
-__all__ = ["SAFE_STOP_RETRIES", "LeaseKeeper", "SafeRequest", "raise_unexpected", "send_together"]
+__all__ = [
+    "SAFE_STOP_RETRIES",
+    "LeaseKeeper",
+    "SafeRequest",
+    "raise_unexpected",
+    "send_together",
+    "together",
+]
 
 log = logging.getLogger("motorbus.bus")
 
@@ -138,6 +150,67 @@ class LeaseKeeper:
         hold = check_flag("hold", hold)
         await self.send_safe(self.table.release(lease, hold=hold, keys=keys))
 
+    def safe_commands(
+        self, key: str, action: str = "pause", *, motor: int | None = None
+    ) -> tuple[Command[object], ...]:
+        """The commands of safe action ``action`` for device ``key``, in order: the same
+        the table owes for a lease's end (``motorbus.protocol.safety``).  ``motor``: a
+        project stepper's motor byte (default 0x03).
+
+        Raises:
+            LocalProtocolError: a bad key or action, or a family this bus does not carry.
+        """
+        action = safety.check_safe_action(action)
+        family = safety.family_of_key(safety.check_key(key))
+        if family not in self.families:
+            raise LocalProtocolError(
+                f"key {key!r} is a {family.value} device; bus {self.name} carries "
+                f"{', '.join(sorted(f.value for f in self.families))}",
+                field="key",
+                value=key,
+            )
+        if motor is None:
+            return self._safe_for[action](key)
+        return safety.safe_stop_commands(key, action, motor=motor)
+
+    async def stop(
+        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
+    ) -> list[object]:
+        """Bring ``keys`` to the safe state ``action`` now (``send_stop`` of their
+        ``safe_commands``); an unexpected error (a bug) is raised once all went.
+        Returns each command's result or exception, in order."""
+        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
+        results = await self.send_stop(commands, who=who)
+        raise_unexpected(results)
+        return results
+
+    def stop_soon(
+        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
+    ) -> asyncio.Task[list[object]]:
+        """``stop`` from synchronous code (an observer's callback): the commands are
+        made now (a bad key raises here) and sent by a task of the running loop, which
+        is returned (keep it; its failures are logged like ``send_stop``'s)."""
+        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
+        return asyncio.get_running_loop().create_task(self.send_stop(commands, who=who))
+
+    async def send_stop(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
+        """Send safe-action commands now, all at once (``send_together``); a failure is
+        logged (as ``who``'s) and stops none of the others.  Returns each command's
+        result or the exception it failed with, in order.  The caller decides about
+        cancellation (``send_safe`` runs to the end however often it is cancelled)."""
+        results = await send_together(self._request, commands)
+        for cmd, result in zip(commands, results, strict=True):
+            if isinstance(result, BaseException):
+                log.warning(
+                    "bus %s: %s: safe action %s to %s failed: %s",
+                    self.name,
+                    who,
+                    type(cmd).__name__,
+                    cmd.device_key,
+                    result,
+                )
+        return results
+
     async def end_all(self) -> None:
         """End every lease still held, with its safe action (the bus is closing)."""
         table = self.table
@@ -153,16 +226,7 @@ class LeaseKeeper:
         owed, self.owed = self.owed, []
         if not owed:
             return
-        results = await send_together(self._request, owed)
-        for cmd, result in zip(owed, results, strict=True):
-            if isinstance(result, BaseException):
-                log.warning(
-                    "bus %s: owed safe action %s to %s failed: %s",
-                    self.name,
-                    type(cmd).__name__,
-                    cmd.device_key,
-                    result,
-                )
+        await self.send_stop(owed, who="owed since the port was lost")
 
     async def send_safe(self, commands: list[Command[object]]) -> None:
         """Send safe-action commands, one failure not stopping the rest.
@@ -193,19 +257,9 @@ class LeaseKeeper:
             return
 
         async def send_all() -> None:
-            results = await send_together(self._request, commands)
-            for cmd, result in zip(commands, results, strict=True):
-                if isinstance(result, BaseException):
-                    log.warning(
-                        "bus %s: safe action %s to %s failed: %s",
-                        self.name,
-                        type(cmd).__name__,
-                        cmd.device_key,
-                        result,
-                    )
-            raise_unexpected(results)
+            raise_unexpected(await self.send_stop(commands, who="a lease ended"))
 
-        with shutdown.deferred_interrupts():
+        with lifecycle.deferred_interrupts():
             await finish_shielded(asyncio.ensure_future(send_all()))
 
 
@@ -233,6 +287,23 @@ def raise_unexpected(results: Iterable[object]) -> None:
     for result in results:
         if isinstance(result, BaseException) and not isinstance(result, MotorbusError | OSError):
             raise result
+
+
+async def together(
+    awaitables: Sequence[Awaitable[object]], failed: Callable[[int, Exception], None]
+) -> BaseException | None:
+    """Await every one of ``awaitables`` at once, so that a silent device behind one
+    holds up no other's stop.  Each that fails with an ``Exception`` goes to ``failed``
+    (with its index) and stops nothing; the first other ``BaseException`` is returned,
+    for the caller to raise once its own closing is done."""
+    outcomes = await asyncio.gather(*awaitables, return_exceptions=True)
+    interrupted: BaseException | None = None
+    for i, outcome in enumerate(outcomes):
+        if isinstance(outcome, Exception):
+            failed(i, outcome)
+        elif isinstance(outcome, BaseException) and interrupted is None:
+            interrupted = outcome
+    return interrupted
 
 
 async def finish_shielded(fut: asyncio.Future[None]) -> None:

@@ -36,6 +36,8 @@ import weakref
 from collections.abc import Callable
 from typing import Any
 
+from motorbus import lifecycle
+
 __all__ = [
     "LoopTimer",
     "Timer",
@@ -66,9 +68,7 @@ def spin_asked() -> bool:
     setting = os.environ.get(SPIN_ENV_VAR)
     if setting:
         return float(setting) > 0
-    from motorbus import realtime  # the bus package imports it too: not at module load
-
-    return realtime.wanted()
+    return lifecycle.realtime_wanted()
 
 
 class TimerHandle:
@@ -493,7 +493,7 @@ class TimerfdTimer(Timer):
     (benchmarks/bench_wakeups.py).  Never early.
 
     Spinning is only on request: real-time mode (``--realtime``, ``MOTORBUS_REALTIME``,
-    ``motorbus.realtime.enable``, on or asked for when the timer is made), the
+    ``motorbus.runtime.realtime.enable``, on or asked for when the timer is made), the
     environment variable ``MOTORBUS_TIMER_SPIN_US`` (the longest lead in us; 0 keeps it
     off), or ``spin_lead=``.  The fd then fires ``spin_lead`` seconds before a precise
     deadline (a lead of 60-500 us that follows the recent lateness of precise deadlines'

@@ -17,7 +17,7 @@ before the port opens, so bad input never puts a byte on the wire.
 The commands that serve buses for a while (``stream``, ``monitor``, ``dashboard``) also
 take ``--process NAME``: the bus is chosen among that process group's buses (the only
 one needs no ``--bus``), and the command runs on the group's ``cpus`` while its bus is
-open (:mod:`motorbus.process_groups`).
+open (:mod:`motorbus.runtime.process_groups`).
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ from motorbus import (
     Bus,
     Transport,
     open_transport,
-    realtime,
 )
 from motorbus.cli.main import UsageError
 from motorbus.cli.output import add_json_option
@@ -45,6 +44,7 @@ from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import PortInUseError
 from motorbus.protocol.base import Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
+from motorbus.runtime import realtime
 
 if TYPE_CHECKING:
     from motorbus import BusSpec, ProcessGroup
@@ -105,7 +105,7 @@ _GROUP_ATTR = "process_group"
 GUARD_HELP = (
     "start a guard process (Linux) that sends the safe action to every device this "
     "command moves if the command is killed outright (SIGKILL, the OOM killer); "
-    "see motorbus.guard"
+    "see motorbus.runtime.guard"
 )
 
 

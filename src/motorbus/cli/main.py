@@ -238,7 +238,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_USAGE
     try:
-        with _guarded(getattr(args, "guard", False)):  # --guard: see motorbus.guard
+        with _guarded(getattr(args, "guard", False)):  # --guard: see motorbus.runtime.guard
             code: int = func(args)
         sys.stdout.flush()  # a closed pipe shows here, inside the handler below
         return code
@@ -289,10 +289,11 @@ def _port_of(args: argparse.Namespace) -> str | None:
 
 
 def _guarded(enabled: bool) -> contextlib.AbstractContextManager[object]:
-    """``motorbus.guard.guarded(enabled)``, imported only for ``--guard`` (start-up time)."""
+    """``motorbus.runtime.guard.guarded(enabled)``, imported only for ``--guard``
+    (start-up time)."""
     if not enabled:
         return contextlib.nullcontext()
-    from motorbus.guard import guarded
+    from motorbus.runtime.guard import guarded
 
     return guarded(True)
 

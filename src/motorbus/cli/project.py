@@ -79,7 +79,7 @@ __all__ = [
 UPLOAD_GUARD_HELP = (
     "start a guard process (Linux) that clears the project (0x1E) if the upload is "
     "killed outright part way (SIGKILL, the OOM killer), so that the half-written "
-    "project is refused instead of run; see motorbus.guard"
+    "project is refused instead of run; see motorbus.runtime.guard"
 )
 #: ``repeat = "forever"`` is stored as 255 (A.4 0x8E).
 REPEAT_FOREVER_NAME = "forever"

@@ -1,7 +1,7 @@
 """``--realtime[=PRIO]``: real-time mode for a command that talks to a bus.
 
 ``add_realtime_option(parser)`` adds the option; giving it asks
-:mod:`motorbus.realtime` for SCHED_FIFO at ``PRIO`` (default 50), locked memory and
+:mod:`motorbus.runtime.realtime` for SCHED_FIFO at ``PRIO`` (default 50), locked memory and
 garbage-collector control when the command's bus opens.  What the system refuses is
 said in one warning line, and the command carries on.  ``MOTORBUS_REALTIME`` does the
 same from the environment; the option wins.
@@ -13,7 +13,7 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
-from motorbus import realtime
+from motorbus.runtime import realtime
 
 __all__ = ["add_realtime_option", "parse_priority"]
 

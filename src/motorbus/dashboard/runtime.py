@@ -27,12 +27,8 @@ from typing import Any
 
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.events import BusEvent, Subscription
-from motorbus.bus.lease_shell import SAFE_STOP_RETRIES
 from motorbus.dashboard.record import Recorder
 from motorbus.dashboard.state import DashboardState
-from motorbus.devices.la import InspireLA
-from motorbus.devices.project_stepper import ProjectStepper
-from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import ControlError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
@@ -196,24 +192,24 @@ class Dashboard:
         """Send the safe action of its bus to every actuator the dashboard moved (on
         ``bus`` only, if given); bounded by ``STOP_TIMEOUT_S``."""
         moved = sorted(m for m in self.moved if bus is None or m[0] == bus)
-        plan: list[tuple[Bus, Command[object]]] = []
+        keys: dict[str, list[str]] = {}
         for name, ident in moved:
-            s = self.setups[name]
-            for cmd in InspireLA(s.bus, ident).safe_stop_commands(s.la_safe_action):
-                plan.append((s.bus, cmd))
+            keys.setdefault(name, []).append(f"la:{ident}")
         self.moved.difference_update(moved)
-        if not plan:
+        if not keys:
             return
 
-        async def send(target: Bus, cmd: Command[object]) -> None:
+        async def stop(name: str) -> None:
+            # The bus's lease table defines and sends the safe action (failures logged).
+            s = self.setups[name]
             try:
-                await target.request(cmd, priority=Priority.EMERGENCY, retries=SAFE_STOP_RETRIES)
+                await s.bus.lease_keeper.stop(keys[name], s.la_safe_action, who="dashboard")
             except Exception as err:
-                log.error("safe stop on %s: %r failed: %s", target.name, cmd, err)
+                log.error("safe stop on %s failed: %s", name, err)
 
         try:
             async with asyncio.timeout(STOP_TIMEOUT_S):
-                await asyncio.gather(*(send(b, c) for b, c in plan))
+                await asyncio.gather(*(stop(name) for name in keys))
         except TimeoutError:
             log.error("safe stop not confirmed within %.0f s", STOP_TIMEOUT_S)
 
@@ -335,12 +331,15 @@ class Dashboard:
             for i in ids:
                 plan.append((name, la.Control(i, sub), priority, f"la:{i}"))
             if one is None and action in ("estop", "pause"):
+                # The steppers' stop, as the bus's lease table defines it.
+                keeper = s.bus.lease_keeper
                 if s.project_motor is not None:
-                    for cmd in ProjectStepper(s.bus, motor=s.project_motor).safe_stop_commands():
-                        plan.append((name, cmd, priority, "project_stepper"))
+                    key = "project_stepper"
+                    for cmd in keeper.safe_commands(key, motor=s.project_motor):
+                        plan.append((name, cmd, priority, key))
                 if s.quad:
-                    for qcmd in QuadStepper(s.bus).safe_stop_commands():
-                        plan.append((name, qcmd, priority, "quad_stepper"))
+                    for cmd in keeper.safe_commands("quad_stepper"):
+                        plan.append((name, cmd, priority, "quad_stepper"))
         where = f"{bus}/la:{ident}" if ident is not None else (bus or "all buses")
         log.warning("dashboard control %s on %s from %s", action, where, source)
         for name in {p[0] for p in plan}:

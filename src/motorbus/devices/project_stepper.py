@@ -21,10 +21,10 @@ from motorbus.errors import (
     RemoteProtocolError,
     ReplyTimeoutError,
 )
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
-from motorbus.shutdown import deferred_interrupts
 
 __all__ = ["ProjectInvalidError", "ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 
@@ -79,10 +79,6 @@ class ProjectStepper:
             LeaseConflictError: an explicit lease holds the controller (release that).
         """
         await self.bus.release([KEY], hold=hold)
-
-    async def _send_all(self, commands: list[ps.ProjectStepperCommand[object]]) -> None:
-        for cmd in commands:
-            await self.bus.request(cmd)
 
     # -- projects ------------------------------------------------------------------
 

@@ -28,9 +28,9 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from motorbus.bus.bus import Bus, Priority
-from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.rig.analysis import (
     RepeatFigures,
@@ -45,7 +45,6 @@ from motorbus.rig.analysis import (
 )
 from motorbus.rig.plan import RigPlan
 from motorbus.rig.sampler import RigAborted, Sampler
-from motorbus.shutdown import deferred_interrupts
 from motorbus.streams import Streamer
 
 __all__ = ["DeviceResult", "Failure", "Progress", "RigResult", "run_rig"]
@@ -487,13 +486,9 @@ class _Rig:
 
 async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:
     # Every actuator gets its pause, whatever another's did (a timeout means the pause
-    # was written and only its status reply is missing), none held up by another's.
-    pauses = [la.Control(ident, la.ControlAction.PAUSE) for ident in ids]
-    results = await send_together(bus.request, pauses)
-    for ident, result in zip(ids, results, strict=True):
-        if isinstance(result, BaseException):
-            log.warning("rig: pause of la:%d failed: %s", ident, result)
-    raise_unexpected(results)
+    # was written and only its status reply is missing), none held up by another's:
+    # the bus's lease table defines and sends it.
+    await bus.lease_keeper.stop([f"la:{i}" for i in ids], "pause", who="rig")
 
 
 async def run_rig(

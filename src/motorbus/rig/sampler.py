@@ -47,6 +47,7 @@ class Sampler:
         self.poll_timeouts = 0
         self._poll_ids: tuple[int, ...] = ()
         self._task: asyncio.Task[None] | None = None
+        self._pausing: asyncio.Task[list[object]] | None = None
 
     # -- BusObserver ------------------------------------------------------------
 
@@ -81,11 +82,10 @@ class Sampler:
         if self.stream is not None:
             # No follow target may come after the pause (one would power the LA again).
             self.stream.stopping = True
-        for ident in self.ids:  # pause now, ahead of everything queued
-            fut = self.bus.submit(
-                la.Control(ident, la.ControlAction.PAUSE), priority=Priority.EMERGENCY
-            )
-            fut.add_done_callback(_ignore_result)
+        # Pause now, ahead of everything queued: the bus's lease table sends it.
+        keys = [f"la:{ident}" for ident in self.ids]
+        self._pausing = self.bus.lease_keeper.stop_soon(keys, "pause", who="rig: tripped")
+        self._pausing.add_done_callback(_ignore_result)
 
     def check(self) -> None:
         """Raise :class:`RigAborted` if a ceiling tripped."""

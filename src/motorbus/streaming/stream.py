@@ -19,11 +19,10 @@ from typing import Any, Protocol
 
 from motorbus.bus.bus import Bus
 from motorbus.bus.events import BusEvent, Subscription
-from motorbus.bus.lease_shell import raise_unexpected, send_together
 from motorbus.devices.la import InspireLA
 from motorbus.errors import StreamEnded
+from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
-from motorbus.shutdown import deferred_interrupts
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GapPolicy,
@@ -201,6 +200,8 @@ class Stream:
         """Bring every actuator of the stream to the configured safe state, once.
 
         The stream stops sending first (``stopping``), so no target follows the stop.
+        The bus's lease table sends it (``bus.lease_keeper.stop``: its definition of the
+        safe action, its way of sending one).
         """
         self.stopping = True
         if self.safe_applied:
@@ -208,17 +209,9 @@ class Stream:
         self.safe_applied = True
         if self.safe_action is SafeAction.HOLD:
             return
-        action = (
-            la.ControlAction.ESTOP
-            if self.safe_action is SafeAction.ESTOP
-            else la.ControlAction.PAUSE
-        )
-        commands = [la.Control(i, action) for i in self.ids]
-        results = await send_together(self.streamer.bus.request, commands)
-        for ident, result in zip(self.ids, results, strict=True):
-            if isinstance(result, BaseException):
-                log.warning("safe action %s on la:%d failed: %s", action.name, ident, result)
-        raise_unexpected(results)
+        keys = [f"la:{i}" for i in self.ids]
+        bus = self.streamer.bus
+        await bus.lease_keeper.stop(keys, self.safe_action.value, who=f"stream to {keys}")
 
     async def end(self, error: BaseException | None = None) -> None:
         """End with the safe action, then mark done with ``error`` (the tick loop's end:

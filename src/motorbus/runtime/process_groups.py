@@ -19,8 +19,8 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from motorbus import realtime
 from motorbus.errors import LocalProtocolError
+from motorbus.runtime import realtime
 
 __all__ = [
     "GROUP_KEYS",
@@ -60,7 +60,7 @@ def check_group_cpus(value: object) -> frozenset[int]:
 
     Raises:
         LocalProtocolError: not a list, empty, a CPU twice, or a CPU out of range
-            (``0..os.cpu_count()-1``, :func:`motorbus.realtime.check_cpus`).
+            (``0..os.cpu_count()-1``, :func:`motorbus.runtime.realtime.check_cpus`).
     """
     if not isinstance(value, list | tuple):
         raise LocalProtocolError(

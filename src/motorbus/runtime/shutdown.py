@@ -8,7 +8,7 @@ every configured device to its safe state, every device still leased (anything t
 was moved, ``motorbus.bus.leases``) gets its safe action unless its owner let it go with
 ``hold``, and only then do the ports close.  A program killed outright (SIGKILL, the
 OOM killer) runs none of this: ``motorbus.run(main(), guard=True)`` starts a guard
-process (``motorbus.guard``, Linux) that then sends the leased devices' safe action.
+process (``motorbus.runtime.guard``, Linux) that then sends the leased devices' safe action.
 
 * ``motorbus.run(main())`` is the one-line way in: ``asyncio.run`` with handlers for
   SIGINT, SIGTERM and SIGHUP.  The first signal cancels ``main`` (its ``async with``
@@ -39,8 +39,10 @@ import signal
 import sys
 import threading
 import weakref
-from collections.abc import Awaitable, Callable, Coroutine, Iterator, Sequence
+from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
+
+from motorbus.bus.lease_shell import together
 
 if TYPE_CHECKING:
     from types import ModuleType
@@ -116,23 +118,6 @@ async def stop_everything() -> None:
         raise interrupted
 
 
-async def together(
-    awaitables: Sequence[Awaitable[object]], failed: Callable[[int, Exception], None]
-) -> BaseException | None:
-    """Await every one of ``awaitables`` at once, so that a silent device behind one
-    holds up no other's stop.  Each that fails with an ``Exception`` goes to ``failed``
-    (with its index) and stops nothing; the first other ``BaseException`` is returned,
-    for the caller to raise once its own closing is done."""
-    outcomes = await asyncio.gather(*awaitables, return_exceptions=True)
-    interrupted: BaseException | None = None
-    for i, outcome in enumerate(outcomes):
-        if isinstance(outcome, Exception):
-            failed(i, outcome)
-        elif isinstance(outcome, BaseException) and interrupted is None:
-            interrupted = outcome
-    return interrupted
-
-
 # -- automatic protection while a bus is open -----------------------------------------------
 
 
@@ -199,10 +184,10 @@ _guard = _AutoGuard()
 
 
 def _guard_process() -> ModuleType | None:
-    """``motorbus.guard`` if it is loaded: a guard process runs only once something has
+    """``motorbus.runtime.guard`` if it is loaded: a guard process runs only once something has
     imported it (``guarded``, ``start_guard``), so a program without one never pays its
     import (start-up time of the command line, tests/cli/test_cli_startup.py)."""
-    return sys.modules.get("motorbus.guard")
+    return sys.modules.get("motorbus.runtime.guard")
 
 
 def register_bus(bus: Any) -> None:
@@ -383,7 +368,7 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
     once everything is stopped and closed.
 
     A program that is killed outright (SIGKILL, the OOM killer, a crash) runs none of
-    this.  With ``guard=True`` a guard process (``motorbus.guard``, Linux) watches the
+    this.  With ``guard=True`` a guard process (``motorbus.runtime.guard``, Linux) watches the
     program and, if it dies with devices still leased, opens their ports and sends each
     its safe action.  Nothing in software covers a host crash, a power cut or a cut
     cable: keep the hardware e-stop.
@@ -410,7 +395,7 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
                 # this one started into a KeyboardInterrupt traceback.
                 state["late"] = _LateRepeats(before)
 
-    from motorbus.guard import guarded
+    from motorbus.runtime.guard import guarded
 
     with guarded(guard):
         try:

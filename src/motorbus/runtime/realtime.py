@@ -563,7 +563,7 @@ def enable(
 
     Returns:
         What was applied and what was refused (refusals are also logged, in one
-        WARNING line on ``motorbus.realtime``).
+        WARNING line on the ``motorbus.realtime`` logger).
 
     Raises:
         LocalProtocolError: a priority outside 1..99 or a CPU this machine does not have,

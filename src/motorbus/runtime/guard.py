@@ -430,8 +430,8 @@ def _report(pid: int, died: float, results: Sequence[PortResult], path: str | No
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m motorbus.guard --pidfd N --pid P``: run the guard (see the module)."""
-    parser = argparse.ArgumentParser(prog="python -m motorbus.guard", description=__doc__)
+    """``python -m motorbus.runtime.guard --pidfd N --pid P``: run the guard (see the module)."""
+    parser = argparse.ArgumentParser(prog="python -m motorbus.runtime.guard", description=__doc__)
     parser.add_argument("--pidfd", type=int, help="an inherited pidfd of the program")
     parser.add_argument("--pid", type=int, required=True, help="the program's process ID")
     parser.add_argument("--report", help="write what was done as JSON to this file")
@@ -487,7 +487,8 @@ class Guard:
 
     @classmethod
     def start(cls, *, report: str | None = None) -> Guard:
-        """Spawn ``python -m motorbus.guard`` watching this process; wait until it watches."""
+        """Spawn ``python -m motorbus.runtime.guard`` watching this process; wait until it
+        watches."""
         pidfd_open = getattr(os, "pidfd_open", None)
         if pidfd_open is None:
             raise GuardError(
@@ -498,7 +499,7 @@ class Guard:
             pidfd = pidfd_open(os.getpid())
         except OSError as err:
             raise GuardError(f"the guard needs a pidfd (Linux 5.3+): {err}") from err
-        cmd = [sys.executable, "-m", "motorbus.guard", "--pid", str(os.getpid())]
+        cmd = [sys.executable, "-m", "motorbus.runtime.guard", "--pid", str(os.getpid())]
         cmd += ["--pidfd", str(pidfd)] + (["--report", report] if report else [])
         try:
             proc = subprocess.Popen(
@@ -616,7 +617,7 @@ def active_guard() -> Guard | None:
 def start_guard(*, report: str | None = None) -> Guard:
     """Start the guard of this process (once; later calls return the same one).
 
-    Every bus opened from now on is followed (``motorbus.shutdown`` calls
+    Every bus opened from now on is followed (``motorbus.runtime.shutdown`` calls
     ``bus_opened``/``bus_closed``); buses already open are not.
 
     Raises:
@@ -655,13 +656,13 @@ def guarded(enabled: bool = True) -> Iterator[Guard | None]:
 
 
 def bus_opened(bus: Any) -> None:
-    """Called by ``motorbus.shutdown.register_bus``: follow ``bus`` if a guard runs."""
+    """Called by ``motorbus.runtime.shutdown.register_bus``: follow ``bus`` if a guard runs."""
     if _active is not None:
         _active.watch(bus)
 
 
 def bus_closed(bus: Any) -> None:
-    """Called by ``motorbus.shutdown.unregister_bus``."""
+    """Called by ``motorbus.runtime.shutdown.unregister_bus``."""
     if _active is not None:
         _active.unwatch(bus)
 

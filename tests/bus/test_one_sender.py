@@ -1,0 +1,194 @@
+"""One place sends a safe action: the bus's lease table (issue 40).
+
+Every ending asks ``bus.lease_keeper`` - a lease's end and the bus's close
+(``end_all``), a stream's end, ``BusManager.stop_all_devices``, the rig, the dashboard -
+and none builds stop frames of its own; the guard process takes the frames the table
+publishes (``bus.leases``).  The checks below record what reaches the table's one
+sender (``LeaseKeeper.send_stop``), and read the source for any other sender.
+"""
+
+from __future__ import annotations
+
+import ast
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import pytest
+
+from motorbus.bus.lease_shell import LeaseKeeper
+from motorbus.devices.la import InspireLA
+from motorbus.errors import LocalProtocolError
+from motorbus.manager import BusManager
+from motorbus.protocol import la
+from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
+from motorbus.protocol.base import Command
+from motorbus.rig.runner import _pause_all
+from motorbus.runtime.guard import _devices
+from motorbus.sim.la import LAModel, PowerState
+from motorbus.sim.memory import MemorySim
+from motorbus.streams import Streamer
+from tests.helpers import sim_bus
+from tests.waiting import eventually
+
+SRC = Path(__file__).resolve().parents[2] / "src" / "motorbus"
+
+
+@pytest.fixture
+def sent(monkeypatch: pytest.MonkeyPatch) -> Iterator[list[tuple[str, list[Command[object]]]]]:
+    """Every call of the lease table's sender: (who, commands)."""
+    calls: list[tuple[str, list[Command[object]]]] = []
+    original = LeaseKeeper.send_stop
+
+    async def recording(
+        self: LeaseKeeper, commands: Sequence[Command[object]], *, who: str
+    ) -> list[object]:
+        calls.append((who, list(commands)))
+        return await original(self, commands, who=who)
+
+    monkeypatch.setattr(LeaseKeeper, "send_stop", recording)
+    yield calls
+
+
+def pause(ident: int) -> la.Control:
+    return la.Control(ident, la.ControlAction.PAUSE)
+
+
+async def test_a_stream_s_end_asks_the_lease_table(
+    sent: list[tuple[str, list[Command[object]]]],
+) -> None:
+    models = [LAModel(1), LAModel(2)]
+    async with sim_bus(models, pacing="prompt") as (bus, _):
+        actuators = [InspireLA(bus, 1), InspireLA(bus, 2)]
+        stream = Streamer(bus).follow(
+            actuators, lambda t, s: [800, 900], period=0.01, safe_action="estop"
+        )
+        await eventually(lambda: len(models[0].received) >= 2, "targets at la:1")
+        await stream.stop()
+        assert all(m.power_state is PowerState.ESTOPPED for m in models)
+    streams = [cmds for who, cmds in sent if who.startswith("stream")]
+    assert streams == [
+        [la.Control(1, la.ControlAction.ESTOP), la.Control(2, la.ControlAction.ESTOP)]
+    ]
+
+
+async def test_a_lease_s_end_at_close_asks_the_lease_table(
+    sent: list[tuple[str, list[Command[object]]]],
+) -> None:
+    async with sim_bus([LAModel(3)], pacing="prompt") as (bus, _):
+        await InspireLA(bus, 3).move_to(1200)
+    assert ("a lease ended", [pause(3)]) in sent
+
+
+async def test_the_manager_s_stop_asks_the_lease_table(
+    sent: list[tuple[str, list[Command[object]]]],
+) -> None:
+    async with MemorySim.start([LAModel(1), LAModel(2)], pacing="prompt") as sim:
+        mgr = BusManager()
+        mgr.add_bus(
+            "arm",
+            "memory://arm",
+            baud=921600,
+            devices=["la:1-2"],
+            transport=sim.transport,
+            host_margin_ms=50,
+            la_safe_action="estop",
+        )
+        async with mgr:
+            report = await mgr.stop_all_devices()
+    assert [e.outcome for e in report.entries] == ["confirmed", "confirmed"]
+    manager = [cmds for who, cmds in sent if who == "BusManager"]
+    assert manager[0] == [
+        la.Control(1, la.ControlAction.ESTOP),
+        la.Control(2, la.ControlAction.ESTOP),
+    ]
+
+
+async def test_the_rig_s_pause_asks_the_lease_table(
+    sent: list[tuple[str, list[Command[object]]]],
+) -> None:
+    async with sim_bus([LAModel(1), LAModel(2)], pacing="prompt") as (bus, _):
+        await _pause_all(bus, (1, 2))
+    assert ("rig", [pause(1), pause(2)]) in sent
+
+
+async def test_the_table_defines_every_family_s_safe_action() -> None:
+    async with sim_bus([LAModel(1)], pacing="prompt") as (bus, _):
+        keeper = bus.lease_keeper
+        assert keeper.safe_commands("la:1", "estop") == (la.Control(1, la.ControlAction.ESTOP),)
+        assert keeper.safe_commands("la:1", "hold") == ()
+        with pytest.raises(LocalProtocolError, match="carries la") as err:
+            keeper.safe_commands("quad_stepper")
+        assert err.value.field == "key"
+        with pytest.raises(LocalProtocolError, match="action"):
+            keeper.safe_commands("la:1", "brake")
+        # The guard process sends what the table publishes, frame for frame.
+        lease = bus.lease(["la:1"], owner="me", safe_action="estop")
+        (device,) = _devices(bus.leases)
+        assert device.safe_frames == tuple(
+            c.encode() for c in keeper.safe_commands("la:1", "estop")
+        )
+        await lease.release(hold=True)
+
+
+async def test_the_steppers_safe_actions_are_the_table_s_too() -> None:
+    from motorbus.protocol.base import Family
+    from motorbus.sim.quad_stepper import QuadStepperModel
+
+    async with sim_bus([QuadStepperModel()], pacing="prompt") as (bus, _):
+        assert bus.families == frozenset({Family.QUAD_STEPPER})
+        assert bus.lease_keeper.safe_commands("quad_stepper") == (q.StopAll(),)
+    keeper = LeaseKeeper(
+        "x", frozenset({Family.PROJECT_STEPPER}), "pause", _no_request, lambda: "open"
+    )
+    assert keeper.safe_commands("project_stepper", motor=0x02) == (
+        ps.StopProject(),
+        ps.ManualStop(motor=0x02),
+    )
+
+
+async def _no_request(cmd: Command[object], **kwargs: object) -> object:
+    raise AssertionError("nothing is sent here")
+
+
+# -- nothing else sends a safe stop ------------------------------------------------------
+
+
+def _calls(path: Path) -> Iterator[ast.Call]:
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Call):
+            yield node
+
+
+def test_no_module_but_the_lease_table_sends_safe_stops() -> None:
+    table = SRC / "bus" / "lease_shell.py"
+    bad = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC).as_posix()
+        if path == table or rel.startswith(("protocol/", "sim/")):
+            continue
+        for call in _calls(path):
+            text = ast.unparse(call)
+            func = ast.unparse(call.func)
+            # The table's private sender, or a stop frame built by hand.
+            if func.endswith("send_together"):
+                bad.append(f"{rel}: {text}")
+            if func.endswith("Control") and (
+                "ControlAction.PAUSE" in text or "ControlAction.ESTOP" in text
+            ):
+                bad.append(f"{rel}: {text}")
+            # The safe actions' definition, read anywhere but in the devices' "as
+            # values" methods (InspireLA.safe_stop_commands ...).
+            if func.endswith("safety.safe_stop_commands") and not rel.startswith("devices/"):
+                bad.append(f"{rel}: {text}")
+    assert bad == []
+
+
+def test_the_source_check_sees_a_hand_built_stop(tmp_path: Path) -> None:
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "la.Control(1, la.ControlAction.PAUSE)\nsend_together(bus.request, [])\n",
+        encoding="utf-8",
+    )
+    funcs = [ast.unparse(c.func) for c in _calls(sample)]
+    assert "la.Control" in funcs and "send_together" in funcs
