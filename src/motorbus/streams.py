@@ -570,6 +570,8 @@ class Streamer:
         """
         if not parts:
             return None, 0, False
+        bus = self.bus
+        timer = bus.timer
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
@@ -577,26 +579,26 @@ class Streamer:
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
         entries = [(s, pair) for s, targets in parts for pair in targets.items()]
-        chunks = [entries[i : i + step] for i in range(0, len(entries), step)]
         # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
         # deadline (all kept while every stream of a frame still sends, and the leases
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
-        builders = [broadcast_builder(chunk) for chunk in chunks]
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
-        for build in builders:
+        for first in range(0, len(entries), step):
+            build = broadcast_builder(entries[first : first + step])
             frame = build()
             ready = None
             if frame is not None:
-                # Refused now (the port away, a lease): submitted at the deadline instead.
-                with contextlib.suppress(MotorbusError):
-                    ready = self.bus.prepare(
+                try:
+                    ready = bus.prepare(
                         frame,
                         priority=Priority.HIGH,
                         reserved=True,
                         refresh=build,
                         lease=self.lease,
                     )
+                except MotorbusError:  # refused now (the port away, a lease): prepared
+                    ready = None  # again at the deadline, or refused again there
             prepared.append((build, ready))
 
         def fire() -> None:
@@ -609,7 +611,7 @@ class Streamer:
                         frame = build()
                         if frame is None:
                             continue
-                        ready = self.bus.prepare(
+                        ready = bus.prepare(
                             frame,
                             priority=Priority.HIGH,
                             reserved=True,
@@ -624,10 +626,10 @@ class Streamer:
                 fired.set_exception(err)
                 return
             if futures and futures[0].done():  # an idle bus wrote it inside send()
-                sent.append(self.bus.timer.now())
+                sent.append(timer.now())
             fired.set_result(futures)
 
-        handle = self.bus.timer.call_at(deadline, fire)
+        handle = timer.call_at(deadline, fire)
         slipped = False
         try:
             futures = await fired
