@@ -66,7 +66,7 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
 from motorbus.shutdown import deferred_interrupts
-from motorbus.streaming.budget import StreamBudget, tick_cost
+from motorbus.streaming.budget import stream_budget, tick_cost
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GAP_TICKS,
@@ -137,7 +137,7 @@ class Streamer:
         #: The window of a tick prepared or in progress: (deadline, end of its frames).
         self._active: tuple[float, float] | None = None
         #: The budget every streamer of this bus shares, held by the bus.
-        self.budget = _budget_of(bus)
+        self.budget = stream_budget(bus)
         self._attached = False
         self._attach()
 
@@ -692,11 +692,3 @@ class Streamer:
                 s.stats.polls += 1
             if polled == 0:
                 s.stats.polls_skipped += 1
-
-
-def _budget_of(bus: Bus) -> StreamBudget:
-    """The budget of ``bus``'s streams, which the bus holds (created on first use)."""
-    budget = bus.stream_budget
-    if not isinstance(budget, StreamBudget):
-        budget = bus.stream_budget = StreamBudget(bus.name)
-    return budget
