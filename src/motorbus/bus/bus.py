@@ -494,19 +494,18 @@ class Bus:
         """``PreparedSubmit.send``: the cheap re-checks and the refresh, then the one
         send path (``BusEngine.queue``; see ``prepare``)."""
         job = prepared.job
-        cmd = job.cmd
         state = self._engine.state
         if state is not BusState.OPEN:
             raise BusClosedError(f"bus {self.name} is {state.value}")
         if asyncio.get_running_loop() is not self._loop:
-            raise self._wrong_loop_error(cmd)
-        if cmd.starts_motion and self._stopping:
-            raise self._closing_error(cmd)
+            raise self._wrong_loop_error(job.cmd)
+        if job.moves and self._stopping:
+            raise self._closing_error(job.cmd)
         # The frame as it is now: checked once here, and written as it is if it goes
         # out from this call; one that must wait is checked again at its write.
         if job.refresh is not None and not self._engine.refresh(job):
             return job.future
-        if job.cmd.starts_motion and prepared.lease_version != self._lease_keeper.table.version:
+        if job.moves and prepared.lease_version != self._lease_keeper.table.version:
             # A lease changed since: the rule again, for the frame as it is now.
             self._lease_keeper.claim(job.cmd, prepared.lease)
         self._engine.queue(job, None, checked=True)
@@ -686,4 +685,6 @@ class Bus:
             reserved=reserved,
             refresh=refresh,
             after_write=occ.after_write,
+            expects=occ.expects_reply,
+            moves=moves,
         )

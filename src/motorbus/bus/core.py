@@ -105,7 +105,7 @@ class BusCore(Generic[J]):
                     f"{', '.join(sorted(f.value for f in self.families))}",
                     field="cmd",
                 )
-            if isinstance(type(cmd).__dict__.get("family"), Family):
+            if isinstance(getattr(kind, "family", None), Family):
                 self._known.add(kind)  # a class attribute: every instance is the same
         if start_by is not None and not (
             isinstance(start_by, int | float) and not isinstance(start_by, bool)

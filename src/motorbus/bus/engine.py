@@ -219,7 +219,12 @@ class BusEngine:
         if fresh is not job.cmd:
             job.cmd = fresh
             job.raw = fresh.encode()
-            job.after_write = self.core.occupancy(fresh, len(job.raw)).after_write
+            occ = self.core.occupancy(fresh, len(job.raw))
+            job.after_write, job.expects, job.moves = (
+                occ.after_write,
+                occ.expects_reply,
+                fresh.starts_motion,
+            )
         return True
 
     def _transmit(self, job: BusJob, *, checked: bool = False) -> None:
@@ -228,8 +233,7 @@ class BusEngine:
             job.expiry = None
         if job.refresh is not None and not checked and not self.refresh(job):
             return
-        cmd, core, timer = job.cmd, self.core, self.clock
-        expects = cmd.expects_reply
+        cmd, core, timer, expects = job.cmd, self.core, self.clock, job.expects
         job.attempts += 1
         if expects:
             # Bytes the OS already holds came before this write, whenever the loop gets
@@ -251,7 +255,7 @@ class BusEngine:
         core.wrote(job, expects, before, after, self.transport.baudrate)
         if self.observers:
             self._tell(lambda o: o.on_write(cmd, after))
-        if cmd.starts_motion:
+        if job.moves:
             self._leases.moved(cmd)
         elif not expects:
             self._leases.sent(cmd)
@@ -355,7 +359,7 @@ class BusEngine:
             self._finish(job, err)
             return
         self._leases.note(job.key)  # it answered: "la:255" stands for it too
-        if not job.cmd.starts_motion:
+        if not job.moves:
             self._leases.sent(job.cmd)  # a safe action answered: no longer owed
         core.watch_done(job.cmd)
         fault = job.cmd.fault_state(value)

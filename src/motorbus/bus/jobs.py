@@ -50,6 +50,10 @@ class BusJob(Job):
     beside it what the asyncio shell keeps: its future and its timer handles."""
 
     future: asyncio.Future[Any]
+    #: ``cmd.expects_reply`` and ``cmd.starts_motion``, read once when the job is made
+    #: (and again if its refresh changes the frame), not at every step of its way.
+    expects: bool = False
+    moves: bool = False
     handle: TimerHandle | None = None  # its reply deadline
     refresh: Refresh | None = None
     start_by: float = math.inf
