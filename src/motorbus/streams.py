@@ -62,6 +62,7 @@ from typing import Any
 from motorbus import realtime
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.leases import Lease
+from motorbus.bus.timer import Timer
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.protocol import la
@@ -378,7 +379,7 @@ class Streamer:
     async def _run(self) -> None:
         timer = self.bus.timer
         while self.streams:
-            deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+            deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
             if deadline - PLAN_AHEAD_S > timer.now():
                 await self._sleep_until(deadline - PLAN_AHEAD_S)
                 continue  # re-check: streams may have changed while asleep
@@ -391,7 +392,7 @@ class Streamer:
             if self.streams:
                 # Idle time until the next tick: where real-time mode runs the garbage
                 # collector's full collections (a no-op otherwise; motorbus.realtime).
-                upcoming = min(s.origin + s.next_tick * s.period for s in self.streams)
+                upcoming = min([s.origin + s.next_tick * s.period for s in self.streams])
                 idle = upcoming - PREPARE_S - timer.now()
                 if idle > 0:
                     realtime.idle_hook(idle)
@@ -444,7 +445,7 @@ class Streamer:
         self._active = (deadline, deadline + self._tick_cost_s)
         try:
             parts = [(s, s.last_targets) for s in served if not s.feedback]
-            sent_at, frames, slipped = await self._send_at(deadline, parts)
+            sent_at, frames, slipped = await self._send_at(deadline, parts, timer)
             for s in served:
                 if not s.feedback:
                     s.stats.frames += frames
@@ -556,7 +557,7 @@ class Streamer:
         s.skipped_mark = s.stats.skipped
 
     async def _send_at(
-        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
+        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]], timer: Timer
     ) -> tuple[float | None, int, bool]:
         """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
 
@@ -571,7 +572,6 @@ class Streamer:
         if not parts:
             return None, 0, False
         bus = self.bus
-        timer = bus.timer
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
@@ -636,7 +636,7 @@ class Streamer:
             for f in futures:
                 await f
                 if not sent:  # it waited its turn (a reply owed, or the spacing)
-                    sent.append(self.bus.timer.now())
+                    sent.append(timer.now())
                     slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
@@ -658,7 +658,7 @@ class Streamer:
             return
         timer = self.bus.timer
         poll = self.bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
-        next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+        next_deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
         # A poll starts only if even its timeout, and the spacing after it, would end
         # before the next tick.
         worst = poll.worst + poll.spacing
