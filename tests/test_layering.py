@@ -70,8 +70,9 @@ def test_the_pure_parts_of_streams_import_no_io_and_no_clock() -> None:
 
 #: The modules of ``motorbus.bus`` that are pure arithmetic and data.
 PURE_BUS = {"motorbus.bus.occupancy", "motorbus.bus.stats"}
-#: The bus's sans-I/O core: scheduling and reply matching, driven by a time passed in.
-BUS_CORE = {"motorbus.bus.schedule", "motorbus.bus.matching"}
+#: The bus's sans-I/O core (``BusCore``, which ``Bus`` holds): scheduling and reply
+#: matching, driven by a time passed in.
+BUS_CORE = {"motorbus.bus.core", "motorbus.bus.schedule", "motorbus.bus.matching"}
 
 
 def test_the_bus_core_is_pure() -> None:

@@ -62,11 +62,12 @@ from typing import Any
 from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.leases import Lease
+from motorbus.bus.timer import Timer
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
-from motorbus.streaming.budget import StreamBudget, tick_cost
+from motorbus.streaming.budget import stream_budget, tick_cost
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GAP_TICKS,
@@ -137,7 +138,7 @@ class Streamer:
         #: The window of a tick prepared or in progress: (deadline, end of its frames).
         self._active: tuple[float, float] | None = None
         #: The budget every streamer of this bus shares, held by the bus.
-        self.budget = _budget_of(bus)
+        self.budget = stream_budget(bus)
         self._attached = False
         self._attach()
 
@@ -378,7 +379,7 @@ class Streamer:
     async def _run(self) -> None:
         timer = self.bus.timer
         while self.streams:
-            deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+            deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
             if deadline - PLAN_AHEAD_S > timer.now():
                 await self._sleep_until(deadline - PLAN_AHEAD_S)
                 continue  # re-check: streams may have changed while asleep
@@ -391,7 +392,7 @@ class Streamer:
             if self.streams:
                 # Idle time until the next tick: where real-time mode runs the garbage
                 # collector's full collections (a no-op otherwise; motorbus.lifecycle.idle).
-                upcoming = min(s.origin + s.next_tick * s.period for s in self.streams)
+                upcoming = min([s.origin + s.next_tick * s.period for s in self.streams])
                 idle = upcoming - PREPARE_S - timer.now()
                 if idle > 0:
                     lifecycle.idle(idle)
@@ -444,7 +445,7 @@ class Streamer:
         self._active = (deadline, deadline + self._tick_cost_s)
         try:
             parts = [(s, s.last_targets) for s in served if not s.feedback]
-            sent_at, frames, slipped = await self._send_at(deadline, parts)
+            sent_at, frames, slipped = await self._send_at(deadline, parts, timer)
             for s in served:
                 if not s.feedback:
                     s.stats.frames += frames
@@ -556,7 +557,7 @@ class Streamer:
         s.skipped_mark = s.stats.skipped
 
     async def _send_at(
-        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]]
+        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]], timer: Timer
     ) -> tuple[float | None, int, bool]:
         """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
 
@@ -570,6 +571,7 @@ class Streamer:
         """
         if not parts:
             return None, 0, False
+        bus = self.bus
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
@@ -577,26 +579,26 @@ class Streamer:
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
         entries = [(s, pair) for s, targets in parts for pair in targets.items()]
-        chunks = [entries[i : i + step] for i in range(0, len(entries), step)]
         # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
         # deadline (all kept while every stream of a frame still sends, and the leases
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
-        builders = [broadcast_builder(chunk) for chunk in chunks]
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
-        for build in builders:
+        for first in range(0, len(entries), step):
+            build = broadcast_builder(entries[first : first + step])
             frame = build()
             ready = None
             if frame is not None:
-                # Refused now (the port away, a lease): submitted at the deadline instead.
-                with contextlib.suppress(MotorbusError):
-                    ready = self.bus.prepare(
+                try:
+                    ready = bus.prepare(
                         frame,
                         priority=Priority.HIGH,
                         reserved=True,
                         refresh=build,
                         lease=self.lease,
                     )
+                except MotorbusError:  # refused now (the port away, a lease): prepared
+                    ready = None  # again at the deadline, or refused again there
             prepared.append((build, ready))
 
         def fire() -> None:
@@ -609,7 +611,7 @@ class Streamer:
                         frame = build()
                         if frame is None:
                             continue
-                        ready = self.bus.prepare(
+                        ready = bus.prepare(
                             frame,
                             priority=Priority.HIGH,
                             reserved=True,
@@ -624,17 +626,17 @@ class Streamer:
                 fired.set_exception(err)
                 return
             if futures and futures[0].done():  # an idle bus wrote it inside send()
-                sent.append(self.bus.timer.now())
+                sent.append(timer.now())
             fired.set_result(futures)
 
-        handle = self.bus.timer.call_at(deadline, fire)
+        handle = timer.call_at(deadline, fire)
         slipped = False
         try:
             futures = await fired
             for f in futures:
                 await f
                 if not sent:  # it waited its turn (a reply owed, or the spacing)
-                    sent.append(self.bus.timer.now())
+                    sent.append(timer.now())
                     slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
@@ -656,7 +658,7 @@ class Streamer:
             return
         timer = self.bus.timer
         poll = self.bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
-        next_deadline = min(s.origin + s.next_tick * s.period for s in self.streams)
+        next_deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
         # A poll starts only if even its timeout, and the spacing after it, would end
         # before the next tick.
         worst = poll.worst + poll.spacing
@@ -690,11 +692,3 @@ class Streamer:
                 s.stats.polls += 1
             if polled == 0:
                 s.stats.polls_skipped += 1
-
-
-def _budget_of(bus: Bus) -> StreamBudget:
-    """The budget of ``bus``'s streams, which the bus holds (created on first use)."""
-    budget = bus.stream_budget
-    if not isinstance(budget, StreamBudget):
-        budget = bus.stream_budget = StreamBudget(bus.name)
-    return budget

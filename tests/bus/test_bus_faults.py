@@ -338,6 +338,6 @@ async def test_lost_done_replies_do_not_pile_up(pacing: Pacing) -> None:
         await bus.request(q.RunPulses(1, 1_000_000))  # long enough not to finish
         for _ in range(MAX_DONE_WATCHES + 5):
             await bus.request(q.Run(1))  # acked each time; the done reply never comes
-        assert len(bus._matcher.done_watches) == MAX_DONE_WATCHES
+        assert len(bus._core.matcher.done_watches) == MAX_DONE_WATCHES
         assert bus.stats.done_watches_dropped == 5
         await bus.request(q.Stop(1))

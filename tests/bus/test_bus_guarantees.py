@@ -368,7 +368,7 @@ async def test_a_reply_already_in_when_a_late_loop_decides_the_deadline_is_taken
             )
             await asyncio.sleep(0)
             assert bus.stats.requests == 1
-            deadline = bus._matcher.pending.deadline  # type: ignore[union-attr]
+            deadline = bus._core.matcher.pending.deadline  # type: ignore[union-attr]
             # The host stalls for 5 ms past the deadline; then both become due.
             timer.t = deadline + 5e-3
             if order == "data-callback-first":

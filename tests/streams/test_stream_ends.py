@@ -321,13 +321,13 @@ async def test_bad_gap_options_are_refused() -> None:
 
 
 async def test_the_streams_of_a_bus_share_the_budget_the_bus_holds() -> None:
-    from motorbus.streaming.budget import StreamBudget, tick_cost
+    from motorbus.streaming.budget import StreamBudget, stream_budget, tick_cost
 
     models = [LAModel(i) for i in range(1, 21)]
     async with sim_bus(models) as (bus, _):
         first, second = Streamer(bus), Streamer(bus)
-        assert isinstance(bus.stream_budget, StreamBudget)
-        assert first.budget is second.budget is bus.stream_budget
+        assert isinstance(stream_budget(bus), StreamBudget)
+        assert first.budget is second.budget is stream_budget(bus)
         stream = first.follow(InspireLA(bus, 1), lambda t, s: 500, period=PERIOD_S)
         with pytest.raises(LocalProtocolError, match="la:1 is already streamed on bus sim"):
             second.follow(InspireLA(bus, 1), [500], period=PERIOD_S)
@@ -342,14 +342,14 @@ async def test_the_streams_of_a_bus_share_the_budget_the_bus_holds() -> None:
         five = [InspireLA(bus, i) for i in range(14, 19)]
         with pytest.raises(LocalProtocolError, match=r"would need \d+ % of the bus"):
             second.follow(five, lambda t, s: [500] * 5, period=PERIOD_S, feedback=True)
-        assert bus.stream_budget.streams == [stream, fb]
-        assert set(tick_cost(bus.timing, bus.stream_budget.streams)) == {PERIOD_S, 0.05}
+        assert stream_budget(bus).streams == [stream, fb]
+        assert set(tick_cost(bus.timing, stream_budget(bus).streams)) == {PERIOD_S, 0.05}
         await fb.stop()
-        assert bus.stream_budget.streams == [stream]
+        assert stream_budget(bus).streams == [stream]
         late = second.follow(five, lambda t, s: [500] * 5, period=PERIOD_S, feedback=True)
         await first.close()
         await second.close()
-        assert bus.stream_budget.streams == [] and late.done
+        assert stream_budget(bus).streams == [] and late.done
 
 
 def test_fifteen_broadcast_actuators_cost_one_frame_a_tick() -> None:

@@ -39,12 +39,13 @@ guard with exactly the shape of a newer request cannot be told apart: raise
 at the baud) also refuses frames that completed sooner than the wire allows; each such
 frame is counted as ``early_replies`` and logged, never silently made a timeout.
 
-Where each part lives: the rules are a pure core, driven by a time passed in
-(``motorbus.bus.schedule``: when a frame may start; ``motorbus.bus.matching``: whose
-frame a received one is), with a frame's bus time from ``motorbus.bus.occupancy``;
-``motorbus.bus.engine`` drives the core with the timer and the transport (writer,
-deadlines, reader, reconnect); this module is the public face (options, requests,
-leases, observers, open and close).
+Where each part lives: the rules are one pure core, driven by a time passed in
+(``motorbus.bus.core``'s ``BusCore``: the queue, spacing, late guards and reservations
+of ``motorbus.bus.schedule``, the matching of ``motorbus.bus.matching``, a frame's bus
+time from ``motorbus.bus.occupancy``, the reassembler and the counts); ``Bus``, this
+module's one class, holds it and drives it with the timer and the transport (writer,
+deadlines, reader, reconnect), besides being the public face (options, requests,
+leases, observers, open and close).  The core never calls the bus.
 """
 
 from __future__ import annotations
@@ -53,47 +54,33 @@ import asyncio
 import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Iterable, Mapping
-from types import MappingProxyType, TracebackType
-from typing import Any, TypeVar
+from types import TracebackType
+from typing import Any, Generic, TypeVar
 
 from motorbus import lifecycle
-from motorbus.bus.engine import BusEngine, BusJob, BusObserver, BusState, Refresh
-from motorbus.bus.engine import PreparedSubmit as PreparedSubmit
+from motorbus.bus.core import BusCore
+from motorbus.bus.engine import BusEngine
 from motorbus.bus.events import BusStateChanged
+from motorbus.bus.jobs import BusJob, BusObserver, BusState, Refresh
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded, together
 from motorbus.bus.leases import Lease, LeaseInfo
-from motorbus.bus.occupancy import (
-    BusTiming,
-    Occupancy,
-    OccupancyTable,
-    answer_window,
-    reply_slack,
-)
+from motorbus.bus.occupancy import BusTiming, Occupancy, answer_window, reply_slack
 from motorbus.bus.options import DEFAULT_HOST_MARGIN_S as DEFAULT_HOST_MARGIN_S
 from motorbus.bus.options import DEFAULT_LATE_GUARD_S as DEFAULT_LATE_GUARD_S
 from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
 from motorbus.bus.options import MIN_SPACING_S as MIN_SPACING_S
 from motorbus.bus.options import REQUEST_TIMEOUT_MAX_S as REQUEST_TIMEOUT_MAX_S
 from motorbus.bus.options import BusConfig as BusConfig
-from motorbus.bus.options import check_request_options
+from motorbus.bus.options import check_bus_options, check_request_options
 from motorbus.bus.schedule import Priority, ReservationSource
 from motorbus.bus.timer import Timer, default_timer
 from motorbus.errors import BusClosedError, LocalProtocolError, WrongLoopError
 from motorbus.protocol import safety
-from motorbus.protocol.base import Command, Family, check_flag, check_int
+from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.transport.base import Transport
-from motorbus.validation import (
-    HOST_MARGIN_MAX_S,
-    LATE_GUARD_MAX_S,
-    MIN_SPACING_MAX_S,
-    RETRIES_MAX,
-    check_families,
-    check_name,
-    check_number,
-    check_turnaround,
-)
+from motorbus.validation import check_families, check_name
 
-__all__ = ["DEFAULT_TURNAROUND", "Bus", "BusObserver", "BusState", "Priority"]
+__all__ = ["DEFAULT_TURNAROUND", "Bus", "BusObserver", "BusState", "PreparedSubmit", "Priority"]
 
 log = logging.getLogger("motorbus.bus")
 
@@ -101,7 +88,39 @@ log = logging.getLogger("motorbus.bus")
 R = TypeVar("R")
 
 
-class Bus(BusEngine):
+class PreparedSubmit(Generic[R]):
+    """A ``submit`` checked and built ahead of its moment (``Bus.prepare``): a handle on
+    its bus, as an ``asyncio.Handle`` is on its loop."""
+
+    __slots__ = ("bus", "job", "lease", "lease_version", "sent")
+
+    def __init__(self, bus: Bus, job: BusJob, lease: Lease | None, lease_version: int) -> None:
+        self.bus = bus
+        self.job = job
+        self.lease = lease
+        #: The lease table's version when its rule was checked (-1: check again).
+        self.lease_version = lease_version
+        self.sent = False
+
+    def send(self) -> asyncio.Future[R]:
+        """Queue it now (an idle bus writes it before this returns); once only.
+
+        Returns the future of its decoded reply, as ``Bus.submit`` does; it resolves
+        to None at once if the ``refresh`` (run here, and again at a later write if the
+        frame must wait) drops the frame.
+
+        Raises:
+            BusClosedError: the bus is no longer open, or is closing (motion).
+            LeaseConflictError: a lease changed since and another owner holds a device.
+            LocalProtocolError: it was sent already.
+        """
+        if self.sent:
+            raise LocalProtocolError("a prepared submission is sent once", field="prepared")
+        self.sent = True
+        return self.bus._send_prepared(self)
+
+
+class Bus:
     """A serial bus of devices: ``await bus.request(command)`` returns the decoded reply.
 
     Args:
@@ -150,44 +169,44 @@ class Bus(BusEngine):
         # Every option checked (type, finiteness, range) before anything is built.
         name = check_name("name", name, optional=True)
         families = check_families(families)
-        min_spacing = check_number("min_spacing", min_spacing, 0.0, MIN_SPACING_MAX_S, "s")
-        host_margin = check_number("host_margin", host_margin, 0.0, HOST_MARGIN_MAX_S, "s")
-        turnaround = check_turnaround(turnaround)
-        retries = check_int("retries", retries, 0, RETRIES_MAX)
-        late_guard = check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s")
-        reconnect = check_flag("reconnect", reconnect)
-        wire_floor = check_flag("wire_floor", wire_floor)
-        self.safe_action = safety.check_safe_action(safe_action)
-        config = BusConfig(
+        self.config = check_bus_options(
             min_spacing=min_spacing,
             host_margin=host_margin,
-            turnaround=MappingProxyType({**DEFAULT_TURNAROUND, **(turnaround or {})}),
+            turnaround=turnaround,
             retries=retries,
             late_guard=late_guard,
             reconnect=reconnect,
             wire_floor=wire_floor,
         )
-        super().__init__(transport, name or transport.url, frozenset(families), config, timer)
-        # The config is frozen and a transport keeps its baud: the costs are fixed.
-        self._occupancies = OccupancyTable(
-            BusTiming(transport.baudrate, min_spacing, host_margin, config.turnaround)
+        self.safe_action = safety.check_safe_action(safe_action)
+        self.transport = transport
+        self.name: str = name or transport.url
+        self.families = frozenset(families)
+        self._timer = timer
+        self._lease_keeper = LeaseKeeper(
+            self.name, self.families, self.safe_action, self.request, lambda: self.state.value
         )
+        #: The writer, deadlines, reader and reconnect, holding the pure core.
+        self._engine = engine = BusEngine(
+            transport, self.name, self.families, self.config, self._lease_keeper
+        )
+        #: The pure core (motorbus.bus.core): the queue, spacing, late guards and
+        #: reservations, the matching of replies, the frames' bus time.
+        self._core: BusCore[BusJob] = engine.core
+        self.stats = engine.stats
+        self.events = engine.events
+        #: Set when close starts: motion is refused and dropped from then on.
+        self._stopping = False
         self._close_hooks: list[Callable[[], Awaitable[None]]] = []
         self._close_task: asyncio.Future[None] | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._lease_keeper = LeaseKeeper(
-            self.name,
-            self.families,
-            self.safe_action,
-            self.request,
-            lambda: self.state.value,
-        )
-        self._leases = self._lease_keeper.table  # the hot paths' direct reference
-        #: The time budget this bus's streams share (``motorbus.streaming.budget``), set
-        #: by its first ``Streamer``: the bus owns it, whichever streamer serves a stream.
-        self.stream_budget: Any = None
 
     # -- life cycle --------------------------------------------------------------
+
+    @property
+    def state(self) -> BusState:
+        """Where the bus is in its life: closed, open, or lost (reconnecting)."""
+        return self._engine.state
 
     @property
     def timer(self) -> Timer:
@@ -199,7 +218,7 @@ class Bus(BusEngine):
     @property
     def next_write_at(self) -> float:
         """The earliest time (``bus.timer`` clock) the spacing rule allows the next write."""
-        return self._schedule.next_tx
+        return self._core.schedule.next_tx
 
     @property
     def baudrate(self) -> int:
@@ -210,16 +229,16 @@ class Bus(BusEngine):
         """Open the port.  Raises ``OSError`` if the port cannot open."""
         if self.state is BusState.OPEN:
             return
-        self._closing = False
         self._stopping = False
         self._loop = asyncio.get_running_loop()
-        self._new_reassembler()
+        engine = self._engine
+        engine.start(self.timer)
         lifecycle.bus_opening(self)  # the runtime: MOTORBUS_REALTIME / --realtime
-        await self.transport.open(self._on_data, self._on_lost)
-        self.state = BusState.OPEN
+        await self.transport.open(engine.on_data, engine.on_lost)
+        engine.state = BusState.OPEN
         lifecycle.bus_opened(self)  # the runtime: SIGTERM/SIGHUP, a running guard
         self._check_adapter_latency()
-        self._publish_state("open")
+        engine.publish_state("open")
 
     def _check_adapter_latency(self) -> None:
         """Warn if a USB adapter's latency timer leaves no deadline of this bus a chance.
@@ -268,7 +287,7 @@ class Bus(BusEngine):
             # From here no motion is queued or sent: what is queued is dropped unsent,
             # what is submitted is refused, so nothing can follow the safe stops.
             self._stopping = True
-            self._drop_queued_motion()
+            self._engine.drop_queued_motion()
             if self.state is BusState.OPEN:
                 # Together: a silent actuator of one streamer holds up no other's stop.
 
@@ -279,26 +298,27 @@ class Bus(BusEngine):
                 interrupted = await together(hooks, failed)
             # The one place every lease still held ends: after the streams stopped (a
             # target after a pause would resume an LA), before the port closes.
-            self._drop_queued_motion()
+            self._engine.drop_queued_motion()
             await self._lease_keeper.end_all()
-        self._closing = True
-        task = self._reconnect_task
+        engine = self._engine
+        engine.closing = True
+        task = engine.reconnect_task
         if task is not None and not task.done():
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
-        self._reconnect_task = None
-        if self._pump_handle is not None:
-            self._pump_handle.cancel()
-            self._pump_handle = None
-        self._fail_all(BusClosedError(f"bus {self.name} closed"))
+        engine.reconnect_task = None
+        if engine.pump_handle is not None:
+            engine.pump_handle.cancel()
+            engine.pump_handle = None
+        engine.fail_all(BusClosedError(f"bus {self.name} closed"))
         try:
             await self.transport.close()
         finally:
             lifecycle.bus_closed(self)
-            if self.state is not BusState.CLOSED:
-                self.state = BusState.CLOSED
-                self._publish_state("closed")
+            if engine.state is not BusState.CLOSED:
+                engine.state = BusState.CLOSED
+                engine.publish_state("closed")
         if interrupted is not None:
             raise interrupted
 
@@ -319,14 +339,14 @@ class Bus(BusEngine):
     @property
     def timing(self) -> BusTiming:
         """The facts this bus's frame costs depend on: baud, spacing, margin, turnarounds."""
-        return self._occupancies.timing
+        return self._core.occupancies.timing
 
     def occupancy(self, cmd: Command[object], request_size: int | None = None) -> Occupancy:
         """How long ``cmd`` and its reply hold this bus (``motorbus.bus.occupancy``).
 
         ``request_size`` saves re-encoding when the caller has the bytes already.
         """
-        return self._occupancies.of(cmd, request_size)
+        return self._core.occupancy(cmd, request_size)
 
     def answer_window(self, reply_bytes: int) -> float:
         """How long after a request ends a device of this bus may still be answering
@@ -420,71 +440,8 @@ class Bus(BusEngine):
             refresh=refresh,
             lease=lease,
         )
-        self._queue(job, start_by)
+        self._engine.queue(job, start_by)
         return job.future
-
-    def _checked_job(
-        self,
-        cmd: Command[R],
-        timeout: float | None,
-        retries: int | None,
-        priority: Priority,
-        start_by: float | None,
-        *,
-        reserved: bool,
-        refresh: Refresh | None,
-        lease: Lease | None,
-    ) -> BusJob:
-        """Check a submission (``submit``'s errors, in its order), claim its lease and
-        build its job, not yet queued."""
-        if not isinstance(cmd, Command):
-            raise LocalProtocolError(
-                f"cmd must be a motorbus Command, got {type(cmd).__name__}", field="cmd"
-            )
-        if cmd.family not in self.families:
-            raise LocalProtocolError(
-                f"cmd is a {cmd.family.value} command; bus {self.name} carries "
-                f"{', '.join(sorted(f.value for f in self.families))}",
-                field="cmd",
-            )
-        if timeout is not None or retries is not None or priority is not Priority.NORMAL:
-            check_request_options(timeout, retries, priority)
-        if start_by is not None and not (
-            isinstance(start_by, int | float) and not isinstance(start_by, bool)
-        ):
-            raise LocalProtocolError(
-                f"start_by must be a time in seconds, got {start_by!r}", field="start_by"
-            )
-        if self.state is not BusState.OPEN:
-            raise BusClosedError(f"bus {self.name} is {self.state.value}")
-        moves = cmd.starts_motion
-        if self._stopping and moves:
-            raise self._closing_error(cmd)
-        loop = asyncio.get_running_loop()
-        if loop is not self._loop:
-            raise self._wrong_loop_error(cmd)
-        if moves:
-            self._lease_keeper.claim(cmd, lease)
-        raw = cmd.encode()
-        occ = self.occupancy(cmd, len(raw))
-        budget = occ.budget if timeout is None else float(timeout)
-        n_retries = self.config.retries if retries is None else retries
-        if moves or not occ.expects_reply:
-            n_retries = 0
-        job = BusJob(
-            cmd=cmd,
-            raw=raw,
-            future=loop.create_future(),
-            priority=int(priority),
-            seq=0,  # set when queued
-            timeout=budget,
-            retries_left=n_retries,
-            key=cmd.device_key,
-            reserved=reserved,
-            refresh=refresh,
-            after_write=occ.after_write,
-        )
-        return job
 
     def prepare(
         self,
@@ -503,18 +460,19 @@ class Bus(BusEngine):
         encoding, the job); ``PreparedSubmit.send()``, called at the deadline (from a
         timer callback: the stream ticks), only re-checks what may have changed since
         (the bus still open and not closing; the ``refresh``; the lease rule again if any
-        lease changed) and sends it as ``submit`` does: an idle bus writes it then, as
-        the refresh built it; a frame that must wait runs its refresh again at its write.  Arguments
-        and errors as for ``submit`` (without ``start_by``).
+        lease changed) and sends it as ``submit`` does: an idle bus writes it then, with
+        the bytes encoded here unless the refresh changed the frame; a frame that must
+        wait runs its refresh again at its write.  Arguments and errors as for
+        ``submit`` (without ``start_by``).
         """
         job = self._checked_job(
             cmd, timeout, retries, priority, None, reserved=reserved, refresh=refresh, lease=lease
         )
-        table = self._leases
+        table = self._lease_keeper.table
         # The lease rule holds until the table changes, for a lease given here: one
         # taken from the running task would depend on the task that sends.
         valid = lease is not None and lease.table is table and lease.active
-        return PreparedSubmit(self._send_prepared, job, lease, table.version if valid else -1)
+        return PreparedSubmit(self, job, lease, table.version if valid else -1)
 
     def _wrong_loop_error(self, cmd: Command[object]) -> WrongLoopError:
         return WrongLoopError(
@@ -534,23 +492,23 @@ class Bus(BusEngine):
 
     def _send_prepared(self, prepared: PreparedSubmit[Any]) -> asyncio.Future[Any]:
         """``PreparedSubmit.send``: the cheap re-checks and the refresh, then the one
-        send path (``_queue``; see ``prepare``)."""
+        send path (``BusEngine.queue``; see ``prepare``)."""
         job = prepared.job
-        cmd = job.cmd
-        if self.state is not BusState.OPEN:
-            raise BusClosedError(f"bus {self.name} is {self.state.value}")
+        state = self._engine.state
+        if state is not BusState.OPEN:
+            raise BusClosedError(f"bus {self.name} is {state.value}")
         if asyncio.get_running_loop() is not self._loop:
-            raise self._wrong_loop_error(cmd)
-        if cmd.starts_motion and self._stopping:
-            raise self._closing_error(cmd)
+            raise self._wrong_loop_error(job.cmd)
+        if job.moves and self._stopping:
+            raise self._closing_error(job.cmd)
         # The frame as it is now: checked once here, and written as it is if it goes
         # out from this call; one that must wait is checked again at its write.
-        if job.refresh is not None and not self._refresh(job):
+        if job.refresh is not None and not self._engine.refresh(job):
             return job.future
-        if job.cmd.starts_motion and prepared.lease_version != self._leases.version:
+        if job.moves and prepared.lease_version != self._lease_keeper.table.version:
             # A lease changed since: the rule again, for the frame as it is now.
             self._lease_keeper.claim(job.cmd, prepared.lease)
-        self._queue(job, None, checked=True)
+        self._engine.queue(job, None, checked=True)
         return job.future
 
     async def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
@@ -616,16 +574,16 @@ class Bus(BusEngine):
     @property
     def leases(self) -> tuple[LeaseInfo, ...]:
         """Every leased device now: key, owner and the frames of its safe action."""
-        return self._leases.snapshot()
+        return self._lease_keeper.table.snapshot()
 
     def add_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
         """Call ``fn(bus.leases)`` after every change of the leases (a guard process
         mirrors them).  ``fn`` runs synchronously inside the change: keep it short."""
-        self._leases.add_listener(fn)
+        self._lease_keeper.table.add_listener(fn)
 
     def remove_lease_listener(self, fn: Callable[[tuple[LeaseInfo, ...]], None]) -> None:
         """Forget a listener added with ``add_lease_listener``; unknown ones are ignored."""
-        self._leases.remove_listener(fn)
+        self._lease_keeper.table.remove_listener(fn)
 
     def hand_over(self, lease: Lease, keys: Iterable[str]) -> None:
         """End ``lease`` on ``keys`` without sending anything: the devices pass to the
@@ -654,13 +612,13 @@ class Bus(BusEngine):
         write, ``on_reply(cmd, value, written_at, replied_at)`` when its reply's bytes
         were read.  Called synchronously from the bus: keep them short.  An observer
         that raises is logged and removed; the bus goes on.  Observing sends nothing."""
-        if observer not in self._observers:
-            self._observers.append(observer)
+        if observer not in self._engine.observers:
+            self._engine.observers.append(observer)
 
     def remove_observer(self, observer: BusObserver) -> None:
         """Stop telling ``observer`` (no error if it was not added)."""
         with contextlib.suppress(ValueError):
-            self._observers.remove(observer)
+            self._engine.observers.remove(observer)
 
     def add_reservation_source(self, source: ReservationSource) -> None:
         """Register ``source(now) -> (start, end) | None``: the next reserved window.
@@ -670,12 +628,12 @@ class Bus(BusEngine):
         begins; it waits until the window ends.  Emergency frames ignore reservations.
         Streams use this so that user requests never delay a tick.
         """
-        self._schedule.reservation_sources.append(source)
+        self._core.schedule.reservation_sources.append(source)
 
     def remove_reservation_source(self, source: ReservationSource) -> None:
         """Forget a source added with ``add_reservation_source``; unknown ones are ignored."""
         with contextlib.suppress(ValueError):
-            self._schedule.reservation_sources.remove(source)
+            self._core.schedule.reservation_sources.remove(source)
 
     async def wait_state(self, state: BusState, timeout: float | None = None) -> None:
         """Wait until the bus reaches ``state`` (e.g. ``OPEN`` after a reconnect)."""
@@ -685,3 +643,53 @@ class Bus(BusEngine):
             if self.state is state:
                 return
             await sub.next(timeout)
+
+    # -- requests: the checks and the one way out -----------------------------------
+
+    def _checked_job(
+        self,
+        cmd: Command[R],
+        timeout: float | None,
+        retries: int | None,
+        priority: Priority,
+        start_by: float | None,
+        *,
+        reserved: bool,
+        refresh: Refresh | None,
+        lease: Lease | None,
+    ) -> BusJob:
+        """Check a submission (``submit``'s errors, in its order), claim its lease and
+        build its job, not yet queued."""
+        core = self._core
+        core.check(cmd, start_by)
+        if timeout is not None or retries is not None or type(priority) is not Priority:
+            check_request_options(timeout, retries, priority)
+        state = self._engine.state
+        if state is not BusState.OPEN:
+            raise BusClosedError(f"bus {self.name} is {state.value}")
+        moves = cmd.starts_motion
+        if self._stopping and moves:
+            raise self._closing_error(cmd)
+        loop = asyncio.get_running_loop()
+        if loop is not self._loop:
+            raise self._wrong_loop_error(cmd)
+        if moves:
+            self._lease_keeper.claim(cmd, lease)
+        raw = cmd.encode()
+        occ = core.occupancy(cmd, len(raw))
+        n_retries = self.config.retries if retries is None else retries
+        return BusJob(
+            cmd=cmd,
+            raw=raw,
+            future=loop.create_future(),
+            priority=int(priority),
+            seq=0,  # set when queued
+            timeout=occ.budget if timeout is None else float(timeout),
+            retries_left=0 if moves or not occ.expects_reply else n_retries,
+            key=cmd.device_key,
+            reserved=reserved,
+            refresh=refresh,
+            after_write=occ.after_write,
+            expects=occ.expects_reply,
+            moves=moves,
+        )

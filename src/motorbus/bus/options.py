@@ -16,7 +16,15 @@ from types import MappingProxyType
 from motorbus.bus.schedule import Priority
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import families
-from motorbus.protocol.base import Family, check_timeout
+from motorbus.protocol.base import Family, check_flag, check_int, check_timeout
+from motorbus.validation import (
+    HOST_MARGIN_MAX_S,
+    LATE_GUARD_MAX_S,
+    MIN_SPACING_MAX_S,
+    RETRIES_MAX,
+    check_number,
+    check_turnaround,
+)
 
 __all__ = [
     "DEFAULT_HOST_MARGIN_S",
@@ -26,6 +34,7 @@ __all__ = [
     "REQUEST_RETRIES_MAX",
     "REQUEST_TIMEOUT_MAX_S",
     "BusConfig",
+    "check_bus_options",
     "check_request_options",
 ]
 
@@ -64,6 +73,33 @@ class BusConfig:
     late_guard: float = DEFAULT_LATE_GUARD_S
     reconnect: bool = True
     wire_floor: bool = False
+
+
+def check_bus_options(
+    *,
+    min_spacing: object,
+    host_margin: object,
+    turnaround: object,
+    retries: object,
+    late_guard: object,
+    reconnect: object,
+    wire_floor: object,
+) -> BusConfig:
+    """``Bus``'s timing options checked (type, finiteness, range) and frozen together.
+
+    Raises:
+        LocalProtocolError: a value out of its range, naming the field and the range.
+    """
+    given = check_turnaround(turnaround)
+    return BusConfig(
+        min_spacing=check_number("min_spacing", min_spacing, 0.0, MIN_SPACING_MAX_S, "s"),
+        host_margin=check_number("host_margin", host_margin, 0.0, HOST_MARGIN_MAX_S, "s"),
+        turnaround=MappingProxyType({**DEFAULT_TURNAROUND, **(given or {})}),
+        retries=check_int("retries", retries, 0, RETRIES_MAX),
+        late_guard=check_number("late_guard", late_guard, 0.0, LATE_GUARD_MAX_S, "s"),
+        reconnect=check_flag("reconnect", reconnect),
+        wire_floor=check_flag("wire_floor", wire_floor),
+    )
 
 
 #: Ceiling on a per-request reply budget: far beyond any reply the three manuals

@@ -238,6 +238,8 @@ class Scheduler(Generic[J]):
     def start_at(self, job: Job, now: float) -> float:
         """The earliest time ``job`` may start, seen at ``now``."""
         start = max(self.next_tx, self.guard_until.get(job.key, 0.0), now)
+        if not self.reservation_sources or job.reserved:
+            return start  # nothing to look up (held_by_reservation's own first test)
         held = self.held_by_reservation(job, start)
         return start if held is None else held
 

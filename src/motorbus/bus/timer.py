@@ -196,9 +196,13 @@ class Timer(abc.ABC):
         if self._closed:
             raise RuntimeError(f"{type(self).__name__} is closed")
         handle = TimerHandle(self, deadline, callback, precise)
-        heapq.heappush(self._heap, (deadline, next(self._seq), handle))
-        if self._heap[0][2] is handle:
-            self._rearm_soon()
+        heap = self._heap
+        heapq.heappush(heap, (deadline, next(self._seq), handle))
+        if heap[0][2] is handle:
+            if self._holds:
+                self._rearm_due = True  # what _rearm_soon does in a hold, without the call
+            else:
+                self._rearm_soon()
         return handle
 
     def hold_arming(self) -> None:
@@ -276,14 +280,16 @@ class Timer(abc.ABC):
     def _wake(self) -> None:
         """Run every due callback in deadline order, then re-arm at the next deadline."""
         heap = self._heap
-        loop = self.loop
+        loop = self._loop_ref()
+        if loop is None:
+            raise RuntimeError("the event loop of this timer is gone")
         now = self.now()
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
             while heap and heap[0][0] <= now:
                 _, _, handle = heapq.heappop(heap)
-                if handle.cancelled():
+                if handle._cancelled:
                     self._cancelled_in_heap -= 1
                     continue
                 handle._run(loop)
@@ -300,7 +306,7 @@ class Timer(abc.ABC):
 
     def _rearm(self) -> None:
         heap = self._heap
-        while heap and heap[0][2].cancelled():
+        while heap and heap[0][2]._cancelled:
             heapq.heappop(heap)
             self._cancelled_in_heap -= 1
         if heap:
@@ -314,7 +320,7 @@ class Timer(abc.ABC):
         # Compact when most entries are dead, so cancelled handles cannot pile up.
         if self._cancelled_in_heap * 2 > len(heap):
             # In place: _wake may be iterating over this very list.
-            heap[:] = [entry for entry in heap if not entry[2].cancelled()]
+            heap[:] = [entry for entry in heap if not entry[2]._cancelled]
             heapq.heapify(heap)
             self._cancelled_in_heap = 0
             if not self._closed:
@@ -340,8 +346,11 @@ class Timer(abc.ABC):
         if self._holds:
             self._rearm_due = True
         elif not self._flush_queued:
+            loop = self._loop_ref()  # (not the property: one call fewer a re-arm)
+            if loop is None:
+                raise RuntimeError("the event loop of this timer is gone")
             self._flush_queued = True
-            self.loop.call_soon(self._flush_rearm)
+            loop.call_soon(self._flush_rearm)
 
     def _flush_rearm(self) -> None:
         """The queued re-arm of :meth:`_rearm_soon`."""
@@ -637,7 +646,7 @@ class TimerfdTimer(Timer):
         self.wakeups += 1
         spun_until = woke
         heap = self._heap
-        if heap and self._spin_lead and heap[0][2].precise and not heap[0][2].cancelled():
+        if heap and self._spin_lead and heap[0][2].precise and not heap[0][2]._cancelled:
             first = heap[0][0]
             if woke < first <= woke + self._current_lead() + self.SPIN_LEAD_MIN_S:
                 clock = time.monotonic

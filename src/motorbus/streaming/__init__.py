@@ -5,7 +5,7 @@ Pure (no asyncio, no clock, no I/O; ``tests/test_layering.py`` checks it):
 * :mod:`motorbus.streaming.targets`: turning what a target source yields into
   ``{id: position}`` for a stream's actuators, and the ramp after a gap;
 * :mod:`motorbus.streaming.budget`: the time budget one bus's streams share (the
-  ``StreamBudget`` each bus holds as ``bus.stream_budget``), on ``bus.occupancy``;
+  ``StreamBudget`` of each bus, ``stream_budget(bus)``), on ``bus.occupancy``;
 * :mod:`motorbus.streaming.model`: limits, safe actions, gap policies, statistics and
   the checks of ``Streamer.follow``'s options.
 

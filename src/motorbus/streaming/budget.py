@@ -1,14 +1,15 @@
 """The time budget of one bus's streams: what a tick costs, and what still fits.
 
 Pure arithmetic over ``motorbus.bus.occupancy`` (no asyncio, no clock).  One
-:class:`StreamBudget` per bus, held by the bus itself (``bus.stream_budget``, created
-by the first ``Streamer`` on it), so every streamer of the bus shares it: a set of
+:class:`StreamBudget` per bus, kept here for the bus's life (``stream_budget(bus)``,
+created by the first ``Streamer`` on it), so every streamer of the bus shares it: a set of
 streams that cannot fit the bus is refused when it starts, with an error that says
 what would fit, and an actuator can be streamed by one stream at a time.
 """
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Iterable, Sequence
 from typing import Protocol
 
@@ -17,7 +18,14 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
 
-__all__ = ["TICK_BUDGET_SHARE", "Planned", "StreamBudget", "slot_cost", "tick_cost"]
+__all__ = [
+    "TICK_BUDGET_SHARE",
+    "Planned",
+    "StreamBudget",
+    "slot_cost",
+    "stream_budget",
+    "tick_cost",
+]
 
 #: Share of each tick that streams may plan to use; the rest absorbs host jitter and
 #: the user's own requests.
@@ -148,3 +156,22 @@ class StreamBudget:
         """Forget an ended stream (unknown ones are ignored)."""
         if stream in self.streams:
             self.streams.remove(stream)
+
+
+class _Named(Protocol):
+    @property
+    def name(self) -> str: ...
+
+
+#: The budget of each bus's streams, shared by all its streamers; the streams layer
+#: keeps it (the bus knows nothing of streams), for as long as the bus lives.
+_BUDGETS: weakref.WeakKeyDictionary[_Named, StreamBudget] = weakref.WeakKeyDictionary()
+
+
+def stream_budget(bus: _Named) -> StreamBudget:
+    """The time budget ``bus``'s streams share (created on first use): every
+    ``Streamer`` of a bus checks its streams against this one."""
+    budget = _BUDGETS.get(bus)
+    if budget is None:
+        budget = _BUDGETS[bus] = StreamBudget(bus.name)
+    return budget

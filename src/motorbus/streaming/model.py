@@ -222,21 +222,22 @@ def broadcast_builder(
 ) -> Callable[[], la.Broadcast | None]:
     """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
 
-    While every stream of the chunk still sends, the frame built first is reused: it is
-    built when the tick is prepared, and at the deadline and at the write the call is
-    only the check.
+    The frame is built once, here, when the tick is prepared; while every stream of the
+    chunk still sends, the refresh returns that same frame (the bus then writes the
+    bytes it encoded ahead), and the call is only the check.  A frame is built again
+    only for a chunk some of whose streams stopped.
     """
     streams = tuple({s: None for s, _ in chunk})
-    built: list[la.Broadcast] = []
+    # (List comprehensions, no generators: one call each, not one an entry.)
+    frame = la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, tuple([p for _, p in chunk]))
 
     def build() -> la.Broadcast | None:
-        if all(s.sending for s in streams):
-            if not built:
-                built.append(
-                    la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, tuple(p for _, p in chunk))
-                )
-            return built[0]
-        pairs = tuple(pair for s, pair in chunk if s.sending)
+        for s in streams:
+            if not s.sending:
+                break
+        else:
+            return frame
+        pairs = tuple([pair for s, pair in chunk if s.sending])
         if not pairs:
             return None
         return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)

@@ -21,7 +21,8 @@ TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable;
 
 #: What ``TargetAdapter.next_item`` returns when a sequence or iterator has run out.
 EXHAUSTED: Any = object()
-_PLAIN_NUMBERS = (int, float)
+#: Exactly these types (not bool, not a numpy scalar) take the fast path of ``_values``.
+_PLAIN_NUMBERS = frozenset((int, float))
 
 
 class TargetAdapter:
@@ -126,7 +127,8 @@ class TargetAdapter:
         # The common case, once a tick per bus: plain numbers all in range.  Anything
         # else (a bool, NaN, a string, out of range) takes the checking path below,
         # which names the offending value.
-        if all(type(v) in _PLAIN_NUMBERS for v in values):
+        # (map, no generator: one call, not one a value; issue 40 counts the calls.)
+        if _PLAIN_NUMBERS.issuperset(map(type, values)):
             try:
                 if min(values) >= la.POSITION_MIN and max(values) <= la.POSITION_MAX:
                     return dict(zip(self.ids, map(round, values), strict=True))
