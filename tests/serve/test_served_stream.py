@@ -268,3 +268,28 @@ def test_motorbus_stream_connect_plays_a_csv_through_the_server(
     assert "streamed" in done.stdout
     assert_in_order(targets_at_sim(la_sim), ROWS)
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
+
+
+async def test_a_stream_owns_its_actuators_for_its_client_and_a_hold_end_passes_them_back(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    async with motorbus.connect(endpoint) as site, motorbus.connect(endpoint) as other:
+        bus = site.bus()
+        await InspireLA(bus, 1).move_to(700)  # this client's own motion: taken over
+        stream = Streamer(bus).follow(InspireLA(bus, 1), [700 + n for n in range(200)])
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "the stream to run")
+        owners = [(i.key, i.owner) for i in other.bus().leases]
+        assert owners == [("la:1", f"stream of client {site.client_id}")]
+        with pytest.raises(motorbus.LeaseConflictError) as refused:
+            await InspireLA(other.bus(), 1).move_to(100)
+        assert refused.value.owner == owners[0][1]
+        with pytest.raises(motorbus.LeaseConflictError):
+            Streamer(other.bus()).follow(InspireLA(other.bus(), 1), [100, 200])
+        await asyncio.wait_for(stream.wait(), 30)
+        # Its safe action was "hold": la:1 is this client's again, nothing sent.
+        assert [(i.key, i.owner) for i in bus.leases] == [("la:1", "program")]
+        assert not [f for f in after_last_broadcast(la_sim) if isinstance(f, la.Control)]
+    # The client ended: its end pauses what it held, as a local bus's close does.
+    pause = la.decode_request(la.Control(1, la.ControlAction.PAUSE).encode())
+    await eventually(lambda: pause in after_last_broadcast(la_sim), "the pause of la:1")
+    assert la.MoveTo(1, 100, True) not in frames(la_sim)

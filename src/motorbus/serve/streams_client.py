@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from motorbus.bus.events import Subscription
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
+from motorbus.errors import BusClosedError, LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.protocol import la
 from motorbus.serve import keys as k
 from motorbus.serve.streams_server import START_IN_DEFAULT_S, stream_key
@@ -214,6 +214,7 @@ class ServedStream:
         self._t0 = time.monotonic() + float(opened.get("starts_in", streamer.lead))
         self._next = 0  # the next tick whose target this side publishes
         self._base = 0  # the tick where the current source started
+        self._instance = bus.site.instance
         session = bus.site._session
         self._stats_sub = session.declare_subscriber(
             stream_key(bus.name, self.number, "stats"), bus.site._threadsafe(self._on_stats)
@@ -343,7 +344,7 @@ class ServedStream:
 
     async def _feed(self) -> None:
         """Publish targets ``lead`` ahead of their ticks until the source ends."""
-        session = self.streamer.bus.site._session
+        site = self.streamer.bus.site
         ahead = max(1, math.ceil(self.streamer.lead / self.period))
         batch = max(1, round(BATCH_S / self.period)) if self.source.sequence is not None else 1
         try:
@@ -360,7 +361,12 @@ class ServedStream:
                     self._next += 1
                 if self.stopping:
                     return
-                payload = {"client": self.streamer.bus.site.client_id, "tick": first}
+                session = site._session
+                if session is None or site.state != "open" or site.instance != self._instance:
+                    # The server went away (or restarted): the stream ended with it.
+                    self._finish(BusClosedError(f"the server of {self!r} went away"))
+                    return
+                payload = {"client": site.client_id, "tick": first}
                 session.put(self._key, k.encode_json({**payload, "rows": rows, "end": end}))
                 if end:
                     return

@@ -302,7 +302,10 @@ class StreamService:
         moved = [key for key in keys if implicit is not None and key in implicit.keys]
         if implicit is not None and moved:
             bus.hand_over(implicit, moved)
+        created = streamer.lease is None or not streamer.lease.active
         try:
+            if created:  # the streamer's lease, named for its client (else Streamer makes it)
+                streamer.lease = bus.lease(keys, owner=f"stream of client {client.id}", bind=False)
             stream = streamer.follow(
                 [InspireLA(bus, i) for i in ids],
                 feed.source,
@@ -314,6 +317,8 @@ class StreamService:
                 max_speed=options.max_speed,
             )
         except BaseException:
+            if created and streamer.lease is not None:
+                await streamer.lease.release(hold=True)  # nothing was sent
             if moved:
                 self._to_client(client, name, bus, moved)
             raise
