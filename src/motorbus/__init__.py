@@ -75,10 +75,10 @@ if TYPE_CHECKING:
     from motorbus.busfile import BusSpec as BusSpec
     from motorbus.busfile import default_bus_file as default_bus_file
     from motorbus.busfile import load_bus_file as load_bus_file
-    from motorbus.devices.group import read_statuses as read_statuses
     from motorbus.devices.calibration import Calibration as Calibration
     from motorbus.devices.calibration import NamedActuator as NamedActuator
     from motorbus.devices.calibration import write_calibration_file as write_calibration_file
+    from motorbus.devices.group import read_statuses as read_statuses
     from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.la import InspireLA as InspireLA
     from motorbus.devices.la import ScanReport as ScanReport
