@@ -298,7 +298,7 @@ class ServedStream:
         task.add_done_callback(self._ops.discard)
 
     def _on_stats(self, sample: Any) -> None:
-        with contextlib.suppress(LocalProtocolError, ValueError, KeyError, TypeError):
+        with contextlib.suppress(MotorbusError, ValueError, KeyError, TypeError):
             self._take(k.decode_json(sample.payload.to_bytes()))
 
     def _take(self, state: dict[str, Any]) -> None:

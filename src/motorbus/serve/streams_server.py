@@ -94,6 +94,10 @@ class TargetFeed:
         self.period = period
         self.on_gap = on_gap
         self.rows: dict[int, Targets] = {}
+        #: No row below this tick is buffered (the ticks before it were served).
+        self.low = 0
+        #: One past the highest tick buffered.
+        self.top = 0
         #: The tick after the last row, once the client's source has ended.
         self.end: int | None = None
         self.stream: Stream | None = None
@@ -130,17 +134,20 @@ class TargetFeed:
     def put(self, tick: int, rows: list[Targets], end: bool) -> None:
         """Rows for ticks ``tick, tick + 1, ...``: they replace any sent before for those
         ticks and later; ``end`` says the source ends after them."""
-        for later in [t for t in self.rows if t >= tick]:
-            del self.rows[later]
+        for later in range(max(tick, self.low), self.top):  # only what is replaced
+            self.rows.pop(later, None)
         for n, targets in enumerate(rows):
-            self.rows[tick + n] = targets
+            if tick + n >= self.low:  # a row for a tick already served is dropped
+                self.rows[tick + n] = targets
+        self.top = max(self.low, tick + len(rows))
         self.end = tick + len(rows) if end else None
 
     def source(self, t: float, statuses: Mapping[int, la.Status]) -> Targets | None:
         k_now = round(t / self.period)
-        for stale in [t for t in self.rows if t < k_now]:
-            del self.rows[stale]
+        for stale in range(self.low, k_now):  # one a tick, however many are buffered
+            self.rows.pop(stale, None)
         targets = self.rows.pop(k_now, None)
+        self.low = max(self.low, k_now + 1)
         if targets is not None:
             self._resume()
             self.started = True
