@@ -293,3 +293,15 @@ async def test_a_stream_owns_its_actuators_for_its_client_and_a_hold_end_passes_
     pause = la.decode_request(la.Control(1, la.ControlAction.PAUSE).encode())
     await eventually(lambda: pause in after_last_broadcast(la_sim), "the pause of la:1")
     assert la.MoveTo(1, 100, True) not in frames(la_sim)
+
+
+def test_motorbus_stream_connect_refuses_the_servers_own_options(tmp_path: Path) -> None:
+    csv = tmp_path / "path.csv"
+    csv.write_text("t,1\n0,100\n0.01,110\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect",
+         "tcp/127.0.0.1:9", "--guard"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert "--connect" in done.stderr and "--guard" in done.stderr
