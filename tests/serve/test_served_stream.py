@@ -99,9 +99,12 @@ async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
 
 
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP])
 async def test_a_client_killed_mid_stream_ends_it_with_the_safe_action_and_nothing_moves(
-    la_sim: SimProcess, la_server: Child, endpoint: str
+    la_sim: SimProcess, la_server: Child, endpoint: str, how: int
 ) -> None:
+    # SIGKILL closes its link at once; a frozen client (SIGSTOP) falls silent: its
+    # stream holds (on_gap="ramp") until the deadman (--liveness 0.5 s) ends it.
     child = client(
         endpoint,
         """
@@ -118,7 +121,7 @@ async def test_a_client_killed_mid_stream_ends_it_with_the_safe_action_and_nothi
     try:
         child.expect("ready")
         await eventually(lambda: len(targets_at_sim(la_sim)) >= 20, "the stream to run")
-        child.send(signal.SIGKILL)
+        child.send(how)
         await eventually(
             lambda: (
                 {
