@@ -14,7 +14,7 @@ baud):
   poll period and the simulator's log write).
 
 Prints a table and writes ``benchmarks/results/serve.json``.  Not yet measured: many
-buses per server, server CPU per bus-tick (served streams are not done).
+buses per server, server CPU per bus-tick (served streams: bench_serve_stream.py).
 """
 
 from __future__ import annotations

@@ -102,11 +102,9 @@ log = logging.getLogger("motorbus.streams")
 
 #: Ticks within this of each other are served together (and coalesced).
 COALESCE_WINDOW_S = 200e-6
-#: A tick's targets are computed as soon as the previous tick's frames, feedback and
-#: polls are done, at most this long before its deadline; its frames then leave from
-#: a timer callback at the deadline itself.  One timer wake-up a tick (each costs
-#: 180-600 us of CPU on this VM, benchmarks/bench_wakeups.py): the preparation rides
-#: on the previous tick's.
+#: A tick's targets are computed once the previous tick's frames, feedback and polls are
+#: done, at most this long before its deadline; its frames leave from a timer callback at
+#: the deadline.  One wake-up a tick (180-600 us of CPU here, bench_wakeups.py).
 PLAN_AHEAD_S = 0.050
 #: Polls stop this long before the next tick, to leave time to prepare it.
 PREPARE_S = 1e-3
@@ -116,10 +114,13 @@ class Streamer:
     """Serves every stream of one bus from one task, on absolute tick deadlines.
 
     Args:
-        bus: an open bus carrying LA actuators.
-        phase: offset of this bus's tick grid in seconds (the manager spreads buses so
-            that they do not all wake at once).
+        bus: an open bus carrying LA actuators, or a served one (``motorbus.connect``).
+        phase: offset of this bus's tick grid in seconds (the manager spreads buses).
     """
+
+    def __new__(cls, bus: Any, *, phase: float = 0.0) -> Any:
+        served = getattr(bus, "served_streamer", None)
+        return super().__new__(cls) if served is None else served(phase=phase)
 
     def __init__(self, bus: Bus, *, phase: float = 0.0) -> None:
         if not isinstance(bus, Bus):
@@ -303,9 +304,8 @@ class Streamer:
         starting = self._task is None or self._task.done()
         if starting:
             # What the set-up made is young: the collector's first pass over it (1-2 ms)
-            # would be a late tick. Pass now, before the first deadline (docs/design.md).
-            # Real-time mode too: its freeze at enable() does not cover what the program
-            # set up after it, and gen-1 passes stay automatic there.
+            # would be a late tick; pass now (docs/design.md), in real-time mode too (its
+            # freeze at enable() misses later set-up; gen-1 passes stay automatic there).
             gc.collect(1)
         now = self.bus.timer.now()
         # Align the origin to this bus's grid so streams of one period coalesce.

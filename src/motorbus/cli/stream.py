@@ -44,6 +44,10 @@ Ctrl-C stops the stream and pauses the actuators (exit code 130).
 
 With --bus-file F --process NAME the bus is one of that process group's (its only one
 needs no --bus), and the stream runs on the CPUs the group's [process.NAME] table gives.
+
+With --connect ENDPOINT [--bus NAME] the bus is one a `motorbus serve` serves there: the
+stream ticks on the server's timer, this command sends the rows ahead of their ticks
+(docs/serve.md), and its safe end is the server's too, however this command ends.
 """
 
 from __future__ import annotations
@@ -81,6 +85,7 @@ from motorbus.errors import (
     MotorbusError,
     ReplyTimeoutError,
     StreamEnded,
+    UsageError,
 )
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
@@ -144,7 +149,7 @@ def register(subparsers: Any) -> None:
         help=f"move from the reported positions to the first row over this time "
         f"(default {DEFAULT_RAMP_S:g}; 0 = no ramp)",
     )
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     add_process_option(p)
     add_guard_option(p)
     p.set_defaults(func=run)
@@ -257,6 +262,8 @@ def run(args: argparse.Namespace) -> int:
             value=args.period,
         )
     check_int("--loop", args.loop, 1, MAX_LOOPS)
+    if getattr(args, "connect", None) and (args.process or args.guard):
+        raise UsageError("--connect streams on the server: --process and --guard are its own")
     check_seconds("--ramp", args.ramp, 0.0)
     if args.ramp > MAX_RAMP_S:
         raise LocalProtocolError(

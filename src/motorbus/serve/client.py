@@ -392,6 +392,13 @@ class ServedBus:
     def _lease_op_blocking(self, body: dict[str, Any]) -> dict[str, Any]:
         return self.site._query_blocking(k.bus_key(self.name, "lease"), body)
 
+    def served_streamer(self, *, phase: float = 0.0) -> Any:
+        """What ``motorbus.Streamer(bus)`` makes of this bus: streams on the server's
+        timer (``motorbus.serve.streams_client``)."""
+        from motorbus.serve.streams_client import ServedStreamer
+
+        return ServedStreamer(self, phase=phase)
+
     async def fetch_stats(self) -> dict[str, Any]:
         """The server bus's counters (``BusStats.as_dict``)."""
         result = await self._query("stats", {})

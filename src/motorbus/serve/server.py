@@ -50,6 +50,7 @@ from motorbus.errors import (
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, format_hex
 from motorbus.serve import keys as k
+from motorbus.serve.streams_server import StreamService
 from motorbus.serve.tap import raw_reply, tapped
 from motorbus.serve.zconf import server_config, zenoh
 
@@ -132,6 +133,8 @@ class BusServer:
         self._listeners: list[tuple[Bus, Callable[[tuple[LeaseInfo, ...]], None]]] = []
         #: Deadman ends so far: (client id, seconds from noticing to the last safe frame).
         self.deadman_ends: list[tuple[str, float]] = []
+        #: Served streams (``motorbus.serve.streams_server``): the ``stream`` keys.
+        self._streams = StreamService(self)
 
     # -- life cycle --------------------------------------------------------------------
 
@@ -164,6 +167,7 @@ class BusServer:
                 )
             )
             self._publishers[name] = session.declare_publisher(k.bus_key(name, "leases"))
+            self._streams.declare(session, name)
             self._spawn(self._forward_events(name, bus))
             self._watch_leases(name, bus)
         self._declare(
@@ -491,7 +495,8 @@ class BusServer:
             await asyncio.sleep(self.liveness / _CHECKS_PER_LIVENESS)
             now = time.monotonic()
             for client in list(self._clients.values()):
-                if now - client.last_seen > self.liveness and _holds(client):
+                streams = self._streams.holds(client.id)
+                if now - client.last_seen > self.liveness and (_holds(client) or streams):
                     silent = now - client.last_seen
                     self._spawn(
                         self._end_client(client, f"no heartbeat for {silent:.2f} s", keep=True)
@@ -499,6 +504,7 @@ class BusServer:
 
     async def _end_client(self, client: _Client, why: str, *, keep: bool = False) -> None:
         """End every lease of ``client`` with its safe action (the bus sends it)."""
+        await self._streams.end_client(client, why)  # its streams first, safely
         leases = [lease for lease in client.implicit.values() if lease.active]
         leases += [lease for _, lease in client.explicit.values() if lease.active]
         client.implicit.clear()

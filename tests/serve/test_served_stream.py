@@ -1,0 +1,310 @@
+"""Served streams (issue 39): ``Streamer(served_bus)`` ticks on the server's timer, fed by
+the client's targets ahead; the simulator's own record (over a pty) is the judge.
+Client and server run in separate processes; assertions are on order and counts,
+never on speed."""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import signal
+import subprocess
+import sys
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+pytest.importorskip("zenoh")
+
+import motorbus
+from motorbus import InspireLA, LocalProtocolError, StreamEnded, Streamer
+from motorbus.protocol import la
+from motorbus.serve import keys as k
+from motorbus.serve.streams_client import ServedStream, ServedStreamer
+from motorbus.sim import SimProcess
+from motorbus.streams import StreamGap
+from tests.serve.conftest import Child, client
+from tests.serve.test_served_faults import raw_query
+from tests.waiting import eventually
+
+PAUSES = {la.Control(i, la.ControlAction.PAUSE).encode() for i in (1, 2)}
+
+
+def frames(sim: SimProcess) -> list[Any]:
+    """Every request the simulator received, decoded, in order."""
+    out = []
+    for r in sim.log_records():
+        if r["direction"] == "request" and r["kind"] == "frame":
+            out.append(la.decode_request(bytes.fromhex(r["hex"])))
+    return out
+
+
+def targets_at_sim(sim: SimProcess) -> list[tuple[int, ...]]:
+    """The follow targets of each broadcast, as (la:1, la:2) rows, in order."""
+    rows = []
+    for f in frames(sim):
+        if isinstance(f, la.Broadcast):
+            entries = dict(f.entries)
+            rows.append(tuple(entries[i] for i in sorted(entries)))
+    return rows
+
+
+def after_last_broadcast(sim: SimProcess) -> list[Any]:
+    seen = frames(sim)
+    last = max((n for n, f in enumerate(seen) if isinstance(f, la.Broadcast)), default=-1)
+    return seen[last + 1 :]
+
+
+def collapse(rows: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
+    """Consecutive repeats (a tick the server held) made one."""
+    return [r for n, r in enumerate(rows) if n == 0 or r != rows[n - 1]]
+
+
+def assert_in_order(received: list[tuple[int, ...]], sent: list[tuple[int, ...]]) -> None:
+    """Every row received is one of ``sent``, in ``sent``'s order, none twice apart
+    from held repeats; the first and the last are there."""
+    index = [sent.index(r) for r in collapse(received)]
+    assert index == sorted(set(index)), index
+    assert index[0] == 0 and index[-1] == len(sent) - 1
+
+
+ROWS = [(100 + 7 * n, 1900 - 7 * n) for n in range(40)]
+
+
+@pytest.mark.parametrize("kind", ["rows ahead", "a target per tick"])
+async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
+    la_sim: SimProcess, la_server: Child, endpoint: str, kind: str
+) -> None:
+    def per_tick(t: float, statuses: object) -> tuple[int, int] | None:
+        n = round(t / 0.01)
+        return ROWS[n] if n < len(ROWS) else None
+
+    source: Any = list(ROWS) if kind == "rows ahead" else per_tick
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        streamer = Streamer(bus)  # the one call of a local bus
+        assert isinstance(streamer, ServedStreamer)
+        stream = streamer.follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)], source, period=0.01, safe_action="pause"
+        )
+        assert isinstance(stream, ServedStream)
+        await asyncio.wait_for(stream.wait(), 30)
+        assert stream.done and stream.error is None
+    received = targets_at_sim(la_sim)
+    assert_in_order(received, ROWS)
+    # One frame per tick the server served (its own count), and the safe action last.
+    assert len(received) == stream.stats.ticks
+    assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
+
+
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP])
+async def test_a_client_killed_mid_stream_ends_it_with_the_safe_action_and_nothing_moves(
+    la_sim: SimProcess, la_server: Child, endpoint: str, how: int
+) -> None:
+    # SIGKILL closes its link at once; a frozen client (SIGSTOP) falls silent: its
+    # stream holds (on_gap="ramp") until the deadman (--liveness 0.5 s) ends it.
+    child = client(
+        endpoint,
+        """
+        def forever():
+            n = 0
+            while True:
+                n += 1
+                yield [100 + n % 1000, 1000]
+        stream = motorbus.Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)], forever(), period=0.01, safe_action="pause"
+        )
+        """,
+    )
+    try:
+        child.expect("ready")
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 20, "the stream to run")
+        child.send(how)
+        await eventually(
+            lambda: (
+                {
+                    la.Control(f.id, f.action).encode()
+                    for f in after_last_broadcast(la_sim)
+                    if isinstance(f, la.Control)
+                }
+                >= PAUSES
+            ),
+            "the pauses after the last target",
+        )
+        count = len(frames(la_sim))
+        await asyncio.sleep(0.5)
+        # Nothing moves afterwards: no target, no motion of any kind.
+        late = frames(la_sim)[count:]
+        assert not [f for f in late if getattr(f, "starts_motion", False)], late
+        assert not [f for f in after_last_broadcast(la_sim) if getattr(f, "starts_motion", False)]
+    finally:
+        child.finish(signal.SIGKILL)
+
+
+async def _stall_then(rows: list[tuple[int, int]], stall: float, after: tuple[int, int]) -> Any:
+    async def source() -> AsyncIterator[tuple[int, int]]:
+        for r in rows:
+            yield r
+        await asyncio.sleep(stall)  # the client falls silent
+        for _ in range(200):
+            yield after
+
+    return source()
+
+
+async def test_a_silent_client_gets_on_gap_stop_the_safe_action_and_the_end(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        gaps = bus.events.subscribe(StreamGap)
+        source = await _stall_then(ROWS[:10], 5.0, (500, 500))
+        stream = Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)],
+            source,
+            period=0.01,
+            safe_action="pause",
+            on_gap="stop",
+        )
+        with pytest.raises(StreamEnded, match="client silent"):
+            await asyncio.wait_for(stream.wait(), 30)
+        gap = await gaps.next(5)
+        assert (gap.cause, gap.action, gap.missed) == ("client", "stop", 3)
+        assert stream.stats.gaps == 1
+    received = targets_at_sim(la_sim)
+    assert_in_order(received, ROWS[:10])
+    assert (500, 500) not in received
+    assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
+
+
+async def test_a_silent_client_gets_on_gap_ramp_back_to_its_targets(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        gaps = bus.events.subscribe(StreamGap)
+        source = await _stall_then([(500, 500)] * 10, 0.3, (1500, 1500))
+        stream = Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)],
+            source,
+            period=0.01,
+            safe_action="pause",
+            on_gap="ramp",
+            max_speed=2000,  # 20 units a tick
+        )
+        await asyncio.wait_for(stream.wait(), 30)
+        gap = await gaps.next(5)
+        assert (gap.cause, gap.action, gap.ids) == ("client", "ramp", (1, 2))
+        assert gap.missed >= 3 and gap.positions == {1: 500, 2: 500}
+        assert stream.stats.gaps == 1 and stream.stats.held >= gap.missed
+    moving = [r[0] for r in collapse(targets_at_sim(la_sim))]
+    # From 500 to 1500 in steps of at most 20 (max_speed * period): no jump.
+    assert moving[0] == 500 and moving[-1] == 1500
+    steps = [b - a for a, b in itertools.pairwise(moving)]
+    assert all(0 < s <= 20 for s in steps), steps
+    assert len(steps) >= 1000 // 20 - 1
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [
+        ({"period": 0.2}, "period"),
+        ({"safe_action": "maybe"}, "safe_action"),
+        ({"on_gap": "jump"}, "on_gap"),
+        ({"max_speed": 0}, "max_speed"),
+        ({"feedback": "yes"}, "feedback"),
+    ],
+)
+async def test_bad_stream_options_are_refused_naming_the_field_and_nothing_is_sent(
+    la_sim: SimProcess, la_server: Child, endpoint: str, options: dict[str, Any], field: str
+) -> None:
+    before = len(la_sim.log_records())
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        with pytest.raises(LocalProtocolError) as refused:
+            Streamer(bus).follow(InspireLA(bus, 1), [100, 200], **options)
+        assert refused.value.field == field
+    # The server checks them too (a client in another language).
+    body = {"client": "x", "op": "open", "ids": [1], **options}
+    answer = raw_query(endpoint, k.bus_key("bus", "stream"), k.encode_json(body))
+    assert answer["ok"] is False and answer["error"] == "bad_payload"
+    assert answer["field"] == field
+    await asyncio.sleep(0.2)
+    assert len(la_sim.log_records()) == before
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"op": "open", "ids": []}, "ids"),
+        ({"op": "open", "ids": [0]}, "ids"),
+        ({"op": "open", "ids": [1], "start_in": 60}, "start_in"),
+        ({"op": "open", "ids": [1], "period": "fast"}, "period"),
+        ({"op": "rewind"}, "op"),
+        ({"op": "stop", "stream": 99}, "stream"),
+    ],
+)
+def test_bad_stream_queries_are_refused_naming_the_field(
+    la_sim: SimProcess, la_server: Child, endpoint: str, body: dict[str, Any], field: str
+) -> None:
+    before = len(la_sim.log_records())
+    answer = raw_query(endpoint, k.bus_key("bus", "stream"), k.encode_json({"client": "x", **body}))
+    assert answer["ok"] is False and answer["field"] == field, answer
+    assert len(la_sim.log_records()) == before
+
+
+def test_motorbus_stream_connect_plays_a_csv_through_the_server(
+    la_sim: SimProcess, la_server: Child, endpoint: str, tmp_path: Path
+) -> None:
+    csv = tmp_path / "path.csv"
+    csv.write_text(
+        "t,1,2\n" + "".join(f"{n * 0.01:.2f},{a},{b}\n" for n, (a, b) in enumerate(ROWS))
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect", endpoint,
+         "--ramp", "0"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "streamed" in done.stdout
+    assert_in_order(targets_at_sim(la_sim), ROWS)
+    assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
+
+
+async def test_a_stream_owns_its_actuators_for_its_client_and_a_hold_end_passes_them_back(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    async with motorbus.connect(endpoint) as site, motorbus.connect(endpoint) as other:
+        bus = site.bus()
+        await InspireLA(bus, 1).move_to(700)  # this client's own motion: taken over
+        stream = Streamer(bus).follow(InspireLA(bus, 1), [700 + n for n in range(200)])
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "the stream to run")
+        owners = [(i.key, i.owner) for i in other.bus().leases]
+        assert owners == [("la:1", f"stream of client {site.client_id}")]
+        with pytest.raises(motorbus.LeaseConflictError) as refused:
+            await InspireLA(other.bus(), 1).move_to(100)
+        assert refused.value.owner == owners[0][1]
+        with pytest.raises(motorbus.LeaseConflictError):
+            Streamer(other.bus()).follow(InspireLA(other.bus(), 1), [100, 200])
+        await asyncio.wait_for(stream.wait(), 30)
+        # Its safe action was "hold": la:1 is this client's again, nothing sent.
+        assert [(i.key, i.owner) for i in bus.leases] == [("la:1", "program")]
+        assert not [f for f in after_last_broadcast(la_sim) if isinstance(f, la.Control)]
+    # The client ended: its end pauses what it held, as a local bus's close does.
+    pause = la.decode_request(la.Control(1, la.ControlAction.PAUSE).encode())
+    await eventually(lambda: pause in after_last_broadcast(la_sim), "the pause of la:1")
+    assert la.MoveTo(1, 100, True) not in frames(la_sim)
+
+
+def test_motorbus_stream_connect_refuses_the_servers_own_options(tmp_path: Path) -> None:
+    csv = tmp_path / "path.csv"
+    csv.write_text("t,1\n0,100\n0.01,110\n")
+    done = subprocess.run(
+        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect",
+         "tcp/127.0.0.1:9", "--guard"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert "--connect" in done.stderr and "--guard" in done.stderr

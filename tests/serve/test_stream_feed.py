@@ -1,0 +1,67 @@
+"""The server's buffer of a served stream's targets (``TargetFeed``), without a network:
+rows by tick, replacement, the end, and what a silent client gets."""
+
+from __future__ import annotations
+
+import pytest
+
+from motorbus import StreamEnded
+from motorbus.serve.keys import PayloadError
+from motorbus.serve.streams_server import TargetFeed
+from motorbus.streaming.model import GAP_TICKS, GapPolicy
+
+P = 0.01
+
+
+def tick(feed: TargetFeed, k: int) -> object:
+    return feed.source(k * P, {})
+
+
+def test_rows_are_served_on_their_ticks_and_the_end_ends_it() -> None:
+    feed = TargetFeed((1, 2), P, GapPolicy.RAMP)
+    assert tick(feed, 0) == {}  # nothing yet: nothing sent, not a gap
+    assert feed.held == 0
+    feed.put(1, [feed.row([10, 20], "r"), feed.row({"2": 30}, "r")], end=True)
+    assert tick(feed, 1) == {1: 10, 2: 20}
+    assert tick(feed, 2) == {2: 30}
+    assert tick(feed, 3) is None
+
+
+def test_later_rows_replace_from_their_tick_on_and_past_ticks_are_dropped() -> None:
+    feed = TargetFeed((1,), P, GapPolicy.RAMP)
+    feed.put(0, [feed.row(n, "r") for n in (1, 2, 3, 4)], end=True)
+    assert tick(feed, 0) == {1: 1}
+    feed.put(2, [feed.row(9, "r")], end=False)  # replaces ticks 2 and 3, no end now
+    assert tick(feed, 1) == {1: 2}
+    assert tick(feed, 2) == {1: 9}
+    assert tick(feed, 3) == {}  # nothing for tick 3 any more: held, not ended
+    feed.put(3, [feed.row(7, "r"), feed.row(8, "r")], end=True)  # tick 3 was served
+    assert tick(feed, 4) == {1: 8}
+    assert tick(feed, 5) is None
+    assert feed.held == 1
+
+
+@pytest.mark.parametrize("policy", [GapPolicy.RAMP, GapPolicy.STOP])
+def test_a_silent_client_is_held_then_gets_its_gap_policy(policy: GapPolicy) -> None:
+    feed = TargetFeed((1,), P, policy)
+    feed.put(0, [feed.row(100, "r")], end=False)
+    assert tick(feed, 0) == {1: 100}
+    for k in range(1, GAP_TICKS):
+        assert tick(feed, k) == {}
+    if policy is GapPolicy.STOP:
+        with pytest.raises(StreamEnded, match="client silent, 3 ticks missed"):
+            tick(feed, GAP_TICKS)
+        return
+    for k in range(GAP_TICKS, 10):
+        assert tick(feed, k) == {}  # "ramp": held until rows come again
+    feed.put(10, [feed.row(500, "r")], end=False)
+    assert tick(feed, 10) == {1: 500}
+    assert (feed.missed, feed.held) == (0, 9)
+
+
+@pytest.mark.parametrize("row", [[1, 2], "100", True, {"x": 5}, 2001, [None]])
+def test_a_bad_row_is_refused_naming_rows(row: object) -> None:
+    feed = TargetFeed((1,), P, GapPolicy.RAMP)
+    with pytest.raises(PayloadError) as refused:
+        feed.row(row, "rows[0]")
+    assert refused.value.field == "rows"
