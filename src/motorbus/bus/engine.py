@@ -23,6 +23,7 @@ Futures, timer handles and the transport stay here, beside the core's records
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import enum
 import heapq
 import logging
@@ -95,6 +96,9 @@ class BusState(enum.Enum):
 #: Called at the moment a queued frame is written: returns the command to send now
 #: (rebuilt from what is still wanted) or None to drop it unsent.
 Refresh = Callable[[], "Command[object] | None"]
+#: ``tap(outgoing, data, at)``: a frame written (``outgoing``) or bytes read, at the bus
+#: clock's ``at`` (``Bus.add_wire_tap``).
+WireTap = Callable[[bool, bytes, float], None]
 
 
 @dataclass(slots=True, eq=False, kw_only=True)
@@ -190,6 +194,8 @@ class BusEngine:
         #: Set when close starts: motion is refused and dropped from then on.
         self._stopping = False
         self._observers: list[BusObserver] = []
+        #: Told of every chunk on the wire (``add_wire_tap``).
+        self._wire_taps: list[WireTap] = []
 
     if TYPE_CHECKING:  # what Bus defines and this class uses
 
@@ -216,6 +222,27 @@ class BusEngine:
             except Exception:
                 log.exception("%s: observer %r failed; removed", self.name, observer)
                 self.remove_observer(observer)
+
+    def add_wire_tap(self, tap: WireTap) -> None:
+        """Tell ``tap(outgoing, data, at)`` of every frame written (``outgoing`` true)
+        and every chunk of bytes read, with the bus clock's time, in wire order (a
+        served bus's frame feed, ``motorbus capture --connect``).  Called synchronously
+        from the bus: keep it to an append.  A tap that raises is logged and removed."""
+        if tap not in self._wire_taps:
+            self._wire_taps.append(tap)
+
+    def remove_wire_tap(self, tap: WireTap) -> None:
+        """Stop telling ``tap`` (no error if it was not added)."""
+        with contextlib.suppress(ValueError):
+            self._wire_taps.remove(tap)
+
+    def _tap_wire(self, outgoing: bool, data: bytes, at: float) -> None:
+        for tap in list(self._wire_taps):
+            try:
+                tap(outgoing, data, at)
+            except Exception:
+                log.exception("%s: wire tap %r failed; removed", self.name, tap)
+                self.remove_wire_tap(tap)
 
     # -- writer ------------------------------------------------------------------
     #
@@ -381,6 +408,8 @@ class BusEngine:
             self._finish(job, err)
             return
         after = timer.now()
+        if self._wire_taps:
+            self._tap_wire(True, job.raw, after)
         # Counted after the write, which then follows the frame's deadline sooner.
         self._count_sent(job, expects)
         # Spacing counts from the completed write (module docstring).
@@ -497,6 +526,8 @@ class BusEngine:
             timer.release_arming()
 
     def _read(self, data: bytes, now: float) -> None:
+        if self._wire_taps:
+            self._tap_wire(False, data, now)
         stats = self.stats
         stats.bytes_in += len(data)
         reassembler = self._reassembler
