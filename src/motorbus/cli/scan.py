@@ -94,7 +94,11 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         conflict_handler="resolve",  # our --baud (which takes "all") replaces the common one
     )
-    p.add_argument("--ids", default="1-254", help="IDs to try, e.g. 1-20,100 (default 1-254)")
+    p.add_argument(
+        "--ids",
+        help="IDs to try, e.g. 1-20,100 (default 1-254; with --connect: the IDs the server "
+        "knows, declared or seen answering)",
+    )
     p.add_argument(
         "--timeout",
         type=float,
@@ -107,7 +111,7 @@ def register(subparsers: Any) -> None:
         default=SCAN_PASSES_MAX,
         help=f"1: ask each ID once; 2: ask the missing IDs again (default {SCAN_PASSES_MAX})",
     )
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     p.add_argument(
         "--baud",
         type=parse_baud,
@@ -226,11 +230,15 @@ def run(args: argparse.Namespace) -> int:
         LocalProtocolError: a bad ``--ids``, ``--timeout`` or ``--passes`` (before
             anything is sent).
     """
-    ids = parse_ids(args.ids)
+    ids = parse_ids(args.ids or "1-254")
     check_seconds("--timeout", args.timeout, 1e-4)
     check_int("--passes", args.passes, 1, SCAN_PASSES_MAX)
     if args.baud is not None:
         check_int("--baud", args.baud, 1, 10_000_000)
+    if getattr(args, "connect", None):
+        from motorbus.cli.served import run_scan
+
+        return asyncio.run(run_scan(args, ids if args.ids else None))
     return asyncio.run(_scan(args, ids))
 
 

@@ -31,11 +31,15 @@ class ServedDevices:
         declared: the device keys its bus file or ``--devices`` declares.
         answered: the device keys that have answered the bus since it opened.
         timing: the bus's timing (baud, spacing, host margin, turnarounds).
+        now: the server bus's clock when it answered (seconds).
+        frames_tapped: the server publishes the bus's frames (someone subscribes).
     """
 
     declared: tuple[str, ...]
     answered: tuple[str, ...]
     timing: BusTiming
+    now: float = 0.0
+    frames_tapped: bool = False
     raw: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -52,7 +56,7 @@ class ServedDevices:
         return _la_ids([*self.declared, *self.answered])
 
 
-async def fetch_devices(bus: ServedBus) -> ServedDevices:
+async def fetch_devices(bus: ServedBus | Any) -> ServedDevices:
     """Ask the server what bus ``bus`` declares and what answered it (nothing is sent
     on the bus)."""
     result = await bus._query("devices", {})
@@ -68,6 +72,8 @@ async def fetch_devices(bus: ServedBus) -> ServedDevices:
             tuple(str(x) for x in result["declared"]),
             tuple(str(x) for x in result["answered"]),
             timing,
+            float(result["now"]),
+            bool(result["frames_tapped"]),
             result,
         )
     except (KeyError, TypeError, ValueError) as err:
@@ -77,7 +83,7 @@ async def fetch_devices(bus: ServedBus) -> ServedDevices:
 
 
 @contextlib.asynccontextmanager
-async def frame_batches(bus: ServedBus) -> AsyncIterator[asyncio.Queue[dict[str, Any]]]:
+async def frame_batches(bus: ServedBus | Any) -> AsyncIterator[asyncio.Queue[dict[str, Any]]]:
     """Subscribe to the frames bus ``bus`` writes and reads: a queue of the server's
     batches (``{"time", "frames": [[t, "tx" | "rx", HEX], ...]}``, ``t`` and ``time`` on
     the server bus's clock).  The server taps its bus only while someone subscribes."""

@@ -131,7 +131,10 @@ class ToolsService:
         """The ``devices`` query of bus ``name``."""
         bus = self.buses[name]
         timing = bus.timing
+        feed = self.feeds.get(name)
         return {
+            "now": bus.timer.now(),
+            "frames_tapped": feed is not None and feed.active,
             "declared": list(self.devices.get(name, ())),
             "answered": sorted(key for key, d in bus.stats.devices.items() if d.replies),
             "timing": {
