@@ -49,6 +49,7 @@ class FrameFeed:
         self.publisher = publisher
         self.items: list[Item] = []
         self.active = False
+        self.closed = False  # the server is closing: never tapped again
         #: Batches published so far.
         self.published = 0
         self._task: asyncio.Task[None] | None = None
@@ -62,7 +63,7 @@ class FrameFeed:
         self.set_active(bool(getattr(status, "matching", status)))
 
     def set_active(self, active: bool) -> None:
-        if active and not self.active:
+        if active and not self.active and not self.closed:
             self.active = True
             self.bus.add_wire_tap(self.tap)
             self._task = asyncio.ensure_future(self._run())
@@ -125,6 +126,7 @@ class ToolsService:
     def close(self) -> None:
         """Untap every bus and publish what is left."""
         for feed in self.feeds.values():
+            feed.closed = True
             feed.set_active(False)
 
     async def answer(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
