@@ -216,41 +216,49 @@ async def _capture_served(args: argparse.Namespace, recorder: Recorder) -> None:
     drives the bus goes on undisturbed).  ``t`` is the server bus's clock since the
     capture started; each chunk is cut as a sniffer's would be."""
     from motorbus.cli.bus_options import served_bus
-    from motorbus.serve.tools_client import fetch_devices, frame_batches
 
-    async with served_bus(args.connect, args.bus) as bus, frame_batches(bus) as batches:
-        # Listening from the moment the server has tapped its bus: no frame is missed.
-        waited_until = time.monotonic() + TAP_WAIT_S
-        devices = await fetch_devices(bus)
-        while not devices.frames_tapped:
-            if time.monotonic() > waited_until:
-                raise BusClosedError(f"the server at {args.connect} publishes no frames")
-            await asyncio.sleep(0.01)
-            devices = await fetch_devices(bus)
-        start, chunk_t = devices.now, [0.0]
-        recorder.clock = lambda: chunk_t[0]
-        where = f"bus {bus.name} at {args.connect}"
-        recorder.start(where, bus.baudrate)
-        print(
-            f"motorbus capture: listening on {where} ({recorder.family.value}, "
-            f"{bus.baudrate} Bd, served)" + (f" for {args.seconds:g} s" if args.seconds else ""),
-            file=sys.stderr,
-            flush=True,
-        )
-        end = None if args.seconds is None else time.monotonic() + args.seconds
-        try:
-            while end is None or time.monotonic() < end:
-                left = None if end is None else end - time.monotonic()
-                try:
-                    batch = await asyncio.wait_for(batches.get(), left)
-                except TimeoutError:
-                    break
-                for t, _, data in batch.get("frames", []):
-                    if float(t) >= start:
-                        chunk_t[0] = float(t) - start
-                        recorder.feed(bytes.fromhex(data))
-        finally:
-            recorder.finish()
+    async with served_bus(args.connect, args.bus) as bus:
+        served: Any = bus  # a ServedBus: fetch_devices, frames
+        async with served.frames() as batches:
+            await _listen_served(args, recorder, served, batches)
+
+
+async def _listen_served(
+    args: argparse.Namespace, recorder: Recorder, bus: Any, batches: asyncio.Queue[Any]
+) -> None:
+    """Feed ``recorder`` the server's batches until ``--seconds`` (or Ctrl-C)."""
+    # Listening from the moment the server has tapped its bus: no frame is missed.
+    waited_until = time.monotonic() + TAP_WAIT_S
+    devices = await bus.fetch_devices()
+    while not devices.frames_tapped:
+        if time.monotonic() > waited_until:
+            raise BusClosedError(f"the server at {args.connect} publishes no frames")
+        await asyncio.sleep(0.01)
+        devices = await bus.fetch_devices()
+    start, chunk_t = devices.now, [0.0]
+    recorder.clock = lambda: chunk_t[0]
+    where = f"bus {bus.name} at {args.connect}"
+    recorder.start(where, bus.baudrate)
+    print(
+        f"motorbus capture: listening on {where} ({recorder.family.value}, "
+        f"{bus.baudrate} Bd, served)" + (f" for {args.seconds:g} s" if args.seconds else ""),
+        file=sys.stderr,
+        flush=True,
+    )
+    end = None if args.seconds is None else time.monotonic() + args.seconds
+    try:
+        while end is None or time.monotonic() < end:
+            left = None if end is None else end - time.monotonic()
+            try:
+                batch = await asyncio.wait_for(batches.get(), left)
+            except TimeoutError:
+                break
+            for t, _, data in batch.get("frames", []):
+                if float(t) >= start:
+                    chunk_t[0] = float(t) - start
+                    recorder.feed(bytes.fromhex(data))
+    finally:
+        recorder.finish()
 
 
 async def _capture(args: argparse.Namespace, transport: Transport, recorder: Recorder) -> None:

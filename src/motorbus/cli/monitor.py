@@ -134,9 +134,8 @@ async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
     live = LiveText(sys.stdout)
     async with open_bus(args, [Family.LA]) as bus:
         if ids is None and getattr(args, "connect", None):
-            from motorbus.cli.served import known_ids
-
-            ids = list(await known_ids(bus))  # the server's: its bus's time is not ours
+            served: Any = bus
+            ids = list((await served.fetch_devices()).known_la)  # the server's IDs: no scan
             if not ids:
                 print(
                     "motorbus monitor: the server knows no LA actuator on its bus: give --ids",

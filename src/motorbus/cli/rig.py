@@ -39,7 +39,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
-from motorbus.bus.bus import Bus
+from motorbus import Bus
 from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD, add_bus_options, open_bus
 from motorbus.cli.ids import parse_id_args
 from motorbus.cli.output import error_doc, fail, print_json
@@ -212,7 +212,7 @@ async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
             if args.connect:
                 from motorbus.cli.served_rig import run_served_rig
 
-                result, stats = await run_served_rig(bus, plan, bar)
+                result, stats = await run_served_rig(bus, plan, bar, run_rig)
             else:
                 result = await run_rig(bus, plan, bar, raise_on_abort=False)
                 stats = bus.stats.as_dict()

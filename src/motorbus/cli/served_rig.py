@@ -17,16 +17,12 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import sys
-from collections.abc import AsyncIterator
-from typing import TYPE_CHECKING, Any, cast
+from collections.abc import AsyncIterator, Awaitable, Callable
+from typing import Any, cast
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus import Bus, Priority
 from motorbus.errors import UsageError
 from motorbus.protocol.base import Command
-
-if TYPE_CHECKING:
-    from motorbus.rig import RigResult
-    from motorbus.rig.plan import RigPlan
 
 __all__ = ["RIG_OWNER", "ObservedServedBus", "held", "run_served_rig", "served_tests"]
 
@@ -138,17 +134,16 @@ async def held(bus: Any, keys: list[str]) -> AsyncIterator[Any]:
 
 
 async def run_served_rig(
-    bus: Any, plan: RigPlan, progress: Any
-) -> tuple[RigResult, dict[str, Any]]:
-    """Run ``plan`` on the served ``bus`` holding the lease of its actuators; return the
-    result and the server bus's counters.
+    bus: Any, plan: Any, progress: Any, run_rig: Callable[..., Awaitable[Any]]
+) -> tuple[Any, dict[str, Any]]:
+    """Run ``plan`` (a ``RigPlan``) with ``run_rig`` (``motorbus.rig.run_rig``) on the
+    served ``bus`` holding the lease of its actuators; return the ``RigResult`` and the
+    server bus's counters.
 
     Raises:
         LeaseConflictError: another client holds one of the actuators (names it);
             nothing was sent.
     """
-    from motorbus.rig import run_rig
-
     async with held(bus, [f"la:{i}" for i in plan.ids]):
         result = await run_rig(
             cast(Bus, ObservedServedBus(bus)), plan, progress, raise_on_abort=False
