@@ -5,22 +5,29 @@ leases on the same bus."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
 pytest.importorskip("zenoh")
 
+import motorbus
+from motorbus import Bus, InspireLA
+from motorbus.bus.timer import default_timer
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
+from motorbus.serve import BusServer
 from motorbus.sim import SimProcess
+from motorbus.sim.la import LAModel
+from motorbus.sim.memory import MemorySim
 from tests.serve.conftest import Child, client, free_endpoint, serve
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -229,3 +236,38 @@ def test_project_and_quad_through_a_served_bus(tmp_path: Path) -> None:
         sent = requests_of(sim)
     assert ps.StartProject(1).encode() in sent
     assert sent.count(q.Run(2).encode()) == 3  # quad run, then the rig's two
+
+
+async def wait_until(condition: Callable[[], bool], what: str, timeout: float = 10.0) -> None:
+    end = time.monotonic() + timeout
+    while not condition():
+        assert time.monotonic() < end, f"not {what} within {timeout:g} s"
+        await asyncio.sleep(0.01)
+
+
+async def test_the_server_taps_its_bus_only_while_a_capture_subscribes() -> None:
+    endpoint = free_endpoint()
+    async with MemorySim.start([LAModel(1)], baud=921600, timer=default_timer()) as sim:
+        bus = Bus(sim.transport, name="arm", host_margin=0.05, reconnect=False)
+        async with (
+            bus,
+            BusServer({"arm": bus}, listen=endpoint, devices={"arm": ["la:1", "la:4"]}) as server,
+            motorbus.connect(endpoint) as site,
+        ):
+            served = site.bus()
+            feed = server.tools.feeds["arm"]
+            devices = await served.fetch_devices()
+            assert devices.declared == ("la:1", "la:4") and not devices.frames_tapped
+            await InspireLA(served, 1).status()
+            assert bus._wire_taps == [] and feed.published == 0  # nobody listened
+            assert (await served.fetch_devices()).answered == ("la:1",)
+            async with served.frames() as batches:
+                await wait_until(lambda: feed.active, "tapped")
+                assert bus._wire_taps == [feed.tap]
+                await InspireLA(served, 1).status()
+                batch = await asyncio.wait_for(batches.get(), 10)
+                kinds = [direction for _, direction, _ in batch["frames"]]
+                assert kinds[0] == "tx" and "rx" in kinds
+                assert bytes.fromhex(batch["frames"][0][2]) == status_query(1)
+            await wait_until(lambda: not feed.active, "untapped after the capture")
+            assert bus._wire_taps == []

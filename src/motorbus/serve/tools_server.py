@@ -55,8 +55,9 @@ class FrameFeed:
         self._task: asyncio.Task[None] | None = None
 
     def tap(self, outgoing: bool, data: bytes, at: float) -> None:
-        """The wire tap: one append (the bus calls it on its own path)."""
-        self.items.append((at, outgoing, data))
+        """The wire tap: one append (the bus calls it on its own path; ``bytes`` of a
+        ``bytes`` is the same object, of a reused buffer a copy)."""
+        self.items.append((at, outgoing, bytes(data)))
 
     def matching(self, status: Any) -> None:
         """Zenoh's matching status changed: tap the bus while someone subscribes."""
