@@ -21,6 +21,10 @@ again; ``replay FILE --to URL`` sends its requests again.
 a view for reading instead of the frame log.  ``--id``, ``--dir`` and ``--command`` keep
 only the frames asked for, e.g. ``--id 3 --command MoveTo,Status``; a filtered frame log
 names its filter in its header.
+
+``--connect ENDPOINT`` captures a bus that ``motorbus serve`` owns, beside its
+application: the server publishes every frame its bus writes and reads while a capture
+subscribes, and the capture writes the same frame log (``t`` on the server's clock).
 """
 
 from __future__ import annotations

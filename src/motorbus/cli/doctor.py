@@ -21,6 +21,10 @@ red line with the one thing to do about it:
 * budget: the occupancy model's cycle budget at --period beside a measurement;
 * host: timer, real-time grant, CPU governor, other real-time processes.
 
+``--connect ENDPOINT`` runs the read-only checks on a bus that ``motorbus serve`` owns
+(devices, turnaround and line from the server's counters); the others are listed as
+skipped, saying why.
+
 Exit status: 0 when nothing is red, 1 otherwise (a port that does not exist included),
 2 for bad arguments (nothing sent).
 """

@@ -26,7 +26,8 @@ periodic recording keeps its rhythm.  Each request goes out from a callback of t
 bus's own timer (timerfd on Linux) at its recorded time, as a stream tick does.  A wait
 of more than ``--max-gap`` seconds (default 60) between two requests is refused before
 anything is sent: a broken or edited file must not leave a replay asleep for days.  A
-replay ends through its bus's close, also at Ctrl-C.
+replay ends through its bus's close, also at Ctrl-C.  ``--connect ENDPOINT`` (instead
+of ``--to``) sends the requests through a bus that ``motorbus serve`` owns.
 """
 
 from __future__ import annotations

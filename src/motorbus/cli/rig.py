@@ -25,6 +25,10 @@ and the field) if a file is not rig results or holds a null or a non-number.
 reports the start -> ``EE DD`` times (p50/p99/max); ``rig quad MOTOR`` does the same
 for a 4-axis run -> its done reply (the motor's stored settings; --baud defaults to
 the steppers' rate).  A run that does not finish within --timeout is stopped.
+
+``--connect ENDPOINT`` runs the rig on a bus that ``motorbus serve`` owns, holding the
+lease of the devices under test (another client's lease refuses it, naming the holder);
+the tracking test streams, and is not run there yet.
 """
 
 from __future__ import annotations

@@ -26,6 +26,10 @@ Progress goes to standard error: a bar redrawn in place on a terminal, a line ev
 tenth of the way otherwise, then one summary line.  The IDs that answered are printed
 as a comma-separated list (ready for ``--ids``), or as JSON.  The exit code is 1 if no
 actuator answered.
+
+``--connect ENDPOINT`` scans a bus that ``motorbus serve`` owns, beside its application:
+the IDs the server declares or has heard (or ``--ids``) are each asked a status through
+the server; ``--baud all`` is refused there.
 """
 
 from __future__ import annotations
