@@ -38,7 +38,7 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.devices.group": ("read_statuses",),
     "motorbus.devices.calibration": ("Calibration", "NamedActuator", "write_calibration_file"),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
-    "motorbus.doctor": ("DoctorConfig", "DoctorReport", "diagnose"),
+    "motorbus.doctor": ("DoctorConfig", "DoctorReport", "diagnose", "diagnose_served"),
     "motorbus.devices.quad_stepper": ("QuadStepper",),
     "motorbus.errors": (
         "ArrivalTimeoutError",
@@ -100,6 +100,7 @@ if TYPE_CHECKING:
     from motorbus.doctor import DoctorConfig as DoctorConfig
     from motorbus.doctor import DoctorReport as DoctorReport
     from motorbus.doctor import diagnose as diagnose
+    from motorbus.doctor import diagnose_served as diagnose_served
     from motorbus.errors import ArrivalTimeoutError as ArrivalTimeoutError
     from motorbus.errors import BusClosedError as BusClosedError
     from motorbus.errors import GroupReadError as GroupReadError

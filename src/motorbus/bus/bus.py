@@ -59,7 +59,7 @@ from typing import Any, Generic, TypeVar
 
 from motorbus import lifecycle
 from motorbus.bus.core import BusCore
-from motorbus.bus.engine import BusEngine
+from motorbus.bus.engine import BusEngine, WireTap
 from motorbus.bus.events import BusStateChanged
 from motorbus.bus.jobs import BusJob, BusObserver, BusState, Refresh
 from motorbus.bus.lease_shell import LeaseKeeper, finish_shielded, together
@@ -619,6 +619,17 @@ class Bus:
         """Stop telling ``observer`` (no error if it was not added)."""
         with contextlib.suppress(ValueError):
             self._engine.observers.remove(observer)
+
+    def add_wire_tap(self, tap: WireTap) -> None:
+        """Tell ``tap(outgoing, data, at)`` of every frame written (``outgoing`` true)
+        and every chunk of bytes read, with the bus clock's time, in wire order (a
+        served bus's frame feed, ``motorbus capture --connect``).  Called synchronously
+        from the bus: keep it to an append.  A tap that raises is logged and removed."""
+        self._engine.add_wire_tap(tap)
+
+    def remove_wire_tap(self, tap: WireTap) -> None:
+        """Stop telling ``tap`` (no error if it was not added)."""
+        self._engine.remove_wire_tap(tap)
 
     def add_reservation_source(self, source: ReservationSource) -> None:
         """Register ``source(now) -> (start, end) | None``: the next reserved window.

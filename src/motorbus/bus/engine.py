@@ -24,6 +24,7 @@ this class calls the ``Bus`` that holds them.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections.abc import Callable
 from typing import Any
@@ -44,7 +45,7 @@ from motorbus.protocol.base import Family, format_hex
 from motorbus.protocol.reassembler import ProjectFinishedMarker
 from motorbus.transport.base import Transport
 
-__all__ = ["BusEngine"]
+__all__ = ["BusEngine", "WireTap"]
 
 log = logging.getLogger("motorbus.bus")
 
@@ -52,6 +53,10 @@ log = logging.getLogger("motorbus.bus")
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
 RECONNECT_MAX_S = 2.0
+
+#: ``tap(outgoing, data, at)``: a frame written (``outgoing``) or bytes read, at the bus
+#: clock's ``at`` (``Bus.add_wire_tap``).
+WireTap = Callable[[bool, bytes, float], None]
 
 
 class BusEngine:
@@ -95,6 +100,29 @@ class BusEngine:
         self._pump_at = 0.0
         self._pumping = False
         self.reconnect_task: asyncio.Task[None] | None = None
+        #: Told of every chunk on the wire (``add_wire_tap``).
+        self.wire_taps: list[WireTap] = []
+
+    def add_wire_tap(self, tap: WireTap) -> None:
+        """Tell ``tap(outgoing, data, at)`` of every frame written (``outgoing`` true)
+        and every chunk of bytes read, with the bus clock's time, in wire order (a
+        served bus's frame feed, ``motorbus capture --connect``).  Called synchronously
+        from the bus: keep it to an append.  A tap that raises is logged and removed."""
+        if tap not in self.wire_taps:
+            self.wire_taps.append(tap)
+
+    def remove_wire_tap(self, tap: WireTap) -> None:
+        """Stop telling ``tap`` (no error if it was not added)."""
+        with contextlib.suppress(ValueError):
+            self.wire_taps.remove(tap)
+
+    def tap_wire(self, outgoing: bool, data: bytes, at: float) -> None:
+        for tap in list(self.wire_taps):
+            try:
+                tap(outgoing, data, at)
+            except Exception:
+                log.exception("%s: wire tap %r failed; removed", self.name, tap)
+                self.remove_wire_tap(tap)
 
     def start(self, timer: Timer) -> None:
         """The port is about to open: a fresh received stream, on ``timer``."""
@@ -250,6 +278,8 @@ class BusEngine:
             self._finish(job, err)
             return
         after = timer.now()
+        if self.wire_taps:
+            self.tap_wire(True, job.raw, after)
         # Counted after the write, which then follows the frame's deadline sooner;
         # spacing counts from the completed write (module docstring).
         core.wrote(job, expects, before, after, self.transport.baudrate)
@@ -334,6 +364,8 @@ class BusEngine:
         timer.hold_arming()
         try:
             now = timer.now()
+            if self.wire_taps:
+                self.tap_wire(False, data, now)
             for what, about, raw in self.core.feed(data, now):
                 if what is Verdict.ACCEPTED:
                     self._accept(about, raw, now)

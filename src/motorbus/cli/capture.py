@@ -21,6 +21,10 @@ again; ``replay FILE --to URL`` sends its requests again.
 a view for reading instead of the frame log.  ``--id``, ``--dir`` and ``--command`` keep
 only the frames asked for, e.g. ``--id 3 --command MoveTo,Status``; a filtered frame log
 names its filter in its header.
+
+``--connect ENDPOINT`` captures a bus that ``motorbus serve`` owns, beside its
+application: the server publishes every frame its bus writes and reads while a capture
+subscribes, and the capture writes the same frame log (``t`` on the server's clock).
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from motorbus.cli.logformat import (
 )
 from motorbus.cli.output import plural
 from motorbus.cli.values import check_seconds
-from motorbus.errors import BusClosedError
+from motorbus.errors import BusClosedError, UsageError
 from motorbus.protocol import framelog
 from motorbus.protocol.base import Family
 from motorbus.protocol.describe import describe
@@ -82,7 +86,7 @@ def register(subparsers: Any) -> None:
     p.add_argument("--out", metavar="FILE", help="write here (default: standard output)")
     add_format_option(p, "jsonl")
     add_filter_options(p, family=False)
-    add_bus_options(p, default_baud=None, json_option=False)
+    add_bus_options(p, default_baud=None, json_option=False, connect=True)
     p.set_defaults(func=run_capture)
 
 
@@ -165,17 +169,27 @@ def run_capture(args: argparse.Namespace) -> int:
     """
     check_seconds("--seconds", args.seconds, 1e-3)
     keep = record_filter(args)
-    resolve_port(args)
     family = Family(args.family)
-    if args.baud is None:
-        args.baud = FAMILY_BAUD[family]
-    transport = open_port(args)
+    transport: Transport | None = None
+    if args.connect:
+        if args.port or args.bus_file or args.baud is not None:
+            raise UsageError(
+                "--connect uses a served bus: give it without --port, --bus-file or --baud"
+            )
+    else:
+        resolve_port(args)
+        if args.baud is None:
+            args.baud = FAMILY_BAUD[family]
+        transport = open_port(args)
     out: TextIO = open(args.out, "w", encoding="utf-8") if args.out else sys.stdout  # noqa: SIM115
     try:
         recorder = Recorder(family, LogWriter(out, args.format, keep), lambda: 0.0)
         # Ctrl-C is the ordinary end of an open-ended capture.
         with contextlib.suppress(KeyboardInterrupt):
-            asyncio.run(_capture(args, transport, recorder))
+            if transport is None:
+                asyncio.run(_capture_served(args, recorder))
+            else:
+                asyncio.run(_capture(args, transport, recorder))
         counts = ", ".join(_counted(n, k) for k, n in sorted(recorder.counts.items()))
         counts = counts or "nothing"
         if recorder.dropped:
@@ -194,6 +208,61 @@ def _counted(n: int, kind: str) -> str:
 
 def _since(start: float) -> Callable[[], float]:
     return lambda: time.monotonic() - start
+
+
+#: Longest wait for the server to start publishing its bus's frames (seconds).
+TAP_WAIT_S = 5.0
+
+
+async def _capture_served(args: argparse.Namespace, recorder: Recorder) -> None:
+    """``--connect``: the frames the server's bus writes and reads, as the server
+    publishes them (it taps its bus while someone subscribes; the application that
+    drives the bus goes on undisturbed).  ``t`` is the server bus's clock since the
+    capture started; each chunk is cut as a sniffer's would be."""
+    from motorbus.cli.bus_options import served_bus
+
+    async with served_bus(args.connect, args.bus) as bus:
+        served: Any = bus  # a ServedBus: fetch_devices, frames
+        async with served.frames() as batches:
+            await _listen_served(args, recorder, served, batches)
+
+
+async def _listen_served(
+    args: argparse.Namespace, recorder: Recorder, bus: Any, batches: asyncio.Queue[Any]
+) -> None:
+    """Feed ``recorder`` the server's batches until ``--seconds`` (or Ctrl-C)."""
+    # Listening from the moment the server has tapped its bus: no frame is missed.
+    waited_until = time.monotonic() + TAP_WAIT_S
+    devices = await bus.fetch_devices()
+    while not devices.frames_tapped:
+        if time.monotonic() > waited_until:
+            raise BusClosedError(f"the server at {args.connect} publishes no frames")
+        await asyncio.sleep(0.01)
+        devices = await bus.fetch_devices()
+    start, chunk_t = devices.now, [0.0]
+    recorder.clock = lambda: chunk_t[0]
+    where = f"bus {bus.name} at {args.connect}"
+    recorder.start(where, bus.baudrate)
+    print(
+        f"motorbus capture: listening on {where} ({recorder.family.value}, "
+        f"{bus.baudrate} Bd, served)" + (f" for {args.seconds:g} s" if args.seconds else ""),
+        file=sys.stderr,
+        flush=True,
+    )
+    end = None if args.seconds is None else time.monotonic() + args.seconds
+    try:
+        while end is None or time.monotonic() < end:
+            left = None if end is None else end - time.monotonic()
+            try:
+                batch = await asyncio.wait_for(batches.get(), left)
+            except TimeoutError:
+                break
+            for t, _, data in batch.get("frames", []):
+                if float(t) >= start:
+                    chunk_t[0] = float(t) - start
+                    recorder.feed(bytes.fromhex(data))
+    finally:
+        recorder.finish()
 
 
 async def _capture(args: argparse.Namespace, transport: Transport, recorder: Recorder) -> None:

@@ -21,6 +21,10 @@ red line with the one thing to do about it:
 * budget: the occupancy model's cycle budget at --period beside a measurement;
 * host: timer, real-time grant, CPU governor, other real-time processes.
 
+``--connect ENDPOINT`` runs the read-only checks on a bus that ``motorbus serve`` owns
+(devices, turnaround and line from the server's counters); the others are listed as
+skipped, saying why.
+
 Exit status: 0 when nothing is red, 1 otherwise (a port that does not exist included),
 2 for bad arguments (nothing sent).
 """
@@ -62,7 +66,7 @@ def register(subparsers: Any) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     p.add_argument(
         "--period",
         type=float,
@@ -137,14 +141,32 @@ def _config(args: argparse.Namespace) -> DoctorConfig:
 
 def run(args: argparse.Namespace) -> int:
     """Run ``motorbus doctor``; return 0 when nothing is red, else 1 (2: bad arguments)."""
-    config = _config(args)
-    report = asyncio.run(diagnose(config))
+    if args.connect:
+        report = _served(args)
+        target = args.connect
+    else:
+        config = _config(args)
+        report = asyncio.run(diagnose(config))
+        target = config.url
     if args.json:
         print_json(report.as_dict())
         red = [f.check for f in report.findings if f.level.value == "red"]
         if red:  # the report, then one error object naming the red checks
             text = f"{plural(len(red), 'check')} red: {', '.join(red)}"
-            print_json(error_doc("doctor", text, report.exit_code, port=config.url, checks=red))
+            print_json(error_doc("doctor", text, report.exit_code, port=target, checks=red))
     else:
         print(report.format_text(colour=sys.stdout.isatty()), flush=True)
-    return report.exit_code
+    code: int = report.exit_code
+    return code
+
+
+def _served(args: argparse.Namespace) -> Any:
+    """``--connect``: the read-only checks through the server (``cli.served``)."""
+    from motorbus.cli.served import run_doctor
+    from motorbus.protocol.base import check_int
+
+    if args.period != args.period or not 10.0 - 1e-6 <= args.period <= 50.0 + 1e-6:
+        raise UsageError(f"--period={args.period:g} is out of range: allowed 10..50 ms")
+    check_int("--requests", args.requests, 1, 1000)
+    ids = parse_ids(args.ids) if args.ids else None
+    return asyncio.run(run_doctor(args, ids, args.period / 1e3))

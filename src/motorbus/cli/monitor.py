@@ -124,8 +124,6 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--plot and --json do not go together: choose one")
     if plot_mode == "window":
         plot.check_window()
-    if getattr(args, "connect", None) and ids is None:
-        raise UsageError("--connect needs the IDs to watch: a scan is not served yet")
     try:
         return asyncio.run(_monitor(args, ids))
     except KeyboardInterrupt:
@@ -135,6 +133,15 @@ def run(args: argparse.Namespace) -> int:
 async def _monitor(args: argparse.Namespace, ids: list[int] | None) -> int:
     live = LiveText(sys.stdout)
     async with open_bus(args, [Family.LA]) as bus:
+        if ids is None and getattr(args, "connect", None):
+            served: Any = bus
+            ids = list((await served.fetch_devices()).known_la)  # the server's IDs: no scan
+            if not ids:
+                print(
+                    "motorbus monitor: the server knows no LA actuator on its bus: give --ids",
+                    file=sys.stderr,
+                )
+                return 1
         if ids is None:
             ids = await scan(bus, timeout=SCAN_TIMEOUT_S)
             if not ids:

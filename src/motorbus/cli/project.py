@@ -144,7 +144,7 @@ def register(subparsers: Any) -> None:
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
-    add_bus_options(parser, default_baud=STEPPER_BAUD)
+    add_bus_options(parser, default_baud=STEPPER_BAUD, connect=True)
     parser.set_defaults(func=run)
 
 

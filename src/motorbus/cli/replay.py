@@ -26,7 +26,8 @@ periodic recording keeps its rhythm.  Each request goes out from a callback of t
 bus's own timer (timerfd on Linux) at its recorded time, as a stream tick does.  A wait
 of more than ``--max-gap`` seconds (default 60) between two requests is refused before
 anything is sent: a broken or edited file must not leave a replay asleep for days.  A
-replay ends through its bus's close, also at Ctrl-C.
+replay ends through its bus's close, also at Ctrl-C.  ``--connect ENDPOINT`` (instead
+of ``--to``) sends the requests through a bus that ``motorbus serve`` owns.
 """
 
 from __future__ import annotations
@@ -94,6 +95,13 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("file", metavar="FILE.jsonl")
     p.add_argument("--to", metavar="URL", help="send the recorded requests to this port")
+    p.add_argument(
+        "--connect",
+        metavar="ENDPOINT",
+        help="send them instead through the bus a `motorbus serve` serves at this Zenoh "
+        "endpoint (--bus NAME where it serves several)",
+    )
+    p.add_argument("--bus", metavar="NAME", help="with --connect: the served bus to use")
     add_guard_option(p)
     p.add_argument("--baud", type=int, help="bit/s for --to (default: by the recorded family)")
     p.add_argument("--backend", choices=BACKENDS, default=DEFAULT_BACKEND, help="for --to")
@@ -193,6 +201,14 @@ def run_replay(args: argparse.Namespace) -> int:
         )
     check_int("--loop", args.loop, 1, MAX_LOOP)
     keep = record_filter(args)
+    if args.connect is not None:
+        if args.to is not None:
+            raise UsageError("--connect uses a served bus: give it without --to")
+        if args.baud is not None:
+            raise UsageError("--baud goes with --to: a served bus has its server's rate")
+        args.to = f"bus {args.bus or '(the only one)'} at {args.connect}"
+    elif args.bus is not None:
+        raise UsageError("--bus goes with --connect ENDPOINT")
     if args.format is not None and (args.json or args.to is not None):
         raise UsageError("--format shows a log: it goes neither with --json nor with --to")
     path = Path(args.file)
@@ -225,6 +241,8 @@ def run_replay(args: argparse.Namespace) -> int:
     motion = [item for item in plan if item.cmd.starts_motion]
     if motion and not args.yes and not _confirm(args, len(plan), motion):
         return EXIT_USAGE
+    if args.connect is not None:
+        return asyncio.run(_replay_served(args, plan))
     transport = open_port(args, url=args.to)
     return asyncio.run(_replay(args, transport, plan, families or {Family.LA}))
 
@@ -465,6 +483,48 @@ async def _replay(
             args,
             f"{sender.failed} of {sender.sent} requests failed (timeouts or bad replies)",
             port=transport.url,
+        )
+    return 0
+
+
+async def _replay_served(args: argparse.Namespace, plan: list[_Planned]) -> int:
+    """``--connect``: each request through the served bus at its recorded time (the
+    server paces the wire; its reply comes back decoded, so the replies are counted).
+    Motion the replay started ends with the client: the server sends its safe action."""
+    from motorbus.cli.bus_options import served_bus
+
+    async with served_bus(args.connect, args.bus) as bus:
+        timer = bus.timer
+        start = timer.now()
+        sent = replies = 0
+        failures: list[BaseException] = []
+        pending: list[asyncio.Future[Any]] = []
+        for deadline, item in _schedule(plan, start, args.speed, args.loop):
+            await timer.sleep_until(deadline)
+            _show(args, round(timer.now() - start, TIME_DECIMALS), describe_command(item.cmd))
+            pending.append(bus.submit(item.cmd, retries=0, priority=item.priority))
+            sent += 1
+        for future in pending:
+            try:
+                value = await future
+            except MotorbusError as err:
+                failures.append(err)
+            else:
+                replies += value is not None
+        await timer.sleep_until(timer.now() + args.wait)
+    for failure in failures[:SHOWN_FAILURES]:
+        print(f"motorbus replay: {failure}", file=sys.stderr)
+    passes = f" ({args.loop} passes)" if args.loop > 1 else ""
+    print(
+        f"motorbus replay: {sent} requests sent to {args.to} through a served bus{passes}, "
+        f"{replies} replies, {len(failures)} failed (timeouts or bad replies)",
+        file=sys.stderr,
+    )
+    if failures:
+        return fail(
+            args,
+            f"{len(failures)} of {sent} requests failed (timeouts or bad replies)",
+            port=args.to,
         )
     return 0
 

@@ -25,19 +25,25 @@ and the field) if a file is not rig results or holds a null or a non-number.
 reports the start -> ``EE DD`` times (p50/p99/max); ``rig quad MOTOR`` does the same
 for a 4-axis run -> its done reply (the motor's stored settings; --baud defaults to
 the steppers' rate).  A run that does not finish within --timeout is stopped.
+
+``--connect ENDPOINT`` runs the rig on a bus that ``motorbus serve`` owns, holding the
+lease of the devices under test (another client's lease refuses it, naming the holder);
+the tracking test streams, and is not run there yet.
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import sys
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
+from motorbus import Bus
 from motorbus.cli.bus_options import LA_BAUD, STEPPER_BAUD, add_bus_options, open_bus
 from motorbus.cli.ids import parse_id_args
 from motorbus.cli.output import error_doc, fail, print_json
@@ -92,7 +98,7 @@ def register(subparsers: Any) -> None:
         default="",
         help="compare: FIGURE=N%% (relative) or FIGURE=N (units), comma list",
     )
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     p.set_defaults(func=run)
 
 
@@ -158,6 +164,12 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.ids and args.ids[0] in ("project", "quad"):
         return _stepper(args)
     plan = _plan(args)  # every bad value is refused here, before the port opens
+    if args.connect:
+        import dataclasses
+
+        from motorbus.cli.served_rig import served_tests
+
+        plan = dataclasses.replace(plan, tests=served_tests(plan.tests, args.tests))
     if not args.out:
         raise UsageError("rig: give --out DIR for results.json, samples.csv and report.html")
     out = Path(args.out)
@@ -201,10 +213,15 @@ async def _run(args: argparse.Namespace, plan: RigPlan, out: Path) -> int:
     bar = _Bar(plan.estimate_seconds())
     async with open_bus(args, [Family.LA]) as bus:
         try:
-            result = await run_rig(bus, plan, bar, raise_on_abort=False)
+            if args.connect:
+                from motorbus.cli.served_rig import run_served_rig
+
+                result, stats = await run_served_rig(bus, plan, bar, run_rig)
+            else:
+                result = await run_rig(bus, plan, bar, raise_on_abort=False)
+                stats = bus.stats.as_dict()
         finally:
             bar.close()
-        stats = bus.stats.as_dict()
     paths = write_report(out, result, stats)
     doc = json.loads(paths["results"].read_text(encoding="utf-8"))
     if not result.passed:
@@ -342,7 +359,13 @@ def _stepper(args: argparse.Namespace) -> int:
 async def _time_runs(args: argparse.Namespace, kind: str, number: int, family: Family) -> int:
     from motorbus.rig.steppers import time_project_runs, time_quad_runs
 
-    async with open_bus(args, [family]) as bus:
+    async with contextlib.AsyncExitStack() as stack:
+        bus = await stack.enter_async_context(open_bus(args, [family]))
+        if args.connect:  # a lease holder, timed at this client
+            from motorbus.cli.served_rig import ObservedServedBus, held
+
+            await stack.enter_async_context(held(bus, [family.value]))
+            bus = cast(Bus, ObservedServedBus(bus))
         if kind == "project":
             times = await time_project_runs(bus, number, args.runs, timeout=args.timeout)
         else:

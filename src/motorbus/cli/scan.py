@@ -26,6 +26,10 @@ Progress goes to standard error: a bar redrawn in place on a terminal, a line ev
 tenth of the way otherwise, then one summary line.  The IDs that answered are printed
 as a comma-separated list (ready for ``--ids``), or as JSON.  The exit code is 1 if no
 actuator answered.
+
+``--connect ENDPOINT`` scans a bus that ``motorbus serve`` owns, beside its application:
+the IDs the server declares or has heard (or ``--ids``) are each asked a status through
+the server; ``--baud all`` is refused there.
 """
 
 from __future__ import annotations
@@ -94,7 +98,11 @@ def register(subparsers: Any) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
         conflict_handler="resolve",  # our --baud (which takes "all") replaces the common one
     )
-    p.add_argument("--ids", default="1-254", help="IDs to try, e.g. 1-20,100 (default 1-254)")
+    p.add_argument(
+        "--ids",
+        help="IDs to try, e.g. 1-20,100 (default 1-254; with --connect: the IDs the server "
+        "knows, declared or seen answering)",
+    )
     p.add_argument(
         "--timeout",
         type=float,
@@ -107,7 +115,7 @@ def register(subparsers: Any) -> None:
         default=SCAN_PASSES_MAX,
         help=f"1: ask each ID once; 2: ask the missing IDs again (default {SCAN_PASSES_MAX})",
     )
-    add_bus_options(p, default_baud=LA_BAUD)
+    add_bus_options(p, default_baud=LA_BAUD, connect=True)
     p.add_argument(
         "--baud",
         type=parse_baud,
@@ -226,11 +234,15 @@ def run(args: argparse.Namespace) -> int:
         LocalProtocolError: a bad ``--ids``, ``--timeout`` or ``--passes`` (before
             anything is sent).
     """
-    ids = parse_ids(args.ids)
+    ids = parse_ids(args.ids or "1-254")
     check_seconds("--timeout", args.timeout, 1e-4)
     check_int("--passes", args.passes, 1, SCAN_PASSES_MAX)
     if args.baud is not None:
         check_int("--baud", args.baud, 1, 10_000_000)
+    if getattr(args, "connect", None):
+        from motorbus.cli.served import run_scan
+
+        return asyncio.run(run_scan(args, ids if args.ids else None))
     return asyncio.run(_scan(args, ids))
 
 

@@ -119,6 +119,15 @@ def _split_devices(text: str) -> list[str]:
     return out
 
 
+def _device_keys(spec: Any) -> list[str]:
+    """The device keys a ``BusSpec`` declares (``la:3``, ``project_stepper``, ...)."""
+    return [
+        key
+        for dev in spec.devices
+        for key in ([f"la:{i}" for i in dev.ids] if dev.kind == "la" else [dev.kind])
+    ]
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``motorbus serve``; 0 after Ctrl-C or SIGTERM, 2 without the extra."""
     try:
@@ -143,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
                 liveness=args.liveness,
                 zenoh_config=args.zenoh_config,
                 watch_only=args.watch_only,
+                devices={name: _device_keys(spec) for name, spec in manager.specs.items()},
             )
             async with server:
                 print(f"serving {', '.join(manager.buses)} on {args.listen}", flush=True)

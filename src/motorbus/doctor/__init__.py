@@ -14,5 +14,14 @@ from __future__ import annotations
 from motorbus.doctor.checks import Finding, Level
 from motorbus.doctor.probe import DOCTOR_BAUDS, DoctorConfig, diagnose
 from motorbus.doctor.report import DoctorReport
+from motorbus.doctor.served import diagnose_served
 
-__all__ = ["DOCTOR_BAUDS", "DoctorConfig", "DoctorReport", "Finding", "Level", "diagnose"]
+__all__ = [
+    "DOCTOR_BAUDS",
+    "DoctorConfig",
+    "DoctorReport",
+    "Finding",
+    "Level",
+    "diagnose",
+    "diagnose_served",
+]

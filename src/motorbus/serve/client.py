@@ -25,8 +25,9 @@ import threading
 import time
 import uuid
 from collections.abc import Iterable
+from contextlib import AbstractAsyncContextManager
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from motorbus.bus.events import (
     BusEvent,
@@ -53,6 +54,9 @@ from motorbus.protocol import la
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
 from motorbus.serve.zconf import client_config, zenoh
+
+if TYPE_CHECKING:
+    from motorbus.serve.tools_client import ServedDevices, ServedScan
 
 __all__ = ["ServeRefused", "ServedBus", "ServedLease", "ServedSite", "connect"]
 
@@ -404,6 +408,32 @@ class ServedBus:
         result = await self._query("stats", {})
         stats: dict[str, Any] = result["stats"]
         return stats
+
+    # -- what the tools ask (motorbus.serve.tools_client) ---------------------------------
+
+    async def fetch_devices(self) -> ServedDevices:
+        """What the server's bus declares, what answered it, and its timing (nothing
+        is sent on the bus)."""
+        from motorbus.serve.tools_client import fetch_devices
+
+        return await fetch_devices(self)
+
+    async def scan(
+        self, ids: Iterable[int] | None = None, *, timeout: float | None = None, passes: int = 2
+    ) -> ServedScan:
+        """Status queries through the server to ``ids`` (default: the LA IDs it knows)."""
+        from motorbus.serve.tools_client import scan_served
+
+        return await scan_served(
+            self, None if ids is None else list(ids), timeout=timeout, passes=passes
+        )
+
+    def frames(self) -> AbstractAsyncContextManager[asyncio.Queue[dict[str, Any]]]:
+        """``async with bus.frames() as batches``: the frames the server's bus writes and
+        reads, as the server publishes them (it taps its bus only while subscribed)."""
+        from motorbus.serve.tools_client import frame_batches
+
+        return frame_batches(self)
 
     def _lost(self, why: str) -> None:
         for lease in self._leases:

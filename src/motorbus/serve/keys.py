@@ -16,6 +16,10 @@ Keys (``{bus}`` is a bus name, ``{client}`` a client id, both single key chunks)
   holds which device.
 * ``motorbus/v1/bus/{bus}/stats`` (query): the bus's counters.
 * ``motorbus/v1/bus/{bus}/event/{kind}`` (publications): device events.
+* ``motorbus/v1/bus/{bus}/devices`` (query): the devices the server's bus declares,
+  those that answered it, and its timing (``motorbus scan``/``doctor --connect``).
+* ``motorbus/v1/bus/{bus}/frames`` (publication, while someone subscribes): every frame
+  written and every chunk read, in batches (``motorbus capture --connect``).
 * ``motorbus/v1/client/{client}`` (liveliness token) and
   ``motorbus/v1/client/{client}/alive`` (heartbeat publication): the deadman.
 * ``motorbus/v1/server/{instance}`` (liveliness token): the server is up.

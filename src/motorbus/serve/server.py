@@ -24,7 +24,7 @@ import logging
 import os
 import time
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -52,6 +52,7 @@ from motorbus.protocol.base import Command, format_hex
 from motorbus.serve import keys as k
 from motorbus.serve.streams_server import StreamService
 from motorbus.serve.tap import raw_reply, tapped
+from motorbus.serve.tools_server import ToolsService
 from motorbus.serve.zconf import server_config, zenoh
 
 __all__ = ["BusServer"]
@@ -87,6 +88,7 @@ class BusServer:
             (``keys.LIVENESS_MIN_S``..``LIVENESS_MAX_S``, default 1).
         zenoh_config: a Zenoh configuration file (TLS, access control, routers).
         watch_only: refuse every motion and lease: clients may only watch and query.
+        devices: the device keys each bus declares, by bus name (its ``devices`` query).
     """
 
     def __init__(
@@ -97,6 +99,7 @@ class BusServer:
         liveness: float = k.LIVENESS_DEFAULT_S,
         zenoh_config: str | None = None,
         watch_only: bool = False,
+        devices: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         if not buses:
             raise LocalProtocolError("a server needs at least one bus", field="buses")
@@ -135,6 +138,7 @@ class BusServer:
         self.deadman_ends: list[tuple[str, float]] = []
         #: Served streams (``motorbus.serve.streams_server``): the ``stream`` keys.
         self._streams = StreamService(self)
+        self.tools = ToolsService(self.buses, devices or {})
 
     # -- life cycle --------------------------------------------------------------------
 
@@ -180,6 +184,7 @@ class BusServer:
                 f"{k.CLIENT_PREFIX}/*/alive", self._threadsafe(self._on_heartbeat)
             )
         )
+        self._declared += self.tools.start(session, self._on_query, self._threadsafe)
         self._declare(session.liveliness().declare_token(k.server_key(self.instance)))
         self._spawn(self._check_heartbeats())
 
@@ -195,6 +200,7 @@ class BusServer:
         for bus, fn in self._listeners:
             bus.remove_lease_listener(fn)
         self._listeners.clear()
+        self.tools.close()
         session, self._session = self._session, None
         if session is not None:
             await asyncio.to_thread(session.close)
