@@ -30,6 +30,7 @@ __all__ = [
     "SAFE_STOP_RETRIES",
     "LeaseKeeper",
     "SafeRequest",
+    "SafeStopper",
     "raise_unexpected",
     "send_together",
     "together",
@@ -52,7 +53,89 @@ class SafeRequest(Protocol):
     ) -> Awaitable[object]: ...
 
 
-class LeaseKeeper:
+class SafeStopper:
+    """The sending of safe actions on one bus: the commands of an action for a device
+    (``motorbus.protocol.safety``) and their sending, all at once (``send_together``).
+    ``LeaseKeeper`` is one; a served bus (``motorbus.serve.client``) has one of its own,
+    whose requests go through the server.
+
+    Args:
+        name: the bus's name, for messages.
+        families: the families the bus carries (a key of another family is refused).
+        request: the bus's ``request``, which ``send_together`` sends safe actions with.
+    """
+
+    def __init__(self, name: str, families: frozenset[Family], request: SafeRequest) -> None:
+        self.name = name
+        self.families = families
+        self._request = request
+        self._safe_for: dict[str, SafeCommandsForKey] = {
+            action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
+        }
+
+    def safe_commands(
+        self, key: str, action: str = "pause", *, motor: int | None = None
+    ) -> tuple[Command[object], ...]:
+        """The commands of safe action ``action`` for device ``key``, in order: the same
+        the table owes for a lease's end (``motorbus.protocol.safety``).  ``motor``: a
+        project stepper's motor byte (default 0x03).
+
+        Raises:
+            LocalProtocolError: a bad key or action, or a family this bus does not carry.
+        """
+        action = safety.check_safe_action(action)
+        family = safety.family_of_key(safety.check_key(key))
+        if family not in self.families:
+            raise LocalProtocolError(
+                f"key {key!r} is a {family.value} device; bus {self.name} carries "
+                f"{', '.join(sorted(f.value for f in self.families))}",
+                field="key",
+                value=key,
+            )
+        if motor is None:
+            return self._safe_for[action](key)
+        return safety.safe_stop_commands(key, action, motor=motor)
+
+    async def stop(
+        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
+    ) -> list[object]:
+        """Bring ``keys`` to the safe state ``action`` now (``send_stop`` of their
+        ``safe_commands``); an unexpected error (a bug) is raised once all went.
+        Returns each command's result or exception, in order."""
+        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
+        results = await self.send_stop(commands, who=who)
+        raise_unexpected(results)
+        return results
+
+    def stop_soon(
+        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
+    ) -> asyncio.Task[list[object]]:
+        """``stop`` from synchronous code (an observer's callback): the commands are
+        made now (a bad key raises here) and sent by a task of the running loop, which
+        is returned (keep it; its failures are logged like ``send_stop``'s)."""
+        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
+        return asyncio.get_running_loop().create_task(self.send_stop(commands, who=who))
+
+    async def send_stop(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
+        """Send safe-action commands now, all at once (``send_together``); a failure is
+        logged (as ``who``'s) and stops none of the others.  Returns each command's
+        result or the exception it failed with, in order.  The caller decides about
+        cancellation (``send_safe`` runs to the end however often it is cancelled)."""
+        results = await send_together(self._request, commands)
+        for cmd, result in zip(commands, results, strict=True):
+            if isinstance(result, BaseException):
+                log.warning(
+                    "bus %s: %s: safe action %s to %s failed: %s",
+                    self.name,
+                    who,
+                    type(cmd).__name__,
+                    cmd.device_key,
+                    result,
+                )
+        return results
+
+
+class LeaseKeeper(SafeStopper):
     """The leases of one bus and the sending of their safe actions.
 
     Args:
@@ -71,15 +154,10 @@ class LeaseKeeper:
         request: SafeRequest,
         state: Callable[[], str],
     ) -> None:
-        self.name = name
-        self.families = families
+        super().__init__(name, families, request)
         self.safe_action = safe_action
         self.table = LeaseTable()
-        self._request = request
         self._state = state
-        self._safe_for: dict[str, SafeCommandsForKey] = {
-            action: _safe_commands_for(action) for action in safety.SAFE_ACTIONS
-        }
         #: Safe-action commands owed while the port was lost: sent as soon as it is
         #: back (``pay_owed``, before any other traffic) or at close.
         self.owed: list[Command[object]] = []
@@ -149,67 +227,6 @@ class LeaseKeeper:
     async def _release(self, lease: Lease, hold: bool, keys: frozenset[str] | None) -> None:
         hold = check_flag("hold", hold)
         await self.send_safe(self.table.release(lease, hold=hold, keys=keys))
-
-    def safe_commands(
-        self, key: str, action: str = "pause", *, motor: int | None = None
-    ) -> tuple[Command[object], ...]:
-        """The commands of safe action ``action`` for device ``key``, in order: the same
-        the table owes for a lease's end (``motorbus.protocol.safety``).  ``motor``: a
-        project stepper's motor byte (default 0x03).
-
-        Raises:
-            LocalProtocolError: a bad key or action, or a family this bus does not carry.
-        """
-        action = safety.check_safe_action(action)
-        family = safety.family_of_key(safety.check_key(key))
-        if family not in self.families:
-            raise LocalProtocolError(
-                f"key {key!r} is a {family.value} device; bus {self.name} carries "
-                f"{', '.join(sorted(f.value for f in self.families))}",
-                field="key",
-                value=key,
-            )
-        if motor is None:
-            return self._safe_for[action](key)
-        return safety.safe_stop_commands(key, action, motor=motor)
-
-    async def stop(
-        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
-    ) -> list[object]:
-        """Bring ``keys`` to the safe state ``action`` now (``send_stop`` of their
-        ``safe_commands``); an unexpected error (a bug) is raised once all went.
-        Returns each command's result or exception, in order."""
-        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
-        results = await self.send_stop(commands, who=who)
-        raise_unexpected(results)
-        return results
-
-    def stop_soon(
-        self, keys: Iterable[str], action: str, *, who: str, motor: int | None = None
-    ) -> asyncio.Task[list[object]]:
-        """``stop`` from synchronous code (an observer's callback): the commands are
-        made now (a bad key raises here) and sent by a task of the running loop, which
-        is returned (keep it; its failures are logged like ``send_stop``'s)."""
-        commands = [c for key in keys for c in self.safe_commands(key, action, motor=motor)]
-        return asyncio.get_running_loop().create_task(self.send_stop(commands, who=who))
-
-    async def send_stop(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
-        """Send safe-action commands now, all at once (``send_together``); a failure is
-        logged (as ``who``'s) and stops none of the others.  Returns each command's
-        result or the exception it failed with, in order.  The caller decides about
-        cancellation (``send_safe`` runs to the end however often it is cancelled)."""
-        results = await send_together(self._request, commands)
-        for cmd, result in zip(commands, results, strict=True):
-            if isinstance(result, BaseException):
-                log.warning(
-                    "bus %s: %s: safe action %s to %s failed: %s",
-                    self.name,
-                    who,
-                    type(cmd).__name__,
-                    cmd.device_key,
-                    result,
-                )
-        return results
 
     async def end_all(self) -> None:
         """End every lease still held, with its safe action (the bus is closing)."""

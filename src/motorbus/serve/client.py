@@ -37,6 +37,7 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
+from motorbus.bus.lease_shell import SafeStopper
 from motorbus.bus.leases import PROGRAM, LeaseInfo
 from motorbus.bus.schedule import Priority
 from motorbus.bus.timer import Timer, default_timer
@@ -172,6 +173,9 @@ class ServedBus:
         self._held: list[tuple[int, BusEvent]] = []
         self._in_flight = 0
         self._seen_more: asyncio.Event | None = None
+        #: The one sender of safe actions, as ``Bus.lease_keeper`` (``stop``,
+        #: ``stop_soon``, ``safe_commands``): emergency requests through the server.
+        self.lease_keeper = SafeStopper(name, self.families, self.request)
 
     def __repr__(self) -> str:
         return f"ServedBus({self.name!r} at {self.site.endpoint})"
