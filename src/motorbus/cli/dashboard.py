@@ -36,11 +36,13 @@ import os
 import secrets
 import socket
 import sys
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
 from motorbus import BusManager, Family, default_bus_file, load_bus_file, scan
 from motorbus import run as run_safely
+from motorbus.cli import dashboard_served as served
 from motorbus.cli.bus_options import (
     BUS_FILE_ENV,
     CLI_HOST_MARGIN_S,
@@ -120,7 +122,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--record", metavar="DIR", help="record frame logs and plots.csv into DIR")
     p.add_argument("--push-hz", type=float, default=10.0, help="page updates a second (10)")
-    add_bus_options(p, default_baud=LA_BAUD, json_option=False)
+    add_bus_options(p, default_baud=LA_BAUD, json_option=False, connect=True)
     add_process_option(p)
     p.set_defaults(func=run)
 
@@ -261,18 +263,32 @@ def run(args: argparse.Namespace) -> int:
     hosts = host_check(host, args.allow_host)
     window = _parse_window(args.window)
     Dashboard([], window=window)  # checks the window before any port opens
-    manager, wanted = _manager(args)
     token = None if _is_loopback(host) else secrets.token_urlsafe(18)
+    page = served.PageSettings(host, port, token, window, hosts)
+    endpoint = getattr(args, "connect", None)
+    if endpoint:
+        plan = served.connect_plan(args, endpoint)
+        main = served.attach(args, page, plan, endpoint, _run_page)
+    else:
+        manager, wanted, bus_file = _manager(args)
+        if served.serve_extra():
+            main = served.spawn_and_attach(args, page, manager, wanted, bus_file, _run_page)
+        else:
+            print(served.NO_SERVE_WARNING, file=sys.stderr, flush=True)
+            main = _serve(args, manager, wanted, page)
     try:
-        run_safely(_serve(args, manager, wanted, host, port, token, window, hosts))
+        run_safely(main)
     except SystemExit as end:
         if end.code not in (130, 143):  # Ctrl-C and SIGTERM are how a dashboard ends
             raise
     return 0
 
 
-def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] | None]]:
-    """The buses to watch and, per bus, the LA IDs (``None``: scan for them)."""
+def _manager(
+    args: argparse.Namespace,
+) -> tuple[BusManager, dict[str, list[int] | None], Path | None]:
+    """The buses to watch, per bus the LA IDs (``None``: scan for them), and the bus
+    file they come from (``None``: --port)."""
     port_given = bool(getattr(args, "port", None) or os.environ.get(PORT_ENV))
     bus_file = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     if args.process and port_given:
@@ -281,6 +297,7 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
         bus_file = default_bus_file()
         if bus_file is None or not bus_file.is_file():
             raise UsageError(f"--process {args.process}: no bus file: give --bus-file")
+    from_file = Path(bus_file) if bus_file and not port_given else None
     if bus_file and not port_given:
         if args.ids or args.devices:
             raise UsageError("--ids and --devices go with --port; the bus file lists devices")
@@ -321,7 +338,7 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
         ids = [i for d in spec.devices if d.kind == "la" for i in d.ids]
         scan_it = not spec.devices and Family.LA in spec.families()
         wanted[name] = None if scan_it else ids
-    return manager, wanted
+    return manager, wanted, from_file
 
 
 def _split_devices(text: str) -> list[str]:
@@ -342,16 +359,9 @@ async def _serve(
     args: argparse.Namespace,
     manager: BusManager,
     wanted: dict[str, list[int] | None],
-    host: str,
-    port: int,
-    token: str | None,
-    window: tuple[int, int],
-    hosts: HostCheck,
+    page: served.PageSettings,
 ) -> None:
-    from aiohttp import web
-
-    from motorbus.dashboard.server import make_app
-
+    """The bus in this process, on this loop: only without the serve extra."""
     async with manager:
         setups = []
         for name, bus in manager.buses.items():
@@ -362,24 +372,41 @@ async def _serve(
             project = next((d.motor for d in spec.devices if d.kind == "project_stepper"), None)
             quad = any(d.kind == "quad_stepper" for d in spec.devices)
             setups.append(BusSetup(bus, list(ids), project, quad, spec.la_safe_action))
-        dash = Dashboard(setups, period=args.interval, control=args.control, window=window)
-        record = Path(args.record) if args.record else None
-        app = make_app(dash, token=token, push_hz=args.push_hz, record_dir=record, hosts=hosts)
-        runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await runner.setup()
-        try:
-            site = web.TCPSite(runner, host, port)
-            await site.start()
-            bound = runner.addresses[0][1] if runner.addresses else port
-            await dash.start()
-            if record is not None:
-                dash.start_recording(record)
-            for url, what in page_urls(host, bound, token):
-                print(f"{url}  ({what})" if what else url, flush=True)
-            for s in setups:
-                listed = ", ".join(map(str, s.la_ids)) or "none"
-                print(f"bus {s.bus.name}: LA {listed}", file=sys.stderr, flush=True)
-            await asyncio.Event().wait()  # until Ctrl-C or SIGTERM cancels us
-        finally:
-            await dash.stop()
-            await runner.cleanup()
+        dash = Dashboard(setups, period=args.interval, control=args.control, window=page.window)
+        await _run_page(args, dash, page, asyncio.Event().wait)
+
+
+async def _run_page(
+    args: argparse.Namespace,
+    dash: Dashboard,
+    page: served.PageSettings,
+    until: Callable[[], Awaitable[object]],
+) -> None:
+    """Serve ``dash`` on the page's address until ``until()`` returns or Ctrl-C or
+    SIGTERM cancels us; then stop it (its safe stop) and the page."""
+    from aiohttp import web
+
+    from motorbus.dashboard.server import make_app
+
+    record = Path(args.record) if args.record else None
+    app = make_app(
+        dash, token=page.token, push_hz=args.push_hz, record_dir=record, hosts=page.hosts
+    )
+    runner = web.AppRunner(app, handle_signals=False, access_log=None)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, page.host, page.port)
+        await site.start()
+        bound = runner.addresses[0][1] if runner.addresses else page.port
+        await dash.start()
+        if record is not None:
+            dash.start_recording(record)
+        for url, what in page_urls(page.host, bound, page.token):
+            print(f"{url}  ({what})" if what else url, flush=True)
+        for name, s in dash.setups.items():
+            listed = ", ".join(map(str, s.la_ids)) or "none"
+            print(f"bus {name}: LA {listed}", file=sys.stderr, flush=True)
+        await until()
+    finally:
+        await dash.stop()
+        await runner.cleanup()
