@@ -449,3 +449,33 @@ async def test_record_writes_what_motorbus_replay_reads(sim: SimProcess, tmp_pat
     rows = (folder / "plots.csv").read_text().splitlines()
     assert rows[0] == "t_s,bus,id,position,target,current_ma,force_g,temperature_c,errors"
     assert {r.split(",")[2] for r in rows[1:]} == {"1", "2", "3"}
+
+
+async def test_without_the_serve_extra_the_bus_runs_in_the_dashboard_with_a_warning(
+    sim: SimProcess, tmp_path: Path
+) -> None:
+    # A module named zenoh that fails to import stands for a missing serve extra.
+    (tmp_path / "zenoh.py").write_text("raise ImportError('No module named zenoh')\n")
+    env = {**_env(), "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "motorbus", "dashboard", "--port", sim.path, "--ids", "1-3",
+        "--listen", "127.0.0.1:0", stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    try:
+        url = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
+        assert url.startswith("http://127.0.0.1:"), url
+        state = await asyncio.to_thread(get_json, url + "api/state")
+        assert state["buses"][0]["served"] is None
+        assert [pid for pid, _ in port_lock_holders(sim.path)] == [proc.pid]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = await asyncio.wait_for(proc.communicate(), WAIT_S)
+    assert proc.returncode == 0, err.decode()
+    assert err.decode().splitlines()[0] == (
+        "motorbus dashboard: warning: the serve extra is not installed "
+        "(pip install 'motorbus[serve]'): the bus runs in the dashboard's own process"
+    )
+    r = cli("dashboard", "--connect", "tcp/127.0.0.1:7447", "--ids", "1", env=env)
+    assert r.returncode == 2
+    assert "--connect needs the serve extra: pip install 'motorbus[serve]'" in r.stderr
