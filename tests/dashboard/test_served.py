@@ -114,3 +114,41 @@ async def test_exit_sends_the_safe_action_to_what_it_moved_only() -> None:
     stops = [(c, p) for c, p in bus.sent if isinstance(c, la.Control) and c.action is not
              la.ControlAction.QUERY_STATUS]  # fmt: skip
     assert stops == [(la.Control(2, la.ControlAction.ESTOP), Priority.EMERGENCY)]
+
+
+async def test_a_new_viewers_snapshot_waits_for_an_estop_in_flight() -> None:
+    from aiohttp.test_utils import TestClient, TestServer
+
+    from motorbus.dashboard.server import make_app
+
+    order: list[str] = []
+    release = asyncio.Event()
+
+    class SlowEstopBus(FakeServedBus):
+        async def request(self, cmd: Command[Any], **kw: Any) -> Any:
+            if isinstance(cmd, la.Control) and cmd.action is la.ControlAction.ESTOP:
+                self.sent.append((cmd, kw["priority"]))
+                await release.wait()
+                order.append("e-stop answered")
+                return None
+            return await super().request(cmd, **kw)
+
+    bus = SlowEstopBus()
+    dash = ServedDashboard([BusSetup(cast(Bus, bus), [1])], endpoint="tcp/x:1", control=True)
+    async with TestClient(TestServer(make_app(dash))) as http:
+        await dash.start()
+        try:
+            post = asyncio.create_task(http.post("/api/estop", json={"bus": "arm", "id": 1}))
+            await eventually(lambda: any(p is Priority.EMERGENCY for _, p in bus.sent), "e-stop")
+            async with http.ws_connect("/ws") as ws:
+                first = asyncio.create_task(ws.receive())
+                await asyncio.sleep(0.2)  # time enough for a snapshot that did not wait
+                assert not first.done()
+                release.set()
+                msg = await asyncio.wait_for(first, 10)
+                order.append("snapshot")
+                assert json.loads(msg.data)["type"] == "full"
+            assert (await post).status == 200
+        finally:
+            await dash.stop()
+    assert order == ["e-stop answered", "snapshot"]

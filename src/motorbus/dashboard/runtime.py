@@ -389,6 +389,8 @@ class Dashboard:
             self.moved.update(
                 (name, cmd.id) for name, cmd, _, _ in plan if isinstance(cmd, la.Control)
             )
+        if len(plan) == 1:  # one actuator: no task to start and join (an e-stop's path)
+            return [await self._send(*plan[0])]
         results = await asyncio.gather(*(self._send(*p) for p in plan))
         return list(results)
 
