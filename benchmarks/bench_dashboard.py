@@ -22,7 +22,10 @@ process of its own; an application client (another process) drives la:1 with a m
 every 10 ms (absolute deadlines: 100 commands/s); ``motorbus dashboard --connect`` (a
 third process) polls the five actuators.  Alternately, the same run: a window without
 viewers (one e-stop of la:5 posted to the dashboard) and a window in which ``--viewers``
-WebSockets connect at once with the e-stop among them.  Measured in each window: the
+WebSockets connect at once (from a process of their own) while ``motorbus capture``
+records the simulator's tap (``sim --tap``: a listen-only copy), with the e-stop posted 10 ms
+later from this script's process, which is otherwise idle (posted from the viewers'
+process, as above, it would also time that busy process).  Measured in each window: the
 e-stop's round trip (HTTP post to answer, through the server), the longest time the
 simulator saw no frame (its own log), and the application's command jitter (how far
 each interval between two completed moves is from 10 ms, p99) and its move round trip.
@@ -84,7 +87,8 @@ async def viewers_only(url: str, count: int) -> None:
 
 async def burst_only(base: str, count: int, body: str = "{}") -> None:
     """Child process: at "go", connect ``count`` viewers at once and post an e-stop
-    (``body``: which devices, as the page posts it; ``{}`` is every one)."""
+    (``body``: which devices, as the page posts it; ``{}`` is every one; ``none``: no
+    e-stop, the caller posts it from a process of its own)."""
 
     async def one(session: aiohttp.ClientSession) -> int:
         async with session.ws_connect(f"ws://{base}/ws") as ws:
@@ -103,10 +107,10 @@ async def burst_only(base: str, count: int, body: str = "{}") -> None:
         print("ready", flush=True)
         await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
         t0 = time.perf_counter()
-        stop_task = asyncio.create_task(estop(session))
+        stop_task = None if body == "none" else asyncio.create_task(estop(session))
         sizes = await asyncio.gather(*(one(session) for _ in range(count)))
         all_in = time.perf_counter() - t0
-        estop_s = await stop_task
+        estop_s = None if stop_task is None else await stop_task
     print(
         json.dumps({"estop_s": estop_s, "all_connected_s": all_in, "bytes": max(sizes, default=0)})
     )

@@ -224,7 +224,7 @@ async def test_a_killed_dashboard_leaves_no_server_and_nothing_moving(
         "the moved actuator's pause after the dashboard was killed",
     )
     await eventually(lambda: gone(holder), "the dashboard's server to end")
-    assert port_lock_holders(la_sim.path) == ()
+    await eventually(lambda: port_lock_holders(la_sim.path) == (), "the port to be free")
 
 
 def test_connect_needs_the_devices_and_no_port() -> None:
@@ -236,3 +236,34 @@ def test_connect_needs_the_devices_and_no_port() -> None:
     assert r.returncode == 2 and "--connect uses a served bus" in r.stderr, r.stderr
     r = cli("dashboard", "--connect", "127.0.0.1:7447", "--ids", "1")
     assert r.returncode == 2 and "is not a Zenoh endpoint" in r.stderr, r.stderr
+
+
+async def test_a_bus_of_a_bus_file_is_served_alone_and_its_table_keys_hold(
+    la_sim: SimProcess, tmp_path: Path, ended: list[Child]
+) -> None:
+    from tests.helpers import cli
+
+    buses = tmp_path / "buses.toml"
+    buses.write_text(
+        '[[bus]]\nname = "spare"\nurl = "/dev/motorbus-no-such-port"\nbaud = 921600\n'
+        f'[[bus]]\nname = "arm"\nurl = "{la_sim.path}"\nbaud = 921600\n'
+        'devices = ["la:1-2"]\nla_safe_action = "estop"\n'
+    )
+    # The server gets --bus arm: the spare bus, whose port does not exist, is not opened.
+    dash = dashboard("--bus-file", str(buses), "--bus", "arm")
+    ended.append(dash)
+    url = dash.expect("http://")
+    async with aiohttp.ClientSession() as http:
+        state = await state_when(http, url, polled, "a status of every actuator")
+        assert [b["name"] for b in state["buses"]] == ["arm"]
+        moved = await post(http, url + "api/move", {"bus": "arm", "id": 1, "position": 900,
+                                                    "confirm": True})  # fmt: skip
+        assert moved["results"][0]["ok"], moved
+    dash.finish(signal.SIGTERM)
+    assert dash.proc.returncode == 0, dash.stderr
+    sent = requests_to_sim(la_sim)
+    # The table's la_safe_action on the way out, for the moved actuator only.
+    assert sent.index(ESTOP_1) > sent.index(la.MoveTo(1, 900).encode())
+    assert la.Control(2, la.ControlAction.ESTOP).encode() not in sent
+    r = cli("serve", str(buses), "--bus", "hand")
+    assert r.returncode == 2 and "choose one of spare, arm" in r.stderr, r.stderr

@@ -28,11 +28,13 @@ import asyncio
 import contextlib
 import logging
 import signal
+import socket
 import sys
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any, Protocol, cast
 
-from motorbus.bus.bus import Priority
+from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.leases import PROGRAM, LeaseInfo
 from motorbus.dashboard.runtime import BusSetup, Dashboard
 from motorbus.errors import MotorbusError
@@ -47,6 +49,11 @@ __all__ = [
     "ServeChildError",
     "ServedBusLike",
     "ServedDashboard",
+    "SiteLike",
+    "Watch",
+    "free_loopback_endpoint",
+    "served_name",
+    "watch_site",
 ]
 
 log = logging.getLogger("motorbus.dashboard")
@@ -259,3 +266,78 @@ class ServeChild:
                 with contextlib.suppress(ProcessLookupError):
                     proc.kill()
         return await proc.wait()
+
+
+@dataclass(slots=True)
+class Watch:
+    """One served bus to watch: the server's name for it (``None``: the only one), the
+    page's (``None``: the same), its devices, and the safe action of what the dashboard
+    moves (``None``: the served bus's own)."""
+
+    served: str | None
+    shown: str | None
+    la_ids: list[int]
+    project_motor: int | None = None
+    quad: bool = False
+    la_safe_action: str | None = None
+
+    @classmethod
+    def of(
+        cls,
+        served: str | None,
+        shown: str | None,
+        devices: Sequence[Any],
+        la_ids: list[int],
+        safe_action: str | None,
+    ) -> Watch:
+        """From a bus's device specs (``BusSpec.devices``: ``kind``, ``ids``, ``motor``)."""
+        project = next((d.motor for d in devices if d.kind == "project_stepper"), None)
+        quad = any(d.kind == "quad_stepper" for d in devices)
+        return cls(served, shown, la_ids, project, quad, safe_action)
+
+
+class SiteLike(Protocol):
+    """What :func:`watch_site` uses of ``motorbus.connect``'s site."""
+
+    def bus(self, name: str | None = None) -> Any: ...
+
+
+def watch_site(
+    site: SiteLike,
+    watches: Sequence[Watch],
+    *,
+    endpoint: str,
+    period: float,
+    control: bool,
+    window: tuple[int, int],
+) -> ServedDashboard:
+    """The dashboard of ``watches`` on the open ``site`` (a bus it does not serve: the
+    ``LocalProtocolError`` naming those it does)."""
+    setups = []
+    for w in watches:
+        bus = site.bus(w.served)
+        setups.append(
+            BusSetup(
+                cast(Bus, bus),
+                list(w.la_ids),
+                w.project_motor,
+                w.quad,
+                w.la_safe_action or str(bus.safe_action),
+                name=w.shown,
+            )
+        )
+    return ServedDashboard(setups, endpoint=endpoint, period=period, control=control, window=window)
+
+
+def free_loopback_endpoint() -> str:
+    """A Zenoh endpoint on a loopback port that is free now."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def served_name(url: str) -> str:
+    """A served bus name (one key chunk) for the port ``url``: ``/dev/ttyUSB0`` ->
+    ``dev_ttyUSB0``."""
+    out = "".join(c if c.isalnum() or c in "_.-" else "_" for c in url).strip("_")
+    return out or "bus"
