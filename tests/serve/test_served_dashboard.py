@@ -267,3 +267,16 @@ async def test_a_bus_of_a_bus_file_is_served_alone_and_its_table_keys_hold(
     assert la.Control(2, la.ControlAction.ESTOP).encode() not in sent
     r = cli("serve", str(buses), "--bus", "hand")
     assert r.returncode == 2 and "choose one of spare, arm" in r.stderr, r.stderr
+
+
+def test_connect_refuses_an_unknown_device_or_bus_before_anything_is_sent(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    from tests.helpers import cli
+
+    before = len(requests_to_sim(la_sim))
+    r = cli("dashboard", "--connect", endpoint, "--devices", "la:1,servo")
+    assert r.returncode == 2 and "kind 'servo' is unknown" in r.stderr, r.stderr
+    r = cli("dashboard", "--connect", endpoint, "--ids", "1", "--bus", "nope")
+    assert r.returncode == 2 and "bus='nope'" in r.stderr and "serves bus" in r.stderr
+    assert len(requests_to_sim(la_sim)) == before

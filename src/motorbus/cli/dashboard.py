@@ -505,7 +505,7 @@ async def _attach(
                 watches.append(w)
                 continue
             bus = site.bus(args.bus)  # the LocalProtocolError names the served buses
-            table = {"name": "connect", "url": endpoint, "baud": bus.baudrate, "devices": watch}
+            table = {"name": bus.name, "url": endpoint, "baud": bus.baudrate, "devices": watch}
             devices = BusSpec.from_mapping(table).devices
             ids = [i for d in devices if d.kind == "la" for i in d.ids]
             watches = [Watch.of(args.bus, None, devices, ids, None)]
