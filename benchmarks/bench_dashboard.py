@@ -16,6 +16,22 @@ holding a WebSocket and reading every push.
 Prints tables and writes ``benchmarks/results/dashboard.json``.
 
     python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50] [--fill 30]
+
+Served (``--served``, issue 39): ``motorbus serve`` owns the simulator's port in a
+process of its own; an application client (another process) drives la:1 with a move
+every 10 ms (absolute deadlines: 100 commands/s); ``motorbus dashboard --connect`` (a
+third process) polls the five actuators.  Alternately, the same run: a window without
+viewers (one e-stop of la:5 posted to the dashboard) and a window in which ``--viewers``
+WebSockets connect at once (from a process of their own) while ``motorbus capture``
+records the simulator's tap (``sim --tap``: a listen-only copy), with the e-stop posted 10 ms
+later from this script's process, which is otherwise idle (posted from the viewers'
+process, as above, it would also time that busy process).  Measured in each window: the
+e-stop's round trip (HTTP post to answer, through the server), the longest time the
+simulator saw no frame (its own log), and the application's command jitter (how far
+each interval between two completed moves is from 10 ms, p99) and its move round trip.
+Writes ``benchmarks/results/dashboard_served.json``.
+
+    python benchmarks/bench_dashboard.py --served [--seconds 3] [--repeats 5] [--fill 30]
 """
 
 from __future__ import annotations
@@ -37,6 +53,7 @@ from typing import Any
 import aiohttp
 from aiohttp import web
 
+import bench_dashboard_served
 from motorbus import Bus, Family
 from motorbus.dashboard import BusSetup, Dashboard
 from motorbus.dashboard.server import make_app
@@ -68,8 +85,10 @@ async def viewers_only(url: str, count: int) -> None:
     print(json.dumps(received), flush=True)
 
 
-async def burst_only(base: str, count: int) -> None:
-    """Child process: at "go", connect ``count`` viewers at once and post an e-stop."""
+async def burst_only(base: str, count: int, body: str = "{}") -> None:
+    """Child process: at "go", connect ``count`` viewers at once and post an e-stop
+    (``body``: which devices, as the page posts it; ``{}`` is every one; ``none``: no
+    e-stop, the caller posts it from a process of its own)."""
 
     async def one(session: aiohttp.ClientSession) -> int:
         async with session.ws_connect(f"ws://{base}/ws") as ws:
@@ -79,7 +98,7 @@ async def burst_only(base: str, count: int) -> None:
     async def estop(session: aiohttp.ClientSession) -> float:
         await asyncio.sleep(0.01)  # posted while the viewers' snapshots are being built
         t0 = time.perf_counter()
-        async with session.post(f"http://{base}/api/estop", json={}) as r:
+        async with session.post(f"http://{base}/api/estop", json=json.loads(body)) as r:
             assert r.status == 200, await r.text()
         return time.perf_counter() - t0
 
@@ -88,17 +107,21 @@ async def burst_only(base: str, count: int) -> None:
         print("ready", flush=True)
         await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
         t0 = time.perf_counter()
-        stop_task = asyncio.create_task(estop(session))
+        stop_task = None if body == "none" else asyncio.create_task(estop(session))
         sizes = await asyncio.gather(*(one(session) for _ in range(count)))
         all_in = time.perf_counter() - t0
-        estop_s = await stop_task
-    print(json.dumps({"estop_s": estop_s, "all_connected_s": all_in, "bytes": max(sizes)}))
+        estop_s = None if stop_task is None else await stop_task
+    print(
+        json.dumps({"estop_s": estop_s, "all_connected_s": all_in, "bytes": max(sizes, default=0)})
+    )
 
 
-async def ready_child(mode: str, where: str, viewers: int) -> asyncio.subprocess.Process:
+async def ready_child(
+    mode: str, where: str, viewers: int, *extra: str
+) -> asyncio.subprocess.Process:
     """This script as a child in ``mode`` (its viewers), once it says it is ready."""
     child = await asyncio.create_subprocess_exec(
-        sys.executable, __file__, mode, where, str(viewers),
+        sys.executable, __file__, mode, where, str(viewers), *extra,
         stdin=subprocess.PIPE, stdout=subprocess.PIPE,
     )  # fmt: skip
     assert child.stdout is not None
@@ -205,13 +228,23 @@ def main() -> None:
         "--fill", type=float, default=30.0, help="seconds of samples before the bursts (30)"
     )
     parser.add_argument("--viewers-only", nargs=2, metavar=("URL", "N"), help=argparse.SUPPRESS)
-    parser.add_argument("--burst-only", nargs=2, metavar=("HOST", "N"), help=argparse.SUPPRESS)
+    parser.add_argument("--burst-only", nargs="+", metavar="HOST N [BODY]", help=argparse.SUPPRESS)
+    parser.add_argument("--app-only", nargs=2, metavar=("ENDPOINT", "_"), help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--served", action="store_true", help="the served mode (issue 39): see the docstring"
+    )
     args = parser.parse_args()
+    if args.app_only:
+        asyncio.run(bench_dashboard_served.app_only(args.app_only[0]))
+        return
+    if args.served:
+        bench_dashboard_served.main(args, __file__)
+        return
     if args.viewers_only:
         asyncio.run(viewers_only(args.viewers_only[0], int(args.viewers_only[1])))
         return
     if args.burst_only:
-        asyncio.run(burst_only(args.burst_only[0], int(args.burst_only[1])))
+        asyncio.run(burst_only(*args.burst_only[:1], int(args.burst_only[1]), *args.burst_only[2:]))
         return
     with tempfile.TemporaryDirectory() as tmp:
         report = asyncio.run(

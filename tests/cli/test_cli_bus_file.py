@@ -177,7 +177,8 @@ def test_the_dashboard_opens_a_bus_file_with_the_margin_every_command_uses(
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "no-config"))
     path = bus_file(tmp_path, "/dev/motorbus-never-opened", **keys)
     args = build_parser().parse_args(["dashboard", "--bus-file", str(path)])
-    manager, wanted = dashboard_manager(args)
+    manager, wanted, from_file = dashboard_manager(args)
+    assert from_file == path  # its motorbus serve gets the file, and the same margin rule
     assert manager.specs["arm"].host_margin_ms == pytest.approx(margin_ms)
     assert wanted == {"arm": None}  # no devices listed: the dashboard scans for them
 

@@ -27,6 +27,7 @@ from motorbus.cli.bus_options import ENV_VARS
 from motorbus.protocol import framelog, la
 from motorbus.protocol.base import format_hex
 from motorbus.sim.process import SimProcess
+from motorbus.transport.serial import port_lock_holders
 from tests.helpers import NO_CONFIG_DIR, cli
 
 aiohttp = pytest.importorskip("aiohttp")
@@ -361,7 +362,14 @@ async def test_every_bus_of_a_bus_file_with_its_keys(tmp_path: Path) -> None:
         assert {"StopProject", "ManualStop", "StopAll"} <= set(names)
 
 
+def threads_cpus(pid: int) -> set[frozenset[int]]:
+    """The CPU sets of every thread of process ``pid``."""
+    tasks = Path(f"/proc/{pid}/task")
+    return {frozenset(os.sched_getaffinity(int(t.name))) for t in tasks.iterdir()}
+
+
 async def test_a_bus_file_process_group_is_served_on_its_cpus(tmp_path: Path) -> None:
+    pytest.importorskip("zenoh", reason="the bus runs in the dashboard without the serve extra")
     allowed = os.sched_getaffinity(0)
     if len(allowed) < 2:
         pytest.skip("this process may use one CPU only: a pin could not be seen")
@@ -380,9 +388,12 @@ async def test_a_bus_file_process_group_is_served_on_its_cpus(tmp_path: Path) ->
         async with dashboard(None, "--bus-file", str(buses), "--process", "arms", pids=pids) as url:
             state = await asyncio.to_thread(get_json, url + "api/state")
             assert [b["name"] for b in state["buses"]] == ["arm"]
-            tasks = Path(f"/proc/{pids[0]}/task")
-            cpus = {frozenset(os.sched_getaffinity(int(t.name))) for t in tasks.iterdir()}
-            assert cpus == {frozenset({cpu})}  # every thread of the dashboard
+            # The bus runs in the dashboard's motorbus serve child, on the group's CPUs
+            # (every thread of it); the dashboard itself stays off them.
+            ((holder, _),) = port_lock_holders(arm.path)
+            assert holder != pids[0]
+            assert threads_cpus(holder) == {frozenset({cpu})}
+            assert threads_cpus(pids[0]) == {frozenset(allowed)}
     r = cli("dashboard", "--bus-file", str(buses), "--process", "hands")
     assert r.returncode == 2
     assert r.stderr.strip() == (
@@ -438,3 +449,33 @@ async def test_record_writes_what_motorbus_replay_reads(sim: SimProcess, tmp_pat
     rows = (folder / "plots.csv").read_text().splitlines()
     assert rows[0] == "t_s,bus,id,position,target,current_ma,force_g,temperature_c,errors"
     assert {r.split(",")[2] for r in rows[1:]} == {"1", "2", "3"}
+
+
+async def test_without_the_serve_extra_the_bus_runs_in_the_dashboard_with_a_warning(
+    sim: SimProcess, tmp_path: Path
+) -> None:
+    # A module named zenoh that fails to import stands for a missing serve extra.
+    (tmp_path / "zenoh.py").write_text("raise ImportError('No module named zenoh')\n")
+    env = {**_env(), "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "motorbus", "dashboard", "--port", sim.path, "--ids", "1-3",
+        "--listen", "127.0.0.1:0", stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
+    )  # fmt: skip
+    assert proc.stdout is not None
+    try:
+        url = (await asyncio.wait_for(proc.stdout.readline(), WAIT_S)).decode().strip()
+        assert url.startswith("http://127.0.0.1:"), url
+        state = await asyncio.to_thread(get_json, url + "api/state")
+        assert state["buses"][0]["served"] is None
+        assert [pid for pid, _ in port_lock_holders(sim.path)] == [proc.pid]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = await asyncio.wait_for(proc.communicate(), WAIT_S)
+    assert proc.returncode == 0, err.decode()
+    assert err.decode().splitlines()[0] == (
+        "motorbus dashboard: warning: the serve extra is not installed "
+        "(pip install 'motorbus[serve]'): the bus runs in the dashboard's own process"
+    )
+    r = cli("dashboard", "--connect", "tcp/127.0.0.1:7447", "--ids", "1", env=env)
+    assert r.returncode == 2
+    assert "--connect needs the serve extra: pip install 'motorbus[serve]'" in r.stderr

@@ -25,6 +25,14 @@ else a scan); with --bus-file every bus of the file (or --bus NAME), every key h
 with --process NAME only that process group's buses, and it runs on the group's CPUs.
 --record DIR writes each bus's frame log (motorbus replay reads it) and plots.csv.
 Ctrl-C or SIGTERM ends it (exit code 0) after pausing what it moved.
+
+The bus never runs in the dashboard's event loop: with --port or a bus file it starts a
+motorbus serve of its own for those buses (loopback, a free port), attaches to it, and
+ends it on the way out, however the dashboard ends.  --connect ENDPOINT (--bus NAME
+where the server serves several) attaches to a running motorbus serve instead; give
+the devices with --ids or --devices (a scan is not served yet).  Without the serve
+extra (pip install 'motorbus[serve]') --port and bus files run the bus in the
+dashboard's process, after a one-line warning, and --connect exits 2.
 """
 
 from __future__ import annotations
@@ -36,10 +44,12 @@ import os
 import secrets
 import socket
 import sys
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from motorbus import BusManager, Family, default_bus_file, load_bus_file, scan
+from motorbus import BusManager, BusSpec, Family, default_bus_file, load_bus_file, scan
 from motorbus import run as run_safely
 from motorbus.cli.bus_options import (
     BUS_FILE_ENV,
@@ -56,6 +66,14 @@ from motorbus.cli.scan import SCAN_TIMEOUT_S
 from motorbus.cli.values import check_seconds
 from motorbus.dashboard import BusSetup, Dashboard
 from motorbus.dashboard.hosts import LOOPBACK_NAMES, HostCheck
+from motorbus.dashboard.served import (
+    ServeChild,
+    ServeChildError,
+    Watch,
+    free_loopback_endpoint,
+    served_name,
+    watch_site,
+)
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la
 
@@ -120,7 +138,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("--record", metavar="DIR", help="record frame logs and plots.csv into DIR")
     p.add_argument("--push-hz", type=float, default=10.0, help="page updates a second (10)")
-    add_bus_options(p, default_baud=LA_BAUD, json_option=False)
+    add_bus_options(p, default_baud=LA_BAUD, json_option=False, connect=True)
     add_process_option(p)
     p.set_defaults(func=run)
 
@@ -261,18 +279,32 @@ def run(args: argparse.Namespace) -> int:
     hosts = host_check(host, args.allow_host)
     window = _parse_window(args.window)
     Dashboard([], window=window)  # checks the window before any port opens
-    manager, wanted = _manager(args)
     token = None if _is_loopback(host) else secrets.token_urlsafe(18)
+    page = _Page(host, port, token, window, hosts)
+    endpoint = getattr(args, "connect", None)
+    if endpoint:
+        items = _connect_devices(args, endpoint)
+        main = _attach(args, page, endpoint, items)
+    else:
+        manager, wanted, bus_file = _manager(args)
+        if _serve_extra():
+            main = _spawn_and_attach(args, page, manager, wanted, bus_file)
+        else:
+            print(NO_SERVE_WARNING, file=sys.stderr, flush=True)
+            main = _serve(args, manager, wanted, page)
     try:
-        run_safely(_serve(args, manager, wanted, host, port, token, window, hosts))
+        run_safely(main)
     except SystemExit as end:
         if end.code not in (130, 143):  # Ctrl-C and SIGTERM are how a dashboard ends
             raise
     return 0
 
 
-def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] | None]]:
-    """The buses to watch and, per bus, the LA IDs (``None``: scan for them)."""
+def _manager(
+    args: argparse.Namespace,
+) -> tuple[BusManager, dict[str, list[int] | None], Path | None]:
+    """The buses to watch, per bus the LA IDs (``None``: scan for them), and the bus
+    file they come from (``None``: --port)."""
     port_given = bool(getattr(args, "port", None) or os.environ.get(PORT_ENV))
     bus_file = getattr(args, "bus_file", None) or os.environ.get(BUS_FILE_ENV)
     if args.process and port_given:
@@ -281,6 +313,7 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
         bus_file = default_bus_file()
         if bus_file is None or not bus_file.is_file():
             raise UsageError(f"--process {args.process}: no bus file: give --bus-file")
+    from_file = Path(bus_file) if bus_file and not port_given else None
     if bus_file and not port_given:
         if args.ids or args.devices:
             raise UsageError("--ids and --devices go with --port; the bus file lists devices")
@@ -321,7 +354,7 @@ def _manager(args: argparse.Namespace) -> tuple[BusManager, dict[str, list[int] 
         ids = [i for d in spec.devices if d.kind == "la" for i in d.ids]
         scan_it = not spec.devices and Family.LA in spec.families()
         wanted[name] = None if scan_it else ids
-    return manager, wanted
+    return manager, wanted, from_file
 
 
 def _split_devices(text: str) -> list[str]:
@@ -342,16 +375,9 @@ async def _serve(
     args: argparse.Namespace,
     manager: BusManager,
     wanted: dict[str, list[int] | None],
-    host: str,
-    port: int,
-    token: str | None,
-    window: tuple[int, int],
-    hosts: HostCheck,
+    page: _Page,
 ) -> None:
-    from aiohttp import web
-
-    from motorbus.dashboard.server import make_app
-
+    """The bus in this process, on this loop: only without the serve extra."""
     async with manager:
         setups = []
         for name, bus in manager.buses.items():
@@ -362,24 +388,213 @@ async def _serve(
             project = next((d.motor for d in spec.devices if d.kind == "project_stepper"), None)
             quad = any(d.kind == "quad_stepper" for d in spec.devices)
             setups.append(BusSetup(bus, list(ids), project, quad, spec.la_safe_action))
-        dash = Dashboard(setups, period=args.interval, control=args.control, window=window)
-        record = Path(args.record) if args.record else None
-        app = make_app(dash, token=token, push_hz=args.push_hz, record_dir=record, hosts=hosts)
-        runner = web.AppRunner(app, handle_signals=False, access_log=None)
-        await runner.setup()
-        try:
-            site = web.TCPSite(runner, host, port)
-            await site.start()
-            bound = runner.addresses[0][1] if runner.addresses else port
-            await dash.start()
-            if record is not None:
-                dash.start_recording(record)
-            for url, what in page_urls(host, bound, token):
-                print(f"{url}  ({what})" if what else url, flush=True)
-            for s in setups:
-                listed = ", ".join(map(str, s.la_ids)) or "none"
-                print(f"bus {s.bus.name}: LA {listed}", file=sys.stderr, flush=True)
-            await asyncio.Event().wait()  # until Ctrl-C or SIGTERM cancels us
-        finally:
-            await dash.stop()
-            await runner.cleanup()
+        dash = Dashboard(setups, period=args.interval, control=args.control, window=page.window)
+        await _run_page(args, dash, page, asyncio.Event().wait)
+
+
+async def _run_page(
+    args: argparse.Namespace,
+    dash: Dashboard,
+    page: _Page,
+    until: Callable[[], Awaitable[object]],
+) -> None:
+    """Serve ``dash`` on the page's address until ``until()`` returns or Ctrl-C or
+    SIGTERM cancels us; then stop it (its safe stop) and the page."""
+    from aiohttp import web
+
+    from motorbus.dashboard.server import make_app
+
+    record = Path(args.record) if args.record else None
+    app = make_app(
+        dash, token=page.token, push_hz=args.push_hz, record_dir=record, hosts=page.hosts
+    )
+    runner = web.AppRunner(app, handle_signals=False, access_log=None)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, page.host, page.port)
+        await site.start()
+        bound = runner.addresses[0][1] if runner.addresses else page.port
+        await dash.start()
+        if record is not None:
+            dash.start_recording(record)
+        for url, what in page_urls(page.host, bound, page.token):
+            print(f"{url}  ({what})" if what else url, flush=True)
+        for name, s in dash.setups.items():
+            listed = ", ".join(map(str, s.la_ids)) or "none"
+            print(f"bus {name}: LA {listed}", file=sys.stderr, flush=True)
+        await until()
+    finally:
+        await dash.stop()
+        await runner.cleanup()
+
+
+# -- the bus in a motorbus serve (docs/dashboard.md, "A served bus") ---------------------
+
+#: The one line printed when --port or a bus file falls back to the bus in this process.
+NO_SERVE_WARNING = (
+    "motorbus dashboard: warning: the serve extra is not installed "
+    "(pip install 'motorbus[serve]'): the bus runs in the dashboard's own process"
+)
+
+
+@dataclass(frozen=True, slots=True)
+class _Page:
+    """Where and how the page is served."""
+
+    host: str
+    port: int
+    token: str | None
+    window: tuple[int, int]
+    hosts: HostCheck
+
+
+def _serve_extra() -> bool:
+    try:
+        import zenoh  # noqa: F401  (only to tell whether the serve extra is there)
+    except ImportError:
+        return False
+    return True
+
+
+def _device_items(args: argparse.Namespace) -> list[str]:
+    items: list[str] = []
+    if args.ids:
+        items.append("la:" + ",".join(str(i) for i in parse_ids(args.ids)))
+    if args.devices:
+        items += _split_devices(args.devices)
+    return items
+
+
+def _connect_devices(args: argparse.Namespace, endpoint: str) -> list[str]:
+    """What ``--connect`` watches, checked before anything connects (the device items
+    against the served bus's baud rate once connected, before anything is sent)."""
+    if getattr(args, "port", None) or getattr(args, "bus_file", None):
+        raise UsageError("--connect uses a served bus: give it without --port or --bus-file")
+    if args.process:
+        raise UsageError("--process chooses buses of a bus file; --connect uses a served bus")
+    if not _serve_extra():
+        raise UsageError("--connect needs the serve extra: pip install 'motorbus[serve]'")
+    import motorbus
+
+    motorbus.connect(endpoint)  # checks the endpoint; connects nothing
+    items = _device_items(args)
+    if not items:
+        raise UsageError(
+            "--connect needs the devices to watch: --ids 1-3 or --devices la:1-3,quad-stepper "
+            "(a scan is not served yet)"
+        )
+    return items
+
+
+async def _attach(
+    args: argparse.Namespace,
+    page: _Page,
+    endpoint: str,
+    watch: list[str] | list[Watch],
+    until: Callable[[], Awaitable[object]] | None = None,
+) -> None:
+    """Connect to the server at ``endpoint`` and serve the page of ``watch`` (the
+    ``--connect`` device items, or the buses of the dashboard's own server) until
+    ``until()`` returns (default: until Ctrl-C or SIGTERM)."""
+    import motorbus
+
+    async with motorbus.connect(endpoint, name="dashboard") as site:
+        watches: list[Watch] = []
+        for w in watch:
+            if isinstance(w, Watch):
+                watches.append(w)
+                continue
+            bus = site.bus(args.bus)  # the LocalProtocolError names the served buses
+            table = {"name": bus.name, "url": endpoint, "baud": bus.baudrate, "devices": watch}
+            devices = BusSpec.from_mapping(table).devices
+            ids = [i for d in devices if d.kind == "la" for i in d.ids]
+            watches = [Watch.of(args.bus, None, devices, ids, None)]
+            break
+        dash = watch_site(
+            site,
+            watches,
+            endpoint=endpoint,
+            period=args.interval,
+            control=args.control,
+            window=page.window,
+        )
+        await _run_page(args, dash, page, until or asyncio.Event().wait)
+
+
+async def _scan_missing(
+    manager: BusManager, wanted: dict[str, list[int] | None]
+) -> dict[str, list[int]]:
+    """The LA IDs of every bus; the buses whose devices are not given are scanned here,
+    before the server opens them (a scan is not served yet)."""
+    out = {name: ids for name, ids in wanted.items() if ids is not None}
+    if len(out) == len(wanted):
+        return out
+    async with manager:
+        for name, bus in manager.buses.items():
+            if name not in out:
+                out[name] = await scan(bus, timeout=SCAN_TIMEOUT_S)
+    return out
+
+
+def _serve_plan(
+    args: argparse.Namespace,
+    manager: BusManager,
+    wanted: dict[str, list[int]],
+    bus_file: Path | None,
+    endpoint: str,
+) -> tuple[list[str], list[Watch]]:
+    """The ``motorbus serve`` arguments for the dashboard's buses, and what to watch."""
+    # The dashboard's contract: an actuator it never commanded gets nothing on exit.
+    argv = ["--stop-leased-only", "--listen", endpoint]
+    if bus_file is not None:
+        argv += [str(bus_file), "--host-margin-ms", f"{CLI_HOST_MARGIN_S * 1e3:g}"]
+        if args.process:
+            argv += ["--process", args.process]
+        if args.bus:
+            argv += ["--bus", args.bus]
+        watches = [
+            Watch.of(name, None, spec.devices, wanted[name], spec.la_safe_action)
+            for name, spec in manager.specs.items()
+        ]
+        return argv, watches
+    ((name, spec),) = manager.specs.items()
+    served = served_name(spec.url)
+    argv += ["--port", spec.url, "--baud", str(spec.baud), "--backend", spec.backend]
+    argv += ["--name", served, "--host-margin-ms", f"{spec.host_margin_ms:g}"]
+    items = _device_items(args)
+    if items:
+        argv += ["--devices", ",".join(items)]
+    return argv, [Watch.of(served, name, spec.devices, wanted[name], spec.la_safe_action)]
+
+
+async def _spawn_and_attach(
+    args: argparse.Namespace,
+    page: _Page,
+    manager: BusManager,
+    wanted: dict[str, list[int] | None],
+    bus_file: Path | None,
+) -> None:
+    """Start a ``motorbus serve`` child for the dashboard's buses, attach to it, and
+    end it (SIGTERM: its safe ends) when the dashboard ends, however it ends."""
+    ids = await _scan_missing(manager, wanted)
+    endpoint = free_loopback_endpoint()
+    argv, watches = _serve_plan(args, manager, ids, bus_file, endpoint)
+    child = ServeChild(argv)
+    try:
+        await child.start()
+        print(
+            f"motorbus serve (pid {child.pid}) owns the port(s) and serves them at {endpoint}",
+            file=sys.stderr,
+            flush=True,
+        )
+
+        async def until() -> None:
+            code = await child.wait()
+            raise ServeChildError(
+                f"motorbus serve (pid {child.pid}), the dashboard's bus server, ended with "
+                f"status {code}; its messages are above"
+            )
+
+        await _attach(args, page, endpoint, watches, until)
+    finally:
+        await child.stop()

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import sys
 from typing import Any
 
@@ -46,6 +47,7 @@ def register(subparsers: Any) -> None:
     )
     p.add_argument("bus_file", nargs="?", help="the bus file to serve (every key honoured)")
     p.add_argument("--process", help="serve this process group of the bus file")
+    p.add_argument("--bus", metavar="NAME", help="serve only this bus of the bus file")
     p.add_argument("--port", help="serve one port instead of a bus file")
     p.add_argument("--baud", type=int, help="the port's baud rate (with --port)")
     p.add_argument(
@@ -56,7 +58,8 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--host-margin-ms",
         type=float,
-        help="host-latency margin of every reply deadline on --port (default: the library's)",
+        help="host-latency margin of every reply deadline on --port, and on each bus of "
+        "the bus file whose table sets none (default: the library's)",
     )
     p.add_argument(
         "--listen",
@@ -74,6 +77,13 @@ def register(subparsers: Any) -> None:
         "--watch-only", action="store_true", help="clients may query and watch, never move"
     )
     p.add_argument("--guard", action="store_true", help="run the guard process beside the buses")
+    p.add_argument(
+        "--stop-leased-only",
+        action="store_true",
+        help="on the way out, stop only the devices clients hold (their leases' safe "
+        "actions), not every device the bus lists (a dashboard's own server: watching "
+        "sends no motion)",
+    )
     p.set_defaults(func=run)
 
 
@@ -86,9 +96,22 @@ def _manager(args: argparse.Namespace) -> BusManager:
         loaded = load_bus_file(args.bus_file)
         manager = BusManager()
         manager.process = None if args.process is None else loaded.group(args.process)
-        for spec in loaded.specs_of(args.process):
+        specs = loaded.specs_of(args.process)
+        for spec in specs:
+            if args.bus and spec.name != args.bus:
+                continue
+            if args.host_margin_ms is not None and "host_margin_ms" not in loaded.given[spec.name]:
+                spec = dataclasses.replace(spec, host_margin_ms=args.host_margin_ms)
             manager.add_spec(spec)
+        if args.bus and not manager.specs:
+            raise UsageError(
+                f"--bus {args.bus}: {args.bus_file} has no such bus"
+                + (f" in process group {args.process}" if args.process else "")
+                + f": choose one of {', '.join(s.name for s in specs)}"
+            )
         return manager
+    if args.bus:
+        raise UsageError("--bus chooses a bus of the bus file; give the bus file")
     if not args.port:
         raise UsageError("give a bus file to serve, or --port (with --baud and --devices)")
     if args.process:
@@ -140,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
 
     check_endpoint("--listen", args.listen)
     manager = _manager(args)
+    manager.safe_stop = not args.stop_leased_only
     if args.guard:
         for spec in manager.specs.values():
             spec.guard = True

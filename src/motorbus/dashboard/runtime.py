@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 from collections.abc import Awaitable, Callable, Iterable
@@ -72,6 +73,7 @@ class BusSetup:
         project_motor: the project stepper's motor byte, ``None`` if there is none.
         quad: whether a quad stepper controller is on the bus.
         la_safe_action: what an actuator the dashboard moved gets on the way out.
+        name: the name the page shows (default: the bus's own name).
     """
 
     bus: Bus
@@ -79,6 +81,12 @@ class BusSetup:
     project_motor: int | None = None
     quad: bool = False
     la_safe_action: str = "pause"
+    name: str | None = None
+
+    @property
+    def shown(self) -> str:
+        """The bus's name on the page."""
+        return self.name if self.name is not None else self.bus.name
 
 
 class _Observer:
@@ -119,7 +127,7 @@ class Dashboard:
         control: bool = False,
         window: tuple[int, int] = (la.POSITION_MIN, la.POSITION_MAX),
     ) -> None:
-        self.setups = {s.bus.name: s for s in setups}
+        self.setups = {s.shown: s for s in setups}
         self.period = check_number("period", period, PERIOD_MIN_S, PERIOD_MAX_S, "s")
         self.control = control
         lo, hi = window
@@ -151,22 +159,55 @@ class Dashboard:
     async def start(self) -> None:
         """Observe every bus and start its poller (the buses are open)."""
         for name, s in self.setups.items():
-            bus = s.bus
-            self.state.set_state(name, bus.state.value)
-            observer = self._observers[name] = _Observer(self, name)
-            bus.add_observer(observer)
-            sub = bus.events.subscribe(BusEvent)
+            self._observers[name] = _Observer(self, name)
+            sub = s.bus.events.subscribe(BusEvent)
             self._subs.append(sub)
             loop = asyncio.get_running_loop()
-            self._tasks.append(loop.create_task(self._events(sub), name=f"dashboard events {name}"))
+            self._tasks.append(
+                loop.create_task(self._events(name, sub), name=f"dashboard events {name}")
+            )
             self._tasks.append(loop.create_task(self._poll(s), name=f"dashboard poller {name}"))
-            # However the program ends (a signal closing every bus, say), the bus's close
-            # path stops what the dashboard moved on it before the port closes.
-            hook = self._hooks[name] = self._close_hook(name)
-            bus.add_close_hook(hook)
-            if s.la_ids:
-                cost = bus.occupancy(la.Control(s.la_ids[0], la.ControlAction.QUERY_STATUS))
-                self.state.set_poll_load(name, len(s.la_ids) * cost.answered / self.period)
+            self._attach(name, s)
+
+    def _attach(self, name: str, s: BusSetup) -> None:
+        """Watch a bus of this process: its observer, its close path, its poll load."""
+        bus = s.bus
+        self.state.set_state(name, bus.state.value)
+        bus.add_observer(self._observers[name])
+        # However the program ends (a signal closing every bus, say), the bus's close
+        # path stops what the dashboard moved on it before the port closes.
+        hook = self._hooks[name] = self._close_hook(name)
+        bus.add_close_hook(hook)
+        if s.la_ids:
+            cost = bus.occupancy(la.Control(s.la_ids[0], la.ControlAction.QUERY_STATUS))
+            self.state.set_poll_load(name, len(s.la_ids) * cost.answered / self.period)
+
+    def _detach(self) -> None:
+        """Undo :meth:`_attach` on every bus."""
+        for name, hook in self._hooks.items():
+            self.setups[name].bus.remove_close_hook(hook)
+        self._hooks.clear()
+        for name, observer in self._observers.items():
+            self.setups[name].bus.remove_observer(observer)
+
+    async def _request(
+        self,
+        name: str,
+        cmd: Command[object],
+        priority: Priority,
+        retries: int | None = None,
+    ) -> Any:
+        """``cmd`` on bus ``name`` (its observer tells the state and the recorder)."""
+        return await self.setups[name].bus.request(cmd, priority=priority, retries=retries)
+
+    def _is_open(self, name: str) -> bool:
+        return self.setups[name].bus.state is BusState.OPEN
+
+    def _stats(self, name: str) -> dict[str, Any]:
+        return self.setups[name].bus.stats.as_dict()
+
+    def _port(self, name: str) -> str:
+        return self.setups[name].bus.transport.url
 
     async def stop(self) -> None:
         """Stop polling; give every actuator the dashboard moved its bus's safe action."""
@@ -180,11 +221,7 @@ class Dashboard:
             sub.close()
         self._subs.clear()
         await self.safe_stop()
-        for name, hook in self._hooks.items():
-            self.setups[name].bus.remove_close_hook(hook)
-        self._hooks.clear()
-        for name, observer in self._observers.items():
-            self.setups[name].bus.remove_observer(observer)
+        self._detach()
         self._observers.clear()
         self.stop_recording()
 
@@ -221,17 +258,19 @@ class Dashboard:
 
     # -- the poller -------------------------------------------------------------------
 
-    async def _events(self, sub: Subscription[BusEvent]) -> None:
+    async def _events(self, name: str, sub: Subscription[BusEvent]) -> None:
         async for event in sub:
+            if event.bus != name:  # a bus shown by another name than its own
+                event = dataclasses.replace(event, bus=name)
             self.state.on_event(event)
 
     async def _poll(self, s: BusSetup) -> None:
-        bus = s.bus
+        name = s.shown
         loop = asyncio.get_running_loop()
         if s.project_motor is not None:
             for number in PROJECTS:  # the project list, once: what the page shows
                 with contextlib.suppress(MotorbusError):
-                    await bus.request(ps.ReadProject(number), priority=Priority.BACKGROUND)
+                    await self._request(name, ps.ReadProject(number), Priority.BACKGROUND)
         if not s.la_ids:
             return
         queries = [la.Control(i, la.ControlAction.QUERY_STATUS) for i in s.la_ids]
@@ -239,14 +278,14 @@ class Dashboard:
         while True:
             for cmd in queries:
                 try:
-                    await bus.request(cmd, priority=Priority.BACKGROUND, retries=0)
+                    await self._request(name, cmd, Priority.BACKGROUND, 0)
                 except MotorbusError as err:
                     # A silent actuator or a lost port must not end the poller; the
                     # bus counts timeouts, its events tell the state changes.
-                    log.debug("dashboard poll of la:%d on %s: %s", cmd.id, bus.name, err)
-                    if bus.state is not BusState.OPEN:
+                    log.debug("dashboard poll of la:%d on %s: %s", cmd.id, name, err)
+                    if not self._is_open(name):
                         await asyncio.sleep(self.period)
-            self.rounds[bus.name] += 1
+            self.rounds[name] += 1
             next_round += self.period
             now = loop.time()
             if next_round < now:
@@ -258,7 +297,7 @@ class Dashboard:
     def message(self, since: int | None = None) -> str:
         """The state as one JSON text (``since``: only the samples after that ``seq``)."""
         for name, s in self.setups.items():
-            self.state.set_stats(name, s.bus.stats.as_dict())
+            self.state.set_stats(name, self._stats(name))
             self.state.advance(s.bus.timer.now())
         return json.dumps(self.state.snapshot(since), separators=(",", ":"))
 
@@ -349,6 +388,8 @@ class Dashboard:
             self.moved.update(
                 (name, cmd.id) for name, cmd, _, _ in plan if isinstance(cmd, la.Control)
             )
+        if len(plan) == 1:  # one actuator: no task to start and join (an e-stop's path)
+            return [await self._send(*plan[0])]
         results = await asyncio.gather(*(self._send(*p) for p in plan))
         return list(results)
 
@@ -374,7 +415,7 @@ class Dashboard:
     ) -> dict[str, Any]:
         out: dict[str, Any] = {"bus": name, "device": device, "command": type(cmd).__name__}
         try:
-            await self.setups[name].bus.request(cmd, priority=priority)
+            await self._request(name, cmd, priority)
         except MotorbusError as err:
             out.update(ok=False, error=str(err))
         else:
@@ -387,7 +428,7 @@ class Dashboard:
         """Start writing the frame logs and ``plots.csv`` into ``folder``; returns the files."""
         self.stop_recording()
         buses = {
-            name: (s.bus.families, s.bus.baudrate, s.bus.transport.url)
+            name: (frozenset(s.bus.families), s.bus.baudrate, self._port(name))
             for name, s in self.setups.items()
         }
         t0 = next(iter(self.setups.values())).bus.timer.now() if self.setups else 0.0

@@ -36,7 +36,7 @@ import importlib.resources
 import json
 import logging
 import weakref
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +70,35 @@ CSP = (
 _ACTIONS = ("estop", "pause", "work", "clear_fault")
 
 
+class _EmergencyGate:
+    """Telemetry waits while an e-stop is on its way: a new viewer's snapshot and the
+    pushes are held until every e-stop in flight has its answer, so a burst of viewers
+    does not take the event loop turns the e-stop needs."""
+
+    def __init__(self) -> None:
+        self.in_flight = 0
+        self.clear = asyncio.Event()
+        self.clear.set()
+
+    @contextlib.contextmanager
+    def emergency(self) -> Iterator[None]:
+        self.in_flight += 1
+        self.clear.clear()
+        try:
+            yield
+        finally:
+            self.in_flight -= 1
+            if not self.in_flight:
+                self.clear.set()
+
+    async def wait(self) -> None:
+        if not self.clear.is_set():
+            await self.clear.wait()
+
+
+_GATE = web.AppKey("gate", _EmergencyGate)
+
+
 def page() -> str:
     """The dashboard page (the packaged ``static/index.html``)."""
     return (
@@ -99,6 +128,7 @@ def make_app(
     app = web.Application(middlewares=[_guard])
     app[DASHBOARD_KEY] = dash
     app[_VIEWERS] = weakref.WeakSet()
+    app[_GATE] = _EmergencyGate()
     app[_CONFIG] = {
         "token": token,
         "push_hz": push_hz,
@@ -175,6 +205,7 @@ async def _state(request: web.Request) -> web.Response:
 async def _ws(request: web.Request) -> web.WebSocketResponse:
     ws = web.WebSocketResponse(heartbeat=20.0)
     await ws.prepare(request)
+    await request.app[_GATE].wait()
     await ws.send_str(request.app[DASHBOARD_KEY].for_new_viewer())
     request.app[_VIEWERS].add(ws)
     try:
@@ -203,6 +234,7 @@ async def _pusher(app: web.Application) -> AsyncIterator[None]:
             # Absolute deadlines: the push rate does not sag with the number of viewers.
             next_push = max(next_push + period, loop.time())
             await asyncio.sleep(next_push - loop.time())
+            await app[_GATE].wait()
             if dash.recorder is not None:
                 dash.recorder.flush()
             dash.pushed()
@@ -271,7 +303,9 @@ def _make_action(action: str) -> Callable[[web.Request], Awaitable[web.Response]
             bus = doc.get("bus")
             if bus is not None and not isinstance(bus, str):
                 raise ControlError(f"bus={bus!r} must be a bus name", field="bus", value=bus)
-            results = await dash.act(action, bus, _ident(doc), source=_source(request))
+            ident = _ident(doc)
+            with request.app[_GATE].emergency() if action == "estop" else contextlib.nullcontext():
+                results = await dash.act(action, bus, ident, source=_source(request))
         except LocalProtocolError as err:
             return _refused(err, 400)
         return web.json_response({"action": action, "results": results})

@@ -134,6 +134,12 @@ class BusView:
     quad: dict[str, Any] | None = None
     stats: dict[str, Any] = field(default_factory=dict)
     poll_load: float | None = None
+    #: The ``motorbus serve`` endpoint the bus is used through (``None``: this process's).
+    served: str | None = None
+    #: Frames/s from the server's counters (a served bus: the dashboard sees only its own).
+    rate: float | None = None
+    #: Who holds which device (a served bus): ``[{"key", "owner"}]``.
+    leases: list[dict[str, str]] = field(default_factory=list)
 
 
 class DashboardState:
@@ -306,6 +312,19 @@ class DashboardState:
         """The bus's counters (``bus.stats.as_dict()``)."""
         self.buses[bus].stats = dict(stats)
 
+    def set_served(self, bus: str, endpoint: str) -> None:
+        """The bus is used through the ``motorbus serve`` at ``endpoint``: its frames/s
+        come from the server's counters (:meth:`set_rate`), not from the writes seen."""
+        self.buses[bus].served = endpoint
+
+    def set_rate(self, bus: str, frames_per_s: float) -> None:
+        """Frames/s the server's bus wrote (a served bus)."""
+        self.buses[bus].rate = frames_per_s
+
+    def set_leases(self, bus: str, leases: Iterable[tuple[str, str]]) -> None:
+        """The devices held on a served bus, as ``(key, owner)``."""
+        self.buses[bus].leases = [{"key": key, "owner": owner} for key, owner in leases]
+
     def set_poll_load(self, bus: str, load: float) -> None:
         """The share of bus time the status polls take (0..1 and beyond: overloaded)."""
         self.buses[bus].poll_load = load
@@ -319,8 +338,12 @@ class DashboardState:
     # -- reading ---------------------------------------------------------------------
 
     def frames_per_s(self, bus: str) -> float:
-        """Frames written in the second before the latest observation or ``advance``."""
-        writes = self.buses[bus].writes
+        """Frames written in the second before the latest observation or ``advance``
+        (a served bus: what its server's counters said last)."""
+        view = self.buses[bus]
+        if view.served is not None:
+            return 0.0 if view.rate is None else round(view.rate, 1)
+        writes = view.writes
         return float(sum(1 for t in writes if t >= self.now - RATE_WINDOW_S))
 
     def snapshot(self, since: int | None = None) -> dict[str, Any]:
@@ -354,13 +377,17 @@ class DashboardState:
             "late_replies": stats.get("late_replies", 0),
             "garbage_bytes": stats.get("garbage_bytes", 0),
             "poll_load": None if view.poll_load is None else round(view.poll_load, 4),
-            "min_write_gap_ms": None if view.min_gap is None else round(view.min_gap * 1e3, 3),
+            "min_write_gap_ms": None
+            if view.min_gap is None or view.served is not None
+            else round(view.min_gap * 1e3, 3),
             "latency": stats.get("latency", {}),
             "reply_hist": view.reply_times.to_json(),
             "events": list(view.events),
             "la": [self._la_json(d, since) for d in sorted(view.la.values(), key=lambda d: d.id)],
             "project": view.project,
             "quad": view.quad,
+            "served": view.served,
+            "leases": list(view.leases),
         }
 
     def _la_json(self, dev: LAView, since: int | None) -> dict[str, Any]:

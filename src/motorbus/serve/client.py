@@ -73,6 +73,7 @@ _PRIORITY_NAMES = {
     Priority.NORMAL: "normal",
     Priority.HIGH: "high",
     Priority.EMERGENCY: "emergency",
+    Priority.BACKGROUND: "background",
 }
 _bound: contextvars.ContextVar[tuple[ServedLease, ...]] = contextvars.ContextVar(
     "motorbus_served_leases", default=()
@@ -267,9 +268,11 @@ class ServedBus:
                         f"{type(cmd).__name__} not sent"
                     )
                 body["lease"] = held.number
+        # An e-stop also travels first on the link (Zenoh's real-time lane, not batched).
+        urgent = priority is Priority.EMERGENCY
         self._in_flight += 1
         try:
-            result = await self._query("request", body, extra=timeout or 0.0)
+            result = await self._query("request", body, extra=timeout or 0.0, urgent=urgent)
         finally:
             self._in_flight -= 1
         before = result.get("events")
@@ -339,8 +342,11 @@ class ServedBus:
         """Send a command that expects no reply."""
         await self.request(cmd, priority=priority)
 
-    async def _query(self, what: str, body: dict[str, Any], extra: float = 0.0) -> dict[str, Any]:
-        return await self.site._query(k.bus_key(self.name, what), body, QUERY_SLACK_S + extra)
+    async def _query(
+        self, what: str, body: dict[str, Any], extra: float = 0.0, urgent: bool = False
+    ) -> dict[str, Any]:
+        key = k.bus_key(self.name, what)
+        return await self.site._query(key, body, QUERY_SLACK_S + extra, urgent=urgent)
 
     # -- leases ------------------------------------------------------------------------------
 
@@ -606,7 +612,9 @@ class ServedSite:
                 future.set_exception(err)
         self._pending.clear()
 
-    async def _query(self, key: str, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+    async def _query(
+        self, key: str, body: dict[str, Any], timeout: float, urgent: bool = False
+    ) -> dict[str, Any]:
         session = self._session
         if session is None:
             raise BusClosedError(f"the connection to {self.endpoint} is closed")
@@ -635,7 +643,9 @@ class ServedSite:
 
         z = zenoh()
         payload = k.encode_json({"client": self.client_id, **body})
-        session.get(key, z.handlers.Callback(on_reply, on_done), payload=payload, timeout=timeout)
+        lane: dict[str, Any] = {"priority": z.Priority.REAL_TIME, "express": True} if urgent else {}
+        handler = z.handlers.Callback(on_reply, on_done)
+        session.get(key, handler, payload=payload, timeout=timeout, **lane)
         return await future
 
     def _query_blocking(self, key: str, body: dict[str, Any]) -> dict[str, Any]:

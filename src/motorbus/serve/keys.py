@@ -75,7 +75,7 @@ LIVENESS_MIN_S = 0.1
 LIVENESS_MAX_S = 60.0
 
 #: Request priorities by name (``motorbus.Priority``'s members, lower case).
-PRIORITIES = ("normal", "high", "emergency")
+PRIORITIES = ("normal", "high", "emergency", "background")
 
 #: The ``error`` names a reply may carry; each maps to the exception the client raises.
 ERROR_KINDS = (

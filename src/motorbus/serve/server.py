@@ -59,7 +59,12 @@ __all__ = ["BusServer"]
 
 log = logging.getLogger("motorbus.serve")
 
-_PRIORITY = {"normal": Priority.NORMAL, "high": Priority.HIGH, "emergency": Priority.EMERGENCY}
+_PRIORITY = {
+    "normal": Priority.NORMAL,
+    "high": Priority.HIGH,
+    "emergency": Priority.EMERGENCY,
+    "background": Priority.BACKGROUND,  # a dashboard's status polls: after everything else
+}
 _LEASE_OPS = ("acquire", "add", "hand_over", "release", "release_implicit")
 #: How often the heartbeat check runs, as a share of the liveness timeout.
 _CHECKS_PER_LIVENESS = 10
