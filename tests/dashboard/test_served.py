@@ -9,6 +9,7 @@ from typing import Any, cast
 
 from motorbus import Bus, Priority
 from motorbus.bus.events import EventHub, FaultChanged
+from motorbus.bus.lease_shell import SafeStopper
 from motorbus.bus.leases import PROGRAM, LeaseInfo
 from motorbus.bus.timer import default_timer
 from motorbus.dashboard import BusSetup
@@ -33,6 +34,7 @@ class FakeServedBus:
         self.stats_asked = 0
         self.requests = 0
         self.held: tuple[LeaseInfo, ...] = ()
+        self.lease_keeper = SafeStopper(self.name, self.families, self.request)
 
     async def request(
         self,

@@ -35,7 +35,9 @@ class FakeSite:
     def _check_open(self, bus: str) -> None:
         pass
 
-    async def _query(self, key: str, body: dict[str, Any], timeout: float) -> dict[str, Any]:
+    async def _query(
+        self, key: str, body: dict[str, Any], timeout: float, *, urgent: bool = False
+    ) -> dict[str, Any]:
         self.frames.append(body["frame"])
         for deliver in self.before_reply:
             deliver()
