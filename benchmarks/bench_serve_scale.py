@@ -107,9 +107,22 @@ async def drive(bus: Any, phase: float, window: tuple[float, float], stop: async
             k = next_k
 
 
+async def first_move(bus: Any, target: int) -> None:
+    """Move the bus's actuator (the client then holds its lease); a reply lost on a
+    swamped machine is asked again, a few times."""
+    from motorbus import InspireLA, ReplyTimeoutError
+
+    for attempt in range(5):
+        try:
+            await InspireLA(bus, 1).move_to(target)
+            return
+        except ReplyTimeoutError:
+            if attempt == 4:
+                raise
+
+
 async def load(args: argparse.Namespace) -> None:
     import motorbus
-    from motorbus import InspireLA
 
     names = args.names.split(",")
     async with contextlib.AsyncExitStack() as stack:
@@ -122,9 +135,7 @@ async def load(args: argparse.Namespace) -> None:
             manager = await stack.enter_async_context(motorbus.BusManager.from_toml(args.bus_file))
             buses = [manager.bus(n) for n in names]
         if args.move:
-            await asyncio.gather(
-                *(InspireLA(b, 1).move_to(1000 + 37 * i) for i, b in enumerate(buses))
-            )
+            await asyncio.gather(*(first_move(b, 1000 + 37 * i) for i, b in enumerate(buses)))
         print("ready", flush=True)
         line = (await asyncio.to_thread(sys.stdin.readline)).split()
         t0, seconds = float(line[1]), float(line[2])
@@ -155,11 +166,12 @@ class Child:
     """A child process; its stdout lines go to a queue (every wait bounded)."""
 
     def __init__(self, args: list[str], *, stdin: bool = True) -> None:
+        self.stderr = tempfile.TemporaryFile("w+", encoding="utf-8")  # noqa: SIM115  (the child's life)
         self.proc = subprocess.Popen(
             args,
             stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
             stdout=subprocess.PIPE,
-            stderr=subprocess.DEVNULL,
+            stderr=self.stderr,
             text=True,
             start_new_session=True,
         )
@@ -178,11 +190,21 @@ class Child:
             try:
                 line = self.lines.get(timeout=max(0.01, deadline - time.monotonic()))
             except queue.Empty:
-                raise RuntimeError(f"{self.proc.args!r} printed no {prefix!r}") from None
+                raise RuntimeError(
+                    f"{self.proc.args[1:4]!r} printed no {prefix!r}: {self.error_tail()}"
+                ) from None
             if line.startswith(prefix):
                 return line
-            if line == "" and self.proc.poll() is not None:
-                raise RuntimeError(f"{self.proc.args!r} ended before {prefix!r}")
+            if line == "":
+                with contextlib.suppress(subprocess.TimeoutExpired):
+                    self.proc.wait(5)
+                raise RuntimeError(
+                    f"{self.proc.args[1:4]!r} ended before {prefix!r}: {self.error_tail()}"
+                )
+
+    def error_tail(self) -> str:
+        self.stderr.seek(0)
+        return self.stderr.read()[-2000:]
 
     def tell(self, line: str) -> None:
         assert self.proc.stdin is not None

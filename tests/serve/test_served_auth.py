@@ -232,3 +232,10 @@ async def test_a_watcher_reads_leases_stats_and_events_and_sends_no_frame(
         assert frames_at(la_sim) == before
         # The operator's lease is untouched by the watcher.
         assert [i.key for i in op_site.bus().leases] == ["la:2"]
+
+
+def test_the_documented_certificate_commands_are_the_scripts() -> None:
+    docs = (EXAMPLES.parents[1] / "docs" / "serve.md").read_text(encoding="utf-8")
+    script = (EXAMPLES / "make-certs.sh").read_text(encoding="utf-8")
+    body = script[script.index('ec="') : script.index("rm -f")]
+    assert body in docs
