@@ -1,5 +1,6 @@
 """The server's own faults: killed with a request in flight (with and without its
-guard), and requests that name no served key or a wildcard."""
+guard); requests that name no served key or a wildcard; one client's motion on a device
+another client leases."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import pytest
 pytest.importorskip("zenoh")
 
 import motorbus
-from motorbus import BusClosedError, InspireLA
+from motorbus import BusClosedError, InspireLA, LeaseConflictError
 from motorbus.protocol import la
 from motorbus.serve import keys as k
 from motorbus.sim import SimProcess
@@ -95,3 +96,25 @@ def test_a_wildcard_request_or_lease_is_refused_and_moves_nothing(
     assert la.MoveTo(1, 300, True).encode() not in requests_to_sim(la_sim)
     leases = raw_query(endpoint, k.bus_key("bus", "leases"), b"{}")
     assert leases["leases"] == []
+
+
+async def test_a_client_moving_what_another_client_leases_is_refused_naming_the_holder(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    async with motorbus.connect(endpoint, name="arm") as holder:
+        lease = holder.bus().lease("la:2", owner="gripper", safe_action="estop")
+        async with motorbus.connect(endpoint, name="other") as other:
+            bus = other.bus()
+            before = requests_to_sim(la_sim)
+            with pytest.raises(LeaseConflictError) as moved:
+                await InspireLA(bus, 2).move_to(900)
+            assert moved.value.key == "la:2"
+            assert moved.value.owner == f"gripper (client {holder.client_id})"
+            with pytest.raises(LeaseConflictError) as leased:
+                bus.lease("la:2", owner="thief")
+            assert leased.value.owner == moved.value.owner
+            assert requests_to_sim(la_sim) == before  # nothing sent
+            # Its own devices are its own: la:1 moves.
+            await InspireLA(bus, 1).move_to(600)
+        await lease.release()
+    assert la.MoveTo(2, 900, True).encode() not in requests_to_sim(la_sim)
