@@ -15,6 +15,7 @@ pytest.importorskip("zenoh")
 
 import motorbus
 from motorbus import BusClosedError, InspireLA
+from motorbus.serve import ServedSite
 from motorbus.sim import SimProcess
 from tests.serve.conftest import free_endpoint, serve
 
@@ -205,33 +206,53 @@ async def test_a_wrong_credential_is_refused_before_anything_is_sent(
         pass
 
 
-async def test_a_watcher_reads_leases_stats_and_events_and_sends_no_frame(
+async def test_a_watcher_reads_hears_lease_changes_and_sends_no_frame(
     la_sim: SimProcess, tls_server: str, pki: Path, tmp_path: Path
 ) -> None:
+    import zenoh
+
+    from motorbus.serve import keys as k
+    from motorbus.serve.zconf import client_config
+    from tests.waiting import eventually
+
     operator = client_file(tmp_path, pki, OPERATOR)
     watcher = client_file(tmp_path, pki, WATCHER)
-    async with motorbus.connect(tls_server, config_file=operator) as op_site:
-        await InspireLA(op_site.bus(), 2).move_to(400)
-        before = frames_at(la_sim)
-        async with motorbus.connect(tls_server, config_file=watcher) as site:
-            bus = site.bus()
-            # Reads: the server's buses, the leases (the operator's move), the counters.
-            assert site.instance and bus.name == "bus"
-            assert [i.key for i in bus.leases] == ["la:2"]
-            stats = await bus.fetch_stats()
-            assert stats["requests"] >= 1
-            # No frame: status and motion go through .../request, leases through
-            # .../lease; the access control lets neither reach the server.
-            for attempt in (InspireLA(bus, 1).status(), InspireLA(bus, 1).move_to(1000)):
-                with pytest.raises(BusClosedError, match="access control"):
-                    await attempt
+    published: list[bytes] = []
+    with zenoh.open(client_config(tls_server, watcher)) as session:
+        # The watcher may subscribe: it hears the lease changes as they happen.
+        session.declare_subscriber(
+            k.bus_key("bus", "leases"), lambda sample: published.append(sample.payload.to_bytes())
+        )
+        async with motorbus.connect(tls_server, config_file=operator) as op_site:
+            await InspireLA(op_site.bus(), 2).move_to(400)
+            await eventually(
+                lambda: any(b'"la:2"' in p for p in published), "the lease change published"
+            )
+            await _watch(la_sim, tls_server, watcher, op_site)
+
+
+async def _watch(la_sim: SimProcess, tls_server: str, watcher: str, op_site: ServedSite) -> None:
+    """The watcher's reads, and its refused frames and leases (nothing sent)."""
+    before = frames_at(la_sim)
+    async with motorbus.connect(tls_server, config_file=watcher) as site:
+        bus = site.bus()
+        # Reads: the server's buses, the leases (the operator's move), the counters.
+        assert site.instance and bus.name == "bus"
+        assert [i.key for i in bus.leases] == ["la:2"]
+        stats = await bus.fetch_stats()
+        assert stats["requests"] >= 1
+        # No frame: status and motion go through .../request, leases through
+        # .../lease; the access control lets neither reach the server.
+        for attempt in (InspireLA(bus, 1).status(), InspireLA(bus, 1).move_to(1000)):
             with pytest.raises(BusClosedError, match="access control"):
-                bus.lease("la:1", owner="watcher")
-            with pytest.raises(BusClosedError, match="access control"):
-                await bus.release()
-        assert frames_at(la_sim) == before
-        # The operator's lease is untouched by the watcher.
-        assert [i.key for i in op_site.bus().leases] == ["la:2"]
+                await attempt
+        with pytest.raises(BusClosedError, match="access control"):
+            bus.lease("la:1", owner="watcher")
+        with pytest.raises(BusClosedError, match="access control"):
+            await bus.release()
+    assert frames_at(la_sim) == before
+    # The operator's lease is untouched by the watcher.
+    assert [i.key for i in op_site.bus().leases] == ["la:2"]
 
 
 def test_the_documented_certificate_commands_are_the_scripts() -> None:
