@@ -41,6 +41,7 @@ import argparse
 import asyncio
 import contextlib
 import json
+import math
 import os
 import platform
 import queue
@@ -81,6 +82,9 @@ async def drive(bus: Any, phase: float, window: tuple[float, float], stop: async
 
     actuator = InspireLA(bus, 1)
     start = time.monotonic() + phase
+    # The window's ticks by their index on the grid: exactly window / period of them.
+    first = math.ceil((window[0] - start) / PERIOD_S)
+    end = first + round((window[1] - window[0]) / PERIOD_S)
     k = 0
     while not stop.is_set():
         due = start + k * PERIOD_S
@@ -95,15 +99,14 @@ async def drive(bus: Any, phase: float, window: tuple[float, float], stop: async
             rec.first_error = rec.first_error or f"{type(err).__name__}: {err}"
         else:
             done = time.monotonic()
-            if window[0] <= sent < window[1]:
+            if first <= k < end:
                 rec.ticks += 1
                 rec.rtts.append(done - sent)
         k += 1
         now = time.monotonic()
         next_k = int((now - start) / PERIOD_S) + 1
         if next_k > k:
-            if window[0] <= now < window[1]:
-                rec.skipped += next_k - k
+            rec.skipped += max(0, min(next_k, end) - max(k, first))
             k = next_k
 
 

@@ -33,6 +33,7 @@ def test_quick_run_measures_both_sides_and_the_deadman(tmp_path: Path) -> None:
         row = size[side]
         assert row["bus_ticks_due"] == 400
         assert 0 < row["bus_ticks"] <= row["bus_ticks_due"]
+        assert row["bus_ticks"] + row["skipped_ticks"] <= row["bus_ticks_due"]
         assert row["rtt_ms"]["n"] == row["bus_ticks"]
         assert 0 < row["rtt_ms"]["p50"] <= row["rtt_ms"]["p99"]
         assert row["owner_cpu_us_per_bus_tick"] > 0
