@@ -13,8 +13,9 @@ baud):
   the pause (the last safe frame), polled every 0.5 ms (an upper bound by up to the
   poll period and the simulator's log write).
 
-Prints a table and writes ``benchmarks/results/serve.json``.  Not yet measured: many
-buses per server, server CPU per bus-tick (served streams: bench_serve_stream.py).
+Prints a table and writes ``benchmarks/results/serve.json``.  Many buses and clients
+per server, and the server's CPU per bus-tick: ``bench_serve_scale.py``; served
+streams: ``bench_serve_stream.py``.
 """
 
 from __future__ import annotations

@@ -55,6 +55,8 @@ def raw_query(endpoint: str, key: str, payload: bytes) -> dict[str, object]:
         ),
         (b'{"client": "x", "frame": "55aa03010400141c", "timeout": "1"}', "bad_payload", "timeout"),
         (b'{"client": "x", "frame": "ffaa0000000000000000"}', "bad_payload", "frame"),
+        # A misspelt option is refused, not ignored.
+        (b'{"client": "x", "frame": "55aa03010400141c", "timeuot": 1}', "bad_payload", "timeuot"),
     ],
 )
 def test_a_malformed_request_is_refused_naming_the_field_and_nothing_is_sent(
@@ -81,6 +83,14 @@ def test_unknown_lease_operations_and_leases_are_refused(
     key = k.bus_key("bus", "lease")
     answer = raw_query(endpoint, key, k.encode_json({"client": "x", "op": "steal"}))
     assert answer["error"] == "bad_payload" and answer["field"] == "op"
+    answer = raw_query(
+        endpoint,
+        key,
+        k.encode_json({"client": "x", "op": "acquire", "keys": ["la:1"], "owner": "x", "bind": 1}),
+    )
+    assert answer["error"] == "bad_payload" and answer["field"] == "bind"
+    leases = raw_query(endpoint, k.bus_key("bus", "leases"), b'{"client": "x", "all": true}')
+    assert leases["error"] == "bad_payload" and leases["field"] == "all"
     answer = raw_query(endpoint, key, k.encode_json({"client": "x", "op": "release", "lease": 99}))
     assert answer["error"] == "lease_gone" and "lease 99" in str(answer["message"])
     move = la.MoveTo(1, 300, True).encode().hex()

@@ -637,7 +637,7 @@ class ServedSite:
                 loop.call_soon_threadsafe(settle, value, err)
 
         def on_done() -> None:
-            err = BusClosedError(f"no motorbus server answered {key} at {self.endpoint}")
+            err = BusClosedError(self._unanswered(key))
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(settle, None, err)
 
@@ -661,7 +661,13 @@ class ServedSite:
                 raise err
             assert value is not None
             return value
-        raise BusClosedError(f"no motorbus server answered {key} at {self.endpoint}")
+        raise BusClosedError(self._unanswered(key))
+
+    def _unanswered(self, key: str) -> str:
+        return (
+            f"no motorbus server answered {key} at {self.endpoint}: none serves it, or the "
+            "server's access control does not let this client use that key"
+        )
 
 
 def _reply_value(reply: Any) -> tuple[dict[str, Any] | None, Exception | None]:

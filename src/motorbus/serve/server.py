@@ -66,6 +66,12 @@ _PRIORITY = {
     "background": Priority.BACKGROUND,  # a dashboard's status polls: after everything else
 }
 _LEASE_OPS = ("acquire", "add", "hand_over", "release", "release_implicit")
+#: The fields each query payload may carry (docs/serve.md); any other is refused.
+_READ_FIELDS = frozenset({"client"})
+_REQUEST_FIELDS = frozenset({"client", "frame", "timeout", "retries", "priority", "lease"})
+_LEASE_FIELDS = frozenset(
+    {"client", "op", "keys", "owner", "safe_action", "safe_commands", "lease", "hold"}
+)
 #: How often the heartbeat check runs, as a share of the liveness timeout.
 _CHECKS_PER_LIVENESS = 10
 
@@ -157,12 +163,14 @@ class BusServer:
         for name, bus in self.buses.items():
             self._declare(
                 session.declare_queryable(
-                    k.bus_key(name, "request"), self._on_query(self._request, name)
+                    k.bus_key(name, "request"),
+                    self._on_query(self._request, name, exact=k.bus_key(name, "request")),
                 )
             )
             self._declare(
                 session.declare_queryable(
-                    k.bus_key(name, "lease"), self._on_query(self._lease, name)
+                    k.bus_key(name, "lease"),
+                    self._on_query(self._lease, name, exact=k.bus_key(name, "lease")),
                 )
             )
             self._declare(
@@ -238,15 +246,29 @@ class BusServer:
 
     # -- queries -----------------------------------------------------------------------
 
-    def _on_query(self, handler: Callable[..., Any], *args: Any) -> Callable[[Any], None]:
+    def _on_query(
+        self, handler: Callable[..., Any], *args: Any, exact: str | None = None
+    ) -> Callable[[Any], None]:
+        """``exact``: answer only a query naming this key (a request or lease query with
+        a wildcard, ``motorbus/v1/bus/*/request``, would act on every bus)."""
+
         def run(query: Any) -> None:
-            self._spawn(self._answer(query, handler, args))
+            self._spawn(self._answer(query, handler, args, exact))
 
         return self._threadsafe(run)
 
-    async def _answer(self, query: Any, handler: Callable[..., Any], args: tuple[Any, ...]) -> None:
+    async def _answer(
+        self, query: Any, handler: Callable[..., Any], args: tuple[Any, ...], exact: str | None
+    ) -> None:
         try:
             try:
+                if exact is not None and str(query.key_expr) != exact:
+                    raise k.PayloadError(
+                        f"key={str(query.key_expr)!r}: a request or lease query names one "
+                        f"bus, without wildcards ({exact}); nothing sent",
+                        field="key",
+                        value=str(query.key_expr),
+                    )
                 raw = b"" if query.payload is None else query.payload.to_bytes()
                 payload = k.decode_json(raw) if raw else {}
                 result = await handler(*args, payload)
@@ -271,6 +293,7 @@ class BusServer:
                 query.drop()
 
     async def _info(self, payload: dict[str, Any]) -> dict[str, Any]:
+        _only(payload, _READ_FIELDS)
         return {
             "version": k.VERSION,
             "instance": self.instance,
@@ -299,6 +322,7 @@ class BusServer:
         return client
 
     async def _request(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+        _only(payload, _REQUEST_FIELDS)
         bus = self._bus(name)
         client = self._client(payload)
         cmd = k.decode_frame(k.hex_field(payload, "frame"), sorted(bus.families, key=str))
@@ -385,6 +409,7 @@ class BusServer:
         return held[1]
 
     async def _lease(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+        _only(payload, _LEASE_FIELDS)
         bus = self._bus(name)
         client = self._client(payload)
         op = k.field_of(payload, "op", str)
@@ -455,9 +480,11 @@ class BusServer:
         )
 
     async def _leases(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+        _only(payload, _READ_FIELDS)
         return {"leases": _lease_rows(self._bus(name).leases)}
 
     async def _stats(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+        _only(payload, _READ_FIELDS)
         return {"stats": self._bus(name).stats.as_dict()}
 
     # -- publications --------------------------------------------------------------------
@@ -533,6 +560,17 @@ class BusServer:
             if isinstance(result, BaseException):
                 log.error("client %s: a safe end failed: %s", client.id, result)
         self.deadman_ends.append((client.id, time.monotonic() - start))
+
+
+def _only(payload: dict[str, Any], allowed: frozenset[str]) -> None:
+    """Refuse a field the query does not take (a misspelt option must not be ignored)."""
+    for name in payload:
+        if name not in allowed:
+            raise k.PayloadError(
+                f"unknown field {name!r}: allowed {', '.join(sorted(allowed))}",
+                field=name,
+                value=payload[name],
+            )
 
 
 def _holds(client: _Client) -> bool:
