@@ -29,6 +29,7 @@ on purpose.  The tree (python-standard bases in brackets)::
          +-- ServeRefused [PermissionError]     a served bus lets this client only watch
          +-- ServeUnavailable [ImportError]     Eclipse Zenoh (the serve extra) is missing
          +-- ServedRefusal                      (server side) a served request refused
+         +-- ServeChildError                    the dashboard's motorbus serve child failed
 
 Two families follow h11's split:
 
@@ -73,6 +74,7 @@ __all__ = [
     "RemoteProtocolError",
     "ReplyTimeoutError",
     "RigAborted",
+    "ServeChildError",
     "ServeRefused",
     "ServeUnavailable",
     "ServedRefusal",
@@ -278,6 +280,10 @@ class ServeRefused(MotorbusError, PermissionError):
 
 class ServeUnavailable(MotorbusError, ImportError):
     """Eclipse Zenoh (the ``serve`` extra) is not installed."""
+
+
+class ServeChildError(MotorbusError):
+    """The dashboard's ``motorbus serve`` child ended, or never said it was ready."""
 
 
 class ServedRefusal(MotorbusError):

@@ -5,10 +5,9 @@ priority order (an emergency stop jumps it), and a frame's write starts only whe
 
 * at least ``min_spacing`` (1 ms, LA manual 3.4.2, docs/protocols.md C.6) has passed
   since the previous write *returned* (and the previous frame's own wire time, if
-  longer).  The anchor
-  is the moment the write call came back, not a timestamp taken before it: a process
-  preempted between reading the clock and writing would otherwise write later than
-  its timestamp says, and the kernel would see two frames closer than the rule;
+  longer): the moment the write call came back, not a timestamp taken before it (a
+  process preempted between the two would write later than its timestamp says, and
+  the kernel would see two frames closer than the rule);
 * no reply is still owed: a request that expects a reply holds the bus until the
   reply is matched or its deadline runs out;
 * it does not overlap a window reserved by a stream tick (``add_reservation_source``):
@@ -28,24 +27,22 @@ however soon (a pty, a USB-CDC device or a TCP bridge does not pace bytes at the
 a frame that began before the write is older traffic.  "Before" is what the OS had
 received, not what the loop had read: a request's write is preceded by a read of what
 the OS already holds (``Transport.drain_input``), so a lagging loop cannot make an old
-reply look newer than the request.  A deadline is decided when its callback runs,
-after the same read: a reply the OS already held is taken, whichever callback a late
-loop runs first (counted in ``stats.replies_past_deadline``).  A late reply is never
-given to a later request: after a timeout, the next request to that device waits
-``late_guard``, and the late frame is recognised by its
-shape and counted.  The protocols carry no sequence numbers, so a reply later than the
-guard with exactly the shape of a newer request cannot be told apart: raise
-``late_guard`` for such devices.  ``wire_floor=True`` (for a real UART that paces bytes
-at the baud) also refuses frames that completed sooner than the wire allows; each such
-frame is counted as ``early_replies`` and logged, never silently made a timeout.
+reply look newer than the request.  A deadline is decided when its callback runs, after
+the same read: a reply the OS already held is taken, whichever callback a late loop runs
+first (counted in ``stats.replies_past_deadline``).  A late reply is never given to a
+later request: after a timeout, the next request to that device waits ``late_guard``,
+and the late frame is recognised by its shape and counted.  The protocols carry no
+sequence numbers, so a reply later than the guard with exactly the shape of a newer
+request cannot be told apart: raise ``late_guard`` for such devices.
+``wire_floor=True`` (for a real UART that paces bytes at the baud) also refuses frames
+that completed sooner than the wire allows; each such frame is counted as
+``early_replies`` and logged, never silently made a timeout.
 
 Where each part lives: the rules are one pure core, driven by a time passed in
-(``motorbus.bus.core``'s ``BusCore``: the queue, spacing, late guards and reservations
-of ``motorbus.bus.schedule``, the matching of ``motorbus.bus.matching``, a frame's bus
-time from ``motorbus.bus.occupancy``, the reassembler and the counts); ``Bus``, this
-module's one class, holds it and drives it with the timer and the transport (writer,
-deadlines, reader, reconnect), besides being the public face (options, requests,
-leases, observers, open and close).  The core never calls the bus.
+(``motorbus.bus.core``'s ``BusCore``: queue, spacing, late guards and reservations,
+matching, a frame's bus time, the reassembler, the counts); ``motorbus.bus.engine``'s
+``BusEngine`` holds it and drives it with the timer and the transport; ``Bus`` holds
+the engine and is the public face.  Neither calls the bus.
 """
 
 from __future__ import annotations
@@ -621,14 +618,11 @@ class Bus:
             self._engine.observers.remove(observer)
 
     def add_wire_tap(self, tap: WireTap) -> None:
-        """Tell ``tap(outgoing, data, at)`` of every frame written (``outgoing`` true)
-        and every chunk of bytes read, with the bus clock's time, in wire order (a
-        served bus's frame feed, ``motorbus capture --connect``).  Called synchronously
-        from the bus: keep it to an append.  A tap that raises is logged and removed."""
+        """Tell ``tap(outgoing, data, at)`` of every frame written and chunk read, in wire
+        order (``BusEngine.add_wire_tap``; ``remove_wire_tap`` stops it)."""
         self._engine.add_wire_tap(tap)
 
     def remove_wire_tap(self, tap: WireTap) -> None:
-        """Stop telling ``tap`` (no error if it was not added)."""
         self._engine.remove_wire_tap(tap)
 
     def add_reservation_source(self, source: ReservationSource) -> None:

@@ -37,7 +37,7 @@ from typing import Any, Protocol, cast
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.leases import PROGRAM, LeaseInfo
 from motorbus.dashboard.runtime import BusSetup, Dashboard
-from motorbus.errors import MotorbusError
+from motorbus.errors import MotorbusError, ServeChildError
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
 
@@ -170,10 +170,6 @@ class ServedDashboard(Dashboard):
                     name, [(i.key, SELF_OWNER if i.owner == PROGRAM else i.owner) for i in infos]
                 )
             await asyncio.sleep(TELEMETRY_PERIOD_S)
-
-
-class ServeChildError(MotorbusError):
-    """The dashboard's ``motorbus serve`` child ended, or never said it was ready."""
 
 
 def _die_with_parent() -> None:  # pragma: no cover - runs in the child, before exec

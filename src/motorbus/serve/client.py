@@ -33,9 +33,6 @@ from motorbus.bus.events import (
     BusEvent,
     BusStateChanged,
     EventHub,
-    FaultChanged,
-    ProjectFinished,
-    QuadDone,
 )
 from motorbus.bus.lease_shell import SafeStopper
 from motorbus.bus.leases import PROGRAM, LeaseInfo
@@ -51,7 +48,6 @@ from motorbus.errors import (
     ReplyTimeoutError,
     ServeRefused,
 )
-from motorbus.protocol import la
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
 from motorbus.serve.zconf import client_config, zenoh
@@ -593,7 +589,7 @@ class ServedSite:
         def handle(sample: Any) -> None:
             try:
                 body = k.decode_json(sample.payload.to_bytes())
-                event = event_from(bus.name, body)
+                event = k.event_from(bus.name, body)
             except (LocalProtocolError, KeyError, ValueError, TypeError):
                 return
             if event is not None:
@@ -678,32 +674,6 @@ def _reply_value(reply: Any) -> tuple[dict[str, Any] | None, Exception | None]:
         return None, error_from(payload)
     except LocalProtocolError as err:
         return None, MotorbusError(f"the server's answer did not decode: {err}")
-
-
-def event_from(bus: str, body: dict[str, Any]) -> BusEvent | None:
-    """A bus event from its publication (``server.event_payload``), at the local time."""
-    now = time.monotonic()
-    kind = body.get("kind")
-    if kind == "project_finished":
-        return ProjectFinished(bus, now)
-    if kind == "quad_done":
-        return QuadDone(
-            bus,
-            now,
-            str(body["done"]),
-            int(body["address"]),
-            body.get("led"),
-            bytes.fromhex(body["raw"]),
-        )
-    if kind == "fault_changed":
-        status = body.get("status")
-        decoded = la.decode_reply(bytes.fromhex(status)) if status else None
-        return FaultChanged(
-            bus, now, int(body["id"]), int(body["before"]), int(body["after"]), decoded
-        )
-    if kind == "state":
-        return BusStateChanged(bus, now, str(body["state"]), str(body.get("detail", "")))
-    return None
 
 
 def connect(endpoint: str, *, config_file: str | None = None, name: str = "") -> ServedSite:

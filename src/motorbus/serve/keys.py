@@ -34,9 +34,17 @@ from __future__ import annotations
 import json
 import math
 import re
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from motorbus.bus.events import (
+    BusEvent,
+    BusStateChanged,
+    FaultChanged,
+    ProjectFinished,
+    QuadDone,
+)
 from motorbus.errors import LocalProtocolError, PayloadError
 from motorbus.protocol import la, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Family, format_hex
@@ -58,6 +66,8 @@ __all__ = [
     "decode_json",
     "encode_json",
     "error_payload",
+    "event_from",
+    "event_payload",
     "field_of",
     "hex_field",
     "server_key",
@@ -222,3 +232,60 @@ def error_payload(
         out["value"] = value if isinstance(value, int | float | str | bool) else repr(value)
     out.update(extra)
     return out
+
+
+# -- bus events: the publication and back -------------------------------------------
+
+
+def event_payload(event: BusEvent) -> dict[str, Any] | None:
+    """The publication of a bus event (``keys`` module docstring; docs/serve.md)."""
+    if isinstance(event, ProjectFinished):
+        return {"kind": "project_finished", "time": event.time}
+    if isinstance(event, QuadDone):
+        return {
+            "kind": "quad_done",
+            "time": event.time,
+            "done": event.kind,
+            "address": event.address,
+            "led": event.led,
+            "raw": event.raw.hex(),
+        }
+    if isinstance(event, FaultChanged):
+        raw = getattr(event.status, "raw", None)
+        return {
+            "kind": "fault_changed",
+            "time": event.time,
+            "id": event.id,
+            "before": event.before,
+            "after": event.after,
+            "status": raw.hex() if isinstance(raw, bytes) else None,
+        }
+    if isinstance(event, BusStateChanged):
+        return {"kind": "state", "time": event.time, "state": event.state, "detail": event.detail}
+    return None
+
+
+def event_from(bus: str, body: dict[str, Any]) -> BusEvent | None:
+    """A bus event from its publication (``event_payload``), at the local time."""
+    now = time.monotonic()
+    kind = body.get("kind")
+    if kind == "project_finished":
+        return ProjectFinished(bus, now)
+    if kind == "quad_done":
+        return QuadDone(
+            bus,
+            now,
+            str(body["done"]),
+            int(body["address"]),
+            body.get("led"),
+            bytes.fromhex(body["raw"]),
+        )
+    if kind == "fault_changed":
+        status = body.get("status")
+        decoded = la.decode_reply(bytes.fromhex(status)) if status else None
+        return FaultChanged(
+            bus, now, int(body["id"]), int(body["before"]), int(body["after"]), decoded
+        )
+    if kind == "state":
+        return BusStateChanged(bus, now, str(body["state"]), str(body.get("detail", "")))
+    return None

@@ -31,10 +31,6 @@ from typing import Any
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import (
     BusEvent,
-    BusStateChanged,
-    FaultChanged,
-    ProjectFinished,
-    QuadDone,
     Subscription,
 )
 from motorbus.bus.leases import Lease, LeaseInfo
@@ -356,7 +352,7 @@ class BusServer:
         came before the reply from those after, whatever order they arrive in)."""
         sub = self._event_subs.get(name)
         queued = [] if sub is None else sub.queued()
-        return self._events_out.get(name, 0) + sum(event_payload(e) is not None for e in queued)
+        return self._events_out.get(name, 0) + sum(k.event_payload(e) is not None for e in queued)
 
     def _motion_lease(
         self, client: _Client, name: str, bus: Bus, cmd: Command[object], number: object
@@ -504,7 +500,7 @@ class BusServer:
         with bus.events.subscribe(BusEvent) as sub:
             self._event_subs[name] = sub
             async for event in sub:
-                body = event_payload(event)
+                body = k.event_payload(event)
                 if body is None:
                     continue
                 body["seq"] = self._events_out[name] = self._events_out.get(name, 0) + 1
@@ -605,34 +601,6 @@ def _lease_rows(infos: tuple[LeaseInfo, ...]) -> list[dict[str, Any]]:
         {"key": i.key, "owner": i.owner, "safe_frames": [f.hex() for f in i.safe_frames]}
         for i in infos
     ]
-
-
-def event_payload(event: BusEvent) -> dict[str, Any] | None:
-    """The publication of a bus event (``keys`` module docstring; docs/serve.md)."""
-    if isinstance(event, ProjectFinished):
-        return {"kind": "project_finished", "time": event.time}
-    if isinstance(event, QuadDone):
-        return {
-            "kind": "quad_done",
-            "time": event.time,
-            "done": event.kind,
-            "address": event.address,
-            "led": event.led,
-            "raw": event.raw.hex(),
-        }
-    if isinstance(event, FaultChanged):
-        raw = getattr(event.status, "raw", None)
-        return {
-            "kind": "fault_changed",
-            "time": event.time,
-            "id": event.id,
-            "before": event.before,
-            "after": event.after,
-            "status": raw.hex() if isinstance(raw, bytes) else None,
-        }
-    if isinstance(event, BusStateChanged):
-        return {"kind": "state", "time": event.time, "state": event.state, "detail": event.detail}
-    return None
 
 
 def _error_of(err: Exception) -> dict[str, Any]:

@@ -4,9 +4,10 @@ bytes it decoded, so the server can send them on as they came off the wire.
 The bus hands a request's caller the *decoded* reply.  A served bus must forward the
 frame itself (the client decodes it with the same ``Command``), so the server submits a
 *tapped* copy of the client's command: an instance of a subclass that remembers the
-last frame its ``decode_reply`` saw.  It is otherwise the same command: the same
-fields, ``isinstance`` of the same classes, equal (both ways) to the plain command, so
-leases, safety (``safety.covers``), fault events and done watches treat it as such.
+last frame its ``decode_reply`` or ``decode_matched`` (the bus's path) saw.  It is
+otherwise the same command: the same fields, ``isinstance`` of the same classes, equal
+(both ways) to the plain command, so leases, safety (``safety.covers``), fault events
+and done watches treat it as such.
 """
 
 from __future__ import annotations
@@ -30,6 +31,10 @@ def _tapped_class(base: Any) -> type:
         object.__setattr__(self, "_served_raw", bytes(raw))
         return base.decode_reply(self, raw)
 
+    def decode_matched(self: Any, raw: bytes) -> Any:
+        object.__setattr__(self, "_served_raw", bytes(raw))
+        return base.decode_matched(self, raw)
+
     def __eq__(self: Any, other: object) -> bool:
         other_base: Any = getattr(type(other), "_served_base", type(other))
         if other_base is not base:
@@ -46,6 +51,7 @@ def _tapped_class(base: Any) -> type:
         (base,),
         {
             "decode_reply": decode_reply,
+            "decode_matched": decode_matched,
             "__eq__": __eq__,
             "__hash__": __hash__,
             "_served_base": base,
@@ -66,6 +72,6 @@ def tapped(cmd: Command[Any]) -> Command[Any]:
 
 
 def raw_reply(cmd: Command[Any]) -> bytes | None:
-    """The frame the last ``decode_reply`` of a tapped command saw (None: no reply)."""
+    """The frame the last decode of a tapped command saw (None: no reply)."""
     value: bytes | None = getattr(cmd, "_served_raw", None)
     return value
