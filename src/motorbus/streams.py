@@ -82,7 +82,7 @@ from motorbus.streaming.model import (
     hold_flag,
     while_sending,
 )
-from motorbus.streaming.stream import Stream, StreamGap
+from motorbus.streaming.stream import Stream, StreamGap, earliest_tick
 from motorbus.streaming.targets import TargetSource, ramp_step
 from motorbus.validation import PHASE_MAX_S, check_number
 
@@ -379,7 +379,7 @@ class Streamer:
     async def _run(self) -> None:
         timer = self.bus.timer
         while self.streams:
-            deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
+            deadline = earliest_tick(self.streams)
             if deadline - PLAN_AHEAD_S > timer.now():
                 await self._sleep_until(deadline - PLAN_AHEAD_S)
                 continue  # re-check: streams may have changed while asleep
@@ -392,7 +392,7 @@ class Streamer:
             if self.streams:
                 # Idle time until the next tick: where real-time mode runs the garbage
                 # collector's full collections (a no-op otherwise; motorbus.lifecycle.idle).
-                upcoming = min([s.origin + s.next_tick * s.period for s in self.streams])
+                upcoming = earliest_tick(self.streams)
                 idle = upcoming - PREPARE_S - timer.now()
                 if idle > 0:
                     lifecycle.idle(idle)
@@ -658,7 +658,7 @@ class Streamer:
             return
         timer = self.bus.timer
         poll = self.bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
-        next_deadline = min([s.origin + s.next_tick * s.period for s in self.streams])
+        next_deadline = earliest_tick(self.streams)
         # A poll starts only if even its timeout, and the spacing after it, would end
         # before the next tick.
         worst = poll.worst + poll.spacing

@@ -386,7 +386,7 @@ class BusEngine:
         core = self.core
         core.accepted(job, now)
         try:
-            value: Any = job.cmd.decode_reply(raw)
+            value: Any = job.cmd.decode_matched(raw)  # matches_reply accepted it
         except RemoteProtocolError as err:
             self._finish(job, err)
             return

@@ -282,9 +282,9 @@ class LeaseTable:
     def note_all(self, keys: Iterable[DeviceKey]) -> None:
         """``note`` each of ``keys``."""
         seen = self._seen
-        before = len(seen)
-        seen.update(keys)
-        if len(seen) != before:
+        keys = tuple(keys)
+        if not seen.issuperset(keys):  # a stream's every tick: one call, all known
+            seen.update(keys)
             self.version += 1
 
     def expand(self, keys: Iterable[DeviceKey]) -> tuple[DeviceKey, ...]:

@@ -58,6 +58,10 @@ class Family(enum.Enum):
     PROJECT_STEPPER = "project_stepper"
     QUAD_STEPPER = "quad_stepper"
 
+    # Members are singletons compared by identity: hashed by identity too, in C (Enum's
+    # own __hash__ is a Python call, on every per-frame dict and set lookup of a family).
+    __hash__ = object.__hash__
+
 
 class Direction(enum.Enum):
     """Which way a frame travels."""
@@ -330,6 +334,11 @@ class Command(abc.ABC, Generic[ReplyT_co]):
     @abc.abstractmethod
     def decode_reply(self, raw: bytes) -> ReplyT_co:
         """Decode a frame for which ``matches_reply`` is True into a typed value."""
+
+    def decode_matched(self, raw: bytes) -> ReplyT_co:
+        """``decode_reply`` of a frame ``matches_reply`` has just accepted (the bus's
+        path): a family may skip the checks that match made.  Same value, same errors."""
+        return self.decode_reply(raw)
 
     def reply_shapes(self) -> tuple[FrameShape, ...]:
         """Shapes of the reply for unframed (stepper) protocols; ``()`` for LA frames."""
