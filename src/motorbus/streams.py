@@ -82,7 +82,7 @@ from motorbus.streaming.model import (
     hold_flag,
     while_sending,
 )
-from motorbus.streaming.stream import Stream, StreamGap, earliest_tick
+from motorbus.streaming.stream import Stream, StreamGap, actuator_group, earliest_tick
 from motorbus.streaming.targets import TargetSource, ramp_step
 from motorbus.validation import PHASE_MAX_S, check_number
 
@@ -225,6 +225,7 @@ class Streamer:
         safe_action: SafeAction | str = SafeAction.HOLD,
         on_gap: GapPolicy | str = GapPolicy.RAMP,
         max_speed: float = DEFAULT_MAX_SPEED,
+        max_missed: int | None = None,
     ) -> Stream:
         """Start streaming follow-mode targets; returns the running ``Stream``.
 
@@ -247,22 +248,16 @@ class Streamer:
             max_speed: the stream's speed limit in position units per second, for the
                 ramp after a gap (default 500: the full stroke in 4 s).  A trajectory
                 faster than that is caught up with where it turns back.
+            max_missed: end the stream with its safe action (``StreamEnded``) once an
+                actuator missed this many status replies in a row (polls or feedback
+                round trips), 1..1000; None (default): missed replies are counted
+                (``poll_timeouts``, ``feedback_timeouts``), never raised.
 
         Raises:
             LocalProtocolError: a bad period, option, an empty or foreign actuator list,
                 an actuator already streamed, or a load that does not fit the bus.
         """
-        if isinstance(actuators, InspireLA):
-            group = [actuators]
-        elif isinstance(actuators, Sequence) and all(isinstance(a, InspireLA) for a in actuators):
-            group = list(actuators)
-        else:
-            raise LocalProtocolError(
-                f"actuators must be an InspireLA or a sequence of them, got {actuators!r}",
-                field="actuators",
-            )
-        if not group:
-            raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
+        group = actuator_group(actuators, self.bus)
         options = check_follow_options(
             period=period,
             feedback=feedback,
@@ -270,13 +265,8 @@ class Streamer:
             safe_action=safe_action,
             on_gap=on_gap,
             max_speed=max_speed,
+            max_missed=max_missed,
         )
-        for a in group:
-            if a.bus is not self.bus:
-                raise LocalProtocolError(
-                    f"actuator la:{a.id} is on bus {a.bus.name}, not {self.bus.name}",
-                    field="actuators",
-                )
         self.budget.check_ids([a.id for a in group])
         self._attach()
         keys = [f"la:{a.id}" for a in group]
@@ -293,6 +283,7 @@ class Streamer:
             safe_action=options.safe_action,
             on_gap=options.on_gap,
             max_speed=options.max_speed,
+            max_missed=options.max_missed,
         )
         try:
             self.budget.admit(self.bus.timing, stream)
@@ -470,9 +461,10 @@ class Streamer:
                     )
                 except MotorbusError:
                     s.stats.feedback_timeouts += 1
+                    if (ended := s.reply_missed(ident)) is not None:
+                        await s.end(ended)
                 else:
-                    if status is not None:
-                        s.statuses[ident] = status
+                    s.answered(ident, status)
                 s.stats.frames += 1
         finally:
             self._active = None
@@ -682,13 +674,15 @@ class Streamer:
                     s.stats.polls_skipped += 1
                     polled = -1  # counted already
                     break
-                except MotorbusError:  # a missed poll is counted, never raised
+                except MotorbusError:  # counted; raised only past max_missed
                     s.poll_done()
                     s.stats.poll_timeouts += 1
+                    if (ended := s.reply_missed(ident)) is not None:
+                        await s.end(ended)
                     continue
                 s.poll_done()
                 polled += 1
-                s.statuses[ident] = status
+                s.answered(ident, status)
                 s.stats.polls += 1
             if polled == 0:
                 s.stats.polls_skipped += 1

@@ -207,6 +207,25 @@ async def test_a_silent_client_gets_on_gap_ramp_back_to_its_targets(
     assert len(steps) >= 1000 // 20 - 1
 
 
+async def test_max_missed_ends_a_served_stream_on_a_silent_actuator(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    # la:9 is not simulated: its feedback replies are missed, two in a row end it.
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        stream = Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 9)],
+            ROWS,
+            period=0.02,
+            feedback=True,
+            safe_action="pause",
+            max_missed=2,
+        )
+        with pytest.raises(StreamEnded, match="la:9 missed 2 status replies in a row"):
+            await asyncio.wait_for(stream.wait(), 30)
+        assert stream.stats.feedback_timeouts == 2
+
+
 @pytest.mark.parametrize(
     ("options", "field"),
     [
@@ -215,6 +234,7 @@ async def test_a_silent_client_gets_on_gap_ramp_back_to_its_targets(
         ({"on_gap": "jump"}, "on_gap"),
         ({"max_speed": 0}, "max_speed"),
         ({"feedback": "yes"}, "feedback"),
+        ({"max_missed": 0}, "max_missed"),
     ],
 )
 async def test_bad_stream_options_are_refused_naming_the_field_and_nothing_is_sent(

@@ -123,7 +123,7 @@ class Streamer(Proxy[_streams.Streamer]):
         """Start streaming follow-mode targets; returns the running :class:`Stream`.
 
         ``targets`` and ``options`` (``period``, ``feedback``, ``poll_status``,
-        ``safe_action``, ``on_gap``, ``max_speed``) are those of
+        ``safe_action``, ``on_gap``, ``max_speed``, ``max_missed``) are those of
         :meth:`motorbus.Streamer.follow`.  Give a :class:`Setpoint` to set the targets
         from this thread; a callable or an iterator runs on the bus's thread, at each
         tick, so it must return at once (and must not make blocking motorbus calls).

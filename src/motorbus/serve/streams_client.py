@@ -44,7 +44,7 @@ from motorbus.streaming.model import (
     check_follow_options,
     hold_flag,
 )
-from motorbus.streaming.stream import StreamGap
+from motorbus.streaming.stream import StreamGap, actuator_group
 from motorbus.streaming.targets import EXHAUSTED, TargetAdapter, Targets, TargetSource
 from motorbus.validation import PHASE_MAX_S, check_number
 
@@ -107,26 +107,11 @@ class ServedStreamer:
         safe_action: SafeAction | str = SafeAction.HOLD,
         on_gap: GapPolicy | str = GapPolicy.RAMP,
         max_speed: float = DEFAULT_MAX_SPEED,
+        max_missed: int | None = None,
     ) -> ServedStream:
         """``Streamer.follow`` on the server (see there); the stream's tick 0 is
         ``lead`` seconds from now.  Raises what it raises, at once."""
-        if isinstance(actuators, InspireLA):
-            group = [actuators]
-        elif isinstance(actuators, Sequence) and all(isinstance(a, InspireLA) for a in actuators):
-            group = list(actuators)
-        else:
-            raise LocalProtocolError(
-                f"actuators must be an InspireLA or a sequence of them, got {actuators!r}",
-                field="actuators",
-            )
-        if not group:
-            raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
-        for a in group:
-            if a.bus is not self.bus:  # type: ignore[comparison-overlap]
-                raise LocalProtocolError(
-                    f"actuator la:{a.id} is on bus {a.bus.name}, not {self.bus.name}",
-                    field="actuators",
-                )
+        group = actuator_group(actuators, self.bus)
         options = check_follow_options(
             period=period,
             feedback=feedback,
@@ -134,6 +119,7 @@ class ServedStreamer:
             safe_action=safe_action,
             on_gap=on_gap,
             max_speed=max_speed,
+            max_missed=max_missed,
         )
         ids = tuple(a.id for a in group)
         if len(set(ids)) != len(ids):
@@ -151,6 +137,7 @@ class ServedStreamer:
                 "safe_action": options.safe_action.value,
                 "on_gap": options.on_gap.value,
                 "max_speed": options.max_speed,
+                "max_missed": options.max_missed,
                 "phase": self.phase,
                 "start_in": self.lead,
             },
@@ -158,7 +145,7 @@ class ServedStreamer:
         stream = ServedStream(self, group, adapter, opened, options.period)
         stream.feedback, stream.poll_status = options.feedback, options.poll_status
         stream.safe_action, stream.on_gap = options.safe_action, options.on_gap
-        stream.max_speed = options.max_speed
+        stream.max_speed, stream.max_missed = options.max_speed, options.max_missed
         self.streams.append(stream)
         return stream
 
@@ -197,6 +184,7 @@ class ServedStream:
         self.safe_action = SafeAction.HOLD
         self.on_gap = GapPolicy.RAMP
         self.max_speed = DEFAULT_MAX_SPEED
+        self.max_missed: int | None = None
         self.stats = ServedStreamStats()
         self.statuses: dict[int, la.Status] = {}
         self.last_targets: dict[int, int] = {}

@@ -288,6 +288,7 @@ class StreamService:
             safe_action=payload.get("safe_action", "hold"),
             on_gap=payload.get("on_gap", "ramp"),
             max_speed=payload.get("max_speed", 500.0),
+            max_missed=payload.get("max_missed"),
         )
         start_in = k.field_of(payload, "start_in", (int, float), optional=True)
         start_in = START_IN_DEFAULT_S if start_in is None else start_in
@@ -322,6 +323,7 @@ class StreamService:
                 safe_action=options.safe_action,
                 on_gap=options.on_gap,
                 max_speed=options.max_speed,
+                max_missed=options.max_missed,
             )
         except BaseException:
             if created and streamer.lease is not None:

@@ -14,7 +14,7 @@ from typing import Protocol
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
-from motorbus.protocol.base import check_flag
+from motorbus.protocol.base import check_flag, check_int
 from motorbus.validation import check_number
 
 __all__ = [
@@ -151,6 +151,11 @@ class FollowOptions:
     safe_action: SafeAction
     on_gap: GapPolicy
     max_speed: float
+    max_missed: int | None = None
+
+
+#: The most status replies in a row ``max_missed`` may let an actuator miss.
+MAX_MISSED_LIMIT = 1000
 
 
 def check_follow_options(
@@ -161,6 +166,7 @@ def check_follow_options(
     safe_action: object,
     on_gap: object,
     max_speed: object,
+    max_missed: object = None,
 ) -> FollowOptions:
     """Check ``Streamer.follow``'s options; ``LocalProtocolError`` names a bad one."""
     # 10..50 ms (LA manual 3.5.3); the slack admits a float32 0.01 (0.00999999978).
@@ -187,6 +193,9 @@ def check_follow_options(
         safe_action=action,
         on_gap=policy,
         max_speed=check_number("max_speed", max_speed, 1.0, MAX_SPEED_LIMIT, "units/s"),
+        max_missed=None
+        if max_missed is None
+        else check_int("max_missed", max_missed, 1, MAX_MISSED_LIMIT),
     )
 
 

@@ -21,7 +21,7 @@ from typing import Any, Protocol
 from motorbus.bus.bus import Bus
 from motorbus.bus.events import BusEvent, Subscription
 from motorbus.devices.la import InspireLA
-from motorbus.errors import StreamEnded
+from motorbus.errors import LocalProtocolError, StreamEnded
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.streaming.model import (
@@ -33,7 +33,7 @@ from motorbus.streaming.model import (
 )
 from motorbus.streaming.targets import EXHAUSTED, TargetAdapter, Targets, TargetSource
 
-__all__ = ["Stream", "StreamGap", "StreamOwner", "earliest_tick"]
+__all__ = ["Stream", "StreamGap", "StreamOwner", "actuator_group", "earliest_tick"]
 
 log = logging.getLogger("motorbus.streams")
 
@@ -112,6 +112,7 @@ class Stream:
         safe_action: SafeAction,
         on_gap: GapPolicy = GapPolicy.RAMP,
         max_speed: float = DEFAULT_MAX_SPEED,
+        max_missed: int | None = None,
     ) -> None:
         self.streamer = streamer
         self.actuators = tuple(actuators)
@@ -123,6 +124,9 @@ class Stream:
         self.safe_action = safe_action
         self.on_gap = on_gap
         self.max_speed = max_speed
+        self.max_missed = max_missed
+        #: Status replies each actuator missed in a row (polls or feedback round trips).
+        self.missed_in_row: dict[int, int] = {}
         #: True once the safe action was sent: no later end sends it again.
         self.safe_applied = False
         self.gaps: Subscription[StreamGap] = streamer.bus.events.subscribe(
@@ -214,6 +218,24 @@ class Stream:
         bus = self.streamer.bus
         await bus.lease_keeper.stop(keys, self.safe_action.value, who=f"stream to {keys}")
 
+    def answered(self, ident: int, status: la.Status | None) -> None:
+        """``ident``'s status reply came (None: its frame was dropped unsent)."""
+        if status is not None:
+            self.statuses[ident] = status
+            self.missed_in_row[ident] = 0
+
+    def reply_missed(self, ident: int) -> StreamEnded | None:
+        """Note that ``ident`` missed a status reply (a poll, or a feedback round trip:
+        counted in ``stats`` by the caller).  Returns the error to end the stream with
+        once it missed ``max_missed`` in a row, where the program asked for that; else
+        None: a missed reply is counted, never raised (the next one may come)."""
+        missed = self.missed_in_row[ident] = self.missed_in_row.get(ident, 0) + 1
+        if self.max_missed is None or missed < self.max_missed or not self.sending:
+            return None
+        return StreamEnded(
+            f"la:{ident} missed {missed} status replies in a row (max_missed={self.max_missed})"
+        )
+
     async def end(self, error: BaseException | None = None) -> None:
         """End with the safe action, then mark done with ``error`` (the tick loop's end:
         the targets ran out, the source failed, a gap with ``on_gap="stop"``)."""
@@ -289,3 +311,26 @@ def earliest_tick(streams: Sequence[Stream]) -> float:
         if at < earliest:
             earliest = at
     return earliest
+
+
+def actuator_group(actuators: object, bus: object) -> list[InspireLA]:
+    """``follow``'s actuators as a list, checked: one ``InspireLA`` or a non-empty
+    sequence of them, all on ``bus`` (``LocalProtocolError`` names the field)."""
+    if isinstance(actuators, InspireLA):
+        group = [actuators]
+    elif isinstance(actuators, Sequence) and all(isinstance(a, InspireLA) for a in actuators):
+        group = list(actuators)
+    else:
+        raise LocalProtocolError(
+            f"actuators must be an InspireLA or a sequence of them, got {actuators!r}",
+            field="actuators",
+        )
+    if not group:
+        raise LocalProtocolError("actuators must name at least one actuator", field="actuators")
+    for a in group:
+        if a.bus is not bus:
+            raise LocalProtocolError(
+                f"actuator la:{a.id} is on bus {a.bus.name}, not {getattr(bus, 'name', bus)}",
+                field="actuators",
+            )
+    return group
