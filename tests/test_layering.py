@@ -1,10 +1,20 @@
-"""The dependency direction: errors <- protocol <- transport <- bus <- devices <- streaming
-<- streams <- busfile <- manager <- cli, with the simulator beside the library (protocol
-and transport only), the tools (rig, doctor, dashboard) on top, and the process runtime
-(runtime: signals, the guard, real-time mode, process groups) above the library's core:
-the bus, devices and streams reach it only through the seam ``motorbus.lifecycle``.
+"""The dependency direction, part by part (a part is a subpackage or a top-level module of
+motorbus; ``ALLOWED`` below is the whole picture, drawn in docs/architecture.md):
 
-Every import between motorbus subpackages points down this list, without exception.
+* the library: errors <- protocol <- validation <- transport <- bus <- devices <-
+  streaming <- streams <- busfile <- manager;
+* the seam ``motorbus.lifecycle`` (imports nothing), which the bus, devices and streams
+  call, and the process runtime (``runtime``: signals, the guard, real-time mode,
+  process groups) that fills it: the runtime uses the bus, busfile and manager use the
+  runtime, and nothing from protocol to streams imports it;
+* beside the library the simulator (errors, protocol and transport only); on top of it
+  the tools (serve, doctor, rig, dashboard) and the blocking API, which it never imports;
+* above everything the package root ``motorbus`` (the public names, each loaded from its
+  module on first use), the command line ``cli`` (the public names, and errors,
+  protocol, runtime, sim and the tools directly) and ``__main__``.
+
+Every import between the parts points down this picture, without exception: every part
+has its rules, and a part without rules fails the test.
 """
 
 from __future__ import annotations
@@ -110,7 +120,9 @@ def test_simulator_models_are_pure() -> None:
 
 
 _LIBRARY_BASE = {"errors", "protocol", "validation", "lifecycle"}
-#: What each part of motorbus may import from the others (its own part always).
+#: What each part of motorbus may import from the others (its own part always).  A part
+#: is a subpackage or a top-level module; the package root (``motorbus/__init__.py``) is
+#: the part ``"motorbus"``, and ``from motorbus import Bus`` imports that part.
 ALLOWED: dict[str, set[str]] = {
     "errors": set(),
     "protocol": {"errors"},
@@ -136,42 +148,164 @@ ALLOWED: dict[str, set[str]] = {
     "blocking": _LIBRARY_BASE
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager", "runtime"},
     "sim": {"errors", "protocol", "transport"},
+    # Served buses: ``motorbus serve`` hands the server buses a BusManager opened.
     "serve": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
+    # The public names (``motorbus/__init__.py``), each loaded from its module on first
+    # use: the library, the runtime, and the doctor's ``diagnose`` and the served bus's
+    # ``connect``; never the simulator, the rig, the dashboard, the blocking API or cli.
+    "motorbus": _LIBRARY_BASE
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"}
+    | {"runtime", "doctor", "serve"},
+    # The command line: the library through the public names only; directly, the
+    # values and parts the public names leave out.
+    "cli": {"motorbus", "errors", "protocol", "runtime", "sim", "rig", "dashboard", "serve"},
+    "__main__": {"cli"},
 }
 
+#: The parts below the tools: none of them may import a tool, the blocking API, the
+#: public names or the command line.
+LIBRARY = (
+    "errors",
+    "protocol",
+    "validation",
+    "lifecycle",
+    "transport",
+    "bus",
+    "devices",
+    "streaming",
+    "streams",
+    "busfile",
+    "manager",
+    "runtime",
+    "sim",
+)
+ON_TOP = {"serve", "doctor", "rig", "dashboard", "blocking", "motorbus", "cli", "__main__"}
 
-def _part(path: Path) -> str:
-    rel = path.relative_to(SRC)
-    return rel.parts[0].removesuffix(".py")
+
+def _part(path: Path, root: Path = SRC) -> str:
+    rel = path.relative_to(root)
+    name = rel.parts[0].removesuffix(".py")
+    return "motorbus" if name == "__init__" else name
 
 
-def _motorbus_parts(path: Path) -> set[str]:
-    parts = set()
+def _parts_of_src(root: Path = SRC) -> set[str]:
+    """Every part of the package at ``root``: its subpackages and top-level modules."""
+    return {_part(path, root) for path in root.glob("*.py")} | {
+        path.parent.name for path in root.glob("*/__init__.py")
+    }
+
+
+def _lazy_modules(tree: ast.Module) -> set[str]:
+    """``motorbus.*`` module names in module-level dict literals (keys or values): the
+    tables a package's ``__getattr__`` loads its names from on first use."""
+    names: set[str] = set()
+    for node in tree.body:
+        value = node.value if isinstance(node, ast.Assign | ast.AnnAssign) else None
+        if isinstance(value, ast.Dict):
+            for item in [*value.keys, *value.values]:
+                text = item.value if isinstance(item, ast.Constant) else None
+                if isinstance(text, str) and text.startswith("motorbus."):
+                    names.add(text)
+    return names
+
+
+def _motorbus_parts(path: Path, root: Path = SRC) -> set[str]:
+    """The parts of motorbus that ``path`` imports: import statements (relative ones
+    too, for a file under ``root``), ``from motorbus import NAME`` (the part NAME, or
+    the package root for a public name), ``importlib.import_module("motorbus...")`` and
+    the lazy tables of ``_lazy_modules``."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
+    names: set[str] = set()
     for node in ast.walk(tree):
-        names: list[str] = []
         if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [node.module]
-            if node.module == "motorbus":
-                names = [f"motorbus.{a.name}" for a in node.names]
-        for name in names:
-            bits = name.split(".")
-            if bits[0] == "motorbus" and len(bits) > 1:
-                parts.add(bits[1])
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            module = node.module or ""
+            if node.level:
+                if not path.is_relative_to(root):
+                    continue
+                package = list(path.relative_to(root).parts[:-1])
+                package = package[: len(package) - (node.level - 1)]
+                module = ".".join(["motorbus", *package, *([module] if module else [])])
+            if module == "motorbus":
+                names.update(f"motorbus.{a.name}" for a in node.names)
+            else:
+                names.add(module)
+    names |= _imported_names(path) | _lazy_modules(tree)
+    parts: set[str] = set()
+    for name in names:
+        bits = name.split(".")
+        if bits[0] != "motorbus":
+            continue
+        if len(bits) > 1 and ((root / bits[1]).is_dir() or (root / f"{bits[1]}.py").exists()):
+            parts.add(bits[1])
+        elif len(bits) <= 2:
+            parts.add("motorbus")  # ``import motorbus``, ``from motorbus import Bus``
     return parts
+
+
+def test_every_part_has_its_rules() -> None:
+    # A new part (a subpackage or a top-level module) must say what it may import, and a
+    # part that is gone must leave the rules: no part is skipped by the check below.
+    assert _parts_of_src() == set(ALLOWED)
 
 
 def test_every_import_points_down_the_layers() -> None:
     bad = []
-    for path in SRC.rglob("*.py"):
+    for path in sorted(SRC.rglob("*.py")):
         part = _part(path)
-        if part not in ALLOWED:
+        allowed = ALLOWED.get(part)
+        if allowed is None:
+            bad.append(f"{path.relative_to(SRC)}: part {part!r} has no rules")
             continue
-        for target in _motorbus_parts(path) - {part} - ALLOWED[part]:
+        for target in sorted(_motorbus_parts(path) - {part} - allowed):
             bad.append(f"{path.relative_to(SRC)} -> {target}")
     assert bad == []
+
+
+def test_the_rules_point_one_way() -> None:
+    # No cycle among the parts: each layer only ever looks down.
+    assert all(targets <= set(ALLOWED) for targets in ALLOWED.values())
+    order: list[str] = []
+    left = {part: set(targets) - {part} for part, targets in ALLOWED.items()}
+    while left:
+        ready = sorted(part for part, targets in left.items() if targets <= set(order))
+        assert ready, f"a cycle among {sorted(left)}"
+        order += ready
+        for part in ready:
+            del left[part]
+
+
+def test_the_library_never_imports_what_is_on_top() -> None:
+    # Loosening a rule of the library towards the tools, the blocking API, the public
+    # names or the command line fails here, not only when an import is written.
+    assert set(LIBRARY) | ON_TOP == set(ALLOWED)
+    for part in LIBRARY:
+        assert not ALLOWED[part] & ON_TOP, part
+    assert not ALLOWED["protocol"] - {"errors"}
+    assert not ALLOWED["bus"] & {"devices", "streaming", "streams", "busfile", "manager"}
+    assert "runtime" not in ALLOWED["bus"] | ALLOWED["devices"] | ALLOWED["streams"]
+
+
+def test_the_part_reader_sees_every_kind_of_import(tmp_path: Path) -> None:
+    # The checks above would pass on anything if they read imports wrongly.
+    package = tmp_path / "motorbus"
+    (package / "bus").mkdir(parents=True)
+    (package / "serve").mkdir()
+    (package / "cli.py").write_text("", encoding="utf-8")
+    sample = package / "bus" / "sample.py"
+    sample.write_text(
+        "import motorbus\n"
+        "from motorbus import Bus\n"
+        "from ..serve import client\n"
+        "from . import core\n"
+        "_LAZY = {'run': 'motorbus.cli'}\n",
+        encoding="utf-8",
+    )
+    assert _motorbus_parts(sample, package) == {"motorbus", "serve", "bus", "cli"}
+    assert _parts_of_src(package) == {"cli"}  # no __init__.py: bus/ is no package yet
+    (package / "bus" / "__init__.py").write_text("", encoding="utf-8")
+    assert _parts_of_src(package) == {"cli", "bus"}
 
 
 #: The library below the process runtime: none of it imports motorbus.runtime (it calls
