@@ -23,9 +23,10 @@ owed, or the 1 ms spacing from the previous write) slips by the time needed and 
 counted (``slipped``).
 
 Stop means stop: once a stream starts stopping (``stop``, the end of its ``async with``
-block, an error), nothing more of it is written.  Its frames are built at the moment
-they are written (``Bus.submit(refresh=...)``), from the streams still running, so a
-tick queued or being built when the stop began is dropped, not sent after the safe
+block, an error), nothing more of it is written.  Its frames are prepared ahead of the
+deadline (``Bus.prepare(refresh=...)``) and re-checked at the write, rebuilt from the
+streams still running only if one stopped, so a tick queued or prepared when the stop
+began is dropped, not sent after the safe
 action's pause (a follow target would resume a paused actuator, LA manual 3.5.4).
 
 Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
@@ -555,9 +556,10 @@ class Streamer:
 
         The frames are queued from a timer callback at the deadline: a task woken then
         would send one event-loop step late (~55 us here, bench_wakeups.py).  Each frame
-        is built at the moment it is written, from the streams still sending then
-        (``Bus.submit(refresh=...)``), so a stream stopped or paused since its targets
-        were computed sends nothing more, even from a frame that had to wait its turn.
+        is prepared before the deadline (``Bus.prepare(refresh=...)``) and re-checked
+        when written: rebuilt from the streams still sending only if one stopped or
+        paused since, so such a stream sends nothing more, even from a frame that had
+        to wait its turn.
         Returns (when the first frame left, or None if nothing left; frames sent; whether
         the tick slipped: its first frame could not be written at the deadline itself).
         """

@@ -1,9 +1,10 @@
 """The pure core of one bus: what may be sent when, whose frame a received one is.
 
 Pure (no asyncio, no clock, no futures, no timer handles, no transport): the time is
-passed in and the answers are decisions and records, as in the simulators.  ``Bus``
-(``motorbus.bus.bus``) holds one :class:`BusCore` and is the only thing that drives
-it, with its timer and its transport; the core never calls the bus.  It composes the
+passed in and the answers are decisions and records, as in the simulators.
+``BusEngine`` (``motorbus.bus.engine``, which ``Bus`` holds) holds one :class:`BusCore`
+and is the only thing that drives it, with the bus's timer and transport; the core
+never calls either.  It composes the
 other pure modules of the bus:
 
 * ``motorbus.bus.schedule``: the queue, the spacing rule, the late guards and the

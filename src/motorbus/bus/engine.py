@@ -17,8 +17,10 @@ observers, open and close.  It holds one :class:`BusEngine`, which holds the pur
   backoff if ``reconnect`` is on.
 
 Futures, timer handles and the transport stay here, beside the core's records
-(``BusJob``, ``motorbus.bus.jobs``); the core never sees them, and neither the core nor
-this class calls the ``Bus`` that holds them.
+(``BusJob``, ``motorbus.bus.jobs``); the core never sees them.  Neither the core nor
+this class calls the ``Bus`` that holds them, with one exception: after a reconnect
+the safe actions owed meanwhile go out through the ``LeaseKeeper``, whose sender is
+``Bus.request``.
 """
 
 from __future__ import annotations

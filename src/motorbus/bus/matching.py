@@ -1,9 +1,10 @@
 """Whose frame is this: the bus's reply matching, without I/O.
 
 Pure (no asyncio, no clock): the time a frame was seen and its offset in the received
-stream are passed in, and the answer is a verdict.  ``Bus`` (``motorbus.bus.bus``) is
-the asyncio shell that feeds it frames from the reassembler and acts on the verdict;
-table tests drive it with plain numbers (tests/bus/test_matching.py).
+stream are passed in, and the answer is a verdict.  ``BusEngine``
+(``motorbus.bus.engine``) is the asyncio shell that feeds it frames from the
+reassembler and acts on the verdict; table tests drive it with plain numbers
+(tests/bus/test_matching.py).
 
 What it remembers:
 

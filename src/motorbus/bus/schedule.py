@@ -1,8 +1,8 @@
 """When the next frame may start: the bus's queue and its timing rules, without I/O.
 
 Pure (no asyncio, no clock, no futures, no timer handles): the time is passed in, as in
-the simulators, and the answer is a decision.  ``Bus`` (``motorbus.bus.bus``) is the
-asyncio shell that writes the frame or sets its timer; table tests drive this module
+the simulators, and the answer is a decision.  ``BusEngine`` (``motorbus.bus.engine``)
+is the asyncio shell that writes the frame or sets its timer; table tests drive this module
 with plain numbers (tests/bus/test_schedule.py).
 
 The rules, for each queued job (in queue order: lowest priority value, then the order
