@@ -76,6 +76,14 @@ def test_scan_and_monitor_answer_from_what_the_server_knows(
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == {"ids": [1, 2], "tried": 4, "declared": [1, 2]}
     assert status_query(4) in requests_of(la_sim, start)
+    # A --baud the served bus does not run at is refused, not ignored; its own is taken.
+    before = len(requests_of(la_sim, start))
+    out = motorbus_cli("scan", "--connect", endpoint, "--baud", "115200")
+    assert out.returncode == 2, out.stderr
+    assert "--baud 115200: the served bus bus runs at 921600 bit/s" in out.stderr
+    assert len(requests_of(la_sim, start)) == before  # nothing sent
+    out = motorbus_cli("scan", "--connect", endpoint, "--baud", "921600")
+    assert out.returncode == 0, out.stderr
     # monitor needs no --ids: the server's IDs.
     out = motorbus_cli("monitor", "--count", "1", "--connect", endpoint, "--json")
     assert out.returncode == 0, out.stderr

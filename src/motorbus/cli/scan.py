@@ -29,7 +29,8 @@ actuator answered.
 
 ``--connect ENDPOINT`` scans a bus that ``motorbus serve`` owns, beside its application:
 the IDs the server declares or has heard (or ``--ids``) are each asked a status through
-the server; ``--baud all`` is refused there.
+the server; ``--baud all`` is refused there, and so is a ``--baud`` other than the
+served bus's own rate.
 """
 
 from __future__ import annotations
@@ -89,6 +90,21 @@ def parse_baud(text: str) -> int | None:
         ) from None
 
 
+class _GivenBaud(argparse.Action):
+    """``--baud`` as given on the command line (``baud_given``: a served bus checks it
+    against the server's rate rather than ignore it)."""
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        setattr(namespace, self.dest, values)
+        namespace.baud_given = True
+
+
 def register(subparsers: Any) -> None:
     """Add the ``scan`` command."""
     p = subparsers.add_parser(
@@ -119,6 +135,7 @@ def register(subparsers: Any) -> None:
     p.add_argument(
         "--baud",
         type=parse_baud,
+        action=_GivenBaud,
         default=LA_BAUD,
         help=f"bit/s (default {LA_BAUD}), or 'all': {', '.join(str(b) for b in ALL_BAUDS)}",
     )

@@ -27,6 +27,11 @@ async def run_scan(args: argparse.Namespace, ids: list[int] | None) -> int:
     if args.baud is None:
         raise UsageError("--baud all reopens the port at each rate: not on a served bus")
     async with served_bus(args.connect, args.bus) as bus:
+        if getattr(args, "baud_given", False) and args.baud != bus.baudrate:
+            raise UsageError(
+                f"--baud {args.baud}: the served bus {bus.name} runs at {bus.baudrate} bit/s "
+                "(its server's port); a scan through it cannot change that"
+            )
         served: Any = bus
         result = await served.scan(ids, timeout=args.timeout, passes=args.passes)
         where = f"bus {bus.name} at {args.connect}"
