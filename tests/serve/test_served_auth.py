@@ -72,8 +72,19 @@ async def test_a_watch_only_server_answers_queries_and_refuses_motion_and_leases
             with pytest.raises(ServeRefused, match="only watch"):
                 bus.lease("la:2", owner="arm")
             assert bus.leases == ()
+            # Nor a setting, nor enabling the power stage; reads and stops go through.
+            limit = la.WriteRegister(1, la.Register.OVER_CURRENT_LIMIT, 600)
+            work = la.Control(1, la.ControlAction.WORK)
+            for refused in (limit, work):
+                with pytest.raises(ServeRefused, match=type(refused).__name__):
+                    await bus.request(refused)
+            assert await bus.request(la.ReadRegister(1, la.Register.OVER_CURRENT_LIMIT)) > 0
+            await bus.request(la.Control(2, la.ControlAction.PAUSE))
+            await bus.request(la.Control(2, la.ControlAction.ESTOP))
         sent = [bytes.fromhex(r["hex"]) for r in la_sim.log_records()]
         assert la.MoveTo(1, 1000, True).encode() not in sent
+        assert limit.encode() not in sent and work.encode() not in sent
+        assert la.Control(2, la.ControlAction.ESTOP).encode() in sent
     finally:
         server.finish()
 

@@ -15,9 +15,9 @@ leases and their safe ends, --guard, real-time mode); programs use the buses wit
 When it is ready it prints the endpoint it listens on, on a line of its own.
 
 A client's leases end with their safe actions when the client ends, however it ends,
-or falls silent for --liveness seconds (default 1).  --watch-only lets clients query
-and watch but never move a device.  Ctrl-C or SIGTERM ends it (exit code 0) after the
-safe actions of every lease.
+or falls silent for --liveness seconds (default 1).  --watch-only lets clients query,
+watch and stop devices, but never move one or change a setting.  Ctrl-C or SIGTERM
+ends it (exit code 0) after the safe actions of every lease.
 """
 
 from __future__ import annotations
@@ -74,7 +74,9 @@ def register(subparsers: Any) -> None:
         help="seconds without a client's heartbeat before its leases end (default 1)",
     )
     p.add_argument(
-        "--watch-only", action="store_true", help="clients may query and watch, never move"
+        "--watch-only",
+        action="store_true",
+        help="clients may read, watch and stop devices, never move one or change a setting",
     )
     p.add_argument("--guard", action="store_true", help="run the guard process beside the buses")
     p.add_argument(

@@ -43,6 +43,7 @@ __all__ = [
     "motion_stops",
     "pending_after",
     "safe_stop_commands",
+    "watch_allowed",
 ]
 
 #: The safe actions a lease, a stream or a bus file may name.
@@ -179,6 +180,33 @@ def __getattr__(name: str) -> object:
         globals()[name] = value
         return value
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def watch_allowed(cmd: Command[object]) -> bool:
+    """What a client that may only watch (``motorbus serve --watch-only``) may send:
+    reads, and the stops (a watcher may always stop a device, never start one or change
+    a setting).  LA: status query, pause, e-stop, table and register reads; project
+    stepper: stop project, manual stop, project and input reads; quad: stop, stop all."""
+    if cmd.starts_motion:
+        return False
+    if isinstance(cmd, la.Control):
+        return cmd.action in _WATCH_ACTIONS
+    if isinstance(cmd, la.ReadTable | la.ReadRegister):
+        return True
+    if cmd.family is Family.PROJECT_STEPPER:
+        from motorbus.protocol import project_stepper as ps
+
+        return isinstance(cmd, ps.StopProject | ps.ManualStop | ps.ReadProject | ps.ReadInput)
+    if cmd.family is Family.QUAD_STEPPER:
+        from motorbus.protocol import quad_stepper as q
+
+        return isinstance(cmd, q.Stop | q.StopAll)
+    return False
+
+
+_WATCH_ACTIONS = frozenset(
+    {la.ControlAction.QUERY_STATUS, la.ControlAction.PAUSE, la.ControlAction.ESTOP}
+)
 
 
 def motion_keys(cmd: Command[object]) -> tuple[str, ...]:

@@ -331,6 +331,14 @@ class BusServer:
                 field="priority",
                 value=priority_name,
             )
+        if self.watch_only and not safety.watch_allowed(cmd):
+            raise ServedRefusal(
+                k.error_payload(
+                    "refused",
+                    f"this server lets clients only watch: client {client.id} may read and "
+                    f"stop devices, not send {type(cmd).__name__} (nothing sent)",
+                )
+            )
         lease = None
         if cmd.starts_motion:
             lease = self._motion_lease(client, name, bus, cmd, payload.get("lease"))
