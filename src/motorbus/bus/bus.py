@@ -42,7 +42,7 @@ Where each part lives: the rules are one pure core, driven by a time passed in
 (``motorbus.bus.core``'s ``BusCore``: queue, spacing, late guards and reservations,
 matching, a frame's bus time, the reassembler, the counts); ``motorbus.bus.engine``'s
 ``BusEngine`` holds it and drives it with the timer and the transport; ``Bus`` holds
-the engine and is the public face.  Neither calls the bus.
+the engine and is the public face.  The core never calls the bus.
 """
 
 from __future__ import annotations
