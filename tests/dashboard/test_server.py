@@ -109,6 +109,15 @@ async def test_a_viewer_gets_a_full_snapshot_then_deltas_with_live_values() -> N
             assert bus["requests"] > 0 and bus["poll_load"] > 0
 
 
+async def test_a_viewer_offering_compression_as_browsers_do_gets_none() -> None:
+    # Deflating the one snapshot once per viewer took the CPU an e-stop needed: with 50
+    # browser-like viewers the served e-stop went from ~6 to ~60 ms (bench_dashboard.py).
+    async with served(control=False) as rig, rig.client.ws_connect("/ws", compress=15) as ws:
+        first = json.loads((await ws.receive(timeout=WAIT_S)).data)
+        assert first["type"] == "full"
+        assert ws.compress == 0  # permessage-deflate was not agreed
+
+
 async def test_five_viewers_make_the_same_bus_traffic_as_one() -> None:
     async with served(control=False) as rig:
         received: list[int] = []

@@ -203,7 +203,10 @@ async def _state(request: web.Request) -> web.Response:
 
 
 async def _ws(request: web.Request) -> web.WebSocketResponse:
-    ws = web.WebSocketResponse(heartbeat=20.0)
+    # No permessage-deflate, though browsers offer it: one snapshot goes to every viewer,
+    # and deflating it once per viewer (a 175 kB snapshot, 50 viewers at once) took the
+    # CPU the e-stop and the bus's host needed (benchmarks/bench_dashboard.py --served).
+    ws = web.WebSocketResponse(heartbeat=20.0, compress=False)
     await ws.prepare(request)
     await request.app[_GATE].wait()
     await ws.send_str(request.app[DASHBOARD_KEY].for_new_viewer())
