@@ -415,7 +415,7 @@ class Streamer:
                 await self._gap(s, cause)
                 continue  # the ramp (or nothing, after a stop) starts next tick
             try:
-                targets = await s.next_targets(k)
+                targets = await s.source.next(k * s.period, s.statuses, k - s.index_base)
             except Exception as err:  # the user's target source failed: end that stream
                 log.warning("stream to %s: target source failed: %s", list(s.ids), err)
                 await s.end(err)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import inspect
 import logging
 import math
 import time
@@ -45,7 +44,7 @@ from motorbus.streaming.model import (
     hold_flag,
 )
 from motorbus.streaming.stream import StreamGap, actuator_group
-from motorbus.streaming.targets import EXHAUSTED, TargetAdapter, Targets, TargetSource
+from motorbus.streaming.targets import TargetAdapter, TargetSource
 from motorbus.validation import PHASE_MAX_S, check_number
 
 if TYPE_CHECKING:
@@ -340,7 +339,9 @@ class ServedStream:
                 horizon = self._tick_now() + ahead + batch
                 first, rows, end = self._next, [], False
                 while self._next < horizon:
-                    targets = await self._targets(self._next)
+                    targets = await self.source.next(
+                        self._next * self.period, self.statuses, self._next - self._base
+                    )
                     if targets is None:
                         end = True
                         break
@@ -368,21 +369,3 @@ class ServedStream:
             with contextlib.suppress(MotorbusError):
                 self._take(await self._op("stop"))
             self._finish(err)
-
-    async def _targets(self, tick: int) -> Targets | None:
-        source = self.source
-        item: Any
-        if source.aiterator is not None:
-            try:
-                item = await source.aiterator.__anext__()
-            except StopAsyncIteration:
-                return None
-        elif source.function is not None:
-            item = source.function(tick * self.period, self.statuses)
-            if inspect.isawaitable(item):
-                item = await item
-        else:
-            item = source.next_item(tick - self._base)
-        if item is None or item is EXHAUSTED:
-            return None
-        return source.normalise(item)

@@ -9,14 +9,13 @@ its safe action goes to its actuators once, unless it is ended with ``hold``.
 from __future__ import annotations
 
 import asyncio
-import inspect
 import itertools
 import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
-from typing import Any, Protocol
+from typing import Protocol
 
 from motorbus.bus.bus import Bus
 from motorbus.bus.events import BusEvent, Subscription
@@ -31,7 +30,7 @@ from motorbus.streaming.model import (
     StreamStats,
     hold_flag,
 )
-from motorbus.streaming.targets import EXHAUSTED, TargetAdapter, Targets, TargetSource
+from motorbus.streaming.targets import TargetAdapter, TargetSource
 
 __all__ = ["Stream", "StreamGap", "StreamOwner", "actuator_group", "earliest_tick"]
 
@@ -158,9 +157,10 @@ class Stream:
     def set_targets(self, source: TargetSource) -> None:
         """Replace the target source on the fly; it starts at its own index 0 next tick."""
         self.source.bind(source)
-        self._index_base = self.next_tick
+        self.index_base = self.next_tick
 
-    _index_base = 0
+    #: The tick the target source's index 0 falls on (``set_targets`` moves it).
+    index_base = 0
 
     def pause(self) -> None:
         """Stop sending targets (the tick grid keeps running, so resume is on the grid)."""
@@ -272,25 +272,6 @@ class Stream:
         await self.stop()
 
     # -- targets ------------------------------------------------------------------
-
-    async def next_targets(self, k: int) -> Targets | None:
-        """The targets of tick ``k`` (time ``k * period`` since start), or None at the end."""
-        source = self.source
-        item: Any
-        if source.aiterator is not None:
-            try:
-                item = await source.aiterator.__anext__()
-            except StopAsyncIteration:
-                return None
-        elif source.function is not None:
-            item = source.function(k * self.period, self.statuses)
-            if inspect.isawaitable(item):
-                item = await item
-        else:
-            item = source.next_item(k - self._index_base)
-        if item is None or item is EXHAUSTED:
-            return None
-        return source.normalise(item)
 
     @property
     def poll_id(self) -> int:

@@ -7,6 +7,7 @@ to its trajectory after a gap.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 from typing import Any, TypeAlias
 
@@ -70,6 +71,26 @@ class TargetAdapter:
             aiterator,
             function,
         )
+
+    async def next(self, t: float, statuses: Mapping[int, Any], index: int) -> Targets | None:
+        """The targets at time ``t`` (a callable's argument, with ``statuses``), or the
+        ``index``-th item of a sequence or iterator; None at the end.  A local stream's
+        ticks and a served stream's client both take their targets here."""
+        item: Any
+        if self.aiterator is not None:
+            try:
+                item = await self.aiterator.__anext__()
+            except StopAsyncIteration:
+                return None
+        elif self.function is not None:
+            item = self.function(t, statuses)
+            if inspect.isawaitable(item):
+                item = await item
+        else:
+            item = self.next_item(index)
+        if item is None or item is EXHAUSTED:
+            return None
+        return self.normalise(item)
 
     def next_item(self, index: int) -> Any:
         """Item ``index`` of a sequence, or the next of an iterator; ``EXHAUSTED`` at
