@@ -17,7 +17,7 @@ tree it edits are the copies griffe loaded for the site.
   re-exports ``SimProcess``; ``motorbus.sim.process``, which defines it, has the entry).
 * Left out: ``__repr__`` and the other special methods, and the objects listed in
   ``internal``: methods public by name that only the package itself calls
-  (``Stream.end``, ``Stream.next_targets``, ...).
+  (``Stream.end``, ``Stream.poll_done``, ...).
 """
 
 from __future__ import annotations
