@@ -50,7 +50,7 @@ from motorbus.errors import (
 )
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
-from motorbus.serve.zconf import client_config, zenoh
+from motorbus.serve.zconf import client_config, on_zenoh_thread, zenoh
 
 if TYPE_CHECKING:
     from motorbus.serve.tools_client import ServedDevices, ServedScan
@@ -563,7 +563,7 @@ class ServedSite:
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(fn, sample)
 
-        return callback
+        return on_zenoh_thread(callback)
 
     def _on_server(self, sample: Any) -> None:
         instance = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -640,7 +640,7 @@ class ServedSite:
         z = zenoh()
         payload = k.encode_json({"client": self.client_id, **body})
         lane: dict[str, Any] = {"priority": z.Priority.REAL_TIME, "express": True} if urgent else {}
-        handler = z.handlers.Callback(on_reply, on_done)
+        handler = on_zenoh_thread(on_reply, on_done)
         session.get(key, handler, payload=payload, timeout=timeout, **lane)
         return await future
 

@@ -49,7 +49,7 @@ from motorbus.serve import keys as k
 from motorbus.serve.streams_server import StreamService
 from motorbus.serve.tap import raw_reply, tapped
 from motorbus.serve.tools_server import ToolsService
-from motorbus.serve.zconf import server_config, zenoh
+from motorbus.serve.zconf import on_zenoh_thread, server_config, zenoh
 
 __all__ = ["BusServer"]
 
@@ -238,7 +238,7 @@ class BusServer:
             with contextlib.suppress(RuntimeError):  # the loop closed: nothing to do
                 loop.call_soon_threadsafe(fn, sample)
 
-        return callback
+        return on_zenoh_thread(callback)
 
     # -- queries -----------------------------------------------------------------------
 

@@ -17,6 +17,7 @@ from motorbus.errors import LocalProtocolError, RemoteProtocolError, ReplyTimeou
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
 from motorbus.serve import keys as k
+from motorbus.serve.zconf import on_zenoh_thread
 
 __all__ = ["ServedDevices", "ServedScan", "fetch_devices", "frame_batches", "scan_served"]
 
@@ -105,7 +106,8 @@ async def frame_batches(bus: Any) -> AsyncIterator[asyncio.Queue[dict[str, Any]]
         with contextlib.suppress(RuntimeError):  # the loop closed
             loop.call_soon_threadsafe(batches.put_nowait, body)
 
-    subscriber = session.declare_subscriber(k.bus_key(bus.name, "frames"), on_sample)
+    key = k.bus_key(bus.name, "frames")
+    subscriber = session.declare_subscriber(key, on_zenoh_thread(on_sample))
     try:
         yield batches
     finally:
