@@ -119,9 +119,8 @@ async def test_exit_sends_the_safe_action_to_what_it_moved_only() -> None:
 
 
 async def test_a_new_viewers_snapshot_waits_for_an_estop_in_flight() -> None:
-    from aiohttp.test_utils import TestClient, TestServer
-
     from motorbus.dashboard.server import make_app
+    from tests.dashboard.page import page_client
 
     order: list[str] = []
     release = asyncio.Event()
@@ -137,7 +136,7 @@ async def test_a_new_viewers_snapshot_waits_for_an_estop_in_flight() -> None:
 
     bus = SlowEstopBus()
     dash = ServedDashboard([BusSetup(cast(Bus, bus), [1])], endpoint="tcp/x:1", control=True)
-    async with TestClient(TestServer(make_app(dash))) as http:
+    async with page_client(make_app(dash)) as http:
         await dash.start()
         try:
             post = asyncio.create_task(http.post("/api/estop", json={"bus": "arm", "id": 1}))

@@ -1,4 +1,4 @@
-"""The dashboard's server against in-memory simulators, through aiohttp's test client:
+"""The dashboard's server against in-memory simulators, served as the command serves it:
 snapshots on the WebSocket, one poller whatever the number of viewers, the controls
 refused without control and reaching the simulator with it, the token and the origin."""
 
@@ -19,18 +19,18 @@ import pytest
 pytest.importorskip("aiohttp")
 
 from aiohttp import WSMsgType
-from aiohttp.test_utils import TestClient, TestServer
 
 from motorbus import Bus, Family
 from motorbus.bus.timer import default_timer
 from motorbus.dashboard import BusSetup, Dashboard
-from motorbus.dashboard.server import make_app
+from motorbus.dashboard.server import LANE_KEY, make_app
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
 from motorbus.protocol.base import format_hex
 from motorbus.sim.bus import LogRecord
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
+from tests.dashboard.page import PageClient, page_client
 
 IDS = (1, 2, 3)
 PERIOD = 0.03
@@ -40,11 +40,12 @@ WAIT_S = 10.0
 
 @dataclass
 class Rig:
-    client: TestClient[Any, Any]
+    client: PageClient
     dash: Dashboard
     bus: Bus
     models: dict[int, LAModel]
     log: list[LogRecord] = field(default_factory=list)
+    lane: Any = None  # the viewers' lane (dashboard/lanes.py) of the page being served
 
     def requests(self) -> list[str]:
         """Hex of every frame the simulator received."""
@@ -78,10 +79,10 @@ async def served(
             dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD, control=control,
                              window=window)  # fmt: skip
             app = make_app(dash, token=token, push_hz=20.0, record_dir=record_dir)
-            async with TestClient(TestServer(app)) as client:
+            async with page_client(app) as client:
                 await dash.start()
                 try:
-                    yield Rig(client, dash, bus, models, log)
+                    yield Rig(client, dash, bus, models, log, app[LANE_KEY])
                 finally:
                     await dash.stop()
 

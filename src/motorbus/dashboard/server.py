@@ -6,7 +6,8 @@
 * ``GET /ws`` - a WebSocket: a full snapshot on connect, then ``push_hz`` times a
   second the state with only the new samples.  One message is built per push and sent
   to every viewer, so viewers never add bus traffic: the pollers run whether or not
-  anyone watches.
+  anyone watches.  The viewers run on an event loop of their own (``lanes.py``), so a
+  burst of them never holds up a control or the poller.
 * ``GET /api/state`` - the full snapshot as JSON.
 * ``POST /api/estop|pause|work|clear_fault`` (JSON ``{"bus": .., "id": ..}``, both
   optional: all buses, a bus, one actuator), ``POST /api/move`` (``{"bus", "id",
@@ -35,7 +36,6 @@ import hmac
 import importlib.resources
 import json
 import logging
-import weakref
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -43,21 +43,24 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from motorbus.dashboard.hosts import LOOPBACK_NAMES, HostCheck
+from motorbus.dashboard.lanes import PageServer, ViewerLane
 from motorbus.dashboard.runtime import ControlError, Dashboard
 from motorbus.errors import LocalProtocolError
 
 __all__ = [
     "CSP",
     "DASHBOARD_KEY",
+    "LANE_KEY",
     "TOKEN_HEADER",
     "make_app",
     "page",
+    "serve_page",
 ]
 
 log = logging.getLogger("motorbus.dashboard")
 
 DASHBOARD_KEY = web.AppKey("dashboard", Dashboard)
-_VIEWERS = web.AppKey("viewers", weakref.WeakSet[web.WebSocketResponse])
+LANE_KEY = web.AppKey("viewers", ViewerLane)
 _CONFIG = web.AppKey("config", dict)
 #: Header that may carry the access token (else ``?token=``).
 TOKEN_HEADER = "X-Motorbus-Token"
@@ -72,8 +75,8 @@ _ACTIONS = ("estop", "pause", "work", "clear_fault")
 
 class _EmergencyGate:
     """Telemetry waits while an e-stop is on its way: a new viewer's snapshot and the
-    pushes are held until every e-stop in flight has its answer, so a burst of viewers
-    does not take the event loop turns the e-stop needs."""
+    pushes are held until every e-stop in flight has its answer, so building them does
+    not take the control loop's turns the e-stop needs."""
 
     def __init__(self) -> None:
         self.in_flight = 0
@@ -125,27 +128,55 @@ def make_app(
         record_dir: where the record button writes (default ``./motorbus-recording``).
         hosts: the ``Host`` names answered (default: the loopback names only).
     """
-    app = web.Application(middlewares=[_guard])
-    app[DASHBOARD_KEY] = dash
-    app[_VIEWERS] = weakref.WeakSet()
-    app[_GATE] = _EmergencyGate()
-    app[_CONFIG] = {
+    config = {
         "token": token,
         "push_hz": push_hz,
         "record_dir": record_dir or Path("motorbus-recording"),
         "page": page(),
         "hosts": hosts if hosts is not None else HostCheck(LOOPBACK_NAMES),
     }
+    gate = _EmergencyGate()
+
+    async def snapshot() -> str:  # on the control loop, for the viewers' lane
+        await gate.wait()
+        return dash.for_new_viewer()
+
+    viewers = web.Application(middlewares=[_guard])
+    viewers[_CONFIG] = config
+    viewers.router.add_get("/ws", _ws)
+    lane = ViewerLane(viewers, snapshot)
+    viewers[LANE_KEY] = lane
+
+    app = web.Application(middlewares=[_guard])
+    app[DASHBOARD_KEY] = dash
+    app[LANE_KEY] = lane
+    app[_GATE] = gate
+    app[_CONFIG] = config
     app.router.add_get("/", _index)
-    app.router.add_get("/ws", _ws)
     app.router.add_get("/api/state", _state)
     for action in _ACTIONS:
         app.router.add_post(f"/api/{action}", _make_action(action))
     app.router.add_post("/api/move", _move)
     app.router.add_post("/api/record", _record)
+    app.cleanup_ctx.append(_run_lane)
     app.cleanup_ctx.append(_pusher)
-    app.on_shutdown.append(_close_viewers)
     return app
+
+
+@contextlib.asynccontextmanager
+async def serve_page(app: web.Application, host: str, port: int) -> AsyncIterator[PageServer]:
+    """Serve ``app`` (from :func:`make_app`) on ``host:port`` (port 0: a free one,
+    ``.port`` says which) until the block ends: its viewers on their own loop, all else
+    on this one (``lanes.PageServer``)."""
+    runner = web.AppRunner(app, handle_signals=False, access_log=None)
+    await runner.setup()  # starts the viewers' lane and the pusher
+    server = PageServer(runner, app[LANE_KEY])
+    try:
+        await server.start(host, port)
+        yield server
+    finally:
+        await server.close()
+        await runner.cleanup()
 
 
 def _same_origin(request: web.Request) -> bool:
@@ -157,6 +188,21 @@ def _same_origin(request: web.Request) -> bool:
 
 @web.middleware
 async def _guard(
+    request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
+) -> web.StreamResponse:
+    try:
+        response = await _checked(request, handler)
+    except web.HTTPException as exc:
+        exc.force_close()
+        raise
+    if isinstance(response, web.Response):
+        # One request a connection: the next one (a WebSocket too) starts a connection
+        # of its own, which the page server routes by its request line (lanes.py).
+        response.force_close()
+    return response
+
+
+async def _checked(
     request: web.Request, handler: Callable[[web.Request], Awaitable[web.StreamResponse]]
 ) -> web.StreamResponse:
     host = request.headers.get("Host")
@@ -206,28 +252,33 @@ async def _ws(request: web.Request) -> web.WebSocketResponse:
     # No permessage-deflate, though browsers offer it: one snapshot goes to every viewer,
     # and deflating it once per viewer (a 175 kB snapshot, 50 viewers at once) took the
     # CPU the e-stop and the bus's host needed (benchmarks/bench_dashboard.py --served).
+    # On the viewers' lane (lanes.py); the snapshot comes from the control loop.
+    lane = request.app[LANE_KEY]
     ws = web.WebSocketResponse(heartbeat=20.0, compress=False)
     await ws.prepare(request)
-    await request.app[_GATE].wait()
-    await ws.send_str(request.app[DASHBOARD_KEY].for_new_viewer())
-    request.app[_VIEWERS].add(ws)
+    await ws.send_str(await lane.snapshot())
+    lane.viewers.add(ws)
     try:
         async for msg in ws:  # viewers only listen; anything they send is ignored
             if msg.type == WSMsgType.ERROR:
                 break
     finally:
-        request.app[_VIEWERS].discard(ws)
+        lane.viewers.discard(ws)
     return ws
+
+
+async def _run_lane(app: web.Application) -> AsyncIterator[None]:
+    lane = app[LANE_KEY]
+    await lane.start()
+    yield
+    await lane.stop()
 
 
 async def _pusher(app: web.Application) -> AsyncIterator[None]:
     """One task for every viewer: build one message per push, send it to all."""
     dash = app[DASHBOARD_KEY]
+    lane = app[LANE_KEY]
     period = 1.0 / app[_CONFIG]["push_hz"]
-
-    async def send(ws: web.WebSocketResponse, text: str) -> None:
-        with contextlib.suppress(ConnectionError, RuntimeError):
-            await ws.send_str(text)
 
     async def push() -> None:
         loop = asyncio.get_running_loop()
@@ -241,25 +292,18 @@ async def _pusher(app: web.Application) -> AsyncIterator[None]:
             if dash.recorder is not None:
                 dash.recorder.flush()
             dash.pushed()
-            viewers = [ws for ws in app[_VIEWERS] if not ws.closed]
-            if not viewers:
+            if not lane.count:
                 since = dash.state.seq
                 continue
             text = dash.message(since)
             since = dash.state.seq
-            await asyncio.gather(*(send(ws, text) for ws in viewers))
+            lane.broadcast(text)
 
     task = asyncio.get_running_loop().create_task(push(), name="dashboard pusher")
     yield
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError):
         await task
-
-
-async def _close_viewers(app: web.Application) -> None:
-    viewers: weakref.WeakSet[web.WebSocketResponse] = app[_VIEWERS]
-    for ws in list(viewers):
-        await ws.close(code=1001, message=b"dashboard closing")
 
 
 def _source(request: web.Request) -> str:

@@ -229,7 +229,7 @@ class BusServer:
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
-    def _threadsafe(self, fn: Callable[[Any], None]) -> Callable[[Any], None]:
+    def _threadsafe(self, fn: Callable[[Any], None]) -> Any:
         """A Zenoh callback (a Zenoh thread) that runs ``fn`` on the server's loop."""
         loop = self._loop
         assert loop is not None
