@@ -51,12 +51,11 @@ from pathlib import Path
 from typing import Any
 
 import aiohttp
-from aiohttp import web
 
 import bench_dashboard_served
 from motorbus import Bus, Family
 from motorbus.dashboard import BusSetup, Dashboard
-from motorbus.dashboard.server import make_app
+from motorbus.dashboard.server import make_app, serve_page
 from motorbus.sim.process import SimProcess
 from motorbus.transport.serial import open_transport
 
@@ -178,25 +177,20 @@ async def measure(
         bus = Bus(open_transport(sim.path, baudrate=921600), name="arm", families=[Family.LA])
         async with bus:
             dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD_S, control=True)
-            runner = web.AppRunner(make_app(dash, push_hz=10.0), access_log=None)
-            await runner.setup()
-            site = web.TCPSite(runner, "127.0.0.1", 0)
-            await site.start()
-            port = runner.addresses[0][1]
-            await dash.start()
-            started = time.monotonic()
-            try:
-                rows = []
-                for _ in range(repeats):
-                    for viewers in (1, many):
-                        rows.append(
-                            await window(bus, f"ws://127.0.0.1:{port}/ws", viewers, seconds)
-                        )
-                await asyncio.sleep(max(0.0, fill - (time.monotonic() - started)))
-                bursts = [await burst(sim, f"127.0.0.1:{port}", many) for _ in range(repeats)]
-            finally:
-                await dash.stop()
-                await runner.cleanup()
+            async with serve_page(make_app(dash, push_hz=10.0), "127.0.0.1", 0) as page:
+                port = page.port
+                await dash.start()
+                started = time.monotonic()
+                try:
+                    rows = []
+                    for _ in range(repeats):
+                        for viewers in (1, many):
+                            url = f"ws://127.0.0.1:{port}/ws"
+                            rows.append(await window(bus, url, viewers, seconds))
+                    await asyncio.sleep(max(0.0, fill - (time.monotonic() - started)))
+                    bursts = [await burst(sim, f"127.0.0.1:{port}", many) for _ in range(repeats)]
+                finally:
+                    await dash.stop()
     one = [r["frames_per_s"] for r in rows if r["viewers"] == 1]
     lots = [r["frames_per_s"] for r in rows if r["viewers"] == many]
     mean1, mean_many = sum(one) / len(one), sum(lots) / len(lots)

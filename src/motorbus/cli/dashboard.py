@@ -400,32 +400,25 @@ async def _run_page(
 ) -> None:
     """Serve ``dash`` on the page's address until ``until()`` returns or Ctrl-C or
     SIGTERM cancels us; then stop it (its safe stop) and the page."""
-    from aiohttp import web
-
-    from motorbus.dashboard.server import make_app
+    from motorbus.dashboard.server import make_app, serve_page
 
     record = Path(args.record) if args.record else None
     app = make_app(
         dash, token=page.token, push_hz=args.push_hz, record_dir=record, hosts=page.hosts
     )
-    runner = web.AppRunner(app, handle_signals=False, access_log=None)
-    await runner.setup()
-    try:
-        site = web.TCPSite(runner, page.host, page.port)
-        await site.start()
-        bound = runner.addresses[0][1] if runner.addresses else page.port
-        await dash.start()
-        if record is not None:
-            dash.start_recording(record)
-        for url, what in page_urls(page.host, bound, page.token):
-            print(f"{url}  ({what})" if what else url, flush=True)
-        for name, s in dash.setups.items():
-            listed = ", ".join(map(str, s.la_ids)) or "none"
-            print(f"bus {name}: LA {listed}", file=sys.stderr, flush=True)
-        await until()
-    finally:
-        await dash.stop()
-        await runner.cleanup()
+    async with serve_page(app, page.host, page.port) as server:
+        try:
+            await dash.start()
+            if record is not None:
+                dash.start_recording(record)
+            for url, what in page_urls(page.host, server.port, page.token):
+                print(f"{url}  ({what})" if what else url, flush=True)
+            for name, s in dash.setups.items():
+                listed = ", ".join(map(str, s.la_ids)) or "none"
+                print(f"bus {name}: LA {listed}", file=sys.stderr, flush=True)
+            await until()
+        finally:
+            await dash.stop()
 
 
 # -- the bus in a motorbus serve (docs/dashboard.md, "A served bus") ---------------------
