@@ -244,8 +244,8 @@ class BusServer:
 
     def _on_query(
         self, handler: Callable[..., Any], *args: Any, exact: str | None = None
-    ) -> Callable[[Any], None]:
-        """``exact``: answer only a query naming this key (a request or lease query with
+    ) -> Any:
+        """A Zenoh handler answering queries with ``handler``.  ``exact``: answer only a query naming this key (a request or lease query with
         a wildcard, ``motorbus/v1/bus/*/request``, would act on every bus)."""
 
         def run(query: Any) -> None:
