@@ -245,8 +245,9 @@ class BusServer:
     def _on_query(
         self, handler: Callable[..., Any], *args: Any, exact: str | None = None
     ) -> Any:
-        """A Zenoh handler answering queries with ``handler``.  ``exact``: answer only a query naming this key (a request or lease query with
-        a wildcard, ``motorbus/v1/bus/*/request``, would act on every bus)."""
+        """A Zenoh handler answering queries with ``handler``.  ``exact``: answer only
+        a query naming this key (a request or lease query with a wildcard,
+        ``motorbus/v1/bus/*/request``, would act on every bus)."""
 
         def run(query: Any) -> None:
             self._spawn(self._answer(query, handler, args, exact))
