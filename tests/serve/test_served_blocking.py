@@ -5,6 +5,7 @@ the wire, in what order); nothing here asserts speed."""
 
 from __future__ import annotations
 
+import inspect
 import signal
 import subprocess
 import sys
@@ -18,6 +19,7 @@ pytest.importorskip("zenoh")
 
 import motorbus
 import motorbus.blocking as mb
+import motorbus.serve
 from motorbus import LeaseConflictError, LocalProtocolError
 from motorbus.bus.events import ProjectFinished, QuadDone
 from motorbus.protocol import la
@@ -39,6 +41,27 @@ def until(condition: Callable[[], object], what: str) -> None:
         if time.monotonic() > deadline:
             raise AssertionError(f"waited {EVENTUALLY_TIMEOUT_S:g} s for {what}")
         time.sleep(0.005)
+
+
+#: Members of the asyncio ServedBus a blocking program reaches otherwise: ``submit``
+#: gives an asyncio future (a blocking call is ``request``), ``served_streamer`` is
+#: what ``mb.Streamer(bus)`` uses, ``hand_over``, ``lease_keeper`` and ``timer`` are
+#: the device classes' and streams' own (a local blocking bus has none of them either).
+INTERNAL = {"submit", "served_streamer", "hand_over", "lease_keeper", "timer"}
+
+
+def test_the_blocking_served_bus_has_every_member_of_the_blocking_bus_and_the_served_one() -> None:
+    local = {n for n in dir(mb.Bus) if not n.startswith("_")}
+    served = {n for n in dir(mb.ServedBus) if not n.startswith("_")}
+    assert local - served == set()
+    aio = {n for n in dir(motorbus.serve.ServedBus) if not n.startswith("_")}
+    aio |= {"name", "families", "baudrate", "safe_action", "events", "site"}  # attributes
+    assert aio - INTERNAL - served == set()
+    for name, member in inspect.getmembers(motorbus.serve.ServedBus):
+        if inspect.iscoroutinefunction(member) and not name.startswith("_"):
+            assert not inspect.iscoroutinefunction(getattr(mb.ServedBus, name)), name
+    # The one thing a served bus does not have, and why: at the call, nothing sent.
+    assert "fetch_stats" in (mb.ServedBus.stats.__doc__ or "")
 
 
 def blocking_client(endpoint: str, body: str) -> Child:

@@ -31,7 +31,7 @@ from motorbus.blocking._proxy import Proxy, coroutine
 from motorbus.blocking._runner import runner
 from motorbus.bus.jobs import BusState
 from motorbus.bus.leases import LeaseInfo
-from motorbus.errors import LocalProtocolError, ReplyTimeoutError
+from motorbus.errors import LocalProtocolError, ReplyTimeoutError, WrongLoopError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family
 from motorbus.serve import client as _client
@@ -183,6 +183,11 @@ class ServedBus(BusView[_client.ServedBus]):
         return self._aio.baudrate
 
     @property
+    def safe_action(self) -> str:
+        """The server bus's safe action for motion outside any lease."""
+        return self._aio.safe_action
+
+    @property
     def state(self) -> BusState:
         """``BusState.OPEN``, ``LOST`` (the server went away) or ``CLOSED``, as a local
         bus says it."""
@@ -218,6 +223,7 @@ class ServedBus(BusView[_client.ServedBus]):
     def leases(self) -> tuple[LeaseInfo, ...]:
         """Every leased device now (one round trip, from this thread); this client's
         motion outside its leases shows as owner ``"program"``, as on a local bus."""
+        self._not_on_the_loop("bus.leases")
         return self._aio.leases
 
     def lease(
@@ -238,6 +244,7 @@ class ServedBus(BusView[_client.ServedBus]):
             LeaseConflictError: another owner (another client, too) holds a device.
             LocalProtocolError: a bad key or action (nothing sent), or owner.
         """
+        self._not_on_the_loop("bus.lease")
         wanted = [keys] if isinstance(keys, str) else list(keys)
         action = safety.check_safe_action(safe_action)
         for key in wanted:
@@ -264,6 +271,15 @@ class ServedBus(BusView[_client.ServedBus]):
         """``with bus.frames() as feed: feed.next(timeout=1.0)``: the frames the server's
         bus writes and reads, batch by batch, as it publishes them."""
         return FrameFeed(self)
+
+    def _not_on_the_loop(self, what: str) -> None:
+        # Both wait for the server's answer in the calling thread: on the bus's thread
+        # (a target callback) that would stall every stream of the process meanwhile.
+        if self._runner.in_loop_thread():
+            raise WrongLoopError(
+                f"{what} from the bus thread itself (a target callback or an event "
+                "handler) would stall it for a round trip: use the asyncio API there"
+            )
 
     def close(self) -> None:
         """Close the connection this bus belongs to (``site.close()``): the server ends
