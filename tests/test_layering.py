@@ -144,9 +144,11 @@ ALLOWED: dict[str, set[str]] = {
     "doctor": _LIBRARY_BASE
     | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager"},
     "dashboard": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},
-    # The blocking API: a view of the library, on a thread of its own.
+    # The blocking API: a view of the library, on a thread of its own, and of the served
+    # client (``motorbus.blocking.connect``), which never imports it.
     "blocking": _LIBRARY_BASE
-    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager", "runtime"},
+    | {"transport", "bus", "devices", "streaming", "streams", "busfile", "manager", "runtime"}
+    | {"serve"},
     "sim": {"errors", "protocol", "transport"},
     # Served buses: ``motorbus serve`` hands the server buses a BusManager opened.
     "serve": _LIBRARY_BASE | {"transport", "bus", "devices", "streaming", "streams"},

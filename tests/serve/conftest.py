@@ -152,3 +152,15 @@ def la_server(la_sim: SimProcess, endpoint: str) -> Iterator[Child]:
         yield server
     finally:
         server.finish()
+
+
+@pytest.fixture
+def stepper_server() -> Iterator[str]:
+    """A served bus of a project stepper and a quad stepper (9600 bit/s): its endpoint."""
+    endpoint = free_endpoint()
+    with SimProcess(["project-stepper", "quad-stepper"], baud=9600) as sim:
+        server = serve(sim.path, 9600, "project-stepper,quad-stepper", endpoint)
+        try:
+            yield endpoint
+        finally:
+            server.finish()

@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-from collections.abc import Iterator
-from pathlib import Path
 
 import pytest
 
@@ -21,7 +19,7 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.serve import keys as k
 from motorbus.sim import SimProcess
-from tests.serve.conftest import Child, free_endpoint, serve
+from tests.serve.conftest import Child
 
 ERR = "bad_payload"
 STATUS_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
@@ -112,17 +110,6 @@ async def test_a_served_bus_refuses_another_familys_command_before_sending(
         with pytest.raises(motorbus.LocalProtocolError, match="serves bus"):
             site.bus("nope")
         assert (await InspireLA(site.bus(), 2).status()).id == 2
-
-
-@pytest.fixture
-def stepper_server(tmp_path: Path) -> Iterator[str]:
-    endpoint = free_endpoint()
-    with SimProcess(["project-stepper", "quad-stepper"], baud=9600) as sim:
-        server = serve(sim.path, 9600, "project-stepper,quad-stepper", endpoint)
-        try:
-            yield endpoint
-        finally:
-            server.finish()
 
 
 async def test_served_project_upload_and_run_to_ee_dd_and_quad_run_to_done(

@@ -5,10 +5,11 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, TypeVar, overload
+from typing import Any, Literal, Self, TypeVar, overload
 
 from motorbus import manager as _manager
 from motorbus.blocking._devices import InspireLA, ProjectStepper, QuadStepper
+from motorbus.blocking._events import EventHub
 from motorbus.blocking._proxy import Proxy, coroutine
 from motorbus.blocking._runner import runner
 from motorbus.blocking._streams import Streamer
@@ -21,64 +22,33 @@ from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
 from motorbus.transport.base import Transport
 
-__all__ = ["Bus", "BusManager", "Lease", "read_statuses"]
+__all__ = ["Bus", "BusManager", "BusView", "Lease", "read_statuses"]
 
 R = TypeVar("R")
+B = TypeVar("B")
 
 
-class Bus(Proxy[_bus.Bus]):
-    """A serial bus, opened now and driven without ``await``: :class:`motorbus.Bus` on a
-    thread of its own.
-
-    ``Bus(transport, families=[...], ...)`` takes the arguments of
-    :class:`motorbus.Bus`, checks them and opens the port before it returns.  Close it
-    with ``close()`` or use it as a context manager: closing runs the same safe ends as
-    the asyncio bus's ``async with`` exit (streams stop with their safe action, every
-    leased device gets its own, then the port closes), also when the block is left by
-    an exception or Ctrl-C, and for a bus still open when the interpreter exits.
-
-    Raises:
-        LocalProtocolError: a bad option (nothing is opened).
-        OSError: the port cannot open.
-    """
-
-    def __init__(self, transport: Transport, **options: Any) -> None:
-        self._runner = runner()
-
-        async def open_bus() -> _bus.Bus:
-            bus = _bus.Bus(transport, **options)
-            await bus.open()
-            return bus
-
-        self._aio = self._runner.call(open_bus())
-        self._runner.opened()
-
-    # -- what the bus is ---------------------------------------------------------------
+class BusView(Proxy[B]):
+    """What a local :class:`Bus` and a served one (:class:`motorbus.blocking.ServedBus`,
+    ``connect(...).bus()``) have alike: requests, group reads, the devices, streams and
+    events on them, and ``with``.  The devices and streams take either."""
 
     @property
     def name(self) -> str:
-        """The bus's label (default: the transport URL)."""
-        return self._aio.name
+        """The bus's label (a local bus's default: the transport URL)."""
+        name: str = self._any.name
+        return name
 
     @property
-    def state(self) -> _bus.BusState:
-        """``BusState.OPEN``, ``RECONNECTING`` or ``CLOSED``."""
-        return self._aio.state
+    def _any(self) -> Any:
+        return self._aio
 
     @property
-    def closed(self) -> bool:
-        """True once the bus is closed."""
-        return self._aio.state is _bus.BusState.CLOSED
-
-    @property
-    def stats(self) -> Any:
-        """The bus's counters (``motorbus.Bus.stats``; read them, do not change them)."""
-        return self._aio.stats
-
-    @property
-    def leases(self) -> tuple[_leases.LeaseInfo, ...]:
-        """Every leased device now: key, owner and the frames of its safe action."""
-        return self._runner.call_sync(lambda: self._aio.leases)
+    def events(self) -> EventHub:
+        """The bus's events (``FaultChanged``, ``ProjectFinished``, ``QuadDone``,
+        ``BusStateChanged``, ``StreamGap``): ``with bus.events.subscribe(Kind) as sub:``
+        then ``sub.next(timeout=...)`` or ``for event in sub:``."""
+        return EventHub._of(self._any.events, self._runner)
 
     # -- requests ----------------------------------------------------------------------
 
@@ -91,15 +61,14 @@ class Bus(Proxy[_bus.Bus]):
         priority: Priority = Priority.NORMAL,
     ) -> R:
         """Send ``cmd`` and return its decoded reply; see :meth:`motorbus.Bus.request`."""
-        return self._runner.call(
-            self._aio.request(cmd, timeout=timeout, retries=retries, priority=priority)
+        result: R = self._runner.call(
+            self._any.request(cmd, timeout=timeout, retries=retries, priority=priority)
         )
+        return result
 
     def send(self, cmd: Command[object], *, priority: Priority = Priority.NORMAL) -> None:
         """Send a command that expects no reply; see :meth:`motorbus.Bus.send`."""
-        self._runner.call(self._aio.send(cmd, priority=priority))
-
-    release = coroutine(_bus.Bus.release)
+        self._runner.call(self._any.send(cmd, priority=priority))
 
     @overload
     def read_statuses(
@@ -131,7 +100,7 @@ class Bus(Proxy[_bus.Bus]):
             return read_statuses(self, ids, on_error="return", timeout=timeout)
         return read_statuses(self, ids, timeout=timeout)
 
-    # -- devices, streams, leases ------------------------------------------------------
+    # -- devices, streams --------------------------------------------------------------
 
     def la(self, id: int, *, stroke_mm: float | None = None) -> InspireLA:
         """The LA actuator ``id`` on this bus (``InspireLA(bus, id, stroke_mm=...)``)."""
@@ -148,6 +117,82 @@ class Bus(Proxy[_bus.Bus]):
     def streamer(self, *, phase: float = 0.0) -> Streamer:
         """A new streamer of this bus (``Streamer(bus, phase=...)``)."""
         return Streamer(self, phase=phase)
+
+    # -- closing -----------------------------------------------------------------------
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+class Bus(BusView[_bus.Bus]):
+    """A serial bus, opened now and driven without ``await``: :class:`motorbus.Bus` on a
+    thread of its own.
+
+    ``Bus(transport, families=[...], ...)`` takes the arguments of
+    :class:`motorbus.Bus`, checks them and opens the port before it returns.  Close it
+    with ``close()`` or use it as a context manager: closing runs the same safe ends as
+    the asyncio bus's ``async with`` exit (streams stop with their safe action, every
+    leased device gets its own, then the port closes), also when the block is left by
+    an exception or Ctrl-C, and for a bus still open when the interpreter exits.
+
+    Raises:
+        LocalProtocolError: a bad option (nothing is opened).
+        OSError: the port cannot open.
+    """
+
+    def __init__(self, transport: Transport, **options: Any) -> None:
+        self._runner = runner()
+
+        async def open_bus() -> _bus.Bus:
+            bus = _bus.Bus(transport, **options)
+            await bus.open()
+            return bus
+
+        self._aio = self._runner.call(open_bus())
+        self._runner.opened()
+
+    # -- what the bus is ---------------------------------------------------------------
+
+    @property
+    def state(self) -> _bus.BusState:
+        """``BusState.OPEN``, ``LOST`` (reconnecting) or ``CLOSED``."""
+        return self._aio.state
+
+    @property
+    def closed(self) -> bool:
+        """True once the bus is closed."""
+        return self._aio.state is _bus.BusState.CLOSED
+
+    @property
+    def stats(self) -> Any:
+        """The bus's counters (``motorbus.Bus.stats``; read them, do not change them)."""
+        return self._aio.stats
+
+    def fetch_stats(self) -> dict[str, Any]:
+        """A copy of the bus's counters as plain data (``BusStats.as_dict``): what a
+        served bus's ``fetch_stats()`` gives, so a program that reads them this way
+        runs on both."""
+        return self._runner.call_sync(lambda: dict(self._aio.stats.as_dict()))
+
+    @property
+    def leases(self) -> tuple[_leases.LeaseInfo, ...]:
+        """Every leased device now: key, owner and the frames of its safe action."""
+        return self._runner.call_sync(lambda: self._aio.leases)
+
+    release = coroutine(_bus.Bus.release)
+
+    # -- leases ------------------------------------------------------------------------
 
     def lease(
         self,
@@ -187,17 +232,6 @@ class Bus(Proxy[_bus.Bus]):
         A Ctrl-C during the safe stop is raised once the stop is done.
         """
         self._runner.finish(self._aio.close())
-
-    def __enter__(self) -> Bus:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class Lease(Proxy[_leases.Lease]):
@@ -331,7 +365,7 @@ class BusManager(Proxy[_manager.BusManager]):
 
 @overload
 def read_statuses(
-    bus: Bus,
+    bus: BusView[Any],
     ids: Iterable[int],
     *,
     on_error: Literal["raise"] = "raise",
@@ -341,7 +375,7 @@ def read_statuses(
 
 @overload
 def read_statuses(
-    bus: Bus,
+    bus: BusView[Any],
     ids: Iterable[int],
     *,
     on_error: Literal["return"],
@@ -350,7 +384,7 @@ def read_statuses(
 
 
 def read_statuses(
-    bus: Bus,
+    bus: BusView[Any],
     ids: Iterable[int],
     *,
     on_error: Literal["raise", "return"] = "raise",
@@ -366,7 +400,7 @@ def read_statuses(
     wanted = _group.check_ids(ids)  # checked here, in the caller's thread
     if on_error == "return":
         return bus._runner.call(
-            _group.read_statuses(bus.aio, wanted, on_error="return", timeout=timeout)
+            _group.read_statuses(bus._any, wanted, on_error="return", timeout=timeout)
         )
     _group.check_on_error(on_error)
-    return bus._runner.call(_group.read_statuses(bus.aio, wanted, timeout=timeout))
+    return bus._runner.call(_group.read_statuses(bus._any, wanted, timeout=timeout))

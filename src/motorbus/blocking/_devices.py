@@ -17,7 +17,7 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 
 if TYPE_CHECKING:
-    from motorbus.blocking._bus import Bus
+    from motorbus.blocking._bus import BusView
     from motorbus.devices.calibration import Calibration
 
 __all__ = ["InspireLA", "ProjectStepper", "QuadStepper"]
@@ -32,7 +32,8 @@ class InspireLA(Proxy[_la.InspireLA]):
     """One LA actuator on a blocking bus: :class:`motorbus.InspireLA` without ``await``.
 
     Args:
-        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.LA``.
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.LA``, or a
+            served one (``motorbus.blocking.connect(...).bus()``).
         id: the actuator ID, 1..254.
         stroke_mm: the stroke of this model in millimetres (enables the ``_mm`` methods).
         calibration: units, soft limits, direction, offset (``motorbus.Calibration``).
@@ -43,11 +44,11 @@ class InspireLA(Proxy[_la.InspireLA]):
             (nothing is sent).
     """
 
-    _bus: Bus
+    _bus: BusView[Any]
 
     def __init__(
         self,
-        bus: Bus,
+        bus: BusView[Any],
         id: int,
         *,
         stroke_mm: float | None = None,
@@ -55,19 +56,19 @@ class InspireLA(Proxy[_la.InspireLA]):
         name: str | None = None,
     ) -> None:
         self._aio = _la.InspireLA(
-            bus.aio, id, stroke_mm=stroke_mm, calibration=calibration, name=name
+            bus._any, id, stroke_mm=stroke_mm, calibration=calibration, name=name
         )
         self._runner = bus._runner
         self._bus = bus
 
     @classmethod
-    def _on(cls, bus: Bus, aio: _la.InspireLA) -> InspireLA:
+    def _on(cls, bus: BusView[Any], aio: _la.InspireLA) -> InspireLA:
         proxy = cls._of(aio, bus._runner)
         proxy._bus = bus
         return proxy
 
     @property
-    def bus(self) -> Bus:
+    def bus(self) -> BusView[Any]:
         """The blocking bus the actuator is on."""
         return self._bus
 
@@ -149,19 +150,20 @@ class ProjectStepper(Proxy[_ps.ProjectStepper]):
     :class:`motorbus.ProjectStepper` without ``await``.
 
     Args:
-        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.PROJECT_STEPPER``.
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.PROJECT_STEPPER``, or a
+            served one (``motorbus.blocking.connect(...).bus()``).
         motor: the motor byte of motor-addressed commands (default 0x03).
     """
 
-    _bus: Bus
+    _bus: BusView[Any]
 
-    def __init__(self, bus: Bus, *, motor: int = ps.DEFAULT_MOTOR) -> None:
-        self._aio = _ps.ProjectStepper(bus.aio, motor=motor)
+    def __init__(self, bus: BusView[Any], *, motor: int = ps.DEFAULT_MOTOR) -> None:
+        self._aio = _ps.ProjectStepper(bus._any, motor=motor)
         self._runner = bus._runner
         self._bus = bus
 
     @property
-    def bus(self) -> Bus:
+    def bus(self) -> BusView[Any]:
         """The blocking bus the controller is on."""
         return self._bus
 
@@ -197,18 +199,19 @@ class QuadStepper(Proxy[_qs.QuadStepper]):
     :class:`motorbus.QuadStepper` without ``await``.
 
     Args:
-        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.QUAD_STEPPER``.
+        bus: an open :class:`motorbus.blocking.Bus` carrying ``Family.QUAD_STEPPER``, or a
+            served one (``motorbus.blocking.connect(...).bus()``).
     """
 
-    _bus: Bus
+    _bus: BusView[Any]
 
-    def __init__(self, bus: Bus) -> None:
-        self._aio = _qs.QuadStepper(bus.aio)
+    def __init__(self, bus: BusView[Any]) -> None:
+        self._aio = _qs.QuadStepper(bus._any)
         self._runner = bus._runner
         self._bus = bus
 
     @property
-    def bus(self) -> Bus:
+    def bus(self) -> BusView[Any]:
         """The blocking bus the controller is on."""
         return self._bus
 

@@ -13,6 +13,10 @@ Safe ends (docs/blocking.md):
   ports close), then the interrupt is raised again.  A further Ctrl-C during that
   stop is logged and absorbed (the stop takes milliseconds and must finish).
 * Interpreter exit (``atexit``): the same stop for whatever is still open.
+
+A served bus's connection (``motorbus.blocking.connect``) is one more thing open on the
+loop: the same stop closes it (after the local buses), which ends this client's leases
+and streams on the server with their safe actions.
 """
 
 from __future__ import annotations
@@ -23,7 +27,7 @@ import concurrent.futures
 import logging
 import threading
 from collections.abc import Callable, Coroutine
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 from motorbus.blocking._signals import protect
 from motorbus.errors import BusClosedError, WrongLoopError
@@ -44,11 +48,20 @@ WAIT_SLICE_S = 0.25
 STOP_WAIT_S = STOP_EVERYTHING_TIMEOUT_S + 5.0
 
 
+class Closable(Protocol):
+    """A connection the runner closes with everything else (a served site)."""
+
+    async def close(self) -> None: ...
+
+
 class Runner:
     """An asyncio loop on a daemon thread of its own, and the blocking calls into it."""
 
     def __init__(self) -> None:
         self.loop = asyncio.new_event_loop()
+        #: Served connections open on the loop (``track``), closed by ``stop_everything``.
+        self.connections: dict[int, Closable] = {}
+        self._connections_lock = threading.Lock()
         self._started = threading.Event()
         self.thread = threading.Thread(target=self._main, name="motorbus-blocking", daemon=True)
         self.closed = False
@@ -72,6 +85,16 @@ class Runner:
         """
         atexit.unregister(self.shutdown)
         atexit.register(self.shutdown)
+
+    def track(self, connection: Closable) -> None:
+        """Close ``connection`` with everything else on Ctrl-C, at exit, on SIGTERM."""
+        with self._connections_lock:
+            self.connections[id(connection)] = connection
+
+    def untrack(self, connection: Closable) -> None:
+        """``connection`` was closed by its owner."""
+        with self._connections_lock:
+            self.connections.pop(id(connection), None)
 
     def in_loop_thread(self) -> bool:
         return threading.current_thread() is self.thread
@@ -125,11 +148,15 @@ class Runner:
         return result
 
     def stop_everything(self) -> None:
-        """Close every bus and ``BusManager`` open on this loop, safely; errors logged."""
+        """Close every bus and ``BusManager`` open on this loop, safely, then every
+        served connection; errors logged."""
         if self.closed:
             return
+        with self._connections_lock:
+            connections = list(self.connections.values())
+            self.connections.clear()
         try:
-            self.finish(_bounded(stop_everything(), STOP_WAIT_S))
+            self.finish(_bounded(_stop_all(connections), STOP_WAIT_S))
         except Exception as err:
             log.error("stopping everything failed: %s", err)
 
@@ -167,6 +194,19 @@ def _wait(future: concurrent.futures.Future[T]) -> T:
             if future.done():
                 raise  # the coroutine's own TimeoutError
             continue
+
+
+async def _stop_all(connections: list[Closable]) -> None:
+    """The local buses' safe stop, then each served connection closed (the server ends
+    its leases and streams with their safe actions)."""
+    try:
+        await stop_everything()
+    finally:
+        for connection in connections:
+            try:
+                await connection.close()
+            except Exception as err:
+                log.error("closing %r on the way out failed: %s", connection, err)
 
 
 async def _bounded(coro: Coroutine[Any, Any, None], seconds: float) -> None:

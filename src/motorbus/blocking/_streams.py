@@ -21,7 +21,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.streaming.targets import TargetAdapter
 
 if TYPE_CHECKING:
-    from motorbus.blocking._bus import Bus
+    from motorbus.blocking._bus import BusView
     from motorbus.devices import la as _la
     from motorbus.protocol import la
 
@@ -97,19 +97,20 @@ class Streamer(Proxy[_streams.Streamer]):
     """Serves the streams of one blocking bus: :class:`motorbus.Streamer` without ``await``.
 
     Args:
-        bus: an open :class:`motorbus.blocking.Bus` carrying LA actuators.
+        bus: an open :class:`motorbus.blocking.Bus` carrying LA actuators, or a
+            served one (``motorbus.blocking.connect(...).bus()``).
         phase: offset of this bus's tick grid in seconds.
     """
 
-    _bus: Bus
+    _bus: BusView[Any]
 
-    def __init__(self, bus: Bus, *, phase: float = 0.0) -> None:
+    def __init__(self, bus: BusView[Any], *, phase: float = 0.0) -> None:
         self._runner = bus._runner
-        self._aio = self._runner.call_sync(lambda: _streams.Streamer(bus.aio, phase=phase))
+        self._aio = self._runner.call_sync(lambda: _streams.Streamer(bus._any, phase=phase))
         self._bus = bus
 
     @classmethod
-    def _on(cls, bus: Bus, aio: _streams.Streamer) -> Streamer:
+    def _on(cls, bus: BusView[Any], aio: _streams.Streamer) -> Streamer:
         proxy = cls._of(aio, bus._runner)
         proxy._bus = bus
         return proxy
