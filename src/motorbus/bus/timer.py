@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import contextlib
+import contextvars
 import ctypes
 import ctypes.util
 import heapq
@@ -105,22 +105,6 @@ class TimerHandle:
         if timer is not None:
             timer._forget_cancelled(self)
 
-    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Run the callback once; exceptions go to the loop's exception handler."""
-        callback, self._callback = self._callback, None
-        self._done = True
-        self._timer = None
-        if callback is None:
-            return
-        try:
-            callback()
-        except (SystemExit, KeyboardInterrupt):
-            raise
-        except BaseException as exc:
-            loop.call_exception_handler(
-                {"message": "exception in timer callback", "exception": exc, "handle": self}
-            )
-
 
 class Timer(abc.ABC):
     """Schedules callbacks at absolute ``time.monotonic()`` deadlines, never early.
@@ -152,6 +136,11 @@ class Timer(abc.ABC):
         self._holds = 0
         self._rearm_due = False
         self._flush_queued = False
+        # The queued re-arm reads no context variable: one empty context, not a copy each.
+        self._context = contextvars.Context()
+        if type(self).now is Timer.now:
+            # The clock is the C function itself: one call a read, not two (issue 40).
+            self.now = time.monotonic  # type: ignore[method-assign]
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
@@ -278,7 +267,9 @@ class Timer(abc.ABC):
         """Free the wake-up source (called once, by :meth:`close`)."""
 
     def _wake(self) -> None:
-        """Run every due callback in deadline order, then re-arm at the next deadline."""
+        """The wake-up source fired: run every due callback in deadline order (each
+        once; exceptions go to the loop's exception handler), then re-arm at the next
+        deadline."""
         heap = self._heap
         loop = self._loop_ref()
         if loop is None:
@@ -288,11 +279,21 @@ class Timer(abc.ABC):
         self._holds += 1
         try:
             while heap and heap[0][0] <= now:
-                _, _, handle = heapq.heappop(heap)
+                handle = heapq.heappop(heap)[2]
                 if handle._cancelled:
                     self._cancelled_in_heap -= 1
                     continue
-                handle._run(loop)
+                # TimerHandle's run, inline (a call fewer a deadline).
+                callback, handle._callback = handle._callback, None
+                handle._done = True
+                handle._timer = None
+                try:
+                    callback()  # type: ignore[misc]  # set while neither run nor cancelled
+                except (SystemExit, KeyboardInterrupt):
+                    raise
+                except BaseException as exc:
+                    context = {"message": "exception in timer callback", "exception": exc}
+                    loop.call_exception_handler({**context, "handle": handle})
                 if self._closed:
                     return
                 now = self.now()
@@ -305,6 +306,7 @@ class Timer(abc.ABC):
             self._rearm_soon()
 
     def _rearm(self) -> None:
+        """Arm the wake-up source for the earliest live deadline (or disarm it)."""
         heap = self._heap
         while heap and heap[0][2]._cancelled:
             heapq.heappop(heap)
@@ -315,21 +317,27 @@ class Timer(abc.ABC):
             self._disarm()
 
     def _forget_cancelled(self, handle: TimerHandle) -> None:
-        self._cancelled_in_heap += 1
         heap = self._heap
-        # Compact when most entries are dead, so cancelled handles cannot pile up.
+        if heap and heap[0][2] is handle:
+            # The earliest (a reply deadline, when the reply came) leaves the heap now,
+            # with the cancelled ones it uncovers: the earliest is always live.  The
+            # wake-up armed for it is re-armed for the next rather than waking up for
+            # nothing (a syscall against a wake-up: a hundred times more on a VM).
+            heapq.heappop(heap)
+            while heap and heap[0][2]._cancelled:
+                heapq.heappop(heap)
+                self._cancelled_in_heap -= 1
+            if not self._closed:
+                self._rearm_soon()
+            return
+        self._cancelled_in_heap += 1
+        # Compact when most entries are dead, so cancelled handles cannot pile up.  The
+        # earliest is live and stays: nothing to re-arm.
         if self._cancelled_in_heap * 2 > len(heap):
             # In place: _wake may be iterating over this very list.
             heap[:] = [entry for entry in heap if not entry[2]._cancelled]
             heapq.heapify(heap)
             self._cancelled_in_heap = 0
-            if not self._closed:
-                self._rearm_soon()
-        elif heap and heap[0][2] is handle and not self._closed:
-            # The wake-up was armed for this one (a reply deadline, when the reply came):
-            # arm it for the next instead of waking up for nothing (a syscall against
-            # a wake-up, which costs a hundred times more on a VM).
-            self._rearm_soon()
 
     def _rearm_soon(self) -> None:
         """Re-arm after the callbacks the loop has queued so far (or at the end of the
@@ -350,7 +358,7 @@ class Timer(abc.ABC):
             if loop is None:
                 raise RuntimeError("the event loop of this timer is gone")
             self._flush_queued = True
-            loop.call_soon(self._flush_rearm)
+            loop.call_soon(self._flush_rearm, context=self._context)
 
     def _flush_rearm(self) -> None:
         """The queued re-arm of :meth:`_rearm_soon`."""
@@ -444,12 +452,14 @@ class _TimerfdApi:
             return
         # Called several times a tick: one preallocated struct per fd (each timer, and so
         # each loop and thread, has its own fd), no per-call objects.
-        found = self._specs.get(fd)
-        if found is None:
+        try:
+            found = self._specs[fd]
+        except KeyError:
             spec = _ITimerSpec()
             found = self._specs[fd] = (spec, ctypes.byref(spec))
         value = found[0].it_value
-        value.tv_sec, value.tv_nsec = divmod(deadline_ns, _NS_PER_S)
+        value.tv_sec = deadline_ns // _NS_PER_S
+        value.tv_nsec = deadline_ns % _NS_PER_S
         if self._settime(fd, _TFD_TIMER_ABSTIME, found[1], None) < 0:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
@@ -484,12 +494,6 @@ def timerfd_available() -> bool:
         return False
     os.close(fd)
     return True
-
-
-def _deadline_ns(deadline: float) -> int:
-    """Round ``deadline`` (s) up to whole ns, so the timerfd can never expire before it."""
-    # At least 1: an all-zero it_value disarms a timerfd instead of firing it.
-    return max(1, math.ceil(deadline * _NS_PER_S))
 
 
 class TimerfdTimer(Timer):
@@ -547,6 +551,9 @@ class TimerfdTimer(Timer):
             spin_lead = self.SPIN_LEAD_S if spin_asked() else 0.0
         self._spin_lead = spin_lead
         self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
+        if not spin_lead and type(self).now is TimerfdTimer.now:
+            # Only the spin lead reads ``_seen``: without it, the clock is the C function.
+            self.now = time.monotonic  # type: ignore[method-assign]
         self._api = _api()
         self._fd = self._api.create()
         # Closes the fd if the timer is dropped without close() (its loop went away).
@@ -581,8 +588,12 @@ class TimerfdTimer(Timer):
             self._reading = True
         heap = self._heap
         precise = bool(heap) and heap[0][2].precise
-        lead = self._current_lead() if precise else 0.0
-        ns = _deadline_ns(deadline - lead)
+        if precise and self._spin_lead:
+            deadline -= self._current_lead()
+        # Up to whole ns, never before the deadline; at least 1 (all zero disarms the fd).
+        ns = math.ceil(deadline * _NS_PER_S)
+        if ns < 1:
+            ns = 1
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
@@ -614,8 +625,10 @@ class TimerfdTimer(Timer):
     def _on_expiry(self) -> None:
         busy_until = self._seen  # before now() below moves it
         # Nothing to read after a spurious wake-up or a re-arm that followed the expiry.
-        with contextlib.suppress(BlockingIOError):
+        try:  # noqa: SIM105  (contextlib.suppress: three calls more a wake-up)
             os.read(self._fd, _EXPIRY_COUNT_SIZE)
+        except BlockingIOError:
+            pass
         # The fd expired, so the armed time has passed: forget it, or re-arming at the
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         woke = self.now()
@@ -639,7 +652,7 @@ class TimerfdTimer(Timer):
         # Clipped at half the longest lead, which already asks for that lead: a wake-up
         # later than that (the thread descheduled) is no reason to spin longer.
         # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
-        if self._armed_ns and self._armed_precise and busy_until <= armed:
+        if self._spin_lead and self._armed_ns and self._armed_precise and busy_until <= armed:
             late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
