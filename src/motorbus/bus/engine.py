@@ -432,6 +432,21 @@ class BusEngine:
                 self.stats.failed += 1
                 job.future.set_exception(err)
 
+    async def stop(self, err: BaseException) -> None:
+        """The bus is closing for good: no reconnect, no pump, everything left fails
+        with ``err`` (the port is still to close)."""
+        self.closing = True
+        task = self.reconnect_task
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self.reconnect_task = None
+        if self.pump_handle is not None:
+            self.pump_handle.cancel()
+            self.pump_handle = None
+        self.fail_all(err)
+
     def on_lost(self, exc: BaseException | None) -> None:
         if self.closing:
             return
