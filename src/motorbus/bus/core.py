@@ -227,13 +227,14 @@ class BusCore(Generic[J]):
         reply taken changes the shapes awaited and the pending request).
         """
         stats = self.stats
-        stats.bytes_in += len(data)
+        size = len(data)
+        stats.bytes_in += size
         reassembler = self.reassembler
         matcher = self.matcher
         # Stream offset of the first byte the reassembler still holds: the items it
         # returns cover the stream from there, contiguously and in order.
         offset = self.rx_total - reassembler.buffered
-        self.rx_total += len(data)
+        self.rx_total += size
         for item in reassembler.feed(data):
             start = offset
             raw = item.raw
@@ -284,6 +285,8 @@ class BusCore(Generic[J]):
 
     def watch_done(self, cmd: Command[object]) -> None:
         """``cmd`` was answered: await its done reply, if it has one."""
+        if type(cmd).done_shapes is Command.done_shapes:
+            return  # the base's: none (most commands; no call to find out)
         if cmd.done_shapes() and self.matcher.watch_done(cmd):
             # Past MAX_DONE_WATCHES: a done reply lost on the line, the oldest forgotten.
             self.stats.done_watches_dropped += 1

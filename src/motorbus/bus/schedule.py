@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import enum
 import heapq
-import itertools
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -156,14 +155,15 @@ class Scheduler(Generic[J]):
     guard_until: dict[str, float] = field(default_factory=dict)
     reservation_sources: list[ReservationSource] = field(default_factory=list)
     heap: list[J] = field(default_factory=list)
-    _seq: Iterator[int] = field(default_factory=itertools.count)
+    _seq: int = 0
 
     def __len__(self) -> int:
         return len(self.heap)
 
     def next_seq(self) -> int:
         """The queue order of a new job among jobs of its priority."""
-        return next(self._seq)
+        self._seq += 1
+        return self._seq
 
     def push(self, job: J) -> None:
         """Queue ``job``."""
@@ -202,7 +202,7 @@ class Scheduler(Generic[J]):
             if start <= now:
                 return heapq.heappop(heap)
             if start <= self.next_tx:  # held by the spacing alone, and so is every job
-                return Wait(start, _precise(job))
+                return Wait(start, job.reserved or job.priority < Priority.BACKGROUND)  # _precise
             return self._past_the_held(now)
         return None
 

@@ -26,7 +26,6 @@ import contextvars
 import ctypes
 import ctypes.util
 import heapq
-import itertools
 import logging
 import math
 import os
@@ -124,7 +123,7 @@ class Timer(abc.ABC):
         self._loop_ref = weakref.ref(loop)
         self._closed = False
         self._heap: list[tuple[float, int, TimerHandle]] = []
-        self._seq = itertools.count()
+        self._seq = 0  # ties in scheduling order (an int: no next() a deadline)
         self._cancelled_in_heap = 0
         # A change of the earliest deadline re-arms the wake-up source once the loop's
         # current turn is over (_rearm_soon): the changes of a turn cost one re-arm.  A
@@ -186,11 +185,12 @@ class Timer(abc.ABC):
             raise RuntimeError(f"{type(self).__name__} is closed")
         handle = TimerHandle(self, deadline, callback, precise)
         heap = self._heap
-        heapq.heappush(heap, (deadline, next(self._seq), handle))
+        self._seq += 1
+        heapq.heappush(heap, (deadline, self._seq, handle))
         if heap[0][2] is handle:
             if self._holds:
                 self._rearm_due = True  # what _rearm_soon does in a hold, without the call
-            else:
+            elif not self._flush_queued:
                 self._rearm_soon()
         return handle
 
@@ -211,7 +211,8 @@ class Timer(abc.ABC):
         self._holds -= 1
         if not self._holds and self._rearm_due and not self._closed:
             self._rearm_due = False
-            self._rearm_soon()
+            if not self._flush_queued:
+                self._rearm_soon()
 
     async def sleep_until(self, deadline: float, *, precise: bool = True) -> None:
         """Sleep until ``now() >= deadline``; cancel-safe (the wake-up is unscheduled).
@@ -303,10 +304,18 @@ class Timer(abc.ABC):
             self._rearm_due = True  # woken inside a caller's hold: its release re-arms
         else:
             self._rearm_due = False
-            self._rearm_soon()
+            if not self._flush_queued:
+                self._rearm_soon()
 
-    def _rearm(self) -> None:
-        """Arm the wake-up source for the earliest live deadline (or disarm it)."""
+    def _flush_rearm(self) -> None:
+        """The queued re-arm of :meth:`_rearm_soon`: arm the wake-up source for the
+        earliest live deadline (or disarm it)."""
+        self._flush_queued = False
+        if self._closed:
+            return
+        if self._holds:
+            self._rearm_due = True
+            return
         heap = self._heap
         while heap and heap[0][2]._cancelled:
             heapq.heappop(heap)
@@ -327,7 +336,7 @@ class Timer(abc.ABC):
             while heap and heap[0][2]._cancelled:
                 heapq.heappop(heap)
                 self._cancelled_in_heap -= 1
-            if not self._closed:
+            if not self._closed and not self._flush_queued:
                 self._rearm_soon()
             return
         self._cancelled_in_heap += 1
@@ -359,16 +368,6 @@ class Timer(abc.ABC):
                 raise RuntimeError("the event loop of this timer is gone")
             self._flush_queued = True
             loop.call_soon(self._flush_rearm, context=self._context)
-
-    def _flush_rearm(self) -> None:
-        """The queued re-arm of :meth:`_rearm_soon`."""
-        self._flush_queued = False
-        if self._closed:
-            return
-        if self._holds:
-            self._rearm_due = True
-        else:
-            self._rearm()
 
 
 class LoopTimer(Timer):
