@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import collections
 import contextvars
 import ctypes
 import ctypes.util
@@ -126,17 +127,23 @@ class Timer(abc.ABC):
         self._seq = 0  # ties in scheduling order (an int: no next() a deadline)
         self._cancelled_in_heap = 0
         # A change of the earliest deadline re-arms the wake-up source once the loop's
-        # current turn is over (_rearm_soon): the changes of a turn cost one re-arm.  A
-        # timer wake-up resolves a task's sleep, and the task, one turn later, sends a
-        # request and arms its reply deadline: one re-arm for both, where each used to
-        # cost one (settime for the near future reprograms the CPU's timer: tens of us
-        # on a VM, bench_pieces.py).  While _holds is above 0 (callbacks running, or a
-        # caller's hold_arming()) changes are only noted, for the same reason.
+        # turn is over (_rearm_soon): one re-arm for a turn's changes (a wake-up that
+        # resolves a task's sleep, the request the task then sends): a settime for the
+        # near future costs a VM tens of us (bench_pieces.py).  While _holds is above 0
+        # (callbacks running, a caller's hold_arming()) changes are only noted.
         self._holds = 0
         self._rearm_due = False
         self._flush_queued = False
-        # The queued re-arm reads no context variable: one empty context, not a copy each.
-        self._context = contextvars.Context()
+        self._context = contextvars.Context()  # the re-arm reads none: not a copy each
+        # asyncio's own loops (not uvloop) run the handles in their ``_ready`` deque:
+        # there the queued re-arm is one handle made once, appended again each time (a
+        # call, not call_soon's six and a Handle: issue 40); not in debug mode (its
+        # call_soon checks the thread).  Its loop weakly, as default_timer's cache.
+        ready = getattr(loop, "_ready", None)
+        asyncio_loop = isinstance(loop, asyncio.BaseEventLoop) and not loop.get_debug()
+        self._ready = ready if asyncio_loop and type(ready) is collections.deque else None
+        proxy: Any = weakref.proxy(loop)
+        self._flush_handle = asyncio.Handle(self._flush_rearm, (), proxy, self._context)
         if type(self).now is Timer.now:
             # The clock is the C function itself: one call a read, not two (issue 40).
             self.now = time.monotonic  # type: ignore[method-assign]
@@ -200,9 +207,9 @@ class Timer(abc.ABC):
         For a callback that cancels and schedules several deadlines in a row (a reply
         that frees the bus and schedules the next write): the source is re-armed once,
         after the release (at the end of the loop's turn, as every re-arm), for the
-        earliest deadline then.  Holds nest.  No callback runs
-        early because of a hold; one can only run late if the loop gets to sleep before
-        the release, so call both from the same callback (``try``/``finally``).
+        earliest deadline then.  Holds nest.  No callback runs early because of a hold;
+        one can only run late if the loop gets to sleep before the release, so call
+        both from the same callback (``try``/``finally``).
         """
         self._holds += 1
 
@@ -267,15 +274,15 @@ class Timer(abc.ABC):
     def _release(self) -> None:
         """Free the wake-up source (called once, by :meth:`close`)."""
 
-    def _wake(self) -> None:
-        """The wake-up source fired: run every due callback in deadline order (each
-        once; exceptions go to the loop's exception handler), then re-arm at the next
-        deadline."""
+    def _wake(self, now: float | None = None) -> None:
+        """The wake-up source fired (the clock read ``now``, if just read): run every
+        due callback in deadline order (each once; exceptions go to the loop's
+        exception handler), then re-arm at the next deadline."""
         heap = self._heap
         loop = self._loop_ref()
         if loop is None:
             raise RuntimeError("the event loop of this timer is gone")
-        now = self.now()
+        now = self.now() if now is None else now
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
@@ -328,10 +335,9 @@ class Timer(abc.ABC):
     def _forget_cancelled(self, handle: TimerHandle) -> None:
         heap = self._heap
         if heap and heap[0][2] is handle:
-            # The earliest (a reply deadline, when the reply came) leaves the heap now,
-            # with the cancelled ones it uncovers: the earliest is always live.  The
-            # wake-up armed for it is re-armed for the next rather than waking up for
-            # nothing (a syscall against a wake-up: a hundred times more on a VM).
+            # The earliest (a reply's deadline) leaves at once, with the cancelled ones
+            # it uncovers: the earliest is always live.  Re-armed for the next rather
+            # than waking up for nothing (a syscall, against a wake-up: 100x on a VM).
             heapq.heappop(heap)
             while heap and heap[0][2]._cancelled:
                 heapq.heappop(heap)
@@ -340,8 +346,7 @@ class Timer(abc.ABC):
                 self._rearm_soon()
             return
         self._cancelled_in_heap += 1
-        # Compact when most entries are dead, so cancelled handles cannot pile up.  The
-        # earliest is live and stays: nothing to re-arm.
+        # Compact when most are dead, so they cannot pile up (the earliest is live: stays).
         if self._cancelled_in_heap * 2 > len(heap):
             # In place: _wake may be iterating over this very list.
             heap[:] = [entry for entry in heap if not entry[2]._cancelled]
@@ -363,11 +368,11 @@ class Timer(abc.ABC):
         if self._holds:
             self._rearm_due = True
         elif not self._flush_queued:
-            loop = self._loop_ref()  # (not the property: one call fewer a re-arm)
-            if loop is None:
-                raise RuntimeError("the event loop of this timer is gone")
             self._flush_queued = True
-            loop.call_soon(self._flush_rearm, context=self._context)
+            if self._ready is not None:
+                self._ready.append(self._flush_handle)
+            else:
+                self.loop.call_soon(self._flush_rearm, context=self._context)
 
 
 class LoopTimer(Timer):
@@ -633,21 +638,18 @@ class TimerfdTimer(Timer):
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         # The lead is for the kernel's part of a wake-up's lateness, so it follows only
-        # the wake-ups that show it:
-        # * armed for a precise deadline: one armed for a plain deadline (a task's
-        #   sleep_until(precise=False), a queued frame's start_by) lands wherever the
-        #   loop happens to be busy, and with many buses those kept the lead at its
-        #   maximum for the precise ones;
-        # * with the loop idle from the arming on: if motorbus's work ran after the fd
-        #   was armed (the timer's clock was read: a reply of another bus, a stream's
-        #   task), the wake-up may have waited for that work, and its lateness is the
-        #   loop's, not the kernel's.  Counted anyway, those held the lead near its
-        #   maximum with 16 buses whose polls land on other buses' ticks: a third of
-        #   the process's CPU spun (benchmarks/README.md, "Spin lead").  Nor may their
-        #   promptness lower the lead: a reply handled just after the arming is the
-        #   usual case of a bus that waits out its 1 ms spacing, and a run of those
-        #   could wear the lead down to its floor, where the next idle wake-up comes
-        #   after its deadline.
+        # the wake-ups that show it (and only with a spin):
+        # * armed for a precise deadline: one for a plain deadline (a sleep_until(
+        #   precise=False), a start_by) lands wherever the loop is busy, and with many
+        #   buses those kept the lead at its maximum for the precise ones;
+        # * with the loop idle from the arming on: if motorbus's work ran after the fd was
+        #   armed (the clock was read: another bus's reply, a stream's task), the wake-up
+        #   may have waited for it, a lateness the loop's, not the kernel's.  Counted,
+        #   those held the lead near its maximum with 16 buses whose polls land on other
+        #   buses' ticks: a third of the CPU spun (benchmarks/README.md, "Spin lead").
+        #   Nor may their promptness lower it: a reply handled just after the arming is
+        #   the usual case of a bus waiting out its 1 ms spacing, and a run of those could
+        #   wear the lead to its floor, where the next idle wake-up comes after its deadline.
         # Clipped at half the longest lead, which already asks for that lead: a wake-up
         # later than that (the thread descheduled) is no reason to spin longer.
         # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
@@ -667,7 +669,7 @@ class TimerfdTimer(Timer):
                 self.spin_seconds += spun_until - woke
         if self.wake_observer is not None:
             self.wake_observer(armed, woke, spun_until)
-        self._wake()
+        self._wake(spun_until)  # the latest clock reading: nothing due by then runs early
 
 
 _timers: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Timer] = weakref.WeakKeyDictionary()
