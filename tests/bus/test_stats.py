@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from motorbus.bus.bus import Bus, BusState
-from motorbus.bus.stats import BusStats, LatencyHistogram
+from motorbus.bus.stats import BusStats, LatencyHistogram, record_twice
 from motorbus.protocol.base import Family
 from motorbus.transport.memory import memory_pair
 
@@ -155,6 +155,25 @@ def test_percentile_scan_and_record_agree_on_buckets() -> None:
         h = LatencyHistogram()
         h.record(x)
         assert h.counts[stats._bucket_of(x)] == 1, x
+
+
+def test_record_twice_is_a_record_in_each() -> None:
+    """A reply's latency goes into the bus's and the device's histograms at once
+    (``record_twice``): exactly what a ``record`` in each does, edges included."""
+    rng = random.Random(12)
+    samples = [10 ** rng.uniform(-9, 3) for _ in range(500)] + [-1.0, 0.0, 1e-8, 100.0, 1e9]
+    single, first, second = LatencyHistogram(), LatencyHistogram(), LatencyHistogram()
+    for x in samples:
+        single.record(x)
+        record_twice(first, second, x)
+    for hist in (first, second):
+        assert (hist.count, hist.total, hist.min, hist.max) == (
+            single.count,
+            single.total,
+            single.min,
+            single.max,
+        )
+        assert hist.counts == single.counts
 
 
 async def test_discards_are_counted_once_by_the_reassembler_and_kept_across_reconnects() -> None:

@@ -298,17 +298,7 @@ class Bus:
             self._engine.drop_queued_motion()
             await self._lease_keeper.end_all()
         engine = self._engine
-        engine.closing = True
-        task = engine.reconnect_task
-        if task is not None and not task.done():
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        engine.reconnect_task = None
-        if engine.pump_handle is not None:
-            engine.pump_handle.cancel()
-            engine.pump_handle = None
-        engine.fail_all(BusClosedError(f"bus {self.name} closed"))
+        await engine.stop(BusClosedError(f"bus {self.name} closed"))
         try:
             await self.transport.close()
         finally:
@@ -382,7 +372,10 @@ class Bus:
             BusClosedError: the bus is closed or its port was lost.
             RemoteProtocolError: the matching reply could not be decoded.
         """
-        future = self.submit(cmd, timeout=timeout, retries=retries, priority=priority)
+        # submit()'s two steps, without the call between (issue 40).
+        job = self._checked_job(cmd, timeout, retries, priority, None, reserved=False)
+        self._engine.queue(job, None)
+        future: asyncio.Future[R] = job.future
         try:
             return await future
         except asyncio.CancelledError:
@@ -660,13 +653,14 @@ class Bus:
         start_by: float | None,
         *,
         reserved: bool,
-        refresh: Refresh | None,
-        lease: Lease | None,
+        refresh: Refresh | None = None,
+        lease: Lease | None = None,
     ) -> BusJob:
         """Check a submission (``submit``'s errors, in its order), claim its lease and
         build its job, not yet queued."""
         core = self._core
-        core.check(cmd, start_by)
+        if start_by is not None or type(cmd) not in core.checked_types:
+            core.check(cmd, start_by)
         if timeout is not None or retries is not None or type(priority) is not Priority:
             check_request_options(timeout, retries, priority)
         state = self._engine.state

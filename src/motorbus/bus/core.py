@@ -29,7 +29,7 @@ from typing import Any, Generic, TypeVar
 from motorbus.bus.matching import Matcher, TimedOut, Verdict
 from motorbus.bus.occupancy import BusTiming, Occupancy, OccupancyTable
 from motorbus.bus.schedule import Job, Priority, Scheduler, Wait
-from motorbus.bus.stats import BusStats
+from motorbus.bus.stats import BusStats, record_twice
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol.base import Command, Family, FaultState, FrameShape, format_hex
 from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker, Reassembler
@@ -76,8 +76,9 @@ class BusCore(Generic[J]):
         self.occupancies = OccupancyTable(timing)
         self.reassembler = Reassembler(families=families, stats=stats.reassembler)
         self.rx_total = 0  # bytes handed to the reassembler since the port opened
-        #: The command types already checked to be commands of a family of this bus.
-        self._known: set[type] = set()
+        #: The command types already checked to be commands of a family of this bus
+        #: (``check`` has nothing to do for them without a ``start_by``).
+        self.checked_types: set[type] = set()
         self._last_errors: dict[int, int] = {}
 
     # -- submissions -------------------------------------------------------------
@@ -95,7 +96,7 @@ class BusCore(Generic[J]):
                 ``start_by``.
         """
         kind = type(cmd)
-        if kind not in self._known:
+        if kind not in self.checked_types:
             if not isinstance(cmd, Command):
                 raise LocalProtocolError(
                     f"cmd must be a motorbus Command, got {kind.__name__}", field="cmd"
@@ -107,7 +108,7 @@ class BusCore(Generic[J]):
                     field="cmd",
                 )
             if isinstance(getattr(kind, "family", None), Family):
-                self._known.add(kind)  # a class attribute: every instance is the same
+                self.checked_types.add(kind)  # a class attribute: every instance is the same
         if start_by is not None and not (
             isinstance(start_by, int | float) and not isinstance(start_by, bool)
         ):
@@ -160,7 +161,11 @@ class BusCore(Generic[J]):
         stats = self.stats
         stats.requests += 1
         stats.bytes_out += len(job.raw)
-        stats.device(job.key).requests += 1
+        try:
+            device = stats.devices[job.key]  # (not device(): a call fewer a frame)
+        except KeyError:
+            device = stats.device(job.key)
+        device.requests += 1
         if not expects:
             stats.no_reply_frames += 1
 
@@ -222,13 +227,14 @@ class BusCore(Generic[J]):
         reply taken changes the shapes awaited and the pending request).
         """
         stats = self.stats
-        stats.bytes_in += len(data)
+        size = len(data)
+        stats.bytes_in += size
         reassembler = self.reassembler
         matcher = self.matcher
         # Stream offset of the first byte the reassembler still holds: the items it
         # returns cover the stream from there, contiguously and in order.
         offset = self.rx_total - reassembler.buffered
-        self.rx_total += len(data)
+        self.rx_total += size
         for item in reassembler.feed(data):
             start = offset
             raw = item.raw
@@ -270,13 +276,17 @@ class BusCore(Generic[J]):
         stats.replies += 1
         if now > job.deadline:  # read late, before the deadline was decided (matching.py)
             stats.replies_past_deadline += 1
-        stats.latency.record(latency)
-        device = stats.device(job.key)
+        try:
+            device = stats.devices[job.key]  # made when its request was counted
+        except KeyError:
+            device = stats.device(job.key)
         device.replies += 1
-        device.latency.record(latency)
+        record_twice(stats.latency, device.latency, latency)
 
     def watch_done(self, cmd: Command[object]) -> None:
         """``cmd`` was answered: await its done reply, if it has one."""
+        if type(cmd).done_shapes is Command.done_shapes:
+            return  # the base's: none (most commands; no call to find out)
         if cmd.done_shapes() and self.matcher.watch_done(cmd):
             # Past MAX_DONE_WATCHES: a done reply lost on the line, the oldest forgotten.
             self.stats.done_watches_dropped += 1

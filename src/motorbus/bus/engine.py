@@ -143,26 +143,24 @@ class BusEngine:
         """
         core, timer = self.core, self.clock
         job.seq = core.schedule.next_seq()
+        if not self._pumping and self.state is BusState.OPEN and core.starts_now(job, timer.now()):
+            self._pumping = True
+            try:
+                self._transmit(job, checked=checked)  # sets one timer: no hold needed
+            finally:
+                self._pumping = False
+            if core.schedule.heap:  # queued meanwhile (by an observer, a wire tap)
+                self._pump()
+            return
         # The expiry and the write's timer (spacing, or a reply deadline) arm it once.
         timer.hold_arming()
         try:
-            if (
-                not self._pumping
-                and self.state is BusState.OPEN
-                and core.starts_now(job, timer.now())
-            ):
-                self._pumping = True
-                try:
-                    self._transmit(job, checked=checked)
-                finally:
-                    self._pumping = False
-            else:
-                if start_by is not None:
-                    job.start_by = float(start_by)
-                    job.expiry = timer.call_at(
-                        job.start_by, lambda: self._drop_unsent(job), precise=False
-                    )
-                core.schedule.push(job)
+            if start_by is not None:
+                job.start_by = float(start_by)
+                job.expiry = timer.call_at(
+                    job.start_by, lambda: self._drop_unsent(job), precise=False
+                )
+            core.schedule.push(job)
             self._pump()
         finally:
             timer.release_arming()
@@ -181,14 +179,15 @@ class BusEngine:
         self._pumping = True
         try:
             core, timer = self.core, self.clock
-            while self.state is BusState.OPEN:
+            # (Nothing queued: nothing to decide, and no clock to read.)
+            while self.state is BusState.OPEN and core.schedule.heap:
                 decision = core.next(timer.now())
                 if decision is None:
                     return
-                if isinstance(decision, Wait):
+                if type(decision) is Wait:  # (not isinstance: a call fewer)
                     self._pump_later(decision.at, precise=decision.precise)
                     return
-                self._transmit(decision)
+                self._transmit(decision)  # type: ignore[arg-type]  # a job, not a Wait
         finally:
             self._pumping = False
 
@@ -248,6 +247,7 @@ class BusEngine:
             return False
         if fresh is not job.cmd:
             job.cmd = fresh
+            job.key = fresh.device_key
             job.raw = fresh.encode()
             occ = self.core.occupancy(fresh, len(job.raw))
             job.after_write, job.expects, job.moves = (
@@ -269,7 +269,7 @@ class BusEngine:
             # Bytes the OS already holds came before this write, whenever the loop gets
             # round to them: read them first, so that they fall before the mark.
             self.transport.drain_input()
-        core.sending(job, expects)
+            core.sending(job, expects)
         if log.isEnabledFor(logging.DEBUG):
             log.debug("%s TX %s (%s)", self.name, format_hex(job.raw), type(cmd).__name__)
         before = timer.now()
@@ -277,7 +277,7 @@ class BusEngine:
             self.transport.write(job.raw)
         except BusClosedError as err:
             core.count_sent(job, expects)
-            self._finish(job, err)
+            self._finish(job, error=err)
             return
         after = timer.now()
         if self.wire_taps:
@@ -290,14 +290,14 @@ class BusEngine:
         if job.moves:
             self._leases.moved(cmd)
         elif not expects:
-            self._leases.sent(cmd)
+            self._leases.sent(cmd, job.key)
         if expects:
             job.handle = timer.call_at(job.deadline, self._on_deadline)
         elif not job.future.done():
             job.future.set_result(None)
 
-    def _finish(self, job: BusJob, outcome: Any) -> None:
-        """Resolve ``job`` with a value or an exception and free the bus."""
+    def _finish(self, job: BusJob, value: Any = None, error: BaseException | None = None) -> None:
+        """Resolve ``job`` with ``value`` (or fail it with ``error``) and free the bus."""
         if job.handle is not None:
             job.handle.cancel()
             job.handle = None
@@ -306,12 +306,13 @@ class BusEngine:
             job.expiry = None
         self.core.matcher.release(job)
         if not job.future.done():
-            if isinstance(outcome, BaseException):
+            if error is not None:
                 self.stats.failed += 1
-                job.future.set_exception(outcome)
+                job.future.set_exception(error)
             else:
-                job.future.set_result(outcome)
-        self._pump()
+                job.future.set_result(value)
+        if self.core.schedule.heap:
+            self._pump()
 
     # -- deadlines ---------------------------------------------------------------
 
@@ -350,7 +351,7 @@ class BusEngine:
             return
         self._finish(
             job,
-            ReplyTimeoutError(
+            error=ReplyTimeoutError(
                 f"no reply from {job.key} to {type(job.cmd).__name__} "
                 f"({format_hex(job.raw)}) within {job.timeout * 1e3:.2f} ms"
                 + (f" after {job.attempts} attempts" if job.attempts > 1 else "")
@@ -390,11 +391,11 @@ class BusEngine:
         try:
             value: Any = job.cmd.decode_matched(raw)  # matches_reply accepted it
         except RemoteProtocolError as err:
-            self._finish(job, err)
+            self._finish(job, error=err)
             return
         self._leases.note(job.key)  # it answered: "la:255" stands for it too
         if not job.moves:
-            self._leases.sent(job.cmd)  # a safe action answered: no longer owed
+            self._leases.sent(job.cmd, job.key)  # a safe action answered: no longer owed
         core.watch_done(job.cmd)
         fault = job.cmd.fault_state(value)
         if fault is not None and (before := core.fault_change(fault)) is not None:
@@ -425,11 +426,26 @@ class BusEngine:
     def fail_all(self, err: BaseException) -> None:
         job = self.core.matcher.pending
         if job is not None:
-            self._finish(job, err)
+            self._finish(job, error=err)
         for job in self.core.schedule.drain():
             if not job.future.done():
                 self.stats.failed += 1
                 job.future.set_exception(err)
+
+    async def stop(self, err: BaseException) -> None:
+        """The bus is closing for good: no reconnect, no pump, everything left fails
+        with ``err`` (the port is still to close)."""
+        self.closing = True
+        task = self.reconnect_task
+        if task is not None and not task.done():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        self.reconnect_task = None
+        if self.pump_handle is not None:
+            self.pump_handle.cancel()
+            self.pump_handle = None
+        self.fail_all(err)
 
     def on_lost(self, exc: BaseException | None) -> None:
         if self.closing:

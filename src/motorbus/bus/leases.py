@@ -483,10 +483,11 @@ class LeaseTable:
         if memo[3] == self._owed_epoch:
             self._settled = memo  # nothing changed: the same motion again is a no-op
 
-    def sent(self, cmd: Command[object]) -> None:
+    def sent(self, cmd: Command[object], key: DeviceKey | None = None) -> None:
         """``cmd`` was written (and answered, if it expects a reply): what it covers of
-        the safe actions owed is paid."""
-        key = cmd.device_key
+        the safe actions owed is paid.  ``key``: its ``device_key``, if known."""
+        if key is None:
+            key = cmd.device_key
         if key in _WILDCARDS:
             prefix = _WILDCARDS[key]
             entries = [e for k, e in self._entries.items() if k.startswith(prefix)]

@@ -165,7 +165,8 @@ class Matcher(Generic[J]):
     def sent(self, job: J) -> None:
         """``job`` is about to be written and awaits its reply."""
         self.pending = job
-        self.update_shapes()
+        if self._stepper:  # (an LA bus cuts every frame by its checksum: no shapes)
+            self.update_shapes()
 
     def written(self, job: J, before: float, after: float, baud: int) -> None:
         """``job`` (``sent``) was written: the call began at ``before`` and returned at
@@ -182,7 +183,8 @@ class Matcher(Generic[J]):
         if self.pending is not job:
             return False
         self.pending = None
-        self.update_shapes()
+        if self._stepper:
+            self.update_shapes()
         return True
 
     def timed_out(self, job: J, now: float) -> None:

@@ -33,7 +33,7 @@ From them:
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from motorbus.protocol.base import Command, Family, wire_time
 
@@ -68,18 +68,16 @@ class Occupancy:
     margin: float
     spacing: float
     expects_reply: bool
+    #: From the completed write to the reply's deadline; 0 without a reply.  (Worked
+    #: out once, as ``after_write``: a bus reads both for every frame it queues.)
+    budget: float = field(init=False, repr=False, compare=False)
+    #: From the completed write to the earliest next write.
+    after_write: float = field(init=False, repr=False, compare=False)
 
-    @property
-    def budget(self) -> float:
-        """From the completed write to the reply's deadline; 0 without a reply."""
-        if not self.expects_reply:
-            return 0.0
-        return self.write + self.reply_wire + self.turnaround + self.margin
-
-    @property
-    def after_write(self) -> float:
-        """From the completed write to the earliest next write."""
-        return max(self.spacing, self.write)
+    def __post_init__(self) -> None:
+        budget = self.write + self.reply_wire + self.turnaround + self.margin
+        object.__setattr__(self, "budget", budget if self.expects_reply else 0.0)
+        object.__setattr__(self, "after_write", max(self.spacing, self.write))
 
     @property
     def answered(self) -> float:

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import enum
 import heapq
-import itertools
 import math
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -156,14 +155,15 @@ class Scheduler(Generic[J]):
     guard_until: dict[str, float] = field(default_factory=dict)
     reservation_sources: list[ReservationSource] = field(default_factory=list)
     heap: list[J] = field(default_factory=list)
-    _seq: Iterator[int] = field(default_factory=itertools.count)
+    _seq: int = 0
 
     def __len__(self) -> int:
         return len(self.heap)
 
     def next_seq(self) -> int:
         """The queue order of a new job among jobs of its priority."""
-        return next(self._seq)
+        self._seq += 1
+        return self._seq
 
     def push(self, job: J) -> None:
         """Queue ``job``."""
@@ -202,7 +202,7 @@ class Scheduler(Generic[J]):
             if start <= now:
                 return heapq.heappop(heap)
             if start <= self.next_tx:  # held by the spacing alone, and so is every job
-                return Wait(start, _precise(job))
+                return Wait(start, job.reserved or job.priority < Priority.BACKGROUND)  # _precise
             return self._past_the_held(now)
         return None
 
@@ -237,7 +237,12 @@ class Scheduler(Generic[J]):
 
     def start_at(self, job: Job, now: float) -> float:
         """The earliest time ``job`` may start, seen at ``now``."""
-        start = max(self.next_tx, self.guard_until.get(job.key, 0.0), now)
+        # The latest of the spacing, the device's late guard and now (comparisons, not
+        # max() and get(): this runs for every frame, once or more).
+        start = self.next_tx if self.next_tx > now else now
+        guards = self.guard_until
+        if guards and job.key in guards and guards[job.key] > start:
+            start = guards[job.key]
         if not self.reservation_sources or job.reserved:
             return start  # nothing to look up (held_by_reservation's own first test)
         held = self.held_by_reservation(job, start)
@@ -272,10 +277,13 @@ class Scheduler(Generic[J]):
         """``job``'s write was called at ``before`` and returned at ``after``: the
         spacing counts from ``after``; the write's duration feeds ``write_cost``."""
         self.next_tx = after + job.after_write
-        self.write_cost = min(
-            WRITE_COST_MAX_S,
-            max(WRITE_COST_MIN_S, after - before, self.write_cost * WRITE_COST_DECAY),
-        )
+        # min(MAX, max(MIN, this write's, the last cost decayed)), without the calls.
+        cost = self.write_cost * WRITE_COST_DECAY
+        if after - before > cost:
+            cost = after - before
+        if cost < WRITE_COST_MIN_S:
+            cost = WRITE_COST_MIN_S
+        self.write_cost = cost if cost < WRITE_COST_MAX_S else WRITE_COST_MAX_S
 
     def guard(self, key: str, until: float) -> None:
         """Hold requests to device ``key`` until ``until`` (a timeout's late guard)."""

@@ -22,11 +22,11 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import contextlib
+import collections
+import contextvars
 import ctypes
 import ctypes.util
 import heapq
-import itertools
 import logging
 import math
 import os
@@ -105,22 +105,6 @@ class TimerHandle:
         if timer is not None:
             timer._forget_cancelled(self)
 
-    def _run(self, loop: asyncio.AbstractEventLoop) -> None:
-        """Run the callback once; exceptions go to the loop's exception handler."""
-        callback, self._callback = self._callback, None
-        self._done = True
-        self._timer = None
-        if callback is None:
-            return
-        try:
-            callback()
-        except (SystemExit, KeyboardInterrupt):
-            raise
-        except BaseException as exc:
-            loop.call_exception_handler(
-                {"message": "exception in timer callback", "exception": exc, "handle": self}
-            )
-
 
 class Timer(abc.ABC):
     """Schedules callbacks at absolute ``time.monotonic()`` deadlines, never early.
@@ -140,18 +124,29 @@ class Timer(abc.ABC):
         self._loop_ref = weakref.ref(loop)
         self._closed = False
         self._heap: list[tuple[float, int, TimerHandle]] = []
-        self._seq = itertools.count()
+        self._seq = 0  # ties in scheduling order (an int: no next() a deadline)
         self._cancelled_in_heap = 0
         # A change of the earliest deadline re-arms the wake-up source once the loop's
-        # current turn is over (_rearm_soon): the changes of a turn cost one re-arm.  A
-        # timer wake-up resolves a task's sleep, and the task, one turn later, sends a
-        # request and arms its reply deadline: one re-arm for both, where each used to
-        # cost one (settime for the near future reprograms the CPU's timer: tens of us
-        # on a VM, bench_pieces.py).  While _holds is above 0 (callbacks running, or a
-        # caller's hold_arming()) changes are only noted, for the same reason.
+        # turn is over (_rearm_soon): one re-arm for a turn's changes (a wake-up that
+        # resolves a task's sleep, the request the task then sends): a settime for the
+        # near future costs a VM tens of us (bench_pieces.py).  While _holds is above 0
+        # (callbacks running, a caller's hold_arming()) changes are only noted.
         self._holds = 0
         self._rearm_due = False
         self._flush_queued = False
+        self._context = contextvars.Context()  # the re-arm reads none: not a copy each
+        # asyncio's own loops (not uvloop) run the handles in their ``_ready`` deque:
+        # there the queued re-arm is one handle made once, appended again each time (a
+        # call, not call_soon's six and a Handle: issue 40); not in debug mode (its
+        # call_soon checks the thread).  Its loop weakly, as default_timer's cache.
+        ready = getattr(loop, "_ready", None)
+        asyncio_loop = isinstance(loop, asyncio.BaseEventLoop) and not loop.get_debug()
+        self._ready = ready if asyncio_loop and type(ready) is collections.deque else None
+        proxy: Any = weakref.proxy(loop)
+        self._flush_handle = asyncio.Handle(self._flush_rearm, (), proxy, self._context)
+        if type(self).now is Timer.now:
+            # The clock is the C function itself: one call a read, not two (issue 40).
+            self.now = time.monotonic  # type: ignore[method-assign]
 
     @property
     def loop(self) -> asyncio.AbstractEventLoop:
@@ -197,11 +192,12 @@ class Timer(abc.ABC):
             raise RuntimeError(f"{type(self).__name__} is closed")
         handle = TimerHandle(self, deadline, callback, precise)
         heap = self._heap
-        heapq.heappush(heap, (deadline, next(self._seq), handle))
+        self._seq += 1
+        heapq.heappush(heap, (deadline, self._seq, handle))
         if heap[0][2] is handle:
             if self._holds:
                 self._rearm_due = True  # what _rearm_soon does in a hold, without the call
-            else:
+            elif not self._flush_queued:
                 self._rearm_soon()
         return handle
 
@@ -211,9 +207,9 @@ class Timer(abc.ABC):
         For a callback that cancels and schedules several deadlines in a row (a reply
         that frees the bus and schedules the next write): the source is re-armed once,
         after the release (at the end of the loop's turn, as every re-arm), for the
-        earliest deadline then.  Holds nest.  No callback runs
-        early because of a hold; one can only run late if the loop gets to sleep before
-        the release, so call both from the same callback (``try``/``finally``).
+        earliest deadline then.  Holds nest.  No callback runs early because of a hold;
+        one can only run late if the loop gets to sleep before the release, so call
+        both from the same callback (``try``/``finally``).
         """
         self._holds += 1
 
@@ -222,7 +218,8 @@ class Timer(abc.ABC):
         self._holds -= 1
         if not self._holds and self._rearm_due and not self._closed:
             self._rearm_due = False
-            self._rearm_soon()
+            if not self._flush_queued:
+                self._rearm_soon()
 
     async def sleep_until(self, deadline: float, *, precise: bool = True) -> None:
         """Sleep until ``now() >= deadline``; cancel-safe (the wake-up is unscheduled).
@@ -277,22 +274,34 @@ class Timer(abc.ABC):
     def _release(self) -> None:
         """Free the wake-up source (called once, by :meth:`close`)."""
 
-    def _wake(self) -> None:
-        """Run every due callback in deadline order, then re-arm at the next deadline."""
+    def _wake(self, now: float | None = None) -> None:
+        """The wake-up source fired (the clock read ``now``, if just read): run every
+        due callback in deadline order (each once; exceptions go to the loop's
+        exception handler), then re-arm at the next deadline."""
         heap = self._heap
         loop = self._loop_ref()
         if loop is None:
             raise RuntimeError("the event loop of this timer is gone")
-        now = self.now()
+        now = self.now() if now is None else now
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
             while heap and heap[0][0] <= now:
-                _, _, handle = heapq.heappop(heap)
+                handle = heapq.heappop(heap)[2]
                 if handle._cancelled:
                     self._cancelled_in_heap -= 1
                     continue
-                handle._run(loop)
+                # TimerHandle's run, inline (a call fewer a deadline).
+                callback, handle._callback = handle._callback, None
+                handle._done = True
+                handle._timer = None
+                try:
+                    callback()  # type: ignore[misc]  # set while neither run nor cancelled
+                except (SystemExit, KeyboardInterrupt):
+                    raise
+                except BaseException as exc:
+                    context = {"message": "exception in timer callback", "exception": exc}
+                    loop.call_exception_handler({**context, "handle": handle})
                 if self._closed:
                     return
                 now = self.now()
@@ -302,9 +311,18 @@ class Timer(abc.ABC):
             self._rearm_due = True  # woken inside a caller's hold: its release re-arms
         else:
             self._rearm_due = False
-            self._rearm_soon()
+            if not self._flush_queued:
+                self._rearm_soon()
 
-    def _rearm(self) -> None:
+    def _flush_rearm(self) -> None:
+        """The queued re-arm of :meth:`_rearm_soon`: arm the wake-up source for the
+        earliest live deadline (or disarm it)."""
+        self._flush_queued = False
+        if self._closed:
+            return
+        if self._holds:
+            self._rearm_due = True
+            return
         heap = self._heap
         while heap and heap[0][2]._cancelled:
             heapq.heappop(heap)
@@ -315,21 +333,25 @@ class Timer(abc.ABC):
             self._disarm()
 
     def _forget_cancelled(self, handle: TimerHandle) -> None:
-        self._cancelled_in_heap += 1
         heap = self._heap
-        # Compact when most entries are dead, so cancelled handles cannot pile up.
+        if heap and heap[0][2] is handle:
+            # The earliest (a reply's deadline) leaves at once, with the cancelled ones
+            # it uncovers: the earliest is always live.  Re-armed for the next rather
+            # than waking up for nothing (a syscall, against a wake-up: 100x on a VM).
+            heapq.heappop(heap)
+            while heap and heap[0][2]._cancelled:
+                heapq.heappop(heap)
+                self._cancelled_in_heap -= 1
+            if not self._closed and not self._flush_queued:
+                self._rearm_soon()
+            return
+        self._cancelled_in_heap += 1
+        # Compact when most are dead, so they cannot pile up (the earliest is live: stays).
         if self._cancelled_in_heap * 2 > len(heap):
             # In place: _wake may be iterating over this very list.
             heap[:] = [entry for entry in heap if not entry[2]._cancelled]
             heapq.heapify(heap)
             self._cancelled_in_heap = 0
-            if not self._closed:
-                self._rearm_soon()
-        elif heap and heap[0][2] is handle and not self._closed:
-            # The wake-up was armed for this one (a reply deadline, when the reply came):
-            # arm it for the next instead of waking up for nothing (a syscall against
-            # a wake-up, which costs a hundred times more on a VM).
-            self._rearm_soon()
 
     def _rearm_soon(self) -> None:
         """Re-arm after the callbacks the loop has queued so far (or at the end of the
@@ -346,21 +368,11 @@ class Timer(abc.ABC):
         if self._holds:
             self._rearm_due = True
         elif not self._flush_queued:
-            loop = self._loop_ref()  # (not the property: one call fewer a re-arm)
-            if loop is None:
-                raise RuntimeError("the event loop of this timer is gone")
             self._flush_queued = True
-            loop.call_soon(self._flush_rearm)
-
-    def _flush_rearm(self) -> None:
-        """The queued re-arm of :meth:`_rearm_soon`."""
-        self._flush_queued = False
-        if self._closed:
-            return
-        if self._holds:
-            self._rearm_due = True
-        else:
-            self._rearm()
+            if self._ready is not None:
+                self._ready.append(self._flush_handle)
+            else:
+                self.loop.call_soon(self._flush_rearm, context=self._context)
 
 
 class LoopTimer(Timer):
@@ -444,12 +456,14 @@ class _TimerfdApi:
             return
         # Called several times a tick: one preallocated struct per fd (each timer, and so
         # each loop and thread, has its own fd), no per-call objects.
-        found = self._specs.get(fd)
-        if found is None:
+        try:
+            found = self._specs[fd]
+        except KeyError:
             spec = _ITimerSpec()
             found = self._specs[fd] = (spec, ctypes.byref(spec))
         value = found[0].it_value
-        value.tv_sec, value.tv_nsec = divmod(deadline_ns, _NS_PER_S)
+        value.tv_sec = deadline_ns // _NS_PER_S
+        value.tv_nsec = deadline_ns % _NS_PER_S
         if self._settime(fd, _TFD_TIMER_ABSTIME, found[1], None) < 0:
             err = ctypes.get_errno()
             raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
@@ -484,12 +498,6 @@ def timerfd_available() -> bool:
         return False
     os.close(fd)
     return True
-
-
-def _deadline_ns(deadline: float) -> int:
-    """Round ``deadline`` (s) up to whole ns, so the timerfd can never expire before it."""
-    # At least 1: an all-zero it_value disarms a timerfd instead of firing it.
-    return max(1, math.ceil(deadline * _NS_PER_S))
 
 
 class TimerfdTimer(Timer):
@@ -547,6 +555,9 @@ class TimerfdTimer(Timer):
             spin_lead = self.SPIN_LEAD_S if spin_asked() else 0.0
         self._spin_lead = spin_lead
         self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
+        if not spin_lead and type(self).now is TimerfdTimer.now:
+            # Only the spin lead reads ``_seen``: without it, the clock is the C function.
+            self.now = time.monotonic  # type: ignore[method-assign]
         self._api = _api()
         self._fd = self._api.create()
         # Closes the fd if the timer is dropped without close() (its loop went away).
@@ -581,8 +592,12 @@ class TimerfdTimer(Timer):
             self._reading = True
         heap = self._heap
         precise = bool(heap) and heap[0][2].precise
-        lead = self._current_lead() if precise else 0.0
-        ns = _deadline_ns(deadline - lead)
+        if precise and self._spin_lead:
+            deadline -= self._current_lead()
+        # Up to whole ns, never before the deadline; at least 1 (all zero disarms the fd).
+        ns = math.ceil(deadline * _NS_PER_S)
+        if ns < 1:
+            ns = 1
         if ns != self._armed_ns:
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
@@ -614,32 +629,31 @@ class TimerfdTimer(Timer):
     def _on_expiry(self) -> None:
         busy_until = self._seen  # before now() below moves it
         # Nothing to read after a spurious wake-up or a re-arm that followed the expiry.
-        with contextlib.suppress(BlockingIOError):
+        try:  # noqa: SIM105  (contextlib.suppress: three calls more a wake-up)
             os.read(self._fd, _EXPIRY_COUNT_SIZE)
+        except BlockingIOError:
+            pass
         # The fd expired, so the armed time has passed: forget it, or re-arming at the
         # same deadline (woken early by float rounding) would be skipped as a no-op.
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         # The lead is for the kernel's part of a wake-up's lateness, so it follows only
-        # the wake-ups that show it:
-        # * armed for a precise deadline: one armed for a plain deadline (a task's
-        #   sleep_until(precise=False), a queued frame's start_by) lands wherever the
-        #   loop happens to be busy, and with many buses those kept the lead at its
-        #   maximum for the precise ones;
-        # * with the loop idle from the arming on: if motorbus's work ran after the fd
-        #   was armed (the timer's clock was read: a reply of another bus, a stream's
-        #   task), the wake-up may have waited for that work, and its lateness is the
-        #   loop's, not the kernel's.  Counted anyway, those held the lead near its
-        #   maximum with 16 buses whose polls land on other buses' ticks: a third of
-        #   the process's CPU spun (benchmarks/README.md, "Spin lead").  Nor may their
-        #   promptness lower the lead: a reply handled just after the arming is the
-        #   usual case of a bus that waits out its 1 ms spacing, and a run of those
-        #   could wear the lead down to its floor, where the next idle wake-up comes
-        #   after its deadline.
+        # the wake-ups that show it (and only with a spin):
+        # * armed for a precise deadline: one for a plain deadline (a sleep_until(
+        #   precise=False), a start_by) lands wherever the loop is busy, and with many
+        #   buses those kept the lead at its maximum for the precise ones;
+        # * with the loop idle from the arming on: if motorbus's work ran after the fd was
+        #   armed (the clock was read: another bus's reply, a stream's task), the wake-up
+        #   may have waited for it, a lateness the loop's, not the kernel's.  Counted,
+        #   those held the lead near its maximum with 16 buses whose polls land on other
+        #   buses' ticks: a third of the CPU spun (benchmarks/README.md, "Spin lead").
+        #   Nor may their promptness lower it: a reply handled just after the arming is
+        #   the usual case of a bus waiting out its 1 ms spacing, and a run of those could
+        #   wear the lead to its floor, where the next idle wake-up comes after its deadline.
         # Clipped at half the longest lead, which already asks for that lead: a wake-up
         # later than that (the thread descheduled) is no reason to spin longer.
         # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
-        if self._armed_ns and self._armed_precise and busy_until <= armed:
+        if self._spin_lead and self._armed_ns and self._armed_precise and busy_until <= armed:
             late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
@@ -655,7 +669,7 @@ class TimerfdTimer(Timer):
                 self.spin_seconds += spun_until - woke
         if self.wake_observer is not None:
             self.wake_observer(armed, woke, spun_until)
-        self._wake()
+        self._wake(spun_until)  # the latest clock reading: nothing due by then runs early
 
 
 _timers: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Timer] = weakref.WeakKeyDictionary()
