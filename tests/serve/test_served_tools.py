@@ -198,7 +198,6 @@ def test_tools_on_a_served_bus_refuse_what_needs_the_port(endpoint: str, tmp_pat
         (["capture", "--family", "la", "--port", "/dev/null"], "--connect uses a served bus"),
         (["scan", "--baud", "all"], "--baud all reopens the port"),
         (["doctor", "--fix"], "--fix and --stream"),
-        (["rig", "1", "--tests", "track", "--out", str(tmp_path)], "--tests track streams"),
         (["replay", "x.jsonl", "--to", "/dev/null"], "--connect uses a served bus"),
         (["project", "stop", "--port", "/dev/null"], "--connect uses a served bus"),
     ):
