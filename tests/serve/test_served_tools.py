@@ -179,6 +179,12 @@ def test_rig_holds_its_actuators_and_another_clients_lease_refuses_it(
     assert out.returncode == 1, out.stderr
     assert "leased by 'jig (client child-" in out.stderr and "motorbus rig" in out.stderr
     assert requests_of(la_sim, start) == []  # refused before anything was sent
+    # The tracking test streams: refused the same way, before its stream opens.
+    track = ("--tests", "track", "--out", str(tmp_path))
+    out = motorbus_cli("rig", "1", "--connect", endpoint, *track)
+    assert out.returncode == 1, out.stderr
+    assert "leased by 'jig (client child-" in out.stderr and "motorbus rig" in out.stderr
+    assert requests_of(la_sim, start) == []
     out = motorbus_cli(
         "rig", "2", "--connect", endpoint, "--tests", "latency", "--latency-count", "3",
         "--out", str(tmp_path),

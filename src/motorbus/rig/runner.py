@@ -45,6 +45,7 @@ from motorbus.rig.analysis import (
 )
 from motorbus.rig.plan import RigPlan
 from motorbus.rig.sampler import RigAborted, Sampler
+from motorbus.streaming.model import DEFAULT_MAX_SPEED, MAX_SPEED_LIMIT
 from motorbus.streams import Streamer
 
 __all__ = ["DeviceResult", "Failure", "Progress", "RigResult", "run_rig"]
@@ -58,9 +59,12 @@ SETTLE_SHARE = 0.05
 #: The steady state after a settle is sampled this long before the next move.
 TAIL_S = 0.15
 
-#: Most runs of one tracking frequency on a served bus (a run the server held or skipped
-#: a tick of is run again).
-SERVED_TRACK_RUNS = 2
+#: Most runs of one tracking frequency on a served bus (a run whose sine did not reach
+#: the actuator as sent, ``TicksMissed``, is run again).
+SERVED_TRACK_RUNS = 3
+#: Most share of a served sine's ticks the server may leave unwritten as sent (skipped,
+#: their rows late, ramped after a gap); those rows are left out of the figures.
+UNWRITTEN_SHARE = 0.05
 
 #: ``progress(what, done_fraction)``: called as the plan goes.
 Progress = Callable[[str, float], None]
@@ -76,8 +80,8 @@ WHY_MISSING = {
 
 
 class TicksMissed(ValueError):
-    """A served stream's sine did not reach the actuator as sent: the server held or
-    skipped a tick of it (its counters say how many)."""
+    """A served stream's sine did not reach the actuator as sent: too many of its ticks
+    were not written as sent (the server says which)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -326,8 +330,8 @@ class _Rig:
 
     async def track(self, ident: int, frequency: float) -> TrackFigures:
         """One frequency of the tracking test.  On a served bus, a run whose sine did not
-        reach the actuator as sent (the server held or skipped a tick: the network or
-        the server's host, not the actuator) is run again, up to ``SERVED_TRACK_RUNS``."""
+        reach the actuator as sent (``TicksMissed``: the network or the server's host,
+        not the actuator) is run again, up to ``SERVED_TRACK_RUNS`` runs."""
         for run in range(1, SERVED_TRACK_RUNS + 1):
             try:
                 return await self.track_once(ident, frequency)
@@ -353,8 +357,15 @@ class _Rig:
         streamer = Streamer(self.bus)
         try:
             first_write = len(self.sampler.targets[ident])
+            # After a gap (a stalled host) the stream ramps back to the sine at twice the
+            # sine's peak speed: back on it within about the gap's length.
+            speed = min(MAX_SPEED_LIMIT, max(DEFAULT_MAX_SPEED, 2 * amp * w))
             stream = streamer.follow(
-                InspireLA(streamer.bus, ident), rows, period=plan.period, safe_action="pause"
+                InspireLA(streamer.bus, ident),
+                rows,
+                period=plan.period,
+                safe_action="pause",
+                max_speed=speed,
             )
             self.sampler.stream = stream
             while not stream.done:
@@ -512,26 +523,27 @@ def _served_targets(stream: Any, rows: list[int], frequency: float) -> list[tupl
     """The sine's targets as a served stream wrote them: row ``k`` at its tick,
     ``stream.origin + k * period``, on this host's clock (the clock of the samples).
 
-    The writes are the server's, out of this host's sight: the server's counters say
-    whether every row was written at its tick.  A row that reached the server after
-    its tick (``held``: the actuator kept the previous target) or a tick it skipped
-    would put a target in the figures that the actuator never had then.
+    The writes are the server's, out of this host's sight; it says at the end which
+    ticks it did not write a row at as sent (``stream.unwritten``: ticks it skipped,
+    rows that came after their tick, ticks ramped back after a gap): those rows are
+    left out, as a local bus's observer never sees a skipped tick.
 
     Raises:
         ValueError: the server wrote no frame of the sine.
-        TicksMissed: it held or skipped a tick.
+        TicksMissed: more than ``UNWRITTEN_SHARE`` of the rows were not written as sent.
     """
-    stats = stream.stats.as_dict()
-    frames, held, skipped = (int(stats.get(n, 0)) for n in ("frames", "held", "skipped"))
-    if frames == 0:
+    if int(stream.stats.as_dict().get("frames", 0)) == 0:
         raise ValueError(f"{frequency:g} Hz: the server wrote no target of the sine")
-    if held or skipped:
+    unwritten = set(stream.unwritten) & set(range(len(rows)))
+    if len(unwritten) > UNWRITTEN_SHARE * len(rows):
         raise TicksMissed(
-            f"{frequency:g} Hz: {held} of {len(rows)} ticks of the sine came to the server "
-            f"after their tick (held) and {skipped} were skipped: the figures need every "
-            "target written at its tick"
+            f"{frequency:g} Hz: the server did not write {len(unwritten)} of the "
+            f"{len(rows)} ticks of the sine as sent (skipped, their targets late, or "
+            f"ramped after a gap; at most {UNWRITTEN_SHARE:.0%})"
         )
-    return [(stream.origin + k * stream.period, x) for k, x in enumerate(rows)]
+    return [
+        (stream.origin + k * stream.period, x) for k, x in enumerate(rows) if k not in unwritten
+    ]
 
 
 async def _pause_all(bus: Bus, ids: tuple[int, ...]) -> None:

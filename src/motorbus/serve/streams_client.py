@@ -208,6 +208,10 @@ class ServedStream:
         self.stats = ServedStreamStats()
         self.statuses: dict[int, la.Status] = {}
         self.last_targets: dict[int, int] = {}
+        #: Once it ended: the ticks whose target from this client the server did not
+        #: write as sent (it skipped the tick, the target came after it, or it ramped
+        #: back after a gap), as it said.
+        self.unwritten: frozenset[int] = frozenset()
         self.error: BaseException | None = None
         self.paused = False
         self.stopping = False
@@ -331,6 +335,8 @@ class ServedStream:
                 )
             )  # fmt: skip
         if state.get("done"):
+            unwritten = state.get("unwritten", [])
+            self.unwritten = frozenset(t for t in unwritten if isinstance(t, int))
             error = state.get("error")
             if error and self.error is None:
                 self.error = StreamEnded(str(error))

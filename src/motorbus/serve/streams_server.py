@@ -114,6 +114,10 @@ class TargetFeed:
         self.held = 0
         self.started = False
         self.sent: dict[int, int] = {}
+        #: The ticks whose row was not written as sent: skipped, prepared with no row,
+        #: or ramped after a gap (the first ``MAX_ROWS``; published when the stream
+        #: ends, ``unwritten``).
+        self.unwritten: list[int] = []
 
     def row(self, item: object, where: str) -> Targets:
         """One row of a payload as ``{id: position}`` (a list in ``ids`` order, a
@@ -153,15 +157,19 @@ class TargetFeed:
         k_now = round(t / self.period)
         for stale in range(self.low, k_now):  # one a tick, however many are buffered
             self.rows.pop(stale, None)
+            self._unwritten(stale)  # a tick the stream skipped
         targets = self.rows.pop(k_now, None)
         self.low = max(self.low, k_now + 1)
         if targets is not None:
             self._resume()
+            if self.stream is not None and self.stream.ramp is not None:
+                self._unwritten(k_now)  # ramped back after a gap: not the row as sent
             self.started = True
             self.sent.update(targets)
             return targets
         if self.end is not None and k_now >= self.end:
             return None  # the client's source ended: a normal (safe) end
+        self._unwritten(k_now)  # no row for it (yet): its row is dropped when it comes
         if not self.started:
             return {}  # no row yet: nothing is sent
         self.missed += 1
@@ -170,6 +178,10 @@ class TargetFeed:
             self._publish(self.missed, "stop")
             raise StreamEnded(f'gap (client silent, {self.missed} ticks missed; on_gap="stop")')
         return {}
+
+    def _unwritten(self, tick: int) -> None:
+        if len(self.unwritten) < MAX_ROWS:
+            self.unwritten.append(tick)
 
     def _resume(self) -> None:
         """Rows again after missing ones: ramp from the last targets sent."""
@@ -435,9 +447,12 @@ class StreamService:
     # -- state -------------------------------------------------------------------------------
 
     def state(self, served: _Served) -> dict[str, Any]:
-        """The ``stats`` payload of a served stream."""
+        """The ``stats`` payload of a served stream (at its end, with ``unwritten``:
+        the ticks whose row from the client was not written as sent, ``TargetFeed``)."""
         stream = served.stream
+        end = {"unwritten": served.feed.unwritten} if stream.done else {}
         return {
+            **end,
             "stream": stream.number,
             "ids": list(stream.ids),
             "done": stream.done,
