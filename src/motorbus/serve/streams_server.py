@@ -359,10 +359,10 @@ class StreamService:
             )
         phase = k.field_of(payload, "phase", (int, float), optional=True, default=0.0)
         self.server._check_control(client)
-        number = payload.get("lease")
+        number = k.field_of(payload, "lease", int, optional=True)
         under = None if number is None else self.server._explicit(client, name, number)
         feed = TargetFeed(ids, options.period, options.on_gap)
-        slot = (client.id, name, 0 if under is None else number)
+        slot = (client.id, name, number or 0)
         streamer = self.streamers.get(slot)
         if streamer is None and under is not None:
             streamer = LeaseStreamer(bus, under, phase=phase)
