@@ -54,9 +54,7 @@ class ObservedServedBus:
 
     def served_streamer(self, *, phase: float = 0.0) -> Any:
         """``Streamer(bus)``: the served bus's, its targets ``RIG_LEAD_S`` ahead."""
-        from motorbus.serve.streams_client import ServedStreamer
-
-        return ServedStreamer(self._bus, phase=phase, lead=RIG_LEAD_S)
+        return self._bus.served_streamer(phase=phase, lead=RIG_LEAD_S)
 
     def add_observer(self, observer: Any) -> None:
         if observer not in self._observers:
