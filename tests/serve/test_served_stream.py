@@ -328,3 +328,33 @@ def test_motorbus_stream_connect_refuses_the_servers_own_options(tmp_path: Path)
     )  # fmt: skip
     assert done.returncode == 2
     assert "--connect" in done.stderr and "--guard" in done.stderr
+
+
+async def test_a_stream_started_under_the_tasks_lease_runs_under_it_and_ends_with_its_pause(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    pause = la.Control(1, la.ControlAction.PAUSE)
+    async with motorbus.connect(endpoint) as site, motorbus.connect(endpoint) as other:
+        bus = site.bus()
+        lease = bus.lease(["la:1"], owner="jig")  # bound to this task
+        mine = [("la:1", f"jig (client {site.client_id})")]
+        # A stream of an actuator the lease does not hold would be a second owner.
+        with pytest.raises(motorbus.LeaseConflictError):
+            Streamer(bus).follow([InspireLA(bus, 1), InspireLA(bus, 2)], [(500, 500)] * 10)
+        stream = Streamer(bus).follow(
+            InspireLA(bus, 1), [700 + n for n in range(60)], period=0.01, safe_action="pause"
+        )
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "the stream to run")
+        # One owner: the lease, not a stream's own.
+        assert [(i.key, i.owner) for i in other.bus().leases] == mine
+        await asyncio.wait_for(stream.wait(), 30)
+        assert stream.error is None and stream.origin > 0
+        assert pause in after_last_broadcast(la_sim)  # the stream's safe action
+        assert [(i.key, i.owner) for i in other.bus().leases] == mine  # still the lease's
+        # Releasing the lease stops its running stream first, with its pause.
+        second = Streamer(bus).follow(InspireLA(bus, 1), [800] * 3000, safe_action="pause")
+        await eventually(lambda: (800,) in targets_at_sim(la_sim), "the second stream to run")
+        await lease.release()
+        await asyncio.wait_for(second.wait(), 10)
+        assert pause in after_last_broadcast(la_sim)
+        assert list(other.bus().leases) == []

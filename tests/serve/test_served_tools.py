@@ -179,6 +179,12 @@ def test_rig_holds_its_actuators_and_another_clients_lease_refuses_it(
     assert out.returncode == 1, out.stderr
     assert "leased by 'jig (client child-" in out.stderr and "motorbus rig" in out.stderr
     assert requests_of(la_sim, start) == []  # refused before anything was sent
+    # The tracking test streams: refused the same way, before its stream opens.
+    track = ("--tests", "track", "--out", str(tmp_path))
+    out = motorbus_cli("rig", "1", "--connect", endpoint, *track)
+    assert out.returncode == 1, out.stderr
+    assert "leased by 'jig (client child-" in out.stderr and "motorbus rig" in out.stderr
+    assert requests_of(la_sim, start) == []
     out = motorbus_cli(
         "rig", "2", "--connect", endpoint, "--tests", "latency", "--latency-count", "3",
         "--out", str(tmp_path),
@@ -198,7 +204,6 @@ def test_tools_on_a_served_bus_refuse_what_needs_the_port(endpoint: str, tmp_pat
         (["capture", "--family", "la", "--port", "/dev/null"], "--connect uses a served bus"),
         (["scan", "--baud", "all"], "--baud all reopens the port"),
         (["doctor", "--fix"], "--fix and --stream"),
-        (["rig", "1", "--tests", "track", "--out", str(tmp_path)], "--tests track streams"),
         (["replay", "x.jsonl", "--to", "/dev/null"], "--connect uses a served bus"),
         (["project", "stop", "--port", "/dev/null"], "--connect uses a served bus"),
     ):

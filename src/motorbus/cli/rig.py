@@ -28,7 +28,7 @@ the steppers' rate).  A run that does not finish within --timeout is stopped.
 
 ``--connect ENDPOINT`` runs the rig on a bus that ``motorbus serve`` owns, holding the
 lease of the devices under test (another client's lease refuses it, naming the holder);
-the tracking test streams, and is not run there yet.
+the tracking test streams through the server, under that lease.
 """
 
 from __future__ import annotations
@@ -164,12 +164,6 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.ids and args.ids[0] in ("project", "quad"):
         return _stepper(args)
     plan = _plan(args)  # every bad value is refused here, before the port opens
-    if args.connect:
-        import dataclasses
-
-        from motorbus.cli.served_rig import served_tests
-
-        plan = dataclasses.replace(plan, tests=served_tests(plan.tests, args.tests))
     if not args.out:
         raise UsageError("rig: give --out DIR for results.json, samples.csv and report.html")
     out = Path(args.out)

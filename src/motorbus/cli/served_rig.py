@@ -7,49 +7,36 @@ when the run ends, however it ends (the server's deadman covers a killed rig).
 
 The rig watches replies through ``Bus.add_observer``; a served bus is watched here, at
 the client: each request's write and reply times are this client's, so the rig's
-figures include the round trip to the server (docs/serve.md, Measured).  The tracking
-test streams, and streams are not served by this version: ``--tests all`` runs the
-others on a served bus and says so.
+figures include the round trip to the server (docs/serve.md, Measured).
+
+The tracking test streams through the server (``ServedBus.served_streamer``: the
+server ticks), under the rig's lease: the sine goes ahead as a sequence, ``RIG_LEAD_S``
+ahead of its ticks.  Its targets are written by the server, out of this client's
+sight: the rig takes row ``k`` as written at tick ``k``, ``stream.origin + k * period``
+on this client's clock, the clock its status samples are stamped on; both are late by
+the way from the server to here, so the amplitude ratio, the phase and the lag compare
+like with like (docs/rig.md, On a served bus).  The rows the server says it never wrote
+are left out; a gap, or more than a few unwritten, runs the frequency again.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import Any, cast
 
 from motorbus import Bus, Priority
-from motorbus.errors import UsageError
 from motorbus.protocol.base import Command
 
-__all__ = ["RIG_OWNER", "ObservedServedBus", "held", "run_served_rig", "served_tests"]
+__all__ = ["RIG_LEAD_S", "RIG_OWNER", "ObservedServedBus", "held", "run_served_rig"]
 
 #: The owner of the rig's lease, as other clients see it.
 RIG_OWNER = "motorbus rig"
-#: The tests that stream (not on a served bus yet).
-STREAMING_TESTS = ("track",)
+#: How far ahead of its ticks the tracking sine goes to the server (seconds): the rig
+#: knows it all, and a row that comes after its tick fails the test.
+RIG_LEAD_S = 0.5
 _SERVED_PRIORITIES = (Priority.NORMAL, Priority.HIGH, Priority.EMERGENCY)
-
-
-def served_tests(tests: tuple[str, ...], asked: str) -> tuple[str, ...]:
-    """The tests a served rig runs: ``all`` less the streaming ones (said on standard
-    error); a streaming test asked by name is refused (exit 2, nothing sent)."""
-    streaming = [t for t in tests if t in STREAMING_TESTS]
-    if not streaming:
-        return tests
-    if asked.strip() != "all":
-        raise UsageError(
-            f"--tests {','.join(streaming)} streams on the bus: not on a served bus "
-            "(--connect) yet; choose among step, latency, repeat"
-        )
-    print(
-        f"motorbus rig: --connect: {', '.join(streaming)} not run (it streams; streams are "
-        "not served yet)",
-        file=sys.stderr,
-    )
-    return tuple(t for t in tests if t not in STREAMING_TESTS)
 
 
 class ObservedServedBus:
@@ -64,6 +51,10 @@ class ObservedServedBus:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._bus, name)
+
+    def served_streamer(self, *, phase: float = 0.0) -> Any:
+        """``Streamer(bus)``: the served bus's, its targets ``RIG_LEAD_S`` ahead."""
+        return self._bus.served_streamer(phase=phase, lead=RIG_LEAD_S)
 
     def add_observer(self, observer: Any) -> None:
         if observer not in self._observers:

@@ -402,12 +402,13 @@ class ServedBus:
     def _lease_op_blocking(self, body: dict[str, Any]) -> dict[str, Any]:
         return self.site._query_blocking(k.bus_key(self.name, "lease"), body)
 
-    def served_streamer(self, *, phase: float = 0.0) -> Any:
+    def served_streamer(self, *, phase: float = 0.0, lead: float | None = None) -> Any:
         """What ``motorbus.Streamer(bus)`` makes of this bus: streams on the server's
-        timer (``motorbus.serve.streams_client``)."""
-        from motorbus.serve.streams_client import ServedStreamer
+        timer (``motorbus.serve.streams_client``); ``lead``: how far ahead of their
+        ticks the targets go (default ``LEAD_S``)."""
+        from motorbus.serve.streams_client import LEAD_S, ServedStreamer
 
-        return ServedStreamer(self, phase=phase)
+        return ServedStreamer(self, phase=phase, lead=LEAD_S if lead is None else lead)
 
     async def fetch_stats(self) -> dict[str, Any]:
         """The server bus's counters (``BusStats.as_dict``)."""

@@ -474,6 +474,8 @@ class BusServer:
         if op == "release":
             wanted = k.field_of(payload, "keys", list, optional=True)
             hold = k.field_of(payload, "hold", bool, optional=True, default=False)
+            if wanted is None:  # its streams stop first, with their safe actions
+                await self._streams.end_lease(client, payload["lease"])
             await lease.release(hold=hold, keys=None if wanted is None else bus_keys(wanted))
             if not lease.active:
                 client.explicit.pop(payload["lease"], None)

@@ -15,6 +15,17 @@ up to ``STATS_EVERY_S`` older than on a local bus.  A sequence's rows go ahead i
 batches.  ``stream.stats`` and ``stream.statuses`` are the server's, as last published
 (every ``STATS_EVERY_S``, and at the end); ``stats.as_dict()`` has one count more,
 ``held``: ticks the server prepared with no target from this client.
+
+Whose motion: a stream started by a task that holds a lease (``bus.lease``, bound to
+the task) of all its actuators runs under that lease on the server (no second owner:
+the rig's lease is its stream's); else under a lease of the stream's own, as on a local
+bus.  Either way its end applies its safe action.
+
+Clocks: ``stream.origin`` is tick 0 on this host's clock (``time.monotonic``, the
+clock of ``ServedBus.timer``): the server's tick 0 as its open reply told it (the
+server's ``starts_in``, from when the reply came).  Tick ``k`` is due at ``origin + k *
+period`` on this clock, late by the reply's way from the server, as every reply this
+client stamps is (docs/serve.md, Clocks).
 """
 
 from __future__ import annotations
@@ -125,9 +136,16 @@ class ServedStreamer:
             raise LocalProtocolError("actuators lists an id twice", field="actuators")
         adapter = TargetAdapter(ids, targets)  # refuses a source of no known kind
         self.bus.site._check_open(self.bus.name)
+        body: dict[str, Any] = {}
+        lease = self.bus._bound_lease()
+        if lease is not None and {f"la:{i}" for i in ids} <= lease.keys:
+            body["lease"] = lease.number  # the task's lease: the stream runs under it
+        elif lease is not None and not lease.active:
+            raise BusClosedError(f"{lease!r} has ended ({lease.ended}): the stream not started")
         opened = self.bus.site._query_blocking(
             k.bus_key(self.bus.name, "stream"),
             {
+                **body,
                 "op": "open",
                 "ids": list(ids),
                 "period": options.period,
@@ -164,6 +182,9 @@ class ServedStream:
     """A stream running on the server; the handle of ``ServedStreamer.follow``
     (the members of ``motorbus.Stream``)."""
 
+    #: Its frames are written by the server: this host's bus observers never see them.
+    remote = True
+
     def __init__(
         self,
         streamer: ServedStreamer,
@@ -187,6 +208,10 @@ class ServedStream:
         self.stats = ServedStreamStats()
         self.statuses: dict[int, la.Status] = {}
         self.last_targets: dict[int, int] = {}
+        #: Once it ended: the ticks whose target from this client the server did not
+        #: write as sent (it skipped the tick, the target came after it, or it ramped
+        #: back after a gap), as it said.
+        self.unwritten: frozenset[int] = frozenset()
         self.error: BaseException | None = None
         self.paused = False
         self.stopping = False
@@ -216,6 +241,11 @@ class ServedStream:
     @property
     def sending(self) -> bool:
         return not (self.paused or self.stopping or self.done)
+
+    @property
+    def origin(self) -> float:
+        """Tick 0 on this host's clock (``time.monotonic``; module docstring, Clocks)."""
+        return self._t0
 
     # -- control -----------------------------------------------------------------------
 
@@ -305,6 +335,8 @@ class ServedStream:
                 )
             )  # fmt: skip
         if state.get("done"):
+            unwritten = state.get("unwritten", [])
+            self.unwritten = frozenset(t for t in unwritten if isinstance(t, int))
             error = state.get("error")
             if error and self.error is None:
                 self.error = StreamEnded(str(error))

@@ -17,11 +17,16 @@ stream's gap policy: the actuators hold their last target meanwhile; after
 rows come again and ramps from the last target sent to them at ``max_speed``.
 
 Whose motion: the stream's actuators are the client's (taken over from its implicit
-lease if it moved them before).  When the client dies (its token goes, or its heartbeat
-stops: the deadman) its streams stop with their safe actions before its leases end; a
-stream whose safe action is ``"hold"`` passes its actuators to the client's implicit
-lease, whose end (the client's, at the latest) then pauses them, as a local bus's close
-does.  The server publishes each stream's counters, latest statuses and gaps on
+lease if it moved them before).  An open that names one of the client's explicit leases
+(``lease``: its number; ``ServedStreamer.follow`` sends the lease the calling task
+holds) runs the stream under that lease, which must hold every actuator of it: no
+second owner.  The stream's end still applies its safe action; the actuators stay in
+the lease, whose owner ends it (releasing it stops its streams first).  When the
+client dies (its token goes, or its heartbeat stops: the deadman) its streams stop
+with their safe actions before its leases end; a stream of its own lease whose safe
+action is ``"hold"`` passes its actuators to the client's implicit lease, whose end
+(the client's, at the latest) then pauses them, as a local bus's close does.  The
+server publishes each stream's counters, latest statuses and gaps on
 ``motorbus/v1/bus/{bus}/stream/{n}/stats`` every ``STATS_EVERY_S`` and when it ends.
 """
 
@@ -36,6 +41,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from motorbus.bus.bus import Bus
+from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.protocol import la
@@ -55,6 +61,7 @@ __all__ = [
     "START_IN_MAX_S",
     "STATS_EVERY_S",
     "STREAM_OPS",
+    "LeaseStreamer",
     "StreamService",
     "TargetFeed",
     "stream_key",
@@ -107,6 +114,10 @@ class TargetFeed:
         self.held = 0
         self.started = False
         self.sent: dict[int, int] = {}
+        #: The ticks whose row was not written as sent: skipped, prepared with no row,
+        #: or ramped after a gap (the first ``MAX_ROWS``; published when the stream
+        #: ends, ``unwritten``).
+        self.unwritten: list[int] = []
 
     def row(self, item: object, where: str) -> Targets:
         """One row of a payload as ``{id: position}`` (a list in ``ids`` order, a
@@ -146,15 +157,19 @@ class TargetFeed:
         k_now = round(t / self.period)
         for stale in range(self.low, k_now):  # one a tick, however many are buffered
             self.rows.pop(stale, None)
+            self._unwritten(stale)  # a tick the stream skipped
         targets = self.rows.pop(k_now, None)
         self.low = max(self.low, k_now + 1)
         if targets is not None:
             self._resume()
+            if self.stream is not None and self.stream.ramp is not None:
+                self._unwritten(k_now)  # ramped back after a gap: not the row as sent
             self.started = True
             self.sent.update(targets)
             return targets
         if self.end is not None and k_now >= self.end:
             return None  # the client's source ended: a normal (safe) end
+        self._unwritten(k_now)  # no row for it (yet): its row is dropped when it comes
         if not self.started:
             return {}  # no row yet: nothing is sent
         self.missed += 1
@@ -163,6 +178,10 @@ class TargetFeed:
             self._publish(self.missed, "stop")
             raise StreamEnded(f'gap (client silent, {self.missed} ticks missed; on_gap="stop")')
         return {}
+
+    def _unwritten(self, tick: int) -> None:
+        if len(self.unwritten) < MAX_ROWS:
+            self.unwritten.append(tick)
 
     def _resume(self) -> None:
         """Rows again after missing ones: ramp from the last targets sent."""
@@ -187,6 +206,35 @@ class TargetFeed:
         )  # fmt: skip
 
 
+class LeaseStreamer(Streamer):
+    """A client's ``Streamer`` whose streams run under one of that client's explicit
+    leases (an open naming ``lease``): it takes no lease of its own and gives nothing
+    back when a stream ends (the stream has applied its safe action; what is still
+    owed goes when the lease's owner ends it)."""
+
+    def __new__(cls, bus: Bus, lease: Lease, *, phase: float = 0.0) -> LeaseStreamer:
+        return object.__new__(cls)
+
+    def __init__(self, bus: Bus, lease: Lease, *, phase: float = 0.0) -> None:
+        super().__init__(bus, phase=phase)
+        self.lease = lease
+
+    def _take(self, keys: list[str]) -> list[str]:
+        assert self.lease is not None
+        missing = [key for key in keys if key not in self.lease.keys]
+        if missing:
+            raise LocalProtocolError(
+                f"lease: {', '.join(missing)} not held by {self.lease.owner!r}; a stream "
+                "under a lease streams only what it holds (nothing sent)",
+                field="lease",
+                value=", ".join(missing),
+            )
+        return []  # nothing newly taken: nothing to give back if the follow fails
+
+    async def let_go(self, stream: Stream, *, hold: bool) -> None:
+        return None  # the actuators stay in the lease: its owner ends it
+
+
 @dataclass
 class _Served:
     """One served stream: its client, bus, server-side ``Stream`` and feed."""
@@ -198,6 +246,8 @@ class _Served:
     streamer: Streamer
     held_on_purpose: bool = False
     finished: bool = False
+    #: The client's explicit lease the stream runs under (the open's ``lease``), if any.
+    lease: int | None = None
 
 
 class StreamService:
@@ -206,8 +256,9 @@ class StreamService:
     def __init__(self, server: BusServer) -> None:
         self.server = server
         self.streams: dict[int, _Served] = {}
-        #: One streamer per client and bus: its lease holds that client's streams only.
-        self.streamers: dict[tuple[str, str], Streamer] = {}
+        #: One streamer per client, bus and lease (0: the streamer's own lease, which
+        #: holds that client's streams only; else a lease of the client's, by number).
+        self.streamers: dict[tuple[str, str, int], Streamer] = {}
 
     def declare(self, session: Any, name: str) -> None:
         """Declare the stream keys of bus ``name`` (``BusServer.start``)."""
@@ -225,6 +276,14 @@ class StreamService:
     def holds(self, cid: str) -> bool:
         """Whether client ``cid`` has a stream running."""
         return any(s.client.id == cid and not s.stream.done for s in self.streams.values())
+
+    async def end_lease(self, client: _Client, number: int) -> None:
+        """The client releases its lease ``number``: the streams under it stop first,
+        with their safe actions."""
+        for served in [s for s in self.streams.values() if s.client.id == client.id]:
+            if served.lease == number and not served.stream.done:
+                await served.stream.stop()
+                await self._finished(served)
 
     async def end_client(self, client: _Client, why: str) -> None:
         """The client is gone: stop its streams with their safe actions (the deadman)."""
@@ -300,17 +359,25 @@ class StreamService:
             )
         phase = k.field_of(payload, "phase", (int, float), optional=True, default=0.0)
         self.server._check_control(client)
+        number = k.field_of(payload, "lease", int, optional=True)
+        under = None if number is None else self.server._explicit(client, name, number)
         feed = TargetFeed(ids, options.period, options.on_gap)
-        streamer = self.streamers.get((client.id, name))
-        if streamer is None:
+        slot = (client.id, name, number or 0)
+        streamer = self.streamers.get(slot)
+        if streamer is None and under is not None:
+            streamer = LeaseStreamer(bus, under, phase=phase)
+        elif streamer is None:
             streamer = Streamer(bus, phase=phase)
-        # The client's own earlier motion of these actuators passes to its stream.
         keys = [f"la:{i}" for i in ids]
+        # The client's own earlier motion of these actuators passes to its stream (to
+        # the lease it names, which holds them already: then nothing passes).
         implicit = client.implicit.get(name)
         moved = [key for key in keys if implicit is not None and key in implicit.keys]
-        if implicit is not None and moved:
+        if implicit is not None and moved and under is None:
             bus.hand_over(implicit, moved)
-        created = streamer.lease is None or not streamer.lease.active
+        else:
+            moved = []
+        created = under is None and (streamer.lease is None or not streamer.lease.active)
         try:
             if created:  # the streamer's lease, named for its client (else Streamer makes it)
                 streamer.lease = bus.lease(keys, owner=f"stream of client {client.id}", bind=False)
@@ -334,8 +401,9 @@ class StreamService:
         # Tick 0 comes ``start_in`` later, on the streamer's grid (nothing ran yet).
         stream.origin += math.ceil(start_in / stream.period - 1e-9) * stream.period
         feed.stream = stream
-        self.streamers[(client.id, name)] = streamer
+        self.streamers[slot] = streamer
         served = self.streams[stream.number] = _Served(client, name, stream, feed, streamer)
+        served.lease = slot[2] or None
         self.server._spawn(self._publish(served))
         return {**self.state(served), "starts_in": stream.origin - bus.timer.now()}
 
@@ -379,9 +447,12 @@ class StreamService:
     # -- state -------------------------------------------------------------------------------
 
     def state(self, served: _Served) -> dict[str, Any]:
-        """The ``stats`` payload of a served stream."""
+        """The ``stats`` payload of a served stream (at its end, with ``unwritten``:
+        the ticks whose row from the client was not written as sent, ``TargetFeed``)."""
         stream = served.stream
+        end = {"unwritten": served.feed.unwritten} if stream.done else {}
         return {
+            **end,
             "stream": stream.number,
             "ids": list(stream.ids),
             "done": stream.done,
@@ -418,11 +489,12 @@ class StreamService:
         served.finished = True
         stream = served.stream
         bus = stream.streamer.bus
-        if stream.safe_action is SafeAction.HOLD and not served.held_on_purpose:
+        held = stream.safe_action is SafeAction.HOLD and not served.held_on_purpose
+        if held and served.lease is None:  # under a lease, they stay in it
             self._to_client(served.client, served.bus, bus, [f"la:{i}" for i in stream.ids])
         streamer = served.streamer
         if not streamer.streams:
-            self.streamers.pop((served.client.id, served.bus), None)
+            self.streamers.pop((served.client.id, served.bus, served.lease or 0), None)
             with contextlib.suppress(MotorbusError):
                 await streamer.close()
 
