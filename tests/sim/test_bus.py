@@ -353,7 +353,11 @@ async def test_memory_sim_uses_a_given_timer() -> None:
             calls.append(deadline)
             return loop.call_at(deadline, callback)  # type: ignore[arg-type]
 
-    async with MemorySim.start([FakeLA(1)], timer=Timer()) as sim:
+    class SlowLA(FakeLA):  # a reply due well after the request: it waits for a timer
+        def turnaround(self, rng: random.Random) -> float:
+            return 0.05
+
+    async with MemorySim.start([SlowLA(1)], timer=Timer()) as sim:
         assert await _exchange(sim, REQ1, 8) == ACK1
     assert calls, "the simulator never scheduled through the given timer"
 
