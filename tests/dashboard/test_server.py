@@ -422,9 +422,9 @@ async def test_viewers_connecting_between_two_pushes_share_one_snapshot_build(
         builds: list[int | None] = []
         real = rig.dash.state.snapshot
 
-        def counted(since: int | None = None) -> dict[str, Any]:
+        def counted(since: int | None = None, **kw: Any) -> dict[str, Any]:
             builds.append(since)
-            return real(since)
+            return real(since, **kw)
 
         monkeypatch.setattr(rig.dash.state, "snapshot", counted)
         rig.dash.pushed()

@@ -5,9 +5,18 @@ from __future__ import annotations
 import json
 
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from motorbus.bus.events import BusStateChanged, FaultChanged, ProjectFinished, QuadDone
-from motorbus.dashboard.state import REPLY_EDGES_MS, WINDOW_S, DashboardState, error_names
+from motorbus.dashboard.runtime import json_pieces
+from motorbus.dashboard.state import (
+    REPLY_EDGES_MS,
+    WINDOW_S,
+    DashboardState,
+    error_names,
+    with_columns,
+)
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as quad
@@ -51,6 +60,20 @@ def test_a_full_snapshot_has_every_sample_of_the_window_and_is_json(state: Dashb
         "position": 40, "target": 1000, "current": 120, "force": -40, "temperature": 31
     }  # fmt: skip
     assert two["latest"] is None and two["series"]["t"] == []
+
+
+def test_a_snapshot_taken_as_rows_renders_to_the_same_json_and_keeps_its_moment(
+    state: DashboardState,
+) -> None:
+    # The viewers' snapshot is copied where the state lives and rendered on another
+    # thread (runtime.ViewerSnapshot): the same JSON, and blind to later samples.
+    for k in range(5):
+        poll(state, 100.0 + k * 0.1, 1, 10 * k)
+    rows = state.snapshot(columns=False)
+    expected = json.dumps(state.snapshot())
+    poll(state, 100.5, 1, 50)  # after the copy: not in it
+    assert json.dumps(with_columns(rows, state.epoch)) == expected
+    assert json.loads(expected)["buses"][0]["la"][0]["series"]["position"][-1] == 40
 
 
 def test_a_delta_carries_only_the_samples_since_the_previous_snapshot(
@@ -171,3 +194,15 @@ def test_a_project_dump_lists_the_project(state: DashboardState) -> None:
 def _cleared_dump(project: int) -> bytes:
     (reply,) = ProjectStepperModel().handle(ps.ReadProject(project).encode(), 0.0)
     return reply
+
+
+json_values = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats(allow_nan=False) | st.text(),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(), inner, max_size=4),
+    max_leaves=30,
+)
+
+
+@given(json_values)
+def test_a_snapshot_in_pieces_is_the_same_json(value: object) -> None:
+    assert "".join(json_pieces(value)) == json.dumps(value, separators=(",", ":"))

@@ -68,11 +68,12 @@ class ViewerLane:
 
     ``app`` is the viewers' aiohttp application (the ``/ws`` route and the page's
     checks), built by the caller and set up on the lane's loop.  ``snapshot`` is a
-    coroutine function of the control loop giving a new viewer's first message.
+    coroutine function of the control loop giving what renders a new viewer's first
+    message (called here, on the lane's thread: the costly part of a snapshot).
     """
 
     def __init__(
-        self, app: web.Application, snapshot: Callable[[], Coroutine[Any, Any, str]]
+        self, app: web.Application, snapshot: Callable[[], Coroutine[Any, Any, Callable[[], str]]]
     ) -> None:
         self.app = app
         self.viewers: weakref.WeakSet[web.WebSocketResponse] = weakref.WeakSet()
@@ -189,11 +190,12 @@ class ViewerLane:
                 task.add_done_callback(self._tasks.discard)
 
     async def snapshot(self) -> str:
-        """A new viewer's first message, from the control loop."""
+        """A new viewer's first message: taken on the control loop, rendered here."""
         control = self._control
         assert control is not None
         future = asyncio.run_coroutine_threadsafe(self._snapshot(), control)
-        return await asyncio.wrap_future(future)
+        render = await asyncio.wrap_future(future)
+        return render()
 
 
 class PageServer:

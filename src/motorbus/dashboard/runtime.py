@@ -21,7 +21,8 @@ import contextlib
 import dataclasses
 import json
 import logging
-from collections.abc import Awaitable, Callable, Iterable
+import threading
+from collections.abc import Awaitable, Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,7 @@ from typing import Any
 from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.events import BusEvent, Subscription
 from motorbus.dashboard.record import Recorder
-from motorbus.dashboard.state import DashboardState
+from motorbus.dashboard.state import DashboardState, with_columns
 from motorbus.errors import ControlError, MotorbusError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
@@ -43,6 +44,7 @@ __all__ = [
     "BusSetup",
     "ControlError",
     "Dashboard",
+    "ViewerSnapshot",
 ]
 
 log = logging.getLogger("motorbus.dashboard")
@@ -109,6 +111,50 @@ class _Observer:
             self.dash.recorder.on_reply(self.name, cmd, value, replied_at)
 
 
+class ViewerSnapshot:
+    """A new viewer's full snapshot: copied where the state lives, rendered (columns,
+    JSON) once, by whoever asks first, in any thread."""
+
+    def __init__(self, data: dict[str, Any], epoch: float | None) -> None:
+        self._data: dict[str, Any] | None = data
+        self._epoch = epoch
+        self._text: str | None = None
+        self._lock = threading.Lock()
+
+    def text(self) -> str:
+        with self._lock:
+            if self._text is None:
+                assert self._data is not None
+                self._text = "".join(json_pieces(with_columns(self._data, self._epoch)))
+                self._data = None
+            return self._text
+
+
+def json_pieces(value: Any) -> Iterator[str]:
+    """``json.dumps(value, separators=(",", ":"))`` in pieces: one ``json.dumps`` per
+    list of plain values (a plot's column), the objects and lists around them here.
+
+    One ``json.dumps`` of a whole snapshot holds the GIL for milliseconds (C code
+    never offers it), and the thread that renders a new viewer's snapshot shares the
+    process with the loop that sends e-stops: in pieces, that loop can take the GIL
+    between two columns."""
+    if isinstance(value, dict) and all(isinstance(key, str) for key in value):
+        yield "{"
+        for n, (key, item) in enumerate(value.items()):
+            yield ("," if n else "") + json.dumps(key) + ":"
+            yield from json_pieces(item)
+        yield "}"
+    elif isinstance(value, list) and any(isinstance(v, dict | list) for v in value):
+        yield "["
+        for n, item in enumerate(value):
+            if n:
+                yield ","
+            yield from json_pieces(item)
+        yield "]"
+    else:
+        yield json.dumps(value, separators=(",", ":"))
+
+
 class Dashboard:
     """The pollers, controls and recording of every watched bus.
 
@@ -142,8 +188,8 @@ class Dashboard:
         self.rounds: dict[str, int] = dict.fromkeys(self.setups, 0)
         self._observers: dict[str, _Observer] = {}
         self._subs: list[Subscription[BusEvent]] = []
-        #: The full snapshot new viewers get until the next push (see ``for_new_viewer``).
-        self._viewer_snapshot: str | None = None
+        #: The full snapshot new viewers get until the next push (see ``viewer_snapshot``).
+        self._viewer_snapshot: ViewerSnapshot | None = None
         self._tasks: list[asyncio.Task[None]] = []
         self._hooks: dict[str, Callable[[], Awaitable[None]]] = {}
         for name, s in self.setups.items():
@@ -296,25 +342,37 @@ class Dashboard:
 
     def message(self, since: int | None = None) -> str:
         """The state as one JSON text (``since``: only the samples after that ``seq``)."""
+        self._refresh()
+        return json.dumps(self.state.snapshot(since), separators=(",", ":"))
+
+    def _refresh(self) -> None:
         for name, s in self.setups.items():
             self.state.set_stats(name, self._stats(name))
             self.state.advance(s.bus.timer.now())
-        return json.dumps(self.state.snapshot(since), separators=(",", ":"))
 
-    def for_new_viewer(self) -> str:
-        """The full snapshot for a viewer that just connected: built once per push.
+    def viewer_snapshot(self) -> ViewerSnapshot:
+        """The full snapshot for a viewer that just connected: taken once per push.
 
-        The snapshot is some 0.4 MB of JSON with five buses of samples, and building it
-        runs on the bus's event loop: built anew for each of 50 viewers connecting at
-        once, it held the loop for over a second, polls and e-stops included.  So every
-        viewer that connects between two pushes gets the snapshot the first of them
-        built.  It is never older than the last push, and the next push sends the samples
-        since the previous one, so a viewer misses nothing (it may get a sample twice,
-        which the page drops by its time).
+        The snapshot is some 0.2-0.4 MB of JSON with five actuators' samples.  Built
+        anew for each of 50 viewers connecting at once, it held the bus's event loop for
+        over a second, polls and e-stops included; built once, it still held this loop
+        for ~10 ms, in the way of an e-stop posted among them.  So every viewer that
+        connects between two pushes gets the snapshot the first of them asked for, and
+        here only its copy is taken (the samples' rows, a C-level copy each); turning
+        the rows into columns and JSON (:meth:`ViewerSnapshot.text`) is for the caller,
+        on the viewers' own thread.  It is never older than the last push, and the next
+        push sends the samples since the previous one, so a viewer misses nothing (it
+        may get a sample twice, which the page drops by its time).
         """
         if self._viewer_snapshot is None:
-            self._viewer_snapshot = self.message()
+            self._refresh()
+            data = self.state.snapshot(columns=False)
+            self._viewer_snapshot = ViewerSnapshot(data, self.state.epoch)
         return self._viewer_snapshot
+
+    def for_new_viewer(self) -> str:
+        """:meth:`viewer_snapshot` as its JSON text."""
+        return self.viewer_snapshot().text()
 
     def pushed(self) -> None:
         """A push went out (or would have): the next new viewer gets a fresh snapshot."""

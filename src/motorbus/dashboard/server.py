@@ -137,9 +137,9 @@ def make_app(
     }
     gate = _EmergencyGate()
 
-    async def snapshot() -> str:  # on the control loop, for the viewers' lane
+    async def snapshot() -> Callable[[], str]:  # on the control loop, for the lane
         await gate.wait()
-        return dash.for_new_viewer()
+        return dash.viewer_snapshot().text  # a copy: rendered on the viewers' thread
 
     viewers = web.Application(middlewares=[_guard])
     viewers[_CONFIG] = config

@@ -43,7 +43,9 @@ __all__ = [
     "DashboardState",
     "Histogram",
     "LAView",
+    "columns_of",
     "error_names",
+    "with_columns",
 ]
 
 #: Seconds of samples the plots show (and a new viewer receives).
@@ -195,9 +197,7 @@ class DashboardState:
         self._clock(now)
 
     def _rel(self, t: float | None) -> float | None:
-        if t is None or self.epoch is None:
-            return None
-        return round(t - self.epoch, 6)
+        return _relative(t, self.epoch)
 
     # -- observations ---------------------------------------------------------------
 
@@ -346,12 +346,16 @@ class DashboardState:
         writes = view.writes
         return float(sum(1 for t in writes if t >= self.now - RATE_WINDOW_S))
 
-    def snapshot(self, since: int | None = None) -> dict[str, Any]:
+    def snapshot(self, since: int | None = None, *, columns: bool = True) -> dict[str, Any]:
         """The whole state as JSON-ready data.
 
         Args:
             since: the ``seq`` of the previous snapshot; only samples newer than it are
                 included (``None``: every sample of the window, for a new viewer).
+            columns: ``False`` leaves each actuator's ``series`` as a copy of its sample
+                rows, for :func:`with_columns` to turn into columns later, elsewhere (a
+                thread of its own: the copy is the only part that must be taken where
+                the state is fed, and the cheap one).
         """
         return {
             "type": "full" if since is None else "delta",
@@ -362,10 +366,10 @@ class DashboardState:
             "control": self.control,
             "window": list(self.window),
             "recording": self.recording,
-            "buses": [self._bus_json(v, since) for v in self.buses.values()],
+            "buses": [self._bus_json(v, since, columns) for v in self.buses.values()],
         }
 
-    def _bus_json(self, view: BusView, since: int | None) -> dict[str, Any]:
+    def _bus_json(self, view: BusView, since: int | None, columns: bool) -> dict[str, Any]:
         stats = view.stats
         return {
             "name": view.name,
@@ -383,18 +387,19 @@ class DashboardState:
             "latency": stats.get("latency", {}),
             "reply_hist": view.reply_times.to_json(),
             "events": list(view.events),
-            "la": [self._la_json(d, since) for d in sorted(view.la.values(), key=lambda d: d.id)],
+            "la": [
+                self._la_json(d, since, columns)
+                for d in sorted(view.la.values(), key=lambda d: d.id)
+            ],
             "project": view.project,
             "quad": view.quad,
             "served": view.served,
             "leases": list(view.leases),
         }
 
-    def _la_json(self, dev: LAView, since: int | None) -> dict[str, Any]:
-        rows = [s for s in dev.samples if since is None or s[0] > since]
-        series: dict[str, list[Any]] = {"t": [self._rel(s[1]) for s in rows]}
-        for k, name in enumerate(SERIES):
-            series[name] = [s[2 + k] for s in rows]
+    def _la_json(self, dev: LAView, since: int | None, columns: bool) -> dict[str, Any]:
+        rows = list(dev.samples) if since is None else [s for s in dev.samples if s[0] > since]
+        series: Any = columns_of(rows, self.epoch) if columns else rows
         return {
             "id": dev.id,
             "mode": dev.mode,
@@ -405,3 +410,27 @@ class DashboardState:
             "jitter_hist": dev.jitter.to_json(),
             "series": series,
         }
+
+
+def _relative(t: float | None, epoch: float | None) -> float | None:
+    if t is None or epoch is None:
+        return None
+    return round(t - epoch, 6)
+
+
+def columns_of(rows: list[tuple[Any, ...]], epoch: float | None) -> dict[str, list[Any]]:
+    """An actuator's sample rows as the page's columns (``t`` relative to ``epoch``)."""
+    series: dict[str, list[Any]] = {"t": [_relative(r[1], epoch) for r in rows]}
+    for k, name in enumerate(SERIES):
+        series[name] = [r[2 + k] for r in rows]
+    return series
+
+
+def with_columns(snapshot: dict[str, Any], epoch: float | None) -> dict[str, Any]:
+    """``snapshot`` (from ``snapshot(columns=False)``) with its rows turned into columns,
+    in place; pure, so it may run in any thread."""
+    for bus in snapshot["buses"]:
+        for dev in bus["la"]:
+            if isinstance(dev["series"], list):
+                dev["series"] = columns_of(dev["series"], epoch)
+    return snapshot
