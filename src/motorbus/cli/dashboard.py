@@ -402,6 +402,10 @@ async def _run_page(
     SIGTERM cancels us; then stop it (its safe stop) and the page."""
     from motorbus.dashboard.server import make_app, serve_page
 
+    # The viewers' thread and this loop share the GIL; a thread waiting for it gets it
+    # after the interpreter's switch interval (5 ms by default), each time: an e-stop's
+    # request needs it several times on its way while a burst of viewers is served.
+    sys.setswitchinterval(min(sys.getswitchinterval(), GIL_SWITCH_S))
     record = Path(args.record) if args.record else None
     app = make_app(
         dash, token=page.token, push_hz=args.push_hz, record_dir=record, hosts=page.hosts
@@ -419,6 +423,10 @@ async def _run_page(
             await until()
         finally:
             await dash.stop()
+
+
+#: The dashboard process's GIL switch interval, seconds (see ``_run_page``).
+GIL_SWITCH_S = 0.0002
 
 
 # -- the bus in a motorbus serve (docs/dashboard.md, "A served bus") ---------------------
