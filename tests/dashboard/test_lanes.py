@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import sys
 import threading
 
 import pytest
 
 pytest.importorskip("aiohttp")
 
-from motorbus.dashboard.lanes import PEEK_MAX, route
+from motorbus.dashboard.lanes import PEEK_MAX, VIEWER_NICE, route
 from motorbus.protocol import la
 from tests.dashboard.test_server import WAIT_S, frame, served
 
@@ -87,3 +89,12 @@ async def test_a_request_line_sent_in_pieces_is_routed_once_whole() -> None:
         quiet.close()
         await quiet.wait_closed()
         assert (await rig.client.get("/api/state")).status == 200
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a nice value per thread")
+async def test_the_viewers_thread_runs_at_a_lower_cpu_priority_than_the_controls() -> None:
+    async with served(control=False) as rig:
+        tid = rig.lane._thread.native_id
+        mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+        assert os.getpriority(os.PRIO_PROCESS, tid) == min(19, mine + VIEWER_NICE)
+        assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine

@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import socket
 import threading
 import weakref
@@ -35,7 +36,7 @@ from typing import Any
 
 from aiohttp import web
 
-__all__ = ["PEEK_MAX", "PEEK_TIMEOUT_S", "PageServer", "ViewerLane", "route"]
+__all__ = ["PEEK_MAX", "PEEK_TIMEOUT_S", "VIEWER_NICE", "PageServer", "ViewerLane", "route"]
 
 log = logging.getLogger("motorbus.dashboard")
 
@@ -46,8 +47,19 @@ PEEK_MAX = 2048
 PEEK_TIMEOUT_S = 10.0
 #: How long a connection whose request line is incomplete waits before another look.
 _PEEK_AGAIN_S = 0.005
+#: How much lower the viewers' thread's CPU priority is (nice steps; Linux).
+VIEWER_NICE = 10
 #: Longest wait for the viewers' loop to start or to stop.
 _LANE_WAIT_S = 10.0
+
+
+def _yield_to_the_controls() -> None:
+    """This thread (the viewers') at a lower CPU priority than the rest of the process
+    (``VIEWER_NICE``, Linux: a nice value is a thread's own), so that when both are
+    ready to run the controls' loop gets the CPU first.  Where it cannot be, nothing."""
+    with contextlib.suppress(AttributeError, OSError):
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + VIEWER_NICE)
 
 
 def route(head: bytes) -> str | None:
@@ -105,6 +117,7 @@ class ViewerLane:
         control = self._control
 
         def run() -> None:
+            _yield_to_the_controls()
             loop = asyncio.new_event_loop()
             self.loop = loop
             try:
