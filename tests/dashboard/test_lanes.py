@@ -14,6 +14,7 @@ import pytest
 
 pytest.importorskip("aiohttp")
 
+from motorbus.dashboard import lanes
 from motorbus.dashboard.lanes import PEEK_MAX, VIEWER_NICE, route
 from motorbus.protocol import la
 from tests.dashboard.test_server import WAIT_S, frame, served
@@ -98,3 +99,14 @@ async def test_the_viewers_thread_runs_at_a_lower_cpu_priority_than_the_controls
         mine = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
         assert os.getpriority(os.PRIO_PROCESS, tid) == min(19, mine + VIEWER_NICE)
         assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
+
+
+async def test_a_connection_that_never_asks_is_closed_after_the_timeout(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(lanes, "PEEK_TIMEOUT_S", 0.2)
+    async with served(control=False) as rig:
+        reader, writer = await asyncio.open_connection("127.0.0.1", rig.client.port)
+        assert await asyncio.wait_for(reader.read(), WAIT_S) == b""  # closed by the server
+        writer.close()
+        assert (await rig.client.get("/api/state")).status == 200

@@ -5,8 +5,10 @@ served bus's client) and every HTTP request: the page, ``/api/state`` and the co
 The WebSocket viewers run on a loop of their own, in a thread of its own (the
 :class:`ViewerLane`): their handshakes and their snapshots (some 175 kB each) never
 take a turn of the control loop.  50 viewers connecting at once held an e-stop's
-request in the control loop's queue for up to 28 ms when they shared it
-(``benchmarks/bench_dashboard.py --served``).
+request in the control loop's queue for tens of milliseconds when they shared it
+(``benchmarks/bench_dashboard.py --served``, docs/dashboard.md).  The viewers' thread
+also runs at a lower CPU priority (``VIEWER_NICE``), and ``motorbus dashboard`` shortens
+the GIL's switch interval, so that the control loop is not kept waiting by it.
 
 One listening socket serves both (the page's WebSocket must be same-origin):
 :class:`PageServer` accepts on the control loop, looks at each new connection's request
@@ -18,8 +20,9 @@ WebSocket can never arrive on a connection the control loop holds.
 
 What crosses between the loops: the text of each push (built once on the control
 loop, handed to the viewers' loop to send to every viewer) and a new viewer's snapshot
-(asked of the control loop, which builds it at most once per push, after any e-stop in
-flight).  Nothing else is shared but the page's configuration, which is read only.
+(asked of the control loop, which copies the state at most once per push and never
+while an e-stop is in flight; the copy is rendered into JSON on the viewers' thread).
+Nothing else is shared but the page's configuration, which is read only.
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ PEEK_MAX = 2048
 PEEK_TIMEOUT_S = 10.0
 #: How long a connection whose request line is incomplete waits before another look.
 _PEEK_AGAIN_S = 0.005
+#: How long accepting pauses after an error such as running out of descriptors.
+_ACCEPT_AGAIN_S = 1.0
 #: How much lower the viewers' thread's CPU priority is (nice steps; Linux).
 VIEWER_NICE = 10
 #: Longest wait for the viewers' loop to start or to stop.
@@ -253,12 +258,25 @@ class PageServer:
                 conn, _ = sock.accept()
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError as err:  # out of descriptors, a reset: the next one may do
-                log.warning("dashboard: accept failed: %s", err)
+            except OSError as err:
+                # Out of descriptors, say: the socket stays readable, so stop accepting
+                # for a while rather than spin (as asyncio's own servers do).
+                log.warning("dashboard: accept failed: %s; accepting again in 1 s", err)
+                loop.remove_reader(sock.fileno())
+                loop.call_later(_ACCEPT_AGAIN_S, self._listen_again)
                 return
             conn.setblocking(False)
             self._waiting[conn] = loop.time() + PEEK_TIMEOUT_S
             loop.add_reader(conn.fileno(), self._look, conn)
+            loop.call_later(PEEK_TIMEOUT_S, self._expire, conn)
+
+    def _listen_again(self) -> None:
+        if self._sock is not None and self._loop is not None:
+            self._loop.add_reader(self._sock.fileno(), self._accept)
+
+    def _expire(self, conn: socket.socket) -> None:
+        if conn in self._waiting:  # no request line in PEEK_TIMEOUT_S: a silent client
+            self._drop(conn)
 
     def _drop(self, conn: socket.socket) -> None:
         if self._waiting.pop(conn, None) is not None and self._loop is not None:
