@@ -73,6 +73,10 @@ def test_a_snapshot_taken_as_rows_renders_to_the_same_json_and_keeps_its_moment(
     expected = json.dumps(state.snapshot())
     poll(state, 100.5, 1, 50)  # after the copy: not in it
     assert json.dumps(with_columns(rows, state.epoch)) == expected
+    state.add_bus("feeder", la_ids=[], project_stepper=True)
+    rows = state.snapshot(columns=False)
+    state.on_write("feeder", ps.StartProject(2), 101.0)  # the project dict changes
+    assert rows["buses"][1]["project"]["running"] is None  # the copy does not
     assert json.loads(expected)["buses"][0]["la"][0]["series"]["position"][-1] == 40
 
 

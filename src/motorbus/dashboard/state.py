@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import bisect
 import collections
+import copy
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -355,7 +356,7 @@ class DashboardState:
             columns: ``False`` leaves each actuator's ``series`` as a copy of its sample
                 rows, for :func:`with_columns` to turn into columns later, elsewhere (a
                 thread of its own: the copy is the only part that must be taken where
-                the state is fed, and the cheap one).
+                the state is fed, and the cheap one); nothing in it is changed later.
         """
         return {
             "type": "full" if since is None else "delta",
@@ -391,8 +392,9 @@ class DashboardState:
                 self._la_json(d, since, columns)
                 for d in sorted(view.la.values(), key=lambda d: d.id)
             ],
-            "project": view.project,
-            "quad": view.quad,
+            # Changed in place as frames come: a snapshot rendered elsewhere takes copies.
+            "project": view.project if columns else copy.deepcopy(view.project),
+            "quad": view.quad if columns else copy.deepcopy(view.quad),
             "served": view.served,
             "leases": list(view.leases),
         }
