@@ -242,9 +242,7 @@ class BusServer:
 
     # -- queries -----------------------------------------------------------------------
 
-    def _on_query(
-        self, handler: Callable[..., Any], *args: Any, exact: str | None = None
-    ) -> Any:
+    def _on_query(self, handler: Callable[..., Any], *args: Any, exact: str | None = None) -> Any:
         """A Zenoh handler answering queries with ``handler``.  ``exact``: answer only
         a query naming this key (a request or lease query with a wildcard,
         ``motorbus/v1/bus/*/request``, would act on every bus)."""
