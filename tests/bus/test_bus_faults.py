@@ -231,8 +231,15 @@ async def test_late_reply_is_counted_and_never_given_to_a_later_request(
             outcomes.append("ok")
         injected = sim.bus.stats.faults_injected["late"]
         assert injected > 0 and "ok" in outcomes
-        assert outcomes.count("timeout") >= injected
-        await eventually(lambda: bus.stats.late_replies >= injected, "the late replies")
+        # A loop that runs late may take a delayed reply as its own request's answer: a
+        # deadline is decided when its callback runs (bus/matching.py), and a loaded
+        # machine delays that callback.  What may never happen: a reply given to
+        # another request (the statuses above), a timeout with no delayed reply behind
+        # it, or a timed-out request's reply going uncounted.
+        timeouts = outcomes.count("timeout")
+        assert 0 < timeouts <= injected
+        await eventually(lambda: bus.stats.late_replies >= timeouts, "the late replies")
+        assert bus.stats.late_replies <= injected
         assert bus.stats.unexpected_frames == 0
         assert bus.stats.retries == 0  # MoveTo starts motion: never retried
 
