@@ -27,12 +27,11 @@ from types import TracebackType
 from typing import Any, cast
 
 from motorbus.blocking._bus import BusView, Lease
-from motorbus.blocking._proxy import Proxy, coroutine
+from motorbus.blocking._proxy import Closing, Proxy, coroutine
 from motorbus.blocking._runner import runner
 from motorbus.bus.jobs import BusState
 from motorbus.bus.leases import LeaseInfo
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError, WrongLoopError
-from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family
 from motorbus.serve import client as _client
 from motorbus.serve.tools_client import ServedScan
@@ -66,7 +65,7 @@ def connect(
     return ServedSite(endpoint, config_file=config_file, name=name)
 
 
-class ServedSite(Proxy[_client.ServedSite]):
+class ServedSite(Closing, Proxy[_client.ServedSite]):
     """A connection to a ``motorbus serve``: :class:`motorbus.serve.ServedSite` without
     ``await``, opened before the constructor returns (``connect`` makes one).
 
@@ -142,17 +141,6 @@ class ServedSite(Proxy[_client.ServedSite]):
         their safe actions.  A Ctrl-C meanwhile is raised once it is done."""
         self._runner.untrack(self._aio)
         self._runner.finish(self._aio.close())
-
-    def __enter__(self) -> ServedSite:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class ServedBus(BusView[_client.ServedBus]):
@@ -245,23 +233,14 @@ class ServedBus(BusView[_client.ServedBus]):
             LocalProtocolError: a bad key or action (nothing sent), or owner.
         """
         self._not_on_the_loop("bus.lease")
-        wanted = [keys] if isinstance(keys, str) else list(keys)
-        action = safety.check_safe_action(safe_action)
-        for key in wanted:
-            family = safety.family_of_key(safety.check_key(key))
-            if family not in self.families:
-                raise LocalProtocolError(
-                    f"key {key!r} is a {family.value} device; bus {self.name} carries "
-                    f"{', '.join(sorted(f.value for f in self.families))}",
-                    field="keys",
-                    value=key,
-                )
+        # The keys and the action are checked by the served bus's lease, before it
+        # sends anything (safety.check_lease_keys, as a local bus's).
         # Taken from this thread, bound in its context: every later call from this
         # thread carries it (the runner runs each call in a copy of that context).
         held = self._aio.lease(
-            wanted,
+            keys,
             owner=owner,
-            safe_action=action,
+            safe_action=safe_action,
             bind=True,
             safe_commands=tuple(safe_commands),
         )

@@ -173,16 +173,7 @@ class LeaseKeeper(SafeStopper):
     ) -> Lease:
         """``Bus.lease``: check, acquire, bind to the running task."""
         action = safety.check_safe_action(safe_action)
-        keys = (keys,) if isinstance(keys, str) else tuple(keys)
-        for key in keys:
-            family = safety.family_of_key(safety.check_key(key))
-            if family not in self.families:
-                raise LocalProtocolError(
-                    f"key {key!r} is a {family.value} device; bus {self.name} carries "
-                    f"{', '.join(sorted(f.value for f in self.families))}",
-                    field="keys",
-                    value=key,
-                )
+        keys = safety.check_lease_keys(keys, self.families, self.name)
         lease = self.table.acquire(
             owner, keys, self._safe_for[action], safe_action=action, safe_commands=safe_commands
         )

@@ -36,6 +36,7 @@ __all__ = [
     "SAFE_ACTIONS",
     "at_rest_after_done",
     "check_key",
+    "check_lease_keys",
     "check_safe_action",
     "covers",
     "family_of_key",
@@ -105,6 +106,25 @@ def check_key(key: object) -> str:
                 value=key,
             )
     return key
+
+
+def check_lease_keys(
+    keys: Iterable[str] | str, families: Iterable[Family], bus: str
+) -> tuple[str, ...]:
+    """The keys of a lease on bus ``bus``, each a device key of a family the bus
+    carries (``LocalProtocolError`` naming the key otherwise: nothing is taken)."""
+    wanted = (keys,) if isinstance(keys, str) else tuple(keys)
+    carried = frozenset(families)
+    for key in wanted:
+        family = family_of_key(check_key(key))
+        if family not in carried:
+            raise LocalProtocolError(
+                f"key {key!r} is a {family.value} device; bus {bus} carries "
+                f"{', '.join(sorted(f.value for f in carried))}",
+                field="keys",
+                value=key,
+            )
+    return wanted
 
 
 def safe_stop_commands(

@@ -48,6 +48,7 @@ from motorbus.errors import (
     ReplyTimeoutError,
     ServeRefused,
 )
+from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
 from motorbus.serve.zconf import client_config, on_zenoh_thread, zenoh
@@ -355,8 +356,10 @@ class ServedBus:
         bind: bool = True,
         safe_commands: Iterable[Command[object]] = (),
     ) -> ServedLease:
-        """``Bus.lease`` on the server (one round trip; errors raised here)."""
-        keys = [keys] if isinstance(keys, str) else list(keys)
+        """``Bus.lease`` on the server (one round trip; errors raised here; a bad key
+        or safe action before it, with nothing sent)."""
+        keys = list(safety.check_lease_keys(keys, self.families, self.name))
+        safe_action = safety.check_safe_action(safe_action)
         check_flag("bind", bind)
         result = self._lease_op_blocking(
             {
