@@ -5,12 +5,12 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, Self, TypeVar, overload
+from typing import Any, Literal, TypeVar, overload
 
 from motorbus import manager as _manager
 from motorbus.blocking._devices import InspireLA, ProjectStepper, QuadStepper
 from motorbus.blocking._events import EventHub
-from motorbus.blocking._proxy import Proxy, coroutine
+from motorbus.blocking._proxy import Closing, Proxy, coroutine
 from motorbus.blocking._runner import runner
 from motorbus.blocking._streams import Streamer
 from motorbus.bus import bus as _bus
@@ -28,7 +28,7 @@ R = TypeVar("R")
 B = TypeVar("B")
 
 
-class BusView(Proxy[B]):
+class BusView(Closing, Proxy[B]):
     """What a local :class:`Bus` and a served one (:class:`motorbus.blocking.ServedBus`,
     ``connect(...).bus()``) have alike: requests, group reads, the devices, streams and
     events on them, and ``with``.  The devices and streams take either."""
@@ -117,22 +117,6 @@ class BusView(Proxy[B]):
     def streamer(self, *, phase: float = 0.0) -> Streamer:
         """A new streamer of this bus (``Streamer(bus, phase=...)``)."""
         return Streamer(self, phase=phase)
-
-    # -- closing -----------------------------------------------------------------------
-
-    def close(self) -> None:
-        raise NotImplementedError
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 class Bus(BusView[_bus.Bus]):
@@ -270,7 +254,7 @@ class Lease(Proxy[_leases.Lease]):
         self.release()
 
 
-class BusManager(Proxy[_manager.BusManager]):
+class BusManager(Closing, Proxy[_manager.BusManager]):
     """Many buses from a bus file, opened together: :class:`motorbus.BusManager` without
     ``await``.  Make it with :meth:`from_toml` or :meth:`from_dict` (which open every
     bus before they return) or :meth:`open` (a manager you built); closing it stops
@@ -350,17 +334,6 @@ class BusManager(Proxy[_manager.BusManager]):
         """Safe-stop every device, then close every bus (see
         :meth:`motorbus.BusManager.close`).  Ctrl-C waits for the stop to finish."""
         self._runner.finish(self._aio.close())
-
-    def __enter__(self) -> BusManager:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 @overload

@@ -10,10 +10,9 @@ predicate live on the bus's thread; only the waiting happens in yours.
 from __future__ import annotations
 
 from collections.abc import Callable
-from types import TracebackType
 from typing import Generic, TypeVar
 
-from motorbus.blocking._proxy import Proxy
+from motorbus.blocking._proxy import Closing, Proxy
 from motorbus.bus import events as _events
 from motorbus.bus.events import SUBSCRIPTION_QUEUE_MAX, BusEvent
 
@@ -42,7 +41,7 @@ class EventHub(Proxy[_events.EventHub]):
         self._runner.call_sync(self._aio.publish, event)
 
 
-class Subscription(Proxy["_events.Subscription[E]"], Generic[E]):
+class Subscription(Closing, Proxy["_events.Subscription[E]"], Generic[E]):
     """A queue of matching events: an iterator and a context manager (``close`` on
     exit).  Made by ``bus.events.subscribe``."""
 
@@ -90,14 +89,3 @@ class Subscription(Proxy["_events.Subscription[E]"], Generic[E]):
 
     def __next__(self) -> E:
         return self.next()
-
-    def __enter__(self) -> Subscription[E]:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()

@@ -47,6 +47,19 @@ class Proxy(Generic[T]):
         return f"blocking {self._aio!r}"
 
 
+class Closing:
+    """A context manager whose exit calls ``close()``, however the block is left."""
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
 def coroutine(
     method: Callable[Concatenate[T, P], Coroutine[Any, Any, R]],
 ) -> Callable[Concatenate[Proxy[T], P], R]:
