@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import gc
 import os
+import shutil
 import signal
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,22 @@ def pytest_configure(config: pytest.Config) -> None:
     A handler is not inherited: a child starts with the default disposition."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    _cache_bytecode(config)
+
+
+def _cache_bytecode(config: pytest.Config) -> None:
+    """Where the environment says ``PYTHONDONTWRITEBYTECODE`` (this machine's does), let
+    the suite's Python processes cache their bytecode in a temporary directory of this
+    run (``PYTHONPYCACHEPREFIX``), never in the source tree.  The suite starts about 750
+    Python processes (simulators, servers, the commands under test); without a cache
+    each compiled every module it imported, and a simulator spent 0.15 s of CPU where
+    it now spends 0.11 s.  The workers (``-n``) start after this and inherit it."""
+    if "PYTHONPYCACHEPREFIX" in os.environ or not os.environ.get("PYTHONDONTWRITEBYTECODE"):
+        return
+    prefix = tempfile.mkdtemp(prefix="motorbus-tests-pyc-")
+    del os.environ["PYTHONDONTWRITEBYTECODE"]
+    os.environ["PYTHONPYCACHEPREFIX"] = prefix
+    config.add_cleanup(lambda: shutil.rmtree(prefix, ignore_errors=True))
 
 
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too

@@ -116,6 +116,8 @@ Rule = tuple[tuple[Term, ...], ...]
 
 #: The rule that allows any bytes.
 ANYTHING: Rule = ((),)
+#: The table that allows any byte.
+ANY_BYTE = bytes((1,)) * 256
 
 
 def at(offset: int, allowed: Iterable[int]) -> Rule:
@@ -168,7 +170,11 @@ LA_MAY = either(
 #: lookup, for the paths that judge one LA header at a time.
 LA_MAX_LEN = tuple(
     max(
-        (n for n in range(256) if fits(LA_MAY, bytes((0xAA, 0x55, n, 0, cmd)), 0)),
+        (
+            max((n for n in range(256) if dict(conj).get(2, ANY_BYTE)[n]), default=-1)
+            for conj in LA_MAY
+            if fits((tuple(t for t in conj if t[0] != 2),), bytes((0xAA, 0x55, 0, 0, cmd)), 0)
+        ),
         default=-1,
     )
     for cmd in range(256)
