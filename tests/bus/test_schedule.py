@@ -53,6 +53,7 @@ def make_job(
         timeout=occ.budget if timeout is None else timeout,
         key=cmd.device_key,
         after_write=occ.after_write,
+        answered=occ.answered,
         reserved=reserved,
     )
 
@@ -310,6 +311,8 @@ def windows(*spans: tuple[float, float]) -> ReservationSource:
 
 
 HOLD = 10e-3  # the job's timeout in these tests: it may hold the bus 10 ms
+#: What a status query holds at 115200 baud when its device answers in time (write,
+#: reply, turnaround): about 3.4 ms; the gaps of 4 ms below hold it, those of 0.5 ms not.
 
 
 @pytest.mark.parametrize(
@@ -328,8 +331,14 @@ HOLD = 10e-3  # the job's timeout in these tests: it may hold the bus 10 ms
         # nor is an emergency
         (1.0005, [(1.0, 1.001)], Priority.EMERGENCY, False, None),
         (0.995, [(1.0, 1.001)], Priority.EMERGENCY, False, None),
-        # windows so close that no gap fits the job: it goes now rather than never
-        (0.995, [(1.0, 1.001), (1.002, 1.003), (1.004, 1.005)], Priority.NORMAL, False, None),
+        # windows so close that no gap fits the job, even answered in time: it goes now
+        # rather than never
+        (0.995, [(1.0, 1.001), (1.0015, 1.002), (1.0025, 1.003)], Priority.NORMAL, False, None),
+        # no gap fits its whole budget, but one fits it answered in time (3.4 ms): it
+        # is not started where even that would run into the window ...
+        (0.9995, [(1.0, 1.001), (1.005, 1.006), (1.01, 1.011)], Priority.NORMAL, False, 1.001),
+        # ... and goes where that fits
+        (0.99, [(1.0, 1.001), (1.005, 1.006), (1.01, 1.011)], Priority.NORMAL, False, None),
         # a gap that fits it: it waits for that gap
         (0.995, [(1.0, 1.001), (1.5, 1.501)], Priority.NORMAL, False, 1.001),
     ],

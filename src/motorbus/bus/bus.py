@@ -689,6 +689,7 @@ class Bus:
             reserved=reserved,
             refresh=refresh,
             after_write=occ.after_write,
+            answered=occ.answered,
             expects=occ.expects_reply,
             moves=moves,
         )

@@ -89,6 +89,7 @@ class Job:
     key: str  # the device (``Command.device_key``): late guards are per device
     retries_left: int = 0
     after_write: float = 0.0  # completed write to the earliest next write (Occupancy)
+    answered: float = 0.0  # what it holds when its device answers in time (Occupancy)
     reserved: bool = False  # a stream tick's frame: it owns the reserved window
     tx_time: float = 0.0  # when the write returned
     rx_mark: int = 0  # stream offset of the first received byte that may be its reply
@@ -264,11 +265,14 @@ class Scheduler(Generic[J]):
                 return end  # inside the window: wait for its end
             following = source(end + 1e-9)
             gap = math.inf if following is None else following[0] - end
-            if occupancy > gap:
-                # No gap between windows is long enough for its whole budget (a long
-                # timeout): it goes now; a tick waits only if the reply is really slow.
-                continue
-            return end
+            if occupancy <= gap:
+                return end  # the next gap holds its whole budget
+            # No gap holds its whole budget (a long timeout, a large host margin): it is
+            # fitted by what it holds when its device answers in time, so a tick waits
+            # only for a reply that is really late; if even that fits no gap, it goes now.
+            answered = self.write_cost + max(job.after_write, job.answered)
+            if answered <= gap and start + answered > begin:
+                return end
         return None
 
     # -- what happened ---------------------------------------------------------------
