@@ -18,20 +18,24 @@ Prints tables and writes ``benchmarks/results/dashboard.json``.
     python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50] [--fill 30]
 
 Served (``--served``, issue 39): ``motorbus serve`` owns the simulator's port in a
-process of its own; an application client (another process) drives la:1 with a move
-every 10 ms (absolute deadlines: 100 commands/s); ``motorbus dashboard --connect`` (a
-third process) polls the five actuators.  Alternately, the same run: a window without
-viewers (one e-stop of la:5 posted to the dashboard) and a window in which ``--viewers``
-WebSockets connect at once (from a process of their own) while ``motorbus capture``
-records the simulator's tap (``sim --tap``: a listen-only copy), with the e-stop posted 10 ms
-later from this script's process, which is otherwise idle (posted from the viewers'
-process, as above, it would also time that busy process).  Measured in each window: the
-e-stop's round trip (HTTP post to answer, through the server), the longest time the
-simulator saw no frame (its own log), and the application's command jitter (how far
+process of its own (``--realtime``: in real-time mode); an application client (another
+process) streams to la:1 at 100 Hz through it (``Streamer.follow``, a target per tick;
+``--app move``: a move every 10 ms on absolute deadlines instead); ``motorbus dashboard
+--connect`` (a third process) polls the five actuators.  Alternately, the same run: a
+window without viewers (one e-stop of la:5 posted to the dashboard) and a window in
+which ``--viewers`` WebSockets connect at once (from a process of their own) while
+``motorbus capture`` records the simulator's tap (``sim --tap``: a listen-only copy),
+with the e-stop posted 10 ms later from this script's process, which is otherwise idle
+(posted from the viewers' process, as above, it would also time that busy process).
+Measured in each window: the e-stop's round trip (HTTP post to answer, through the
+server), the longest time the simulator saw no frame (its own log), and the stream's
+tick jitter, p99, on the kernel's clock (the server's writes, ``perf``) and on the
+simulator's (its log); with ``--app move``, the application's command jitter (how far
 each interval between two completed moves is from 10 ms, p99) and its move round trip.
 Writes ``benchmarks/results/dashboard_served.json``.
 
     python benchmarks/bench_dashboard.py --served [--seconds 3] [--repeats 5] [--fill 30]
+        [--app stream|move] [--realtime]
 """
 
 from __future__ import annotations
@@ -225,13 +229,30 @@ def main() -> None:
     )
     parser.add_argument("--viewers-only", nargs=2, metavar=("URL", "N"), help=argparse.SUPPRESS)
     parser.add_argument("--burst-only", nargs="+", metavar="HOST N [BODY]", help=argparse.SUPPRESS)
-    parser.add_argument("--app-only", nargs=2, metavar=("ENDPOINT", "_"), help=argparse.SUPPRESS)
+    parser.add_argument("--app-only", nargs=2, metavar=("ENDPOINT", "APP"), help=argparse.SUPPRESS)
     parser.add_argument(
         "--served", action="store_true", help="the served mode (issue 39): see the docstring"
     )
+    parser.add_argument(
+        "--app",
+        choices=bench_dashboard_served.APPS,
+        default="stream",
+        help="--served: the application, a 100 Hz follow stream (default) or a move every 10 ms",
+    )
+    parser.add_argument(
+        "--realtime",
+        action="store_true",
+        help="--served: run motorbus serve with --realtime (SCHED_FIFO: root or CAP_SYS_NICE)",
+    )
     args = parser.parse_args()
     if args.app_only:
-        asyncio.run(bench_dashboard_served.app_only(args.app_only[0]))
+        endpoint, app = args.app_only
+        run = (
+            bench_dashboard_served.app_stream
+            if app == "stream"
+            else bench_dashboard_served.app_only
+        )
+        asyncio.run(run(endpoint))
         return
     if args.served:
         bench_dashboard_served.main(args, __file__)

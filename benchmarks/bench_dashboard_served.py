@@ -1,9 +1,15 @@
 """The served mode of ``bench_dashboard.py`` (``--served``; its docstring says what is
 measured).  Four processes besides this one: ``motorbus sim`` (the pty), ``motorbus
-serve`` (owns the port), the application (``bench_dashboard.py --app-only``: a move of
-la:1 every 10 ms through the server) and ``motorbus dashboard --connect``; the viewers
-and the e-stop come from a fifth (``--burst-only``).  Windows without and with viewers
-alternate in the same run, so both see the same machine load."""
+serve`` (owns the port), the application (``bench_dashboard.py --app-only``: a 100 Hz
+follow stream to la:1 through the server, or with ``--app move`` a move of la:1 every
+10 ms) and ``motorbus dashboard --connect``; the viewers and the e-stop come from a
+fifth (``--burst-only``).  Windows without and with viewers alternate in the same run,
+so both see the same machine load.
+
+The stream's jitter is taken by two instruments that share nothing with the server's
+clock: the kernel's (``perf``: the server's write(2) calls of a tick's 9 bytes, fitted
+to a 10 ms grid per window, as ``bench_serve_stream.py`` does) and the simulator's (when
+its reader cut each tick's frame, fitted the same way)."""
 
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ from typing import Any
 
 import aiohttp
 
+from kernel_clock import KernelWriteTrace, grid_jitter
 from motorbus.sim.process import SimProcess
 
 RESULTS = Path(__file__).resolve().parent / "results" / "dashboard_served.json"
@@ -34,6 +41,10 @@ IDS = (1, 2, 3, 4, 5)
 POLL_S = 0.02
 #: The application's command period: 100 moves a second.
 APP_PERIOD_S = 0.01
+#: A stream tick on the wire: one 0xF3 follow broadcast to one actuator (9 bytes).
+TICK_BYTES = 9
+#: The applications ``--app`` chooses from.
+APPS = ("stream", "move")
 #: The e-stop posted in every window: la:5, which the application does not drive.
 ESTOP_BODY = {"bus": "arm", "id": 5}
 #: When the e-stop is posted after the viewers start connecting, seconds.
@@ -70,6 +81,65 @@ async def app_only(endpoint: str) -> None:
             ticks.append((due, sent, time.monotonic(), ok))
             n += 1
     print(json.dumps(ticks), flush=True)
+
+
+async def app_stream(endpoint: str) -> None:
+    """Child process: a 100 Hz follow stream of la:1 through the server (a target per
+    tick, published as it goes) until stdin closes; then print the stream's own stats."""
+    import motorbus
+    from motorbus import InspireLA, Streamer
+
+    async with motorbus.connect(endpoint, name="app") as site:
+        bus = site.bus()
+        loop = asyncio.get_running_loop()
+        stop = loop.run_in_executor(None, sys.stdin.read)
+
+        def target(t: float, statuses: object) -> int | None:
+            return None if stop.done() else 500 + (round(t / APP_PERIOD_S) % 100) * 10
+
+        stream = Streamer(bus).follow(
+            InspireLA(bus, 1), target, period=APP_PERIOD_S, safe_action="pause"
+        )
+        print("ready", flush=True)
+        await stream.wait()
+        stats = dict(stream.stats.as_dict())
+    print(json.dumps({"stats": stats}, default=str), flush=True)
+
+
+def tick_jitter(times: list[float], t0: float, t1: float) -> dict[str, Any]:
+    """The grid jitter (us) of the tick times inside [t0, t1]."""
+    fit = grid_jitter([t for t in times if t0 <= t <= t1], APP_PERIOD_S)
+    ok = fit.ticks > 2 and fit.p99_us == fit.p99_us
+    return {
+        "ticks": fit.ticks,
+        "p50_us": fit.p50_us if ok else None,
+        "p99_us": fit.p99_us if ok else None,
+        "max_us": fit.max_us if ok else None,
+        "missed": fit.missed,
+    }
+
+
+def is_tick(record: dict[str, Any]) -> bool:
+    """Is this simulator log record a stream tick (a 0xF3 follow broadcast)?"""
+    head = str(record.get("hex", "")).split()
+    return len(head) > 4 and head[4].upper() == "F3"
+
+
+def kernel_figures(trace: KernelWriteTrace | None, t0: float, t1: float) -> dict[str, Any]:
+    """The stream's tick jitter inside [t0, t1] on the kernel's clock."""
+    out: dict[str, Any] = {}
+    if trace is not None and trace.measured:
+        fds = [c.fd for c in trace.calls if c.count == TICK_BYTES and c.fd > 2]
+        fd = max(set(fds), key=fds.count) if fds else None
+        starts = trace.starts(fd, [TICK_BYTES]) if fd is not None else []
+        kernel = tick_jitter(starts, t0, t1)
+        out["kernel_tick_p50_us"], out["kernel_tick_p99_us"] = kernel["p50_us"], kernel["p99_us"]
+        out["kernel_tick_max_us"], out["kernel_ticks"] = kernel["max_us"], kernel["ticks"]
+        out["kernel_missed"] = kernel["missed"]
+    else:
+        out["kernel_tick_p99_us"] = None
+        out["kernel_why"] = "perf not run" if trace is None else trace.why
+    return out
 
 
 def free_port() -> int:
@@ -178,8 +248,11 @@ async def window(
     records = sim.log_records()[before:]
     child.stdin.close()
     await child.wait()
-    rx = [float(r["t"]) for r in records if r.get("direction") == "request"]
+    requests = [r for r in records if r.get("direction") == "request"]
+    rx = [float(r["t"]) for r in requests]
     gaps = [b - a for a, b in itertools.pairwise(rx)]
+    # The stream's ticks as the simulator cut them (its own clock): 0xF3 broadcasts.
+    sim = tick_jitter([t for t, r in zip(rx, requests, strict=True) if is_tick(r)], -1e9, 1e9)
     return {
         "viewers": viewers,
         "t0": t0,
@@ -189,27 +262,40 @@ async def window(
         "longest_silence_ms": max(gaps) * 1e3 if gaps else None,
         "snapshot_bytes": out["bytes"],
         "capture_lines": captured,
+        "sim_tick_p99_us": sim["p99_us"],
+        "sim_ticks": sim["ticks"],
     }
 
 
 async def measure(
-    script: str, seconds: float, repeats: int, many: int, fill: float, log: Path
+    script: str,
+    seconds: float,
+    repeats: int,
+    many: int,
+    fill: float,
+    log: Path,
+    app: str,
+    realtime: bool = False,
 ) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     tap = log.parent / "tap"
+    trace: KernelWriteTrace | None = None
     with SimProcess([f"la:{IDS[0]}-{IDS[-1]}"], baud=921600, log_file=log, tap=tap) as sim:
         server, _ = await start(
             [
                 sys.executable, "-m", "motorbus", "serve", "--port", sim.path,
                 "--baud", "921600", "--name", "arm", "--listen", endpoint,
                 "--host-margin-ms", "50", "--stop-leased-only",
+                *(["--realtime"] if realtime else []),
             ],
             "serving",
         )  # fmt: skip
         procs = [server]
         try:
-            app, _ = await start([sys.executable, script, "--app-only", endpoint, "-"], "ready")
-            procs.append(app)
+            app_proc, _ = await start(
+                [sys.executable, script, "--app-only", endpoint, app], "ready"
+            )
+            procs.append(app_proc)
             dash, url = await start(
                 [
                     sys.executable, "-m", "motorbus", "dashboard", "--connect", endpoint,
@@ -222,18 +308,36 @@ async def measure(
             base = url.removeprefix("http://").rstrip("/")
             await asyncio.sleep(fill)
             windows = []
-            for _ in range(repeats):
-                for viewers in (0, many):
-                    windows.append(await window(script, sim, base, viewers, seconds, log.parent))
-            assert app.stdin is not None and app.stdout is not None
-            app.stdin.close()
-            ticks = json.loads((await asyncio.wait_for(app.stdout.readline(), 30)).decode())
+            if app == "stream":
+                # The server's writes, on the kernel's clock, for every window.
+                trace = KernelWriteTrace(pid=server.pid)
+                trace.start()
+            try:
+                for _ in range(repeats):
+                    for viewers in (0, many):
+                        windows.append(
+                            await window(script, sim, base, viewers, seconds, log.parent)
+                        )
+            finally:
+                if trace is not None:
+                    trace.stop()
+            assert app_proc.stdin is not None and app_proc.stdout is not None
+            app_proc.stdin.close()
+            told = json.loads((await asyncio.wait_for(app_proc.stdout.readline(), 30)).decode())
         finally:
             for proc in reversed(procs):
                 await end(proc)
-    for w in windows:
-        w.update(app_figures(ticks, w["t0"], w["t1"]))
-    return summary(windows, many, seconds, fill)
+    if app == "stream":
+        for w in windows:
+            w.update(kernel_figures(trace, w["t0"], w["t1"]))
+    else:
+        for w in windows:
+            w.update(app_figures(told, w["t0"], w["t1"]))
+    report = summary(windows, many, seconds, fill, app)
+    report["server_realtime"] = realtime
+    if app == "stream":
+        report["stream_stats"] = told["stats"]
+    return report
 
 
 def _median(windows: list[dict[str, Any]], key: str) -> float | None:
@@ -241,13 +345,20 @@ def _median(windows: list[dict[str, Any]], key: str) -> float | None:
     return statistics.median(values) if values else None
 
 
+#: The figures compared with and without viewers, by application.
+COMPARED = {
+    "stream": ("estop_ms", "longest_silence_ms", "kernel_tick_p99_us", "sim_tick_p99_us"),
+    "move": ("estop_ms", "longest_silence_ms", "jitter_p99_ms", "move_rtt_p99_ms"),
+}
+
+
 def summary(
-    windows: list[dict[str, Any]], many: int, seconds: float, fill: float
+    windows: list[dict[str, Any]], many: int, seconds: float, fill: float, app: str
 ) -> dict[str, Any]:
     quiet = [w for w in windows if w["viewers"] == 0]
     burst = [w for w in windows if w["viewers"] == many]
     ratios = {}
-    for key in ("estop_ms", "longest_silence_ms", "jitter_p99_ms", "move_rtt_p99_ms"):
+    for key in COMPARED[app]:
         a, b = _median(quiet, key), _median(burst, key)
         ratios[key] = None if not a or b is None else b / a
     return {
@@ -260,6 +371,7 @@ def summary(
         },
         "actuators": len(IDS),
         "poll_s": POLL_S,
+        "app": app,
         "app_period_s": APP_PERIOD_S,
         "viewers": many,
         "window_s": seconds,
@@ -276,20 +388,30 @@ def main(args: argparse.Namespace, script: str) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         report = asyncio.run(
             measure(script, args.seconds, args.repeats, args.viewers, args.fill,
-                    Path(tmp) / "sim.jsonl")
+                    Path(tmp) / "sim.jsonl", args.app, args.realtime)
         )  # fmt: skip
+    doing = "streaming to la:1 at 100 Hz" if args.app == "stream" else "moving la:1 every 10 ms"
+    if args.realtime:
+        doing += " (the server in real-time mode)"
     print(
-        f"served: an application moving la:1 every 10 ms, dashboard --connect polling "
+        f"served: an application {doing}, dashboard --connect polling "
         f"{len(IDS)} actuators every {POLL_S * 1e3:g} ms, {args.fill:g} s of samples first"
     )
-    head = ("viewers", "e-stop ms", "no frame ms", "jitter p99", "move p99", "moves", "snap kB")
+    if args.app == "stream":
+        head = ("viewers", "e-stop ms", "no frame ms", "kernel p99", "sim p99", "ticks", "snap kB")
+        keys = ("kernel_tick_p99_us", "sim_tick_p99_us", "sim_ticks")
+    else:
+        head = ("viewers", "e-stop ms", "no frame ms", "jitter p99", "move p99", "moves", "snap kB")
+        keys = ("jitter_p99_ms", "move_rtt_p99_ms", "moves")
     print("".join(f"{h:>12}" for h in head))
     for w in report["windows"]:
         cells = (
-            w["viewers"], w["estop_ms"], w["longest_silence_ms"], w["jitter_p99_ms"],
-            w["move_rtt_p99_ms"], w["moves"], w["snapshot_bytes"] / 1e3,
+            w["viewers"], w["estop_ms"], w["longest_silence_ms"], *(w.get(k) for k in keys),
+            w["snapshot_bytes"] / 1e3,
         )  # fmt: skip
         print("".join(f"{c:>12.1f}" if isinstance(c, float) else f"{c!s:>12}" for c in cells))
+    if args.app == "stream" and report["windows"][0].get("kernel_why"):
+        print(f"kernel clock not measured: {report['windows'][0]['kernel_why']}")
     print("median ratio, with viewers / without (same run):")
     for key, ratio in report["ratio_with_over_without"].items():
         print(f"  {key:<20} {'-' if ratio is None else f'{ratio:.2f}x'}")

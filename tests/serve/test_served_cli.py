@@ -47,3 +47,17 @@ def test_monitor_through_a_served_bus(la_sim: SimProcess, la_server: Child, endp
     refreshes = [json.loads(line) for line in out.stdout.splitlines()]
     assert [r["refresh"] for r in refreshes] == [1, 2]
     assert [s["id"] for s in refreshes[-1]["statuses"]] == [1, 2]
+
+
+def test_serve_takes_realtime_and_refuses_a_bad_priority(la_sim: SimProcess, endpoint: str) -> None:
+    # The server is where the timing is kept: real-time mode is asked there.
+    server = Child(
+        [sys.executable, "-m", "motorbus", "--debug", "serve", "--port", la_sim.path,
+         "--baud", "921600", "--devices", "la:1", "--listen", endpoint, "--realtime=20"]
+    )  # fmt: skip
+    server.expect("serving")
+    err = server.finish()
+    (line,) = [ln for ln in err.splitlines() if "real-time mode:" in ln]
+    assert "SCHED_FIFO 20" in line or "refused sched_fifo" in line  # applied, or said why not
+    out = motorbus_cli("serve", "--port", la_sim.path, "--realtime=0", "--listen", endpoint)
+    assert out.returncode == 2 and "--realtime='0' is out of range" in out.stderr

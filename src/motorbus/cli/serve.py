@@ -30,6 +30,7 @@ from typing import Any
 
 from motorbus import BusManager, load_bus_file
 from motorbus import run as run_safely
+from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import UsageError
 
 __all__ = ["EXTRA_MESSAGE", "register", "run"]
@@ -79,6 +80,7 @@ def register(subparsers: Any) -> None:
         help="clients may read, watch and stop devices, never move one or change a setting",
     )
     p.add_argument("--guard", action="store_true", help="run the guard process beside the buses")
+    add_realtime_option(p)
     p.add_argument(
         "--stop-leased-only",
         action="store_true",
