@@ -18,7 +18,8 @@ Prints tables and writes ``benchmarks/results/dashboard.json``.
     python benchmarks/bench_dashboard.py [--seconds 5] [--repeats 3] [--viewers 50] [--fill 30]
 
 Served (``--served``, issue 39): ``motorbus serve`` owns the simulator's port in a
-process of its own (``--realtime``: in real-time mode); an application client (another
+process of its own (``--realtime``: it and the dashboard's controls in real-time
+mode); an application client (another
 process) streams to la:1 at 100 Hz through it (``Streamer.follow``, a target per tick;
 ``--app move``: a move every 10 ms on absolute deadlines instead); ``motorbus dashboard
 --connect`` (a third process) polls the five actuators.  Alternately, the same run: a
@@ -242,7 +243,8 @@ def main() -> None:
     parser.add_argument(
         "--realtime",
         action="store_true",
-        help="--served: run motorbus serve with --realtime (SCHED_FIFO: root or CAP_SYS_NICE)",
+        help="--served: motorbus serve and dashboard with --realtime (SCHED_FIFO: root or "
+        "CAP_SYS_NICE)",
     )
     args = parser.parse_args()
     if args.app_only:

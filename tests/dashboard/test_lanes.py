@@ -101,6 +101,27 @@ async def test_the_viewers_thread_runs_at_a_lower_cpu_priority_than_the_controls
         assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == mine
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SCHED_FIFO per thread")
+def test_the_viewers_thread_leaves_the_real_time_mode_it_inherits() -> None:
+    seen: dict[str, int] = {}
+
+    def viewers() -> None:  # started by a real-time thread, as the lane may be
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+        except PermissionError:
+            return
+        seen["before"] = os.sched_getscheduler(0)
+        lanes._yield_to_the_controls()
+        seen["after"] = os.sched_getscheduler(0)
+
+    thread = threading.Thread(target=viewers)
+    thread.start()
+    thread.join()
+    if not seen:
+        pytest.skip("SCHED_FIFO is not allowed here")
+    assert (seen["before"], seen["after"]) == (os.SCHED_FIFO, os.SCHED_OTHER)
+
+
 async def test_a_connection_that_never_asks_is_closed_after_the_timeout(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import signal
 import sys
 from collections.abc import Callable, Iterator
@@ -280,3 +281,33 @@ def test_connect_refuses_an_unknown_device_or_bus_before_anything_is_sent(
     r = cli("dashboard", "--connect", endpoint, "--ids", "1", "--bus", "nope")
     assert r.returncode == 2 and "bus='nope'" in r.stderr and "serves bus" in r.stderr
     assert len(requests_to_sim(la_sim)) == before
+
+
+def policy(tid: int) -> int:
+    """A thread's scheduling policy, without the reset-on-fork flag real-time mode sets."""
+    return os.sched_getscheduler(tid) & ~getattr(os, "SCHED_RESET_ON_FORK", 0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="SCHED_FIFO per thread")
+async def test_realtime_puts_the_controls_and_the_server_ahead_and_the_viewers_not(
+    la_sim: SimProcess, ended: list[Child]
+) -> None:
+    dash = dashboard("--port", la_sim.path, "--baud", "921600", "--ids", "1", "--realtime=20")
+    ended.append(dash)
+    dash.expect("http://")
+    ((server, _),) = port_lock_holders(la_sim.path)
+    argv = Path(f"/proc/{server}/cmdline").read_bytes().split(b"\0")
+    assert b"--realtime=20" in argv  # the bus's timing is kept in the server
+    pid = dash.proc.pid
+    if policy(pid) != os.SCHED_FIFO:  # not allowed here: said, not hidden
+        assert "refused" in dash.finish().lower()
+        return
+    assert os.sched_getparam(pid).sched_priority == 20  # the controls' loop
+    await eventually(lambda: policy(server) == os.SCHED_FIFO, "a real-time server")
+    # The viewers' thread (the one niced below the rest) is not in real-time mode.
+    niced = [
+        int(tid)
+        for tid in os.listdir(f"/proc/{pid}/task")
+        if os.getpriority(os.PRIO_PROCESS, int(tid)) > os.getpriority(os.PRIO_PROCESS, pid)
+    ]
+    assert niced and all(policy(tid) == os.SCHED_OTHER for tid in niced)

@@ -76,6 +76,7 @@ from motorbus.dashboard.served import (
 )
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la
+from motorbus.runtime import realtime
 
 __all__ = [
     "DEFAULT_LISTEN",
@@ -413,6 +414,11 @@ async def _run_page(
     async with serve_page(app, page.host, page.port) as server:
         try:
             await dash.start()
+            # --realtime / MOTORBUS_REALTIME: this thread (the controls' loop, where an
+            # e-stop is handled) in real-time mode, ahead of the viewers' thread (which
+            # drops it, dashboard/lanes.py) and of every other program's.  Where the bus
+            # is in this process its open has applied it already; a served bus opens none.
+            realtime.on_bus_open()
             if record is not None:
                 dash.start_recording(record)
             for url, what in page_urls(page.host, server.port, page.token):
@@ -547,6 +553,8 @@ def _serve_plan(
     """The ``motorbus serve`` arguments for the dashboard's buses, and what to watch."""
     # The dashboard's contract: an actuator it never commanded gets nothing on exit.
     argv = ["--stop-leased-only", "--listen", endpoint]
+    if args.realtime is not None:
+        argv.append(f"--realtime={args.realtime}")  # the bus's timing is kept there
     if bus_file is not None:
         argv += [str(bus_file), "--host-margin-ms", f"{CLI_HOST_MARGIN_S * 1e3:g}"]
         if args.process:

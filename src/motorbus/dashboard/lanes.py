@@ -61,7 +61,12 @@ _LANE_WAIT_S = 10.0
 def _yield_to_the_controls() -> None:
     """This thread (the viewers') at a lower CPU priority than the rest of the process
     (``VIEWER_NICE``, Linux: a nice value is a thread's own), so that when both are
-    ready to run the controls' loop gets the CPU first.  Where it cannot be, nothing."""
+    ready to run the controls' loop gets the CPU first; and never in real-time mode,
+    which a thread inherits from the one that starts it (``motorbus dashboard
+    --realtime`` puts the controls' thread there).  Where it cannot be, nothing."""
+    with contextlib.suppress(AttributeError, OSError):
+        if os.sched_getscheduler(0) not in (os.SCHED_OTHER, os.SCHED_BATCH, os.SCHED_IDLE):
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     with contextlib.suppress(AttributeError, OSError):
         tid = threading.get_native_id()
         os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + VIEWER_NICE)
