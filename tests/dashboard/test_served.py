@@ -34,6 +34,8 @@ class FakeServedBus:
         self.stats_asked = 0
         self.requests = 0
         self.held: tuple[LeaseInfo, ...] = ()
+        #: The error flags each actuator's status carries (as a device would keep them).
+        self.errors: dict[int, int] = {}
         self.lease_keeper = SafeStopper(self.name, self.families, self.request)
 
     async def request(
@@ -47,7 +49,7 @@ class FakeServedBus:
         self.sent.append((cmd, priority))
         await asyncio.sleep(0)
         if isinstance(cmd, la.Control) and cmd.action is la.ControlAction.QUERY_STATUS:
-            return la.Status(cmd.id, 800, 700 + cmd.id, 31, 120, 50)
+            return la.Status(cmd.id, 800, 700 + cmd.id, 31, 120, 50, self.errors.get(cmd.id, 0))
         return None
 
     async def fetch_stats(self) -> dict[str, Any]:
@@ -79,10 +81,16 @@ async def test_polls_go_at_background_priority_and_an_estop_at_emergency() -> No
         await eventually(lambda: bus.stats_asked >= 2, "the server's counters, twice")
         outcome = await dash.act("estop", "shown", 1, source="test")
         assert outcome == [{"bus": "shown", "device": "la:1", "command": "Control", "ok": True}]
+        # The fault as the server sees it: its event, and the statuses after it (each
+        # poll shows the flags again; before, a poll could clear them before a look).
+        bus.errors[2] = 1
         bus.events.publish(FaultChanged("arm", bus.timer.now(), 2, 0, 1, None))
+        shown = dash.state.buses["shown"]
         await eventually(
-            lambda: dash.state.buses["shown"].la[2].errors == 1, "the fault, on the shown bus"
+            lambda: any(e.get("id") == 2 and e["kind"] == "FaultChanged" for e in shown.events),
+            "the fault's event, on the shown bus",
         )
+        assert shown.la[2].errors == 1
         snap = json.loads(dash.message())
     finally:
         await dash.stop()
