@@ -9,8 +9,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from motorbus.rig.analysis import (
+    LEAD_MAX_DEG,
     Sample,
     distribution,
+    frequency_point,
     repeat_figures,
     sample_rate,
     step_figures,
@@ -118,6 +120,19 @@ def test_track_lag_of_a_pure_delay(delay: float) -> None:
     assert fig.response is not None
     assert fig.response.amplitude_ratio == pytest.approx(1.0, rel=0.01)
     assert fig.response.phase_deg == pytest.approx(-360 * f * delay, abs=1.0)
+
+
+@pytest.mark.parametrize("lead", [0.0, 0.003, 0.008])
+def test_a_small_lead_is_a_lead_not_a_lag_of_almost_a_cycle(lead: float) -> None:
+    # Timing noise (a served stream's targets placed on the client's clock) can put the
+    # output a few degrees ahead of its target: +2.7 deg, not -357.3.
+    f, dt = 0.5, 0.002
+    tt = [i * dt for i in range(2000)]
+    targets = [1000 + 300 * math.sin(2 * math.pi * f * t) for t in tt]
+    samples = sampled(lambda t: 1000 + 300 * math.sin(2 * math.pi * f * (t + lead)), 0.0, 4.0, dt)
+    point = frequency_point(tt, targets, samples, f)
+    assert point.phase_deg == pytest.approx(360 * f * lead, abs=0.5)
+    assert -360 + LEAD_MAX_DEG < point.phase_deg <= LEAD_MAX_DEG
 
 
 def test_track_bode_point_of_a_first_order_lag() -> None:

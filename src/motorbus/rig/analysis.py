@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 __all__ = [
+    "LEAD_MAX_DEG",
     "Distribution",
     "FrequencyPoint",
     "RepeatFigures",
@@ -165,6 +166,9 @@ def _slope(window: Sequence[Sample]) -> float:
     return _percentile(slopes, 0.5) if slopes else 0.0
 
 
+#: The largest phase lead a tracking point shows as a lead (degrees); beyond it, a lag
+#: (``frequency_point``).
+LEAD_MAX_DEG = 30.0
 #: A sample counts as moved past the noise band only if the next ones stay past it too
 #: (one noisy sample is not a motion).
 MOVED_SAMPLES = 3
@@ -363,13 +367,15 @@ def frequency_point(
     frequency_hz: float,
 ) -> FrequencyPoint:
     """Amplitude ratio and phase of the positions against the targets at one frequency
-    (a sine fit of each at that frequency; the phase wraps into (-360, 0] for a lag)."""
+    (a sine fit of each at that frequency).  The phase wraps into (-360 + LEAD_MAX_DEG,
+    LEAD_MAX_DEG]: a lag down to almost a full cycle, and a small lead (timing noise, a
+    device ahead of its target) as the lead it is, not as a lag of almost a cycle."""
     amp_in, ph_in = _fit_sine(target_times, targets, frequency_hz)
     amp_out, ph_out = _fit_sine([s.t for s in samples], [s.position for s in samples], frequency_hz)
     phase = math.degrees(ph_out - ph_in)
-    while phase > 0:
+    while phase > LEAD_MAX_DEG:
         phase -= 360.0
-    while phase <= -360.0:
+    while phase <= LEAD_MAX_DEG - 360.0:
         phase += 360.0
     ratio = amp_out / amp_in if amp_in > 0 else math.nan
     return FrequencyPoint(frequency_hz, ratio, phase)
