@@ -138,6 +138,38 @@ def test_a_repeated_ctrl_c_after_the_stop_still_exits_with_the_first_signals_sta
     assert signal.getsignal(signal.SIGINT) is previous  # given back
 
 
+def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_status(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Between the loop's handlers going (SIGINT back to Python's default, which raises
+    KeyboardInterrupt) and _LateRepeats taking the signals, a repeated Ctrl-C raised a
+    KeyboardInterrupt out of run() (seen once under load, as a traceback and no "stopped
+    safely"): the stop was done, so it exits with the first signal's status."""
+    uninstall = shutdown.SignalHandlers.uninstall
+
+    def uninstall_then_ctrl_c(self: shutdown.SignalHandlers) -> None:
+        uninstall(self)
+        raise KeyboardInterrupt  # what default_int_handler does in that instant
+
+    monkeypatch.setattr(shutdown.SignalHandlers, "uninstall", uninstall_then_ctrl_c)
+
+    async def main() -> None:
+        asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGINT)
+        await asyncio.sleep(30)
+
+    previous = signal.getsignal(signal.SIGINT)
+    try:
+        shutdown.run(main())
+    except SystemExit as ended:
+        assert ended.code == 128 + signal.SIGINT
+    except KeyboardInterrupt:
+        pytest.fail("a Ctrl-C after the stop escaped run() as KeyboardInterrupt")
+    else:
+        pytest.fail("run() returned after a signal")
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:
     """A teardown that hangs must not trap the user: the repeat after the absorbed one
     goes to the disposition run() found, and everything is given back."""

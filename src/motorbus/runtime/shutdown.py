@@ -388,6 +388,7 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
         finally:
             with deferred_interrupts():
                 await stop_everything()
+            state["stopped"] = True
             handlers.uninstall()
             if handlers.first is not None:
                 # asyncio.run still has its teardown to do (cancel what is left, close
@@ -403,6 +404,15 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
         except asyncio.CancelledError:
             handlers = state.get("h")
             if handlers is not None and handlers.first is not None:
+                raise SystemExit(128 + int(handlers.first)) from None
+            raise
+        except KeyboardInterrupt:
+            # A repeated Ctrl-C in the instant between the loop giving SIGINT back
+            # (Python's default: KeyboardInterrupt) and _LateRepeats taking it: the stop
+            # is done and the program was leaving with the first signal's status.
+            handlers = state.get("h")
+            if state.get("stopped") and handlers is not None and handlers.first is not None:
+                log.warning("%s again while closing: exiting", handlers.first.name)
                 raise SystemExit(128 + int(handlers.first)) from None
             raise
         finally:
