@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 import queue
 import signal
-import socket
 import subprocess
 import sys
 import textwrap
@@ -20,6 +19,7 @@ import pytest
 
 pytest.importorskip("zenoh")
 
+from motorbus.serve.zconf import free_loopback_endpoint
 from motorbus.sim import SimProcess
 
 #: Longest wait for a child process to say it is ready.
@@ -27,9 +27,7 @@ READY_TIMEOUT_S = 30.0
 
 
 def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    return free_loopback_endpoint()  # below the ephemeral ports: no client takes it meanwhile
 
 
 class Child:

@@ -28,7 +28,6 @@ import asyncio
 import contextlib
 import logging
 import signal
-import socket
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -51,7 +50,6 @@ __all__ = [
     "ServedDashboard",
     "SiteLike",
     "Watch",
-    "free_loopback_endpoint",
     "served_name",
     "watch_site",
 ]
@@ -323,13 +321,6 @@ def watch_site(
             )
         )
     return ServedDashboard(setups, endpoint=endpoint, period=period, control=control, window=window)
-
-
-def free_loopback_endpoint() -> str:
-    """A Zenoh endpoint on a loopback port that is free now."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def served_name(url: str) -> str:

@@ -1,0 +1,25 @@
+"""``free_loopback_endpoint``: where the dashboard's own server (and the tests' servers)
+listen, picked so that no client's connection takes the port before the server binds it."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+from motorbus.serve.zconf import free_loopback_endpoint
+
+
+def test_a_free_loopback_port_below_the_ephemeral_range() -> None:
+    ranges = Path("/proc/sys/net/ipv4/ip_local_port_range")
+    low = int(ranges.read_text().split()[0]) if ranges.exists() else None
+    ports = set()
+    for _ in range(20):
+        endpoint = free_loopback_endpoint()
+        assert endpoint.startswith("tcp/127.0.0.1:")
+        port = int(endpoint.rsplit(":", 1)[1])
+        if low is not None and low > 10100:
+            assert 10000 <= port < low  # no outgoing connection is given it
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", port))  # free
+        ports.add(port)
+    assert len(ports) > 1  # picked, not fixed
