@@ -864,7 +864,9 @@ def test_ours_spreads_the_buses_over_the_phase_groups_asked_then_restores_the_li
 
 def test_bench_pieces_times_every_piece_it_labels(caplog: pytest.LogCaptureFixture) -> None:
     """Each labelled piece is measured (the timerfd's only where there is one), in
-    microseconds above zero, and the bus it used closed without a safe stop owed."""
+    microseconds above zero, and the bus it used closed without a safe stop owed.
+    ``timer_call_at_cancel_us`` is a difference of two timed loops (with and without
+    the call), which 20 calls on a loaded machine can make zero or less: a number."""
     import asyncio
 
     import bench_pieces
@@ -875,7 +877,9 @@ def test_bench_pieces_times_every_piece_it_labels(caplog: pytest.LogCaptureFixtu
     if not timerfd_available():
         expected -= {k for k in expected if k.startswith("settime_")}
     assert expected <= set(figures)
-    assert all(figures[k] > 0 for k in expected)
+    differences = {"timer_call_at_cancel_us"}
+    assert all(figures[k] > 0 for k in expected - differences)
+    assert all(math.isfinite(figures[k]) for k in expected & differences)
     assert not [r for r in caplog.records if "safe action" in r.getMessage()]
 
 

@@ -19,7 +19,7 @@ import pytest
 
 pytest.importorskip("zenoh")
 
-from motorbus.serve.zconf import free_loopback_endpoint
+from motorbus.dashboard.served import free_loopback_endpoint
 from motorbus.sim import SimProcess
 
 #: Longest wait for a child process to say it is ready.

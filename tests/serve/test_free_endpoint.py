@@ -6,7 +6,7 @@ from __future__ import annotations
 import socket
 from pathlib import Path
 
-from motorbus.serve.zconf import free_loopback_endpoint
+from motorbus.dashboard.served import free_loopback_endpoint
 
 
 def test_a_free_loopback_port_below_the_ephemeral_range() -> None:

@@ -70,13 +70,13 @@ from motorbus.dashboard.served import (
     ServeChild,
     ServeChildError,
     Watch,
+    free_loopback_endpoint,
     served_name,
     watch_site,
 )
 from motorbus.errors import LocalProtocolError, UsageError
 from motorbus.protocol import la
 from motorbus.runtime import realtime
-from motorbus.serve.zconf import free_loopback_endpoint
 
 __all__ = [
     "DEFAULT_LISTEN",

@@ -27,10 +27,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import random
 import signal
+import socket
 import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol, cast
 
 from motorbus.bus.bus import Bus, Priority
@@ -50,6 +53,7 @@ __all__ = [
     "ServedDashboard",
     "SiteLike",
     "Watch",
+    "free_loopback_endpoint",
     "served_name",
     "watch_site",
 ]
@@ -321,6 +325,35 @@ def watch_site(
             )
         )
     return ServedDashboard(setups, endpoint=endpoint, period=period, control=control, window=window)
+
+
+#: Where ``free_loopback_endpoint`` looks for a port: below the kernel's ephemeral range.
+_LISTEN_PORTS_FROM = 10000
+
+
+def free_loopback_endpoint() -> str:
+    """A Zenoh endpoint on a loopback port that is free now.
+
+    The port is picked at random below the kernel's ephemeral range (Linux:
+    ``ip_local_port_range``), where no outgoing connection is given it between this
+    check and the server's own bind (a port the kernel handed out for ``bind(port 0)``
+    could go to a client's connection meanwhile: "Address already in use", seen with
+    many processes connecting at once); failing that, one the kernel picks.
+    """
+    low = 32768
+    with contextlib.suppress(OSError, ValueError):
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    for _ in range(50 if low > _LISTEN_PORTS_FROM + 100 else 0):
+        port = random.randrange(_LISTEN_PORTS_FROM, low)
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+            return f"tcp/127.0.0.1:{port}"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def served_name(url: str) -> str:

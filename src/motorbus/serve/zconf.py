@@ -3,11 +3,7 @@ and of a client."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import random
-import socket
-from pathlib import Path
 from typing import Any
 
 from motorbus.errors import LocalProtocolError, ServeUnavailable
@@ -18,7 +14,6 @@ __all__ = [
     "ServeUnavailable",
     "check_endpoint",
     "client_config",
-    "free_loopback_endpoint",
     "on_zenoh_thread",
     "server_config",
     "zenoh",
@@ -93,32 +88,3 @@ def client_config(connect: str, config_file: str | None = None, lease_s: float =
     config.insert_json5("connect/endpoints", json.dumps([check_endpoint("endpoint", connect)]))
     config.insert_json5("transport/link/tx/lease", str(max(100, int(lease_s * 1000))))
     return config
-
-
-#: Where ``free_loopback_endpoint`` looks for a port: below the kernel's ephemeral range.
-_LISTEN_PORTS_FROM = 10000
-
-
-def free_loopback_endpoint() -> str:
-    """A Zenoh endpoint on a loopback port that is free now.
-
-    The port is picked at random below the kernel's ephemeral range (Linux:
-    ``ip_local_port_range``), where no outgoing connection is given it between this
-    check and the server's own bind (a port the kernel handed out for ``bind(port 0)``
-    could go to a client's connection meanwhile: "Address already in use", seen with
-    many processes connecting at once); failing that, one the kernel picks.
-    """
-    low = 32768
-    with contextlib.suppress(OSError, ValueError):
-        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
-    for _ in range(50 if low > _LISTEN_PORTS_FROM + 100 else 0):
-        port = random.randrange(_LISTEN_PORTS_FROM, low)
-        with socket.socket() as s:
-            try:
-                s.bind(("127.0.0.1", port))
-            except OSError:
-                continue
-            return f"tcp/127.0.0.1:{port}"
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
