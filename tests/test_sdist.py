@@ -92,5 +92,5 @@ def test_sdist_metadata_and_licence(
     assert "Copyright (c) 2026 the motorbus authors" in (unpacked / "LICENSE").read_text()
 
 
-# That the sdist's own tests pass from it unpacked, on this interpreter with the sdist
-# installed in a fresh venv, is tests/test_interpreters.py's run for this interpreter.
+# That the sdist's own tests pass from it unpacked, with its wheel installed in a fresh
+# venv, is tests/test_interpreters.py's runs (on each supported interpreter found).
