@@ -126,16 +126,23 @@ def test_a_repeated_ctrl_c_after_the_stop_still_exits_with_the_first_signals_sta
     it waits, as one during the stop does."""
     previous = signal.getsignal(signal.SIGINT)
     try:
-        shutdown.run(_signals_in_teardown(1))
-    except SystemExit as ended:
-        assert ended.code == 128 + signal.SIGINT
-    except KeyboardInterrupt:
-        pytest.fail("a Ctrl-C in asyncio.run's teardown escaped as KeyboardInterrupt")
-    else:
-        pytest.fail("run() returned after a signal")
+        _exits_with_the_first_signals_status(_signals_in_teardown(1))
     finally:
         _KEEP.clear()
     assert signal.getsignal(signal.SIGINT) is previous  # given back
+
+
+def _exits_with_the_first_signals_status(main: Any) -> None:
+    """``shutdown.run(main)`` ends with ``SystemExit(128 + SIGINT)``, not a
+    KeyboardInterrupt and not a return."""
+    try:
+        shutdown.run(main)
+    except SystemExit as ended:
+        assert ended.code == 128 + signal.SIGINT
+    except KeyboardInterrupt:
+        pytest.fail("a Ctrl-C after the stop escaped run() as KeyboardInterrupt")
+    else:
+        pytest.fail("run() returned after a signal")
 
 
 def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_status(
@@ -159,13 +166,7 @@ def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_statu
 
     previous = signal.getsignal(signal.SIGINT)
     try:
-        shutdown.run(main())
-    except SystemExit as ended:
-        assert ended.code == 128 + signal.SIGINT
-    except KeyboardInterrupt:
-        pytest.fail("a Ctrl-C after the stop escaped run() as KeyboardInterrupt")
-    else:
-        pytest.fail("run() returned after a signal")
+        _exits_with_the_first_signals_status(main())
     finally:
         signal.signal(signal.SIGINT, previous)
 
