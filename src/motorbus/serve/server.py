@@ -24,6 +24,7 @@ import logging
 import os
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -31,6 +32,7 @@ from typing import Any
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import (
     BusEvent,
+    FaultChanged,
     Subscription,
 )
 from motorbus.bus.leases import Lease, LeaseInfo
@@ -47,13 +49,16 @@ from motorbus.protocol import safety
 from motorbus.protocol.base import Command, format_hex
 from motorbus.serve import keys as k
 from motorbus.serve.streams_server import StreamService
-from motorbus.serve.tap import raw_reply, tapped
+from motorbus.serve.tap import raw_reply, reply_mark, tapped
 from motorbus.serve.tools_server import ToolsService
 from motorbus.serve.zconf import on_zenoh_thread, server_config, zenoh
 
 __all__ = ["BusServer"]
 
 log = logging.getLogger("motorbus.serve")
+
+#: Events a bus server remembers after publishing them (``BusServer._own_fault``).
+RECENT_EVENTS = 64
 
 _PRIORITY = {
     "normal": Priority.NORMAL,
@@ -136,6 +141,8 @@ class BusServer:
         # subscription (events taken off the bus but not yet published).
         self._events_out: dict[str, int] = {}
         self._event_subs: dict[str, Subscription[BusEvent]] = {}
+        #: Per bus: the last events published, by ``seq`` (``_own_fault``).
+        self._recent: dict[str, deque[tuple[int, BusEvent]]] = {}
         self._clients: dict[str, _Client] = {}
         self._lease_numbers = 0
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -341,7 +348,9 @@ class BusServer:
         lease = None
         if cmd.starts_motion:
             lease = self._motion_lease(client, name, bus, cmd, payload.get("lease"))
-        sent = tapped(cmd)
+        # The events count as the reply came off the wire (an EE DD right behind a
+        # start's acknowledgement is after it, however soon this handler runs again).
+        sent = tapped(cmd, marker=lambda: self._events_so_far(name))
         future = bus.submit(
             sent, timeout=timeout, retries=retries, priority=_PRIORITY[priority_name], lease=lease
         )
@@ -351,7 +360,12 @@ class BusServer:
             future.cancel()
             raise
         raw = raw_reply(sent)
-        return {"reply": None if raw is None else raw.hex(), "events": self._events_so_far(name)}
+        events = reply_mark(sent)
+        if events is None:  # no reply (a command that expects none): the count now
+            events = self._events_so_far(name)
+        elif self._own_fault(name, events + 1, future.result()):
+            events += 1  # the reply's own fault event, published as it was taken: before it
+        return {"reply": None if raw is None else raw.hex(), "events": events}
 
     def _events_so_far(self, name: str) -> int:
         """The ``seq`` of the bus's last event before now: published, or taken off the bus
@@ -360,6 +374,18 @@ class BusServer:
         sub = self._event_subs.get(name)
         queued = [] if sub is None else sub.queued()
         return self._events_out.get(name, 0) + sum(k.event_payload(e) is not None for e in queued)
+
+    def _own_fault(self, name: str, seq: int, status: object) -> bool:
+        """Is the bus's event ``seq`` the fault change of the reply ``status`` (the bus
+        publishes it as it takes the reply, as on a local bus)?"""
+        sub = self._event_subs.get(name)
+        queued = [] if sub is None else [e for e in sub.queued() if k.event_payload(e)]
+        out = self._events_out.get(name, 0)
+        if seq > out:
+            event = queued[seq - out - 1] if seq - out <= len(queued) else None
+        else:
+            event = next((e for n, e in self._recent.get(name, ()) if n == seq), None)
+        return isinstance(event, FaultChanged) and event.status is status
 
     def _motion_lease(
         self, client: _Client, name: str, bus: Bus, cmd: Command[object], number: object
@@ -513,6 +539,9 @@ class BusServer:
                 if body is None:
                     continue
                 body["seq"] = self._events_out[name] = self._events_out.get(name, 0) + 1
+                self._recent.setdefault(name, deque(maxlen=RECENT_EVENTS)).append(
+                    (body["seq"], event)
+                )
                 with contextlib.suppress(Exception):
                     session.put(k.bus_key(name, f"event/{body['kind']}"), k.encode_json(body))
 

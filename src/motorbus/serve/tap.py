@@ -13,11 +13,12 @@ and done watches treat it as such.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 from motorbus.protocol.base import Command
 
-__all__ = ["raw_reply", "tapped"]
+__all__ = ["raw_reply", "reply_mark", "tapped"]
 
 _CLASSES: dict[type, type] = {}
 
@@ -28,11 +29,11 @@ def _tapped_class(base: Any) -> type:
         return cls
 
     def decode_reply(self: Any, raw: bytes) -> Any:
-        object.__setattr__(self, "_served_raw", bytes(raw))
+        _seen(self, raw)
         return base.decode_reply(self, raw)
 
     def decode_matched(self: Any, raw: bytes) -> Any:
-        object.__setattr__(self, "_served_raw", bytes(raw))
+        _seen(self, raw)
         return base.decode_matched(self, raw)
 
     def __eq__(self: Any, other: object) -> bool:
@@ -63,15 +64,34 @@ def _tapped_class(base: Any) -> type:
     return cls
 
 
-def tapped(cmd: Command[Any]) -> Command[Any]:
-    """A copy of ``cmd`` that keeps the raw reply (``raw_reply``)."""
+def _seen(cmd: Any, raw: bytes) -> None:
+    """A tapped command's reply is being decoded: keep it, and the marker's value now."""
+    object.__setattr__(cmd, "_served_raw", bytes(raw))
+    marker = getattr(cmd, "_served_marker", None)
+    if marker is not None:
+        object.__setattr__(cmd, "_served_mark", marker())
+
+
+def tapped(cmd: Command[Any], marker: Callable[[], int] | None = None) -> Command[Any]:
+    """A copy of ``cmd`` that keeps the raw reply (``raw_reply``) and, with ``marker``,
+    its value when that reply was decoded (``reply_mark``): the bus decodes a reply as
+    it takes it off the wire, in order with the frames and events around it, where the
+    request's awaiter runs only later."""
     base: Any = type(cmd)
     values = {f.name: getattr(cmd, f.name) for f in dataclasses.fields(base) if f.init}
     out: Command[Any] = _tapped_class(base)(**values)
+    if marker is not None:
+        object.__setattr__(out, "_served_marker", marker)
     return out
 
 
 def raw_reply(cmd: Command[Any]) -> bytes | None:
     """The frame the last decode of a tapped command saw (None: no reply)."""
     value: bytes | None = getattr(cmd, "_served_raw", None)
+    return value
+
+
+def reply_mark(cmd: Command[Any]) -> int | None:
+    """The ``marker``'s value at the last decode of a tapped command (None: none)."""
+    value: int | None = getattr(cmd, "_served_mark", None)
     return value
