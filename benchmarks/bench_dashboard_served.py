@@ -131,11 +131,14 @@ def tick_starts(trace: KernelWriteTrace) -> list[float]:
     return trace.starts(max(set(fds), key=fds.count), [TICK_BYTES]) if fds else []
 
 
-def kernel_figures(trace: KernelWriteTrace | None, t0: float, t1: float) -> dict[str, Any]:
-    """The stream's tick jitter inside [t0, t1] on the kernel's clock."""
+def kernel_figures(
+    trace: KernelWriteTrace | None, starts: list[float], t0: float, t1: float
+) -> dict[str, Any]:
+    """The stream's tick jitter inside [t0, t1] on the kernel's clock (``starts``: the
+    trace's ``tick_starts``)."""
     out: dict[str, Any] = {}
     if trace is not None and trace.measured:
-        kernel = tick_jitter(tick_starts(trace), t0, t1)
+        kernel = tick_jitter(starts, t0, t1)
         out["kernel_tick_p50_us"], out["kernel_tick_p99_us"] = kernel["p50_us"], kernel["p99_us"]
         out["kernel_tick_max_us"], out["kernel_ticks"] = kernel["max_us"], kernel["ticks"]
         out["kernel_missed"] = kernel["missed"]
@@ -146,13 +149,12 @@ def kernel_figures(trace: KernelWriteTrace | None, t0: float, t1: float) -> dict
 
 
 def pooled_kernel_figures(
-    trace: KernelWriteTrace | None, windows: list[dict[str, Any]], many: int
+    trace: KernelWriteTrace | None, starts: list[float], windows: list[dict[str, Any]], many: int
 ) -> dict[str, Any]:
     """The ticks of every window of a kind fitted together (one stream, one grid): a
     p99 over 2,000-3,000 ticks, where a window's own is its second or third worst."""
     if trace is None or not trace.measured:
         return {}
-    starts = tick_starts(trace)
     out: dict[str, Any] = {}
     for viewers in (0, many):
         spans = [(w["t0"], w["t1"]) for w in windows if w["viewers"] == viewers]
@@ -350,9 +352,10 @@ async def measure(
         finally:
             for proc in reversed(procs):
                 await end(proc)
+    starts = tick_starts(trace) if trace is not None and trace.measured else []
     if app == "stream":
         for w in windows:
-            w.update(kernel_figures(trace, w["t0"], w["t1"]))
+            w.update(kernel_figures(trace, starts, w["t0"], w["t1"]))
     else:
         for w in windows:
             w.update(app_figures(told, w["t0"], w["t1"]))
@@ -360,7 +363,7 @@ async def measure(
     report["server_realtime"] = realtime
     if app == "stream":
         report["stream_stats"] = told["stats"]
-        report["kernel_tick_pooled"] = pooled_kernel_figures(trace, windows, many)
+        report["kernel_tick_pooled"] = pooled_kernel_figures(trace, starts, windows, many)
     return report
 
 

@@ -371,17 +371,19 @@ class BusServer:
         """The ``seq`` of the bus's last event before now: published, or taken off the bus
         and about to be (a reply carries it, so that the client can tell the events that
         came before the reply from those after, whatever order they arrive in)."""
+        return self._events_out.get(name, 0) + len(self._queued_events(name))
+
+    def _queued_events(self, name: str) -> list[BusEvent]:
+        """The bus's events taken off it and not yet published that will be (in order)."""
         sub = self._event_subs.get(name)
-        queued = [] if sub is None else sub.queued()
-        return self._events_out.get(name, 0) + sum(k.event_payload(e) is not None for e in queued)
+        return [] if sub is None else [e for e in sub.queued() if k.event_payload(e) is not None]
 
     def _own_fault(self, name: str, seq: int, status: object) -> bool:
         """Is the bus's event ``seq`` the fault change of the reply ``status`` (the bus
         publishes it as it takes the reply, as on a local bus)?"""
-        sub = self._event_subs.get(name)
-        queued = [] if sub is None else [e for e in sub.queued() if k.event_payload(e)]
         out = self._events_out.get(name, 0)
         if seq > out:
+            queued = self._queued_events(name)
             event = queued[seq - out - 1] if seq - out <= len(queued) else None
         else:
             event = next((e for n, e in self._recent.get(name, ()) if n == seq), None)
