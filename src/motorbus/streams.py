@@ -57,12 +57,12 @@ import contextlib
 import gc
 import logging
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any
 
 from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
-from motorbus.bus.leases import Lease
+from motorbus.bus.leases import Lease, lease_for
 from motorbus.bus.timer import Timer
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
@@ -141,6 +141,10 @@ class Streamer:
         self._active: tuple[float, float] | None = None
         #: The budget every streamer of this bus shares, held by the bus.
         self.budget = stream_budget(bus)
+        #: Streamers of streams started under a lease the calling task held, by lease.
+        self._under: dict[int, Streamer] = {}
+        #: True for such a streamer: ``lease`` is its starter's, who ends it.
+        self._borrowed = False
         self._attached = False
         self._attach()
 
@@ -184,6 +188,17 @@ class Streamer:
             LeaseConflictError: another explicit lease holds one of them.
         """
         lease = self.lease
+        if self._borrowed:
+            assert lease is not None
+            missing = [key for key in keys if key not in lease.keys]
+            if missing:
+                raise LocalProtocolError(
+                    f"lease: {', '.join(missing)} not held by {lease.owner!r}; a stream "
+                    "under a lease streams only what it holds (nothing sent)",
+                    field="lease",
+                    value=", ".join(missing),
+                )
+            return []  # nothing newly taken: nothing to give back if the follow fails
         if lease is None or not lease.active:
             self.lease = self.bus.lease(keys, owner=f"stream on {self.bus.name}", bind=False)
             return keys
@@ -201,9 +216,9 @@ class Streamer:
         the stream has applied its safe action; anything it could not send goes now.
         """
         lease = self.lease
-        if lease is None or not lease.active:
-            return
-        keys = [f"la:{i}" for i in stream.ids if f"la:{i}" in lease.keys]
+        if lease is None or not lease.active or self._borrowed:
+            return  # a borrowed lease keeps them: its owner ends it
+        keys = sorted(stream.keys & lease.keys)
         if not keys:
             return
         if hold:
@@ -269,8 +284,50 @@ class Streamer:
             max_missed=max_missed,
         )
         self.budget.check_ids([a.id for a in group])
-        self._attach()
         keys = [f"la:{a.id}" for a in group]
+        held = None if self._borrowed else lease_for(self.bus.lease_keeper.table)
+        if held is not None and not held.keys.isdisjoint(keys):
+            return self.under(held)._start(group, keys, targets, options)
+        return self._start(group, keys, targets, options)
+
+    def under(self, lease: Lease) -> Streamer:
+        """The streamer of this bus's streams under ``lease`` (made on first use).
+
+        ``follow`` comes here when the calling task holds an explicit lease on its
+        actuators (``bus.lease``, bound to the task): the stream runs under that lease,
+        which must hold every actuator of it, in frames of its own.  Ending the lease
+        (``release``, the end of its ``async with`` block) stops such streams first, so
+        nothing of them follows the lease's safe action; a stream that ends leaves its
+        actuators in the lease.
+        """
+        child = self._under.get(id(lease))
+        if child is None or child.lease is not lease:
+            child = self._under[id(lease)] = Streamer.borrowing(self.bus, lease, phase=self.phase)
+        return child
+
+    @classmethod
+    def borrowing(cls, bus: Bus, lease: Lease, *, phase: float = 0.0) -> Streamer:
+        """A streamer whose streams run under ``lease``, which another owner ends (see
+        ``under``): it takes no lease of its own and gives nothing back."""
+        streamer = cls(bus, phase=phase)
+        streamer.lease, streamer._borrowed = lease, True
+        lease.enders.append(streamer._lease_ends)
+        return streamer
+
+    async def _lease_ends(self, keys: frozenset[str] | None, hold: bool) -> None:
+        """The borrowed lease is ending (on ``keys``; None: all): its streams stop."""
+        if keys is None:
+            assert self.lease is not None
+            with contextlib.suppress(ValueError):
+                self.lease.enders.remove(self._lease_ends)
+        await _stop_together(
+            [s for s in self.streams if keys is None or not keys.isdisjoint(s.keys)], hold
+        )
+
+    def _start(
+        self, group: list[InspireLA], keys: list[str], targets: TargetSource, options: Any
+    ) -> Stream:
+        self._attach()
         # One owner per motion: the actuators are this streamer's until the stream ends;
         # another owner (an explicit lease) is refused here, before anything is sent.
         taken = self._take(keys)
@@ -329,22 +386,20 @@ class Streamer:
         first error is raised after).  ``safe=False`` is the older ``hold=True``.
         """
         hold = hold_flag(hold, safe)
-        streams = list(self.streams)
-        for s in streams:
-            s.stopping = True
-        with deferred_interrupts():
-            stopped = await asyncio.gather(
-                *(s.stop(hold=hold) for s in streams), return_exceptions=True
+        children, self._under = list(self._under.values()), {}
+        try:
+            await _stop_together(
+                [s for c in (self, *children) for s in c.streams],
+                hold,
+                *(c.close(hold=hold) for c in children),
             )
-        if self._task is not None:
-            self._task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._task
-            self._task = None
-        self._detach()
-        for outcome in stopped:
-            if isinstance(outcome, BaseException):
-                raise outcome
+        finally:
+            if self._task is not None:
+                self._task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await self._task
+                self._task = None
+            self._detach()
 
     # -- the tick loop -------------------------------------------------------------------
 
@@ -412,7 +467,7 @@ class Streamer:
             cause = self._gap_cause(s, behind)
             if cause is not None:
                 s.stats.skipped += 1  # this tick goes to reading the positions
-                await self._gap(s, cause)
+                await s.recover_from_gap(cause)
                 continue  # the ramp (or nothing, after a stop) starts next tick
             try:
                 targets = await s.source.next(k * s.period, s.statuses, k - s.index_base)
@@ -488,66 +543,6 @@ class Streamer:
         if behind >= GAP_TICKS:
             return "behind"
         return None
-
-    async def _gap(self, s: Stream, cause: str) -> None:
-        """Handle a gap of ``s`` by its ``on_gap``: find where each actuator is and ramp
-        from there, or apply the safe action and end it.  Publishes ``StreamGap``.
-
-        After an outage each position is read (the actuators may have been moved, or
-        power-cycled).  After falling behind, an actuator that got targets is where the
-        last of them sent it (follow mode tracks it, and nothing else moved it): the ramp
-        starts there, without reads that would load a host already too slow.  An
-        actuator whose position cannot be read cannot be ramped: that ends the stream as
-        "stop" does.
-        """
-        bus = self.bus
-        s.disconnects_seen = bus.stats.disconnects
-        s.stats.gaps += 1
-        missed = s.stats.skipped - s.skipped_mark
-        s.skipped_mark = s.stats.skipped
-        positions: dict[int, int] = {}
-        unread: list[int] = []
-        if s.on_gap is GapPolicy.RAMP:
-            known = s.last_targets if cause == "behind" else {}
-            for ident in s.ids:
-                if ident in known:
-                    positions[ident] = known[ident]
-                    continue
-                try:
-                    status = await bus.request(
-                        la.Control(ident, la.ControlAction.QUERY_STATUS), priority=Priority.HIGH
-                    )
-                except MotorbusError as err:
-                    log.warning("stream to %s: la:%d position unread: %s", list(s.ids), ident, err)
-                    unread.append(ident)
-                    continue
-                s.statuses[ident] = status
-                positions[ident] = min(max(status.position, la.POSITION_MIN), la.POSITION_MAX)
-        ramp = s.on_gap is GapPolicy.RAMP and not unread and s.sending
-        action = "ramp" if ramp else "stop"
-        bus.events.publish(
-            StreamGap(bus.name, bus.timer.now(), s.number, s.ids, cause, missed, positions, action)
-        )
-        log.log(
-            logging.WARNING if cause == "outage" or not ramp else logging.INFO,
-            "stream to %s: gap (%s, %d ticks missed): %s",
-            list(s.ids),
-            cause,
-            missed,
-            f"ramping from {positions}" if ramp else "safe action, stream ended",
-        )
-        if not ramp:
-            if s.sending:
-                why = f"la:{', la:'.join(map(str, unread))} unread" if unread else 'on_gap="stop"'
-                await s.end(StreamEnded(f"gap ({cause}, {missed} ticks missed; {why})"))
-            return
-        s.ramp = {i: float(p) for i, p in positions.items()}
-        # The reads took time: the stream goes on from the next slot still ahead.
-        upcoming = math.ceil((bus.timer.now() - s.origin) / s.period)
-        if upcoming > s.next_tick:
-            s.stats.skipped += upcoming - s.next_tick
-            s.next_tick = upcoming
-        s.skipped_mark = s.stats.skipped
 
     async def _send_at(
         self, deadline: float, parts: list[tuple[Stream, dict[int, int]]], timer: Timer
@@ -688,3 +683,18 @@ class Streamer:
                 s.stats.polls += 1
             if polled == 0:
                 s.stats.polls_skipped += 1
+
+
+async def _stop_together(streams: list[Stream], hold: bool, *more: Awaitable[None]) -> None:
+    """Stop ``streams`` (and await ``more``) together: each stops sending before the
+    first safe action goes, and a silent actuator holds up no other's (the first error
+    is raised after)."""
+    for s in streams:
+        s.stopping = True
+    with deferred_interrupts():
+        stopped = await asyncio.gather(
+            *(s.stop(hold=hold) for s in streams), *more, return_exceptions=True
+        )
+    for outcome in stopped:
+        if isinstance(outcome, BaseException):
+            raise outcome

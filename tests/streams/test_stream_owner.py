@@ -17,9 +17,11 @@ pytestmark = pytest.mark.asyncio
 
 
 async def test_another_owner_is_refused_while_a_stream_runs() -> None:
-    # A lease of the program's own on the stream's actuator is refused at follow().
+    # A lease another part of the program holds (not this task: bind=False) refuses
+    # the stream at follow(); a lease this task holds would be the stream's
+    # (test_stream_under_lease.py).
     async with sim_bus([LAModel(1)], pacing="prompt") as (bus, _sim):
-        mine = bus.lease(["la:1"], owner="rig")
+        mine = bus.lease(["la:1"], owner="rig", bind=False)
         with pytest.raises(LeaseConflictError, match="la:1 is leased by 'rig'"):
             Streamer(bus).follow(InspireLA(bus, 1), lambda t, s: 900, period=0.01)
         await mine.release(hold=True)

@@ -140,6 +140,10 @@ class Lease:
         self.active = True
         #: Set by the bus: sends what ``LeaseTable.release`` returns.
         self.releaser: Callable[[Lease, bool, frozenset[DeviceKey] | None], Any] | None = None
+        #: Called with ``(keys, hold)`` as ``release`` begins, before anything is sent
+        #: (``keys`` None: all of them): a stream running under this lease stops there,
+        #: so nothing of it follows the lease's safe action.
+        self.enders: list[Callable[[frozenset[DeviceKey] | None, bool], Any]] = []
 
     def __repr__(self) -> str:
         state = "held" if self.active else "released"
@@ -171,10 +175,20 @@ class Lease:
         if not self.active:
             return
         wanted = None if keys is None else frozenset(self.table.expand(_as_keys(keys)))
-        if self.releaser is not None:
-            await self.releaser(self, hold, wanted)
-        else:
-            self.table.release(self, hold=hold, keys=wanted)
+        failed: Exception | None = None
+        try:
+            for ender in list(self.enders):
+                try:
+                    await ender(wanted, hold)
+                except Exception as err:  # the lease still ends: raised after
+                    failed = failed or err
+        finally:  # cancelled or not, the lease ends with its safe action
+            if self.releaser is not None:
+                await self.releaser(self, hold, wanted)
+            else:
+                self.table.release(self, hold=hold, keys=wanted)
+        if failed is not None:
+            raise failed
 
     async def __aenter__(self) -> Lease:
         return self

@@ -41,7 +41,6 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from motorbus.bus.bus import Bus
-from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.protocol import la
@@ -61,7 +60,6 @@ __all__ = [
     "START_IN_MAX_S",
     "STATS_EVERY_S",
     "STREAM_OPS",
-    "LeaseStreamer",
     "StreamService",
     "TargetFeed",
     "stream_key",
@@ -206,35 +204,6 @@ class TargetFeed:
         )  # fmt: skip
 
 
-class LeaseStreamer(Streamer):
-    """A client's ``Streamer`` whose streams run under one of that client's explicit
-    leases (an open naming ``lease``): it takes no lease of its own and gives nothing
-    back when a stream ends (the stream has applied its safe action; what is still
-    owed goes when the lease's owner ends it)."""
-
-    def __new__(cls, bus: Bus, lease: Lease, *, phase: float = 0.0) -> LeaseStreamer:
-        return object.__new__(cls)
-
-    def __init__(self, bus: Bus, lease: Lease, *, phase: float = 0.0) -> None:
-        super().__init__(bus, phase=phase)
-        self.lease = lease
-
-    def _take(self, keys: list[str]) -> list[str]:
-        assert self.lease is not None
-        missing = [key for key in keys if key not in self.lease.keys]
-        if missing:
-            raise LocalProtocolError(
-                f"lease: {', '.join(missing)} not held by {self.lease.owner!r}; a stream "
-                "under a lease streams only what it holds (nothing sent)",
-                field="lease",
-                value=", ".join(missing),
-            )
-        return []  # nothing newly taken: nothing to give back if the follow fails
-
-    async def let_go(self, stream: Stream, *, hold: bool) -> None:
-        return None  # the actuators stay in the lease: its owner ends it
-
-
 @dataclass
 class _Served:
     """One served stream: its client, bus, server-side ``Stream`` and feed."""
@@ -365,7 +334,7 @@ class StreamService:
         slot = (client.id, name, number or 0)
         streamer = self.streamers.get(slot)
         if streamer is None and under is not None:
-            streamer = LeaseStreamer(bus, under, phase=phase)
+            streamer = Streamer.borrowing(bus, under, phase=phase)
         elif streamer is None:
             streamer = Streamer(bus, phase=phase)
         keys = [f"la:{i}" for i in ids]

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 from types import TracebackType
 from typing import Protocol
 
-from motorbus.bus.bus import Bus
+from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import BusEvent, Subscription
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, StreamEnded
+from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.streaming.model import (
@@ -116,6 +116,8 @@ class Stream:
         self.streamer = streamer
         self.actuators = tuple(actuators)
         self.ids = tuple(a.id for a in self.actuators)
+        #: The actuators as lease keys (``"la:3"``).
+        self.keys = frozenset(f"la:{i}" for i in self.ids)
         self.number = next(Stream._numbers)
         self.period = period
         self.feedback = feedback
@@ -151,6 +153,66 @@ class Stream:
         self.source = TargetAdapter(self.ids, source)
         self._finished = asyncio.get_running_loop().create_future()
         self._poll_cursor = 0
+
+    async def recover_from_gap(self, cause: str) -> None:
+        """Handle a gap of this stream by its ``on_gap``: find where each actuator is and ramp
+        from there, or apply the safe action and end it.  Publishes ``StreamGap``.
+
+        After an outage each position is read (the actuators may have been moved, or
+        power-cycled).  After falling behind, an actuator that got targets is where the
+        last of them sent it (follow mode tracks it, and nothing else moved it): the ramp
+        starts there, without reads that would load a host already too slow.  An
+        actuator whose position cannot be read cannot be ramped: that ends the stream as
+        "stop" does.
+        """
+        s, bus = self, self.streamer.bus
+        s.disconnects_seen = bus.stats.disconnects
+        s.stats.gaps += 1
+        missed = s.stats.skipped - s.skipped_mark
+        s.skipped_mark = s.stats.skipped
+        positions: dict[int, int] = {}
+        unread: list[int] = []
+        if s.on_gap is GapPolicy.RAMP:
+            known = s.last_targets if cause == "behind" else {}
+            for ident in s.ids:
+                if ident in known:
+                    positions[ident] = known[ident]
+                    continue
+                try:
+                    status = await bus.request(
+                        la.Control(ident, la.ControlAction.QUERY_STATUS), priority=Priority.HIGH
+                    )
+                except MotorbusError as err:
+                    log.warning("stream to %s: la:%d position unread: %s", list(s.ids), ident, err)
+                    unread.append(ident)
+                    continue
+                s.statuses[ident] = status
+                positions[ident] = min(max(status.position, la.POSITION_MIN), la.POSITION_MAX)
+        ramp = s.on_gap is GapPolicy.RAMP and not unread and s.sending
+        action = "ramp" if ramp else "stop"
+        bus.events.publish(
+            StreamGap(bus.name, bus.timer.now(), s.number, s.ids, cause, missed, positions, action)
+        )
+        log.log(
+            logging.WARNING if cause == "outage" or not ramp else logging.INFO,
+            "stream to %s: gap (%s, %d ticks missed): %s",
+            list(s.ids),
+            cause,
+            missed,
+            f"ramping from {positions}" if ramp else "safe action, stream ended",
+        )
+        if not ramp:
+            if s.sending:
+                why = f"la:{', la:'.join(map(str, unread))} unread" if unread else 'on_gap="stop"'
+                await s.end(StreamEnded(f"gap ({cause}, {missed} ticks missed; {why})"))
+            return
+        s.ramp = {i: float(p) for i, p in positions.items()}
+        # The reads took time: the stream goes on from the next slot still ahead.
+        upcoming = math.ceil((bus.timer.now() - s.origin) / s.period)
+        if upcoming > s.next_tick:
+            s.stats.skipped += upcoming - s.next_tick
+            s.next_tick = upcoming
+        s.skipped_mark = s.stats.skipped
 
     # -- control ----------------------------------------------------------------
 
