@@ -15,6 +15,7 @@ pytest.importorskip("zenoh")
 
 import motorbus
 from motorbus import BusClosedError, InspireLA
+from motorbus.protocol import la
 from motorbus.serve import ServedSite
 from motorbus.sim import SimProcess
 from tests.serve.conftest import free_endpoint, serve
@@ -176,6 +177,21 @@ def tls_server(la_sim: SimProcess, pki: Path, tmp_path: Path) -> Iterator[str]:
         server.finish()
 
 
+def watch_query(endpoint: str, config_file: str, payload: dict[str, str]) -> str:
+    """The answer of one raw query on ``.../watch`` of bus "bus", as text."""
+    import zenoh
+
+    from motorbus.serve import keys as k
+    from motorbus.serve.zconf import client_config
+
+    with zenoh.open(client_config(endpoint, config_file)) as session:
+        key = k.bus_key("bus", "watch")
+        for reply in session.get(key, payload=json.dumps(payload), timeout=10):
+            sample = reply.ok if reply.ok is not None else reply.err
+            return sample.payload.to_bytes().decode()
+    raise AssertionError("no answer on .../watch")
+
+
 def frames_at(sim: SimProcess) -> list[bytes]:
     return [bytes.fromhex(r["hex"]) for r in sim.log_records() if r["direction"] == "request"]
 
@@ -252,15 +268,22 @@ async def _watch(la_sim: SimProcess, tls_server: str, watcher: str, op_site: Ser
         assert [i.key for i in bus.leases] == ["la:2"]
         stats = await bus.fetch_stats()
         assert stats["requests"] >= 1
-        # No frame: status and motion go through .../request, leases through
-        # .../lease; the access control lets neither reach the server.
-        for attempt in (InspireLA(bus, 1).status(), InspireLA(bus, 1).move_to(1000)):
-            with pytest.raises(BusClosedError, match="access control"):
-                await attempt
+        # A status query goes on .../watch, which the watcher may use: one frame.
+        assert (await InspireLA(bus, 1).status()).id == 1
+        assert len(frames_at(la_sim)) == len(before) + 1
+        before = frames_at(la_sim)
+        # No motion (.../request) and no lease (.../lease): the access control lets
+        # neither reach the server.
+        with pytest.raises(BusClosedError, match="access control"):
+            await InspireLA(bus, 1).move_to(1000)
         with pytest.raises(BusClosedError, match="access control"):
             bus.lease("la:1", owner="watcher")
         with pytest.raises(BusClosedError, match="access control"):
             await bus.release()
+        # Nor can it pass motion off as a watch: the server refuses it by name.
+        move = la.Follow(1, 1000, False).encode().hex()
+        answer = watch_query(tls_server, watcher, {"client": "w", "frame": move})
+        assert "carries reads and stops only" in answer, answer
     assert frames_at(la_sim) == before
     # The operator's lease is untouched by the watcher.
     assert [i.key for i in op_site.bus().leases] == ["la:2"]

@@ -160,13 +160,12 @@ class ServedBus:
         self.families = frozenset(Family(f) for f in info.get("families", []))
         self.baudrate = int(info.get("baud", 0))
         self.safe_action = str(info.get("safe_action", "pause"))
+        self._watch_key = info.get("watch") is True  # reads and stops go on .../watch
         self.events = EventHub()
         self._timer: Timer | None = None
         self._leases: list[ServedLease] = []
-        # Event order against replies: an event publication can overtake the reply of
-        # the request before it (they travel apart).  Events are held while a request is
-        # in flight; a reply says how many events came before it ("events"): those are
-        # published before its caller resumes, the later ones only after it did.
+        # Events travel apart from replies: held while a request is in flight, those a
+        # reply counts ("events") are published before its caller resumes, later ones after.
         self._events_seen = 0
         self._held: list[tuple[int, BusEvent]] = []
         self._in_flight = 0
@@ -269,7 +268,8 @@ class ServedBus:
         urgent = priority is Priority.EMERGENCY
         self._in_flight += 1
         try:
-            result = await self._query("request", body, extra=timeout or 0.0, urgent=urgent)
+            what = "watch" if self._watch_key and safety.watch_allowed(cmd) else "request"
+            result = await self._query(what, body, extra=timeout or 0.0, urgent=urgent)
         finally:
             self._in_flight -= 1
         before = result.get("events")

@@ -172,6 +172,12 @@ class BusServer:
             )
             self._declare(
                 session.declare_queryable(
+                    k.bus_key(name, "watch"),
+                    self._on_query(self._watch, name, exact=k.bus_key(name, "watch")),
+                )
+            )
+            self._declare(
+                session.declare_queryable(
                     k.bus_key(name, "lease"),
                     self._on_query(self._lease, name, exact=k.bus_key(name, "lease")),
                 )
@@ -308,6 +314,7 @@ class BusServer:
                     "baud": bus.baudrate,
                     "safe_action": bus.safe_action,
                     "state": bus.state.value,
+                    "watch": True,  # reads and stops also on .../watch
                 }
                 for name, bus in self.buses.items()
             },
@@ -323,7 +330,14 @@ class BusServer:
             client = self._clients[cid] = _Client(cid, time.monotonic())
         return client
 
-    async def _request(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+    async def _watch(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
+        """``.../watch``: a request that may only read or stop (``safety.watch_allowed``),
+        so that access control can let a user watch a bus and not move it."""
+        return await self._request(name, payload, watch=True)
+
+    async def _request(
+        self, name: str, payload: dict[str, Any], *, watch: bool = False
+    ) -> dict[str, Any]:
         _only(payload, _REQUEST_FIELDS)
         bus = self._bus(name)
         client = self._client(payload)
@@ -336,6 +350,14 @@ class BusServer:
                 f"priority={priority_name!r}: allowed {', '.join(k.PRIORITIES)}",
                 field="priority",
                 value=priority_name,
+            )
+        if watch and not safety.watch_allowed(cmd):
+            raise ServedRefusal(
+                k.error_payload(
+                    "refused",
+                    f"{k.bus_key(name, 'watch')} carries reads and stops only, not "
+                    f"{type(cmd).__name__}: send it on {k.bus_key(name, 'request')} (nothing sent)",
+                )
             )
         if self.watch_only and not safety.watch_allowed(cmd):
             raise ServedRefusal(
