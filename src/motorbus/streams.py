@@ -35,15 +35,11 @@ its safe action (``safe_action``: "pause" or "estop") goes to its actuators, unl
 owner ends it explicitly with ``stop(hold=True)`` (the actuators then hold their last
 target).
 
-After a gap, a ramp: when the bus comes back after losing its port, or the stream fell
-``GAP_TICKS`` or more ticks behind (a stalled host), the targets have moved on while the
-actuators have not.  With ``on_gap="ramp"`` (the default) the stream finds where each
-actuator is (after an outage it reads each status; after falling behind, each is where
-the last target sent put it) and ramps from there to the trajectory at its
-``max_speed``; with
-``on_gap="stop"`` it applies its safe action and ends with an error.  Either way the gap
-is a ``StreamGap`` event (``stream.gaps``, or ``bus.events``) and a count
-(``stats.gaps``).
+After a gap (the port lost and back, or ``GAP_TICKS`` ticks behind), a ramp: with
+``on_gap="ramp"`` (the default) the stream ramps at ``max_speed`` from where each
+actuator is to the trajectory (``Stream.recover_from_gap``); with ``on_gap="stop"`` it
+applies its safe action and ends with an error.  Either way the gap is a ``StreamGap``
+event (``stream.gaps``, or ``bus.events``) and a count (``stats.gaps``).
 
 All the streamers of one bus share one time budget: a set of streams that cannot fit
 the bus is refused when it starts, with an error that says what would fit, and an
@@ -300,6 +296,7 @@ class Streamer:
         nothing of them follows the lease's safe action; a stream that ends leaves its
         actuators in the lease.
         """
+        self._under = {i: c for i, c in self._under.items() if c.lease and c.lease.active}
         child = self._under.get(id(lease))
         if child is None or child.lease is not lease:
             child = self._under[id(lease)] = Streamer.borrowing(self.bus, lease, phase=self.phase)
@@ -316,10 +313,12 @@ class Streamer:
 
     async def _lease_ends(self, keys: frozenset[str] | None, hold: bool) -> None:
         """The borrowed lease is ending (on ``keys``; None: all): its streams stop."""
-        if keys is None:
+        if keys is None:  # all of it: this streamer closes and leaves the bus
             assert self.lease is not None
             with contextlib.suppress(ValueError):
                 self.lease.enders.remove(self._lease_ends)
+            await self.close(hold=hold)
+            return
         await _stop_together(
             [s for s in self.streams if keys is None or not keys.isdisjoint(s.keys)], hold
         )

@@ -168,3 +168,19 @@ async def test_closing_the_streamer_stops_its_streams_under_a_lease() -> None:
             count = len(frames)
             await asyncio.sleep(0.05)
             assert frames[count:] == []
+
+
+async def test_a_lease_s_end_takes_its_streamer_off_the_bus() -> None:
+    # A program that takes a lease and streams under it again and again leaves nothing
+    # behind on the bus: no reservation source, no close hook per ended lease.
+    async with sim_bus([LAModel(1)], pacing="prompt") as (bus, _sim):
+        streamer = Streamer(bus)
+        sources = bus._core.schedule.reservation_sources
+        baseline = len(sources)
+        for _ in range(5):
+            async with bus.lease(["la:1"], owner="app"):
+                stream = streamer.follow(InspireLA(bus, 1), lambda t, s: 300, period=0.01)
+                await eventually(lambda st=stream: st.stats.ticks >= 1, "a tick")
+                assert len(sources) == baseline + 1
+            assert len(sources) == baseline
+        assert len(streamer._under) <= 1
