@@ -190,6 +190,9 @@ def _arm(tmp_path: Path, port: str) -> Path:
     path = tmp_path / "arm.toml"
     path.write_text(
         f'[[bus]]\nname = "arm"\nurl = "{port}"\nbaud = 921600\ncalibration = "arm.cal.toml"\n'
+        # A loaded machine (the suite's workers, the simulator's thread) can hold a reply
+        # past the default 2 ms margin; these tests judge ranges and frames, not timing.
+        "host_margin_ms = 250\n"
         '\n[bus.la.gripper]\nid = 1\nstroke_mm = 30\nlimits = [100, 1900]\nunit = "mm"\n',
         encoding="utf-8",
     )
