@@ -23,3 +23,14 @@ def test_a_free_loopback_port_below_the_ephemeral_range() -> None:
             s.bind(("127.0.0.1", port))  # free
         ports.add(port)
     assert len(ports) > 1  # picked, not fixed
+
+
+def test_which_endpoints_ask_for_any_port() -> None:
+    from motorbus.serve.zconf import any_port
+
+    assert any_port("tcp/127.0.0.1:0")
+    assert any_port("tcp/[::1]:0")
+    assert any_port("tls/localhost:0#iface=lo")
+    assert not any_port("tcp/127.0.0.1:7447")
+    assert not any_port("udp/10.0.0.1:10")
+    assert not any_port("tcp/[::0]:7447")

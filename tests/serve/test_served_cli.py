@@ -61,3 +61,20 @@ def test_serve_takes_realtime_and_refuses_a_bad_priority(la_sim: SimProcess, end
     assert "SCHED_FIFO 20" in line or "refused sched_fifo" in line  # applied, or said why not
     out = motorbus_cli("serve", "--port", la_sim.path, "--realtime=0", "--listen", endpoint)
     assert out.returncode == 2 and "--realtime='0' is out of range" in out.stderr
+
+
+def test_serve_on_port_0_prints_the_port_it_was_given(la_sim: SimProcess) -> None:
+    server = Child(
+        [sys.executable, "-m", "motorbus", "serve", "--port", la_sim.path, "--baud", "921600",
+         "--devices", "la:1", "--listen", "tcp/127.0.0.1:0", "--host-margin-ms", "50"]
+    )  # fmt: skip
+    try:
+        line = server.expect("serving")
+        endpoint = line.rsplit(" on ", 1)[1]
+        host, port = endpoint.removeprefix("tcp/").rsplit(":", 1)
+        assert host == "127.0.0.1" and 0 < int(port) < 65536, line
+        out = motorbus_cli("la", "status", "1", "--connect", endpoint, "--json")
+        assert out.returncode == 0, out.stderr
+        assert json.loads(out.stdout)["id"] == 1
+    finally:
+        server.finish()

@@ -12,7 +12,8 @@ everything that must stay next to the wire (spacing, deadlines, the reassembler,
 leases and their safe ends, --guard, real-time mode); programs use the buses with
 ``motorbus.connect(ENDPOINT)``.  It listens on loopback unless --listen says otherwise
 (beyond loopback, give a Zenoh configuration with TLS and access control: docs/serve.md).
-When it is ready it prints the endpoint it listens on, on a line of its own.
+When it is ready it prints the endpoint it listens on, on a line of its own (with
+port 0, ``--listen tcp/127.0.0.1:0``, the port it was given).
 
 A client's leases end with their safe actions when the client ends, however it ends,
 or falls silent for --liveness seconds (default 1).  --watch-only lets clients query,
@@ -183,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
                 devices={name: _device_keys(spec) for name, spec in manager.specs.items()},
             )
             async with server:
-                print(f"serving {', '.join(manager.buses)} on {args.listen}", flush=True)
+                print(f"serving {', '.join(manager.buses)} on {server.endpoint}", flush=True)
                 await asyncio.Event().wait()
 
     try:

@@ -51,7 +51,13 @@ from motorbus.serve import keys as k
 from motorbus.serve.streams_server import StreamService
 from motorbus.serve.tap import raw_reply, reply_mark, tapped
 from motorbus.serve.tools_server import ToolsService
-from motorbus.serve.zconf import on_zenoh_thread, server_config, zenoh
+from motorbus.serve.zconf import (
+    any_port,
+    bound_endpoint,
+    on_zenoh_thread,
+    server_config,
+    zenoh,
+)
 
 __all__ = ["BusServer"]
 
@@ -95,7 +101,8 @@ class BusServer:
 
     Args:
         buses: the buses to serve, by name (each one key chunk).
-        listen: the Zenoh endpoint (default loopback, ``tcp/127.0.0.1:7447``).
+        listen: the Zenoh endpoint (default loopback, ``tcp/127.0.0.1:7447``); port 0
+            takes any free port, which ``endpoint`` names once started.
         liveness: seconds without a client's heartbeat before its leases end
             (``keys.LIVENESS_MIN_S``..``LIVENESS_MAX_S``, default 1).
         zenoh_config: a Zenoh configuration file (TLS, access control, routers).
@@ -130,6 +137,8 @@ class BusServer:
             )
         self.buses = dict(buses)
         self.listen = listen
+        #: Where clients connect: ``listen``, with the port it was given once started.
+        self.endpoint = listen
         self.liveness = float(liveness)
         self.watch_only = watch_only
         self.instance = uuid.uuid4().hex[:12]
@@ -162,6 +171,8 @@ class BusServer:
         self._loop = asyncio.get_running_loop()
         self._session = await asyncio.to_thread(z.open, self._config)
         session = self._session
+        if any_port(self.listen):
+            self.endpoint = await asyncio.to_thread(bound_endpoint, session, self.listen)
         self._declare(session.declare_queryable(f"{k.PREFIX}/info", self._on_query(self._info)))
         for name, bus in self.buses.items():
             self._declare(

@@ -12,6 +12,8 @@ __all__ = [
     "DEFAULT_LISTEN",
     "EXTRA_HINT",
     "ServeUnavailable",
+    "any_port",
+    "bound_endpoint",
     "check_endpoint",
     "client_config",
     "on_zenoh_thread",
@@ -70,12 +72,47 @@ def _base(config_file: str | None) -> Any:
     return config
 
 
+def any_port(endpoint: str) -> bool:
+    """Whether ``endpoint`` asks for any free port (``tcp/127.0.0.1:0``): the server
+    then learns the port it was given from Zenoh's admin space (``server_config``)."""
+    address = endpoint.split("/", 1)[1].split("#", 1)[0].split("?", 1)[0]
+    return ":" in address and address.rsplit(":", 1)[1] == "0"
+
+
+def bound_endpoint(session: Any, listen: str) -> str:
+    """``listen`` with port 0 replaced by the port the session was given (blocking: a
+    query of the session's own admin space, which ``server_config`` turned on)."""
+    protocol, address = listen.split("/", 1)
+    cut = min((i for i in (address.find("#"), address.find("?")) if i >= 0), default=None)
+    host, rest = address[:cut].rsplit(":", 1)[0], address[len(address[:cut]) :]
+    for reply in session.get(f"@/{session.info.zid()}/*", timeout=5.0):
+        if reply.ok is None:
+            continue
+        try:
+            locators = json.loads(reply.ok.payload.to_bytes()).get("locators", [])
+        except (ValueError, AttributeError):
+            continue
+        for locator in locators:
+            if locator.startswith(f"{protocol}/"):
+                port = locator.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[1]
+                return f"{protocol}/{host}:{port}{rest}"
+    raise LocalProtocolError(
+        f"listen={listen!r}: Zenoh did not say which port it was given", field="listen"
+    )
+
+
 def server_config(listen: str, config_file: str | None = None) -> Any:
     """A peer that listens on ``listen`` (a configuration file may add TLS, access
-    control, more endpoints)."""
+    control, more endpoints).
+
+    With port 0 it turns Zenoh's admin space on, read only, so that the server can ask
+    its own session which port it was given (``BusServer.endpoint``)."""
     config = _base(config_file)
     config.insert_json5("mode", json.dumps("peer"))
     config.insert_json5("listen/endpoints", json.dumps([check_endpoint("listen", listen)]))
+    if any_port(listen):
+        config.insert_json5("adminspace/enabled", "true")
+        config.insert_json5("adminspace/permissions", '{"read": true, "write": false}')
     return config
 
 
