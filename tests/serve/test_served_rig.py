@@ -137,7 +137,9 @@ def test_rig_connect_tracks_as_the_local_rig_does_on_the_same_simulator(
             about = (device, f, mine[f], theirs[f])
             assert abs(ratio - l_ratio) <= RATIO_TOLERANCE, about
             assert abs(phase - l_phase) <= PHASE_TOLERANCE_DEG, about
-            assert 0 < lag < 500, about  # found inside the search window (0.5 s)
+            # Found inside the search window (0 to 0.5 s); at 0.5 Hz the simulated
+            # actuator lags by a few ms, which a loaded run's timing can bring to 0.
+            assert 0 <= lag < 500, about
     assert_the_sines_arrived_and_each_ended_with_a_pause(la_sim, served_doc["plan"], (1, 2))
     # The rig's lease ended with its pause, the last word to each actuator.
     sent = requests(la_sim)
