@@ -105,10 +105,10 @@ def test_bus_manager_program_stops_safely(
         send((proc, sig), times, gap_s)
         status, out, err = finish(proc)
     # Unless a repeated signal, sent late by a test process descheduled on a loaded
-    # machine, arrived once the safe stop was over and motorbus.run was giving the
-    # signals back (between the loop's handlers and the ones that absorb late repeats):
-    # it then ends the finished program as it would any Python program, before the
-    # example prints "stopped safely".  The simulator's record below judges the stop.
+    # machine, arrived once the safe stop was over and motorbus.run had given the
+    # signals back: it then ends the finished program as it would any Python program,
+    # possibly before the example prints "stopped safely".  The simulator's record
+    # below judges the stop.
     if not (status == -sig and times > 1):
         assert "stopped safely" in out, (status, out, err)
         assert status == 128 + sig, (out, err)

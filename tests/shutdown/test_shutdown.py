@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import os
 import signal
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from typing import Any
 
@@ -148,17 +150,21 @@ def _exits_with_the_first_signals_status(main: Any) -> None:
 def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_status(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Between the loop's handlers going (SIGINT back to Python's default, which raises
-    KeyboardInterrupt) and _LateRepeats taking the signals, a repeated Ctrl-C raised a
-    KeyboardInterrupt out of run() (seen once under load, as a traceback and no "stopped
-    safely"): the stop was done, so it exits with the first signal's status."""
-    uninstall = shutdown.SignalHandlers.uninstall
+    """Between the loop's close giving SIGINT back (Python's default, which raises
+    KeyboardInterrupt) and run() restoring the dispositions it found, a repeated Ctrl-C
+    raised a KeyboardInterrupt out of run() (seen once under load, as a traceback and
+    no "stopped safely"): the stop was done, so it exits with the first signal's
+    status."""
+    probe = asyncio.new_event_loop()
+    loop_class = type(probe)
+    probe.close()
+    close = loop_class.close
 
-    def uninstall_then_ctrl_c(self: shutdown.SignalHandlers) -> None:
-        uninstall(self)
+    def close_then_ctrl_c(self: asyncio.AbstractEventLoop) -> None:
+        close(self)
         raise KeyboardInterrupt  # what default_int_handler does in that instant
 
-    monkeypatch.setattr(shutdown.SignalHandlers, "uninstall", uninstall_then_ctrl_c)
+    monkeypatch.setattr(loop_class, "close", close_then_ctrl_c)
 
     async def main() -> None:
         asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGINT)
@@ -169,6 +175,41 @@ def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_statu
         _exits_with_the_first_signals_status(main())
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+#: A program whose second SIGTERM comes in the instant run() hands the signals from the
+#: loop's handlers to the late ones (``_LateRepeats``), and a third just after.
+_HANDOVER_PROGRAM = """
+import asyncio, os, signal
+from motorbus.runtime import shutdown
+
+class Probe(shutdown._LateRepeats):
+    def __init__(self, before):
+        os.kill(os.getpid(), signal.SIGTERM)  # as the handover starts
+        super().__init__(before)
+        os.kill(os.getpid(), signal.SIGTERM)  # and as it ends: absorbed
+
+shutdown._LateRepeats = Probe
+
+async def main():
+    asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGTERM)
+    await asyncio.sleep(30)
+
+shutdown.run(main())
+"""
+
+
+def test_a_sigterm_as_the_stop_hands_the_signals_over_does_not_kill_the_program() -> None:
+    """The loop's handlers used to be removed (the default disposition: death) before
+    the late ones were set: a repeated SIGTERM in that instant killed a program whose
+    stop was done, before it could exit 143 or print its report (seen once on a loaded
+    run of tests/integration/test_exit_paths.py).  Now the late handlers replace the
+    loop's with no instant in between."""
+    done = subprocess.run(
+        [sys.executable, "-c", _HANDOVER_PROGRAM], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 128 + signal.SIGTERM, (done.returncode, done.stderr[-2000:])
+    assert "the motion is stopped and the program is closing" in done.stderr
 
 
 def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:

@@ -153,6 +153,19 @@ class _AutoGuard:
             return
         self.uninstall()
 
+    def retire(self) -> None:
+        """Stop answering, giving nothing back: for when a handler set with
+        ``signal.signal`` has just replaced these (``run``'s ``_LateRepeats``).
+
+        ``uninstall`` gives the signals back through ``loop.remove_signal_handler``,
+        which sets the default disposition first: a SIGTERM in the instant before the
+        next handler is set would kill the process.  Replacing the handler and then
+        retiring leaves no such instant; the loop's records of the signals go with the
+        loop (``loop.close``)."""
+        self._retired = True
+        self._signals = []
+        self._replaced = {}
+
     def uninstall(self) -> None:
         loop, installed = self.loop, self.installed
         self.installed = []
@@ -289,6 +302,8 @@ class SignalHandlers:
         self.task = task
         self.received: list[signal.Signals] = []
         self._signals: list[signal.Signals] = []
+        #: Set by ``retire``: the signals are another handler's now; ignore them.
+        self._retired = False
         #: Handlers set with ``signal.signal`` where the loop cannot (Windows), and the
         #: dispositions they replaced.
         self._replaced: dict[signal.Signals, Any] = {}
@@ -299,12 +314,27 @@ class SignalHandlers:
         return self.received[0] if self.received else None
 
     def _on_signal(self, sig: signal.Signals) -> None:
+        if self._retired:
+            return  # one the loop read before ``retire``: the new handler decides
         self.received.append(sig)
         if len(self.received) == 1:
             log.warning("%s: stopping the motion safely, then exiting", sig.name)
             self.task.cancel()
         else:
             log.warning("%s again: still stopping the motion safely; please wait", sig.name)
+
+    def retire(self) -> None:
+        """Stop answering, giving nothing back: for when a handler set with
+        ``signal.signal`` has just replaced these (``run``'s ``_LateRepeats``).
+
+        ``uninstall`` gives the signals back through ``loop.remove_signal_handler``,
+        which sets the default disposition first: a SIGTERM in the instant before the
+        next handler is set would kill the process.  Replacing the handler and then
+        retiring leaves no such instant; the loop's records of the signals go with the
+        loop (``loop.close``)."""
+        self._retired = True
+        self._signals = []
+        self._replaced = {}
 
     def uninstall(self) -> None:
         """Remove the handlers (the previous dispositions come back)."""
@@ -389,12 +419,15 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
             with deferred_interrupts():
                 await stop_everything()
             state["stopped"] = True
-            handlers.uninstall()
-            if handlers.first is not None:
+            if handlers.first is not None and before:
                 # asyncio.run still has its teardown to do (cancel what is left, close
                 # the default executor): a repeated signal there must not turn the exit
-                # this one started into a KeyboardInterrupt traceback.
+                # this one started into a KeyboardInterrupt traceback, or kill it.  The
+                # late handlers replace the loop's at once (``retire``).
                 state["late"] = _LateRepeats(before)
+                handlers.retire()
+            else:
+                handlers.uninstall()
 
     from motorbus.runtime.guard import guarded
 
@@ -407,9 +440,9 @@ def run(main: Coroutine[Any, Any, T] | Callable[[], Awaitable[T]], *, guard: boo
                 raise SystemExit(128 + int(handlers.first)) from None
             raise
         except KeyboardInterrupt:
-            # A repeated Ctrl-C in the instant between the loop giving SIGINT back
-            # (Python's default: KeyboardInterrupt) and _LateRepeats taking it: the stop
-            # is done and the program was leaving with the first signal's status.
+            # A repeated Ctrl-C in the instant between the loop's close giving SIGINT
+            # back (Python's default: KeyboardInterrupt) and _LateRepeats' restore: the
+            # stop is done and the program was leaving with the first signal's status.
             handlers = state.get("h")
             if state.get("stopped") and handlers is not None and handlers.first is not None:
                 log.warning("%s again while closing: exiting", handlers.first.name)
