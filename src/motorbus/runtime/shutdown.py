@@ -153,19 +153,6 @@ class _AutoGuard:
             return
         self.uninstall()
 
-    def retire(self) -> None:
-        """Stop answering, giving nothing back: for when a handler set with
-        ``signal.signal`` has just replaced these (``run``'s ``_LateRepeats``).
-
-        ``uninstall`` gives the signals back through ``loop.remove_signal_handler``,
-        which sets the default disposition first: a SIGTERM in the instant before the
-        next handler is set would kill the process.  Replacing the handler and then
-        retiring leaves no such instant; the loop's records of the signals go with the
-        loop (``loop.close``)."""
-        self._retired = True
-        self._signals = []
-        self._replaced = {}
-
     def uninstall(self) -> None:
         loop, installed = self.loop, self.installed
         self.installed = []
