@@ -77,6 +77,7 @@ def _warm_bytecode(config: pytest.Config) -> None:
         or workers < 2
         or hasattr(config, "workerinput")
         or os.environ.get("MOTORBUS_TESTS_WARMING")
+        or os.environ.get("PYTHONDONTWRITEBYTECODE")  # nothing would be written
     ):
         return
     files = sorted(
@@ -111,7 +112,7 @@ def _test_files(path: Path) -> list[Path]:
     """The test modules at or under ``path`` (collecting them imports the conftests)."""
     if path.is_dir():
         return list(path.rglob("test_*.py"))
-    return [path] if path.suffix == ".py" else []
+    return [path] if path.suffix == ".py" and path.is_file() else []
 
 
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too

@@ -83,8 +83,8 @@ def bound_endpoint(session: Any, listen: str) -> str:
     """``listen`` with port 0 replaced by the port the session was given (blocking: a
     query of the session's own admin space, which ``server_config`` turned on)."""
     protocol, address = listen.split("/", 1)
-    cut = min((i for i in (address.find("#"), address.find("?")) if i >= 0), default=None)
-    host, rest = address[:cut].rsplit(":", 1)[0], address[len(address[:cut]) :]
+    cut = min((i for i in (address.find("#"), address.find("?")) if i >= 0), default=len(address))
+    host, rest = address[:cut].rsplit(":", 1)[0], address[cut:]  # rest: "#..." or "?..."
     for reply in session.get(f"@/{session.info.zid()}/*", timeout=5.0):
         if reply.ok is None:
             continue
