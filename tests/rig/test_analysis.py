@@ -192,6 +192,27 @@ def test_peak_speed_ignores_replies_read_late() -> None:
     assert fig.peak_speed_units_per_s == pytest.approx(1000.0, rel=0.02)
 
 
+def test_peak_speed_where_a_busy_host_sampled_sparsely() -> None:
+    # For 150 ms mid-move a starved host polled every 8 ms and read six replies in a
+    # row 12 ms late (a loaded run of the suite read 1,208 units/s off an actuator at
+    # 1,000 so); elsewhere it polled every millisecond.  The window then widens to 30
+    # samples, where six late stamps cannot carry the median.
+    def move(t: float) -> float:
+        return trapezoid(500.0, 1500.0, 1000.0, 10000.0, 0.0, t)
+
+    times = [i * 0.001 for i in range(400)]
+    times += [0.4 + k * 0.008 for k in range(19)]
+    times += [0.552 + i * 0.001 for i in range(1000)]
+    late = set(range(404, 410))
+    samples = [Sample(t + (0.012 if k in late else 0.0), move(t)) for k, t in enumerate(times)]
+    samples.sort(key=lambda s: s.t)
+    fig = step_figures(samples, 0.0, 500.0, 1500.0)
+    assert fig.peak_speed_units_per_s == pytest.approx(1000.0, rel=0.05)
+    # The same samples judged over 100 ms alone make the peak the stamps invented.
+    sparse = step_figures(samples, 0.0, 500.0, 1500.0, speed_samples_min=2)
+    assert sparse.peak_speed_units_per_s > 1050.0
+
+
 def test_a_noisy_sample_is_not_a_motion() -> None:
     # At rest at 500 with one spike past the band at 5 ms; the motion starts at 20 ms.
     def pos(t: float) -> float:
