@@ -201,8 +201,10 @@ def default_signals() -> None:
 def start_example(port: str, *extra: str, example: Path | None = None) -> subprocess.Popen[str]:
     """Run the example on ``port`` for IDs 1-3 and wait until it prints "streaming"."""
     # Behaviour, not speed: a generous host margin keeps a loaded machine from turning a
-    # slow reply into a timeout (tests/test_examples.py does the same).
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MOTORBUS_HOST_MARGIN_MS": "50"}
+    # slow reply into a timeout (tests/test_examples.py does the same).  The streams
+    # here are broadcasts, which await no reply; the enables before them do, and a
+    # simulator starved for over 100 ms (seen) failed them with a 50 ms margin.
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MOTORBUS_HOST_MARGIN_MS": "250"}
     script = example or EXAMPLE
     args = [sys.executable, str(script), "--port", port, "--baud", str(SIM_BAUD), "--ids", "1-3"]
     proc = subprocess.Popen(
