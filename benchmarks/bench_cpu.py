@@ -73,7 +73,7 @@ from pathlib import Path
 from typing import Any
 
 from baselines import SPIN_S, PolledWork, polled_result, polled_timerfd_loop
-from harness import write_report
+from harness import TimerProbe, write_report
 from motorbus import manager
 from motorbus.bus.stats import LatencyHistogram
 from motorbus.errors import MotorbusError
@@ -301,16 +301,9 @@ async def _ours(paths: list[str], seconds: float, polls: str) -> dict[str, Any]:
                     failed[0] += 1
                 k += 1
 
-        # The buses of one loop share its timer: each distinct timer is counted once.
-        timers = list({id(t): t for t in (mgr.bus(name).timer for name in names)}.values())
-
-        def spun() -> float:
-            return sum(getattr(t, "spin_seconds", 0.0) for t in timers)
-
-        def armed() -> int:  # timerfd_settime calls (a tree before 2026-12-03: none)
-            return sum(getattr(t, "arms", 0) for t in timers)
-
-        spin0, arms0 = spun(), armed()
+        # The buses of one loop share its timer: each distinct timer is probed once.
+        timers = {id(t): t for t in (mgr.bus(name).timer for name in names)}.values()
+        probes = [TimerProbe(t) for t in timers]
         wall0, cpu0 = time.monotonic(), cpu_seconds()
         end[0] = max(s.origin for s in streams) + seconds + PERIOD_S
         shared = min(s.origin for s in streams)
@@ -325,7 +318,7 @@ async def _ours(paths: list[str], seconds: float, polls: str) -> dict[str, Any]:
             *(s.wait() for s in streams), *tasks, return_exceptions=True
         )
         wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
-        spin, arms = spun() - spin0, armed() - arms0
+        spin, arms = sum(p.spin_s for p in probes), sum(p.arms for p in probes)
         errors = [o for o in outcomes if isinstance(o, BaseException)]
         for err in errors:
             if not isinstance(err, MotorbusError):

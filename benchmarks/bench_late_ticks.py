@@ -48,7 +48,7 @@ from bench_load import (  # README's stream, set up as the load benchmark sets i
     go_realtime,
     trajectory,
 )
-from harness import steal_seconds
+from harness import TimerProbe, steal_seconds
 from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
 from late_ticks import CAUSES, LateTick, TickRecords, attribute, summarise
 from motorbus.bus.timer import TimerfdTimer, default_timer
@@ -210,6 +210,7 @@ async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
     timer = default_timer()
     if isinstance(timer, TimerfdTimer):
         timer.wake_observer = rec.on_wake
+    probe = TimerProbe(timer)
     mgr = BusManager(safe_stop=False)
     mgr.add_bus("late", path, baud=BAUD, devices=[f"la:1-{N_ACTUATORS}"])
     async with mgr:
@@ -231,8 +232,8 @@ async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
             "cpu_us_per_tick": round(1e6 * cpu / max(1, ticks), 1),
             "host_late": s.stats.late,
             "host_skipped": s.stats.skipped,
-            "timer_wakeups": getattr(timer, "wakeups", None),
-            "timer_spin_s": round(getattr(timer, "spin_seconds", math.nan), 4),
+            "timer_wakeups": probe.wakeups,
+            "timer_spin_s": round(probe.spin_s, 4),
         }
 
 

@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from baselines import BASELINES, run_baseline
+from harness import TimerProbe
 from kernel_clock import KernelWriteTrace, port_figures, worst_tick_figures
 from motorbus.bus.timer import default_timer
 from motorbus.manager import BusManager
@@ -124,13 +125,11 @@ async def stream_buses(paths: list[str], seconds: float, backend: str) -> dict[s
                     period=PERIOD_S,
                 )
             )
-        timer = default_timer()
-        wake0, spin0 = getattr(timer, "wakeups", 0), getattr(timer, "spin_seconds", 0.0)
+        probe = TimerProbe(default_timer())
         wall0, cpu0 = time.monotonic(), cpu_seconds()
         await asyncio.gather(*(s.wait() for s in streams))
         wall, cpu = time.monotonic() - wall0, cpu_seconds() - cpu0
-        wakeups = getattr(timer, "wakeups", 0) - wake0
-        spin = getattr(timer, "spin_seconds", 0.0) - spin0
+        wakeups, spin = probe.wakeups, probe.spin_s
         late = sum(s.stats.late for s in streams)
         skipped = sum(s.stats.skipped for s in streams)
         host_p99 = max(s.stats.jitter.percentile(99) for s in streams)

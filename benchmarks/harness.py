@@ -46,6 +46,53 @@ def write_report(out: Path, result: dict[str, Any]) -> None:
     print(f"wrote {out}")
 
 
+class TimerProbe:
+    """What a bus timer's wake-ups cost, counted from outside the library.
+
+    ``wakeups``: the timerfd's wake-ups; ``spin_s``: the CPU they spent spinning before a
+    precise deadline (seconds); ``arms``: its ``timerfd_settime`` calls that armed it
+    (disarming not counted), each of which reprograms the CPU's timer, which a VM pays
+    for.  Through the timer's ``wake_observer`` (an observer already there is still
+    told) and a counting wrapper of its own syscall object; all stay 0 for a timer
+    without a timerfd (``LoopTimer``).  Read differences: a probe counts from when it
+    was attached.
+    """
+
+    def __init__(self, timer: Any) -> None:
+        self.wakeups = 0
+        self.spin_s = 0.0
+        self.arms = 0
+        if not hasattr(timer, "wake_observer") or getattr(timer, "_api", None) is None:
+            return
+        told = timer.wake_observer
+
+        def on_wake(armed: float, woke: float, spun_until: float) -> None:
+            self.wakeups += 1
+            self.spin_s += spun_until - woke
+            if told is not None:
+                told(armed, woke, spun_until)
+
+        timer.wake_observer = on_wake
+        timer._api = _CountedSettime(timer._api, self)
+
+
+class _CountedSettime:
+    """A timer's syscall object (``motorbus.bus.timer._TimerfdApi``) whose arming calls
+    a ``TimerProbe`` counts."""
+
+    def __init__(self, api: Any, probe: TimerProbe) -> None:
+        self._api = api
+        self._probe = probe
+
+    def set_absolute_ns(self, fd: int, deadline_ns: int) -> None:
+        if deadline_ns:
+            self._probe.arms += 1
+        self._api.set_absolute_ns(fd, deadline_ns)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._api, name)
+
+
 def now_utc() -> str:
     """The time now, UTC, to the second (ISO 8601)."""
     return datetime.now(UTC).isoformat(timespec="seconds")

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import motorbus
+from harness import TimerProbe
 from motorbus.sim.process import SimProcess
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "profile_tick.json"
@@ -60,8 +61,7 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
             await a.enable()
         ticks = round(seconds / PERIOD_S)
         rows = [[1000 + 400 * math.sin(k / 50 + i / 3) for i in range(15)] for k in range(ticks)]
-        timer = bus.timer
-        wake0, spin0 = getattr(timer, "wakeups", 0), getattr(timer, "spin_seconds", 0.0)
+        probe = TimerProbe(bus.timer)
         cpu0 = time.process_time()
         s = motorbus.Streamer(bus).follow(actuators, rows, period=PERIOD_S, poll_status=True)
         await s.wait()
@@ -79,8 +79,8 @@ async def stream(path: str, seconds: float) -> dict[str, Any]:
             "ticks": s.stats.ticks,
             "cpu_s": cpu,
             # The timer's share: how often it woke the loop, how long it spun.
-            "timer_wakeups_per_tick": (getattr(timer, "wakeups", 0) - wake0) / n,
-            "timer_spin_us_per_tick": 1e6 * (getattr(timer, "spin_seconds", 0.0) - spin0) / n,
+            "timer_wakeups_per_tick": probe.wakeups / n,
+            "timer_spin_us_per_tick": 1e6 * probe.spin_s / n,
             "write_after_deadline_us": {
                 f"p{p}": 1e6 * percentile(after_deadline, p) for p in (50, 90, 99)
             },

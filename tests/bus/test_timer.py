@@ -251,7 +251,7 @@ def test_timerfd_is_released_with_its_loop() -> None:
 
 
 @pytest.mark.parametrize("loop_factory", LOOPS)
-def test_timerfd_counts_its_wakeups_and_spin_and_tells_the_wake_observer(
+def test_timerfd_tells_the_wake_observer_each_wakeup_and_its_spin(
     loop_factory: Callable[[], asyncio.AbstractEventLoop],
 ) -> None:
     if not timerfd_available():
@@ -266,14 +266,14 @@ def test_timerfd_counts_its_wakeups_and_spin_and_tells_the_wake_observer(
         done = asyncio.get_running_loop().create_future()
         timer.call_at(deadline, lambda: (fired.append(timer.now()), done.set_result(None)))
         await done
-        assert timer.wakeups == len(seen) >= 1
+        assert len(seen) >= 1
         armed, woke, spun = seen[-1]
         # Armed before the deadline (the spin lead), woken after the armed time; the
         # spin ends at the deadline unless the wake-up itself was late.
         assert 0 < armed <= deadline <= fired[0]
         assert armed <= woke <= spun
         assert spun >= deadline or woke >= deadline
-        assert timer.spin_seconds == pytest.approx(sum(s - w for _, w, s in seen))
+        assert not hasattr(timer, "spin_seconds")  # counted from outside (issue 40)
         timer.close()
 
     run(loop_factory, main())
@@ -423,11 +423,13 @@ def test_cancelling_the_earliest_callback_rearms_instead_of_waking_for_nothing(
 
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
+        woken: list[float] = []
+        timer.wake_observer = lambda armed, woke, spun: woken.append(woke)
         later = timer.call_at(timer.now() + 1.0, lambda: None)
         soon = timer.call_at(timer.now() + 0.002, lambda: None)
         soon.cancel()
         await asyncio.sleep(0.02)  # well past the cancelled deadline
-        assert timer.wakeups == 0
+        assert woken == []
         assert timer.pending == 1
         later.cancel()
         timer.close()
@@ -559,9 +561,11 @@ async def test_the_timerfd_timer_spins_only_where_asked(monkeypatch: pytest.Monk
         plain = TimerfdTimer()
         timers.append(plain)
         assert plain.lead == 0.0
+        spins: list[float] = []
+        plain.wake_observer = lambda armed, woke, spun: spins.append(spun - woke)
         deadline = plain.now() + 0.002
         await plain.sleep_until(deadline)
-        assert plain.spin_seconds == 0.0 and plain.wakeups >= 1
+        assert spins and all(s == 0.0 for s in spins)
         monkeypatch.setenv(realtime.ENV_VAR, "1")  # asked for: the next timer spins
         asked = TimerfdTimer()
         timers.append(asked)

@@ -518,7 +518,8 @@ class TimerfdTimer(Timer):
     for the rest: a deadline fires within ~25 us at p99, for at most the lead in CPU per
     wake-up (bench_wakeups.py: timer callback lateness).  By default it did so until
     issue 40: that spin alone was 1.4x the least loop's CPU (benchmarks/bench_cpu.py).
-    ``wakeups``, ``spin_seconds`` and ``arms`` count what that costs.
+    What it costs is counted from outside: ``wake_observer`` is told each wake-up and
+    its spin (the benchmarks' ``harness.TimerProbe``); the timer keeps no counters.
     """
 
     name = "timerfd"
@@ -566,13 +567,6 @@ class TimerfdTimer(Timer):
         #: Whether the fd is armed for a precise deadline (the lead follows only those).
         self._armed_precise = False
         self._reading = False
-        #: Wake-ups of the fd, and the CPU they spent spinning (seconds): the price of
-        #: precision, read by ``benchmarks/profile_tick.py`` and ``bench_late_ticks.py``.
-        self.wakeups = 0
-        self.spin_seconds = 0.0
-        #: Times the fd was armed (``timerfd_settime`` calls; disarming is not counted):
-        #: each one for the near future reprograms the CPU's timer, which a VM pays for.
-        self.arms = 0
         #: Called on each fd wake-up as ``(armed, woke, spun_until)`` (``time.monotonic``
         #: seconds; ``armed`` is 0.0 for a wake-up nobody armed): for tools that find out
         #: why a deadline was late.  Keep it short; it runs before the due callbacks.
@@ -602,7 +596,6 @@ class TimerfdTimer(Timer):
             self._api.set_absolute_ns(self._fd, ns)
             self._armed_ns = ns
             self._armed_precise = precise
-            self.arms += 1
 
     def _current_lead(self) -> float:
         if not self._spin_lead:
@@ -657,7 +650,6 @@ class TimerfdTimer(Timer):
             late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
         self._armed_ns = 0
-        self.wakeups += 1
         spun_until = woke
         heap = self._heap
         if heap and self._spin_lead and heap[0][2].precise and not heap[0][2]._cancelled:
@@ -666,7 +658,6 @@ class TimerfdTimer(Timer):
                 clock = time.monotonic
                 while (spun_until := clock()) < first:
                     pass  # the last microseconds: a timer wake-up cannot be this precise
-                self.spin_seconds += spun_until - woke
         if self.wake_observer is not None:
             self.wake_observer(armed, woke, spun_until)
         self._wake(spun_until)  # the latest clock reading: nothing due by then runs early
