@@ -198,7 +198,9 @@ async def test_a_silent_client_gets_on_gap_ramp_back_to_its_targets(
         gap = await gaps.next(5)
         assert (gap.cause, gap.action, gap.ids) == ("client", "ramp", (1, 2))
         assert gap.missed >= 3 and gap.positions == {1: 500, 2: 500}
-        assert stream.stats.gaps == 1 and stream.stats.held >= gap.missed
+        # The stall's gap; a worker starved for 30 ms or more (seen) adds one more, each
+        # a ramp from where the actuators are, so the path below stays smooth.
+        assert stream.stats.gaps >= 1 and stream.stats.held >= gap.missed
     moving = [r[0] for r in collapse(targets_at_sim(la_sim))]
     # From 500 to 1500 in steps of at most 20 (max_speed * period): no jump.
     assert moving[0] == 500 and moving[-1] == 1500
