@@ -255,9 +255,15 @@ async def test_the_page_shows_live_actuators_and_its_estop_reaches_the_simulator
         assert [u for u in urls if not re.match(rf"(http|ws)://{re.escape(host)}/", u)] == []
 
     # Exit: la:1 (moved by the page) was e-stopped already; the dashboard's exit sends
-    # la:1 its safe action (pause) and nothing to the actuators it never moved.
-    requests = [f for f in sim_frames(sim, "request") if f["name"] == "Control"]
-    assert requests[-1]["fields"] == {"id": 1, "action": "PAUSE"}
+    # la:1 its safe action (pause) and nothing to the actuators it never moved.  After
+    # the pause, nothing but a status query (a viewer's poll still on its way to the
+    # server, seen once) reaches the simulator.
+    frames = sim_frames(sim, "request")
+    requests = [f for f in frames if f["name"] == "Control"]
+    pause = {"id": 1, "action": "PAUSE"}
+    last = max(i for i, f in enumerate(frames) if f["name"] == "Control" and f["fields"] == pause)
+    after = frames[last + 1 :]
+    assert all(f["name"] == "Control" and f["fields"]["action"] == "QUERY_STATUS" for f in after)
     assert {"id": 2, "action": "PAUSE"} not in [r["fields"] for r in requests]
 
 

@@ -81,6 +81,9 @@ _LEASE_FIELDS = frozenset(
 )
 #: How often the heartbeat check runs, as a share of the liveness timeout.
 _CHECKS_PER_LIVENESS = 10
+#: How long a client whose Zenoh session ended is remembered (seconds): a query it sent
+#: before it ended may reach the server after its end did, and must not move anything.
+_GONE_KEEP_S = 60.0
 
 
 @dataclass
@@ -94,6 +97,9 @@ class _Client:
     #: lease number -> (bus name, lease) of the leases the client took.
     explicit: dict[int, tuple[str, Lease]] = field(default_factory=dict)
     ended: str = ""  # why its leases were ended (told once to its next motion)
+    #: When its Zenoh session ended (``time.monotonic``), 0.0 while it lives: its
+    #: queries are refused from then on (``BusServer._client``).
+    gone: float = 0.0
 
 
 class BusServer:
@@ -339,6 +345,16 @@ class BusServer:
         client = self._clients.get(cid)
         if client is None:
             client = self._clients[cid] = _Client(cid, time.monotonic())
+        elif client.gone:
+            # A query sent before its client ended that arrived after the end did (they
+            # travel apart): nothing of a client that has ended reaches the wire.
+            raise ServedRefusal(
+                k.error_payload(
+                    "lease_gone",
+                    f"client {client.id}: its Zenoh session ended and its leases with it; "
+                    "nothing sent",
+                )
+            )
         return client
 
     async def _watch(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
@@ -584,12 +600,18 @@ class BusServer:
 
     def _on_token(self, sample: Any) -> None:
         cid = str(sample.key_expr).rsplit("/", 1)[-1]
+        client = self._clients.get(cid)
         if str(sample.kind).endswith("DELETE"):
-            client = self._clients.pop(cid, None)
-            if client is not None:
-                self._spawn(self._end_client(client, "its Zenoh session ended"))
-        elif cid not in self._clients:
+            # Kept, marked gone: a motion query of its that arrives after this (another
+            # channel than the token's) is refused, not served under a fresh lease.
+            if client is not None and not client.gone:
+                client.gone = time.monotonic()
+                self._spawn(self._end_client(client, "its Zenoh session ended", keep=True))
+        elif client is None:
             self._clients[cid] = _Client(cid, time.monotonic())
+        elif client.gone:  # its session came back (a link lost and found again)
+            client.gone, client.last_seen = 0.0, time.monotonic()
+            client.ended = client.ended or "its leases were ended (its Zenoh session ended)"
 
     def _on_heartbeat(self, sample: Any) -> None:
         cid = str(sample.key_expr).split("/")[-2]
@@ -602,6 +624,10 @@ class BusServer:
             await asyncio.sleep(self.liveness / _CHECKS_PER_LIVENESS)
             now = time.monotonic()
             for client in list(self._clients.values()):
+                if client.gone:
+                    if now - client.gone > _GONE_KEEP_S:
+                        del self._clients[client.id]
+                    continue
                 streams = self._streams.holds(client.id)
                 if now - client.last_seen > self.liveness and (_holds(client) or streams):
                     silent = now - client.last_seen
