@@ -32,6 +32,7 @@ This module builds and checks those payloads; ``motorbus.serve.server`` and
 from __future__ import annotations
 
 import json
+import logging
 import math
 import re
 import time
@@ -45,9 +46,19 @@ from motorbus.bus.events import (
     ProjectFinished,
     QuadDone,
 )
-from motorbus.errors import LocalProtocolError, PayloadError
+from motorbus.errors import (
+    BusClosedError,
+    LeaseConflictError,
+    LocalProtocolError,
+    NotSentError,
+    PayloadError,
+    RemoteProtocolError,
+    ReplyTimeoutError,
+)
 from motorbus.protocol import la, project_stepper, quad_stepper
 from motorbus.protocol.base import Command, Family, format_hex
+
+_log = logging.getLogger("motorbus.serve")
 
 __all__ = [
     "CLIENT_PREFIX",
@@ -65,11 +76,13 @@ __all__ = [
     "decode_frame",
     "decode_json",
     "encode_json",
+    "error_of",
     "error_payload",
     "event_from",
     "event_payload",
     "field_of",
     "hex_field",
+    "only_fields",
     "server_key",
 ]
 
@@ -289,3 +302,36 @@ def event_from(bus: str, body: dict[str, Any]) -> BusEvent | None:
     if kind == "state":
         return BusStateChanged(bus, now, str(body["state"]), str(body.get("detail", "")))
     return None
+
+
+def only_fields(payload: dict[str, Any], allowed: frozenset[str]) -> None:
+    """Refuse a field the query does not take (a misspelt option must not be ignored)."""
+    for name in payload:
+        if name not in allowed:
+            raise PayloadError(
+                f"unknown field {name!r}: allowed {', '.join(sorted(allowed))}",
+                field=name,
+                value=payload[name],
+            )
+
+
+def error_of(err: Exception) -> dict[str, Any]:
+    """The error reply for an exception raised while serving a request."""
+    if isinstance(err, LeaseConflictError):
+        return error_payload(
+            "lease_conflict", str(err), key=err.key, owner=err.owner, refused=err.refused
+        )
+    if isinstance(err, LocalProtocolError):
+        return error_payload("bad_payload", str(err), field=err.field, value=err.value)
+    if isinstance(err, ReplyTimeoutError):
+        return error_payload("timeout", str(err))
+    if isinstance(err, NotSentError):
+        return error_payload("not_sent", str(err))
+    if isinstance(err, BusClosedError):
+        return error_payload("closed", str(err))
+    if isinstance(err, RemoteProtocolError):
+        return error_payload("remote", str(err), raw=format_hex(err.raw))
+    if isinstance(err, KeyError):
+        return error_payload("unknown_key", f"no such bus: {err}")
+    _log.exception("serving a request failed")
+    return error_payload("internal", f"{type(err).__name__}: {err}")

@@ -37,16 +37,12 @@ from motorbus.bus.events import (
 )
 from motorbus.bus.leases import Lease, LeaseInfo
 from motorbus.errors import (
-    BusClosedError,
     LeaseConflictError,
     LocalProtocolError,
-    NotSentError,
-    RemoteProtocolError,
-    ReplyTimeoutError,
     ServedRefusal,
 )
 from motorbus.protocol import safety
-from motorbus.protocol.base import Command, format_hex
+from motorbus.protocol.base import Command
 from motorbus.serve import keys as k
 from motorbus.serve.streams_server import StreamService
 from motorbus.serve.tap import raw_reply, reply_mark, tapped
@@ -310,7 +306,7 @@ class BusServer:
                 query.reply_err(k.encode_json(k.error_payload("closed", "the server is closing")))
                 raise
             except Exception as err:  # every other error goes back to that client only
-                query.reply_err(k.encode_json(_error_of(err)))
+                query.reply_err(k.encode_json(k.error_of(err)))
         except Exception as err:  # the client went away: nothing to answer
             log.debug("could not answer a query: %s", err)
         finally:
@@ -318,7 +314,7 @@ class BusServer:
                 query.drop()
 
     async def _info(self, payload: dict[str, Any]) -> dict[str, Any]:
-        _only(payload, _READ_FIELDS)
+        k.only_fields(payload, _READ_FIELDS)
         return {
             "version": k.VERSION,
             "instance": self.instance,
@@ -365,7 +361,7 @@ class BusServer:
     async def _request(
         self, name: str, payload: dict[str, Any], *, watch: bool = False
     ) -> dict[str, Any]:
-        _only(payload, _REQUEST_FIELDS)
+        k.only_fields(payload, _REQUEST_FIELDS)
         bus = self._bus(name)
         client = self._client(payload)
         cmd = k.decode_frame(k.hex_field(payload, "frame"), sorted(bus.families, key=str))
@@ -489,7 +485,7 @@ class BusServer:
         return held[1]
 
     async def _lease(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
-        _only(payload, _LEASE_FIELDS)
+        k.only_fields(payload, _LEASE_FIELDS)
         bus = self._bus(name)
         client = self._client(payload)
         op = k.field_of(payload, "op", str)
@@ -562,11 +558,11 @@ class BusServer:
         )
 
     async def _leases(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
-        _only(payload, _READ_FIELDS)
+        k.only_fields(payload, _READ_FIELDS)
         return {"leases": _lease_rows(self._bus(name).leases)}
 
     async def _stats(self, name: str, payload: dict[str, Any]) -> dict[str, Any]:
-        _only(payload, _READ_FIELDS)
+        k.only_fields(payload, _READ_FIELDS)
         return {"stats": self._bus(name).stats.as_dict()}
 
     # -- publications --------------------------------------------------------------------
@@ -657,17 +653,6 @@ class BusServer:
         self.deadman_ends.append((client.id, time.monotonic() - start))
 
 
-def _only(payload: dict[str, Any], allowed: frozenset[str]) -> None:
-    """Refuse a field the query does not take (a misspelt option must not be ignored)."""
-    for name in payload:
-        if name not in allowed:
-            raise k.PayloadError(
-                f"unknown field {name!r}: allowed {', '.join(sorted(allowed))}",
-                field=name,
-                value=payload[name],
-            )
-
-
 def _holds(client: _Client) -> bool:
     return any(lease.active for lease in client.implicit.values()) or any(
         lease.active for _, lease in client.explicit.values()
@@ -700,25 +685,3 @@ def _lease_rows(infos: tuple[LeaseInfo, ...]) -> list[dict[str, Any]]:
         {"key": i.key, "owner": i.owner, "safe_frames": [f.hex() for f in i.safe_frames]}
         for i in infos
     ]
-
-
-def _error_of(err: Exception) -> dict[str, Any]:
-    """The error reply for an exception raised while serving a request."""
-    if isinstance(err, LeaseConflictError):
-        return k.error_payload(
-            "lease_conflict", str(err), key=err.key, owner=err.owner, refused=err.refused
-        )
-    if isinstance(err, LocalProtocolError):
-        return k.error_payload("bad_payload", str(err), field=err.field, value=err.value)
-    if isinstance(err, ReplyTimeoutError):
-        return k.error_payload("timeout", str(err))
-    if isinstance(err, NotSentError):
-        return k.error_payload("not_sent", str(err))
-    if isinstance(err, BusClosedError):
-        return k.error_payload("closed", str(err))
-    if isinstance(err, RemoteProtocolError):
-        return k.error_payload("remote", str(err), raw=format_hex(err.raw))
-    if isinstance(err, KeyError):
-        return k.error_payload("unknown_key", f"no such bus: {err}")
-    log.exception("serving a request failed")
-    return k.error_payload("internal", f"{type(err).__name__}: {err}")
