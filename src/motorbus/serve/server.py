@@ -605,9 +605,9 @@ class BusServer:
                 self._spawn(self._end_client(client, "its Zenoh session ended", keep=True))
         elif client is None:
             self._clients[cid] = _Client(cid, time.monotonic())
-        elif client.gone:  # its session came back (a link lost and found again)
+        elif client.gone:  # its session came back (a link lost and found again): its
+            # next motion hears once that its leases ended (``_end_client``, ``keep``)
             client.gone, client.last_seen = 0.0, time.monotonic()
-            client.ended = client.ended or "its leases were ended (its Zenoh session ended)"
 
     def _on_heartbeat(self, sample: Any) -> None:
         cid = str(sample.key_expr).split("/")[-2]
