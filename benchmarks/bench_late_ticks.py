@@ -232,8 +232,8 @@ async def stream(path: str, seconds: float, rec: Recorder) -> dict[str, Any]:
             "cpu_us_per_tick": round(1e6 * cpu / max(1, ticks), 1),
             "host_late": s.stats.late,
             "host_skipped": s.stats.skipped,
-            "timer_wakeups": probe.wakeups,
-            "timer_spin_s": round(probe.spin_s, 4),
+            "timer_wakeups": probe.wakeups if probe.counted else None,
+            "timer_spin_s": round(probe.spin_s, 4) if probe.counted else None,
         }
 
 

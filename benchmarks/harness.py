@@ -53,16 +53,17 @@ class TimerProbe:
     precise deadline (seconds); ``arms``: its ``timerfd_settime`` calls that armed it
     (disarming not counted), each of which reprograms the CPU's timer, which a VM pays
     for.  Through the timer's ``wake_observer`` (an observer already there is still
-    told) and a counting wrapper of its own syscall object; all stay 0 for a timer
-    without a timerfd (``LoopTimer``).  Read differences: a probe counts from when it
-    was attached.
+    told) and a counting wrapper of its own syscall object; ``counted`` is False (and
+    all stay 0) for a timer without a timerfd (``LoopTimer``).  A probe counts from when
+    it was attached.
     """
 
     def __init__(self, timer: Any) -> None:
         self.wakeups = 0
         self.spin_s = 0.0
         self.arms = 0
-        if not hasattr(timer, "wake_observer") or getattr(timer, "_api", None) is None:
+        self.counted = hasattr(timer, "wake_observer") and getattr(timer, "_api", None) is not None
+        if not self.counted:
             return
         told = timer.wake_observer
 
