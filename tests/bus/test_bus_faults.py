@@ -235,11 +235,14 @@ async def test_late_reply_is_counted_and_never_given_to_a_later_request(
         # deadline is decided when its callback runs (bus/matching.py), and a loaded
         # machine delays that callback.  What may never happen: a reply given to
         # another request (the statuses above), a timeout with no delayed reply behind
-        # it, or a timed-out request's reply going uncounted.
+        # it, or a timed-out request's reply going uncounted.  (On a prompt machine the
+        # timeouts are the delayed replies alone; on a loaded one an on-time reply read
+        # over 1 ms late times out too (22 timeouts for 20 delays, seen), and is then
+        # counted late all the same: every timeout's reply is counted, and only those.)
         timeouts = outcomes.count("timeout")
-        assert 0 < timeouts <= injected
+        assert timeouts > 0
         await eventually(lambda: bus.stats.late_replies >= timeouts, "the late replies")
-        assert bus.stats.late_replies <= injected
+        assert bus.stats.late_replies == timeouts
         assert bus.stats.unexpected_frames == 0
         assert bus.stats.retries == 0  # MoveTo starts motion: never retried
 
