@@ -78,7 +78,12 @@ async def test_polls_go_at_background_priority_and_an_estop_at_emergency() -> No
     await dash.start()
     try:
         await eventually(lambda: dash.rounds["shown"] >= 3, "three poll rounds")
-        await eventually(lambda: bus.stats_asked >= 2, "the server's counters, twice")
+        # The counters asked twice and the rate taken from them (after the leases' read,
+        # on a thread: a loaded run's snapshot came between the two, seen).
+        await eventually(
+            lambda: bus.stats_asked >= 2 and dash.state.frames_per_s("shown") > 0,
+            "frames/s from the server's counters, asked twice",
+        )
         outcome = await dash.act("estop", "shown", 1, source="test")
         assert outcome == [{"bus": "shown", "device": "la:1", "command": "Control", "ok": True}]
         # The fault as the server sees it: its event, and the statuses after it (each
