@@ -88,8 +88,7 @@ def _warm_bytecode(config: pytest.Config) -> None:
         },
         key=lambda f: -f.stat().st_size,
     )
-    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    shares: list[list[str]] = [[] for _ in range(min(workers, cpus or 1, len(files)))]
+    shares: list[list[str]] = [[] for _ in range(min(workers, _cpus(), len(files)))]
     for i, found in enumerate(files):  # largest first, dealt round the shares
         shares[i % len(shares)].append(str(found))
     env = {**os.environ, "MOTORBUS_TESTS_WARMING": "1"}
@@ -120,8 +119,13 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
     motion in real time, child processes starting, replies paced at the baud), so one
     worker a CPU leaves the CPUs idle half the time."""
+    return 2 * _cpus()
+
+
+def _cpus() -> int:
+    """The CPUs this run may use."""
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return 2 * (cpus or 1)
+    return cpus or 1
 
 
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
