@@ -18,7 +18,7 @@ from motorbus.devices import quad_stepper as async_qs
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.sim.process import SimProcess
-from tests.blocking.frames import BAUD, is_broadcast_follow, pause, received
+from tests.blocking.frames import BAUD, HOST_MARGIN_S, is_broadcast_follow, pause, received
 
 PAIRS = [
     (async_la.InspireLA, mb.InspireLA),
@@ -47,7 +47,7 @@ def test_every_coroutine_method_has_a_blocking_twin(aio: type, blocking: type) -
 
 def open_bus(port: str, family: motorbus.Family, baud: int = BAUD) -> mb.Bus:
     transport = motorbus.open_transport(port, baudrate=baud)
-    return mb.Bus(transport, families=[family], host_margin=0.05)
+    return mb.Bus(transport, families=[family], host_margin=HOST_MARGIN_S)
 
 
 def test_the_project_stepper_uploads_and_runs_blocking() -> None:

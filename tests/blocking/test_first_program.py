@@ -12,12 +12,12 @@ import motorbus
 import motorbus.blocking as mb
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.blocking.frames import BAUD, assert_paused_after, pause, query, received
+from tests.blocking.frames import BAUD, HOST_MARGIN_S, assert_paused_after, pause, query, received
 
 
 def first_program(port: str) -> tuple[la.Status, la.Status]:
     transport = motorbus.open_transport(port, baudrate=BAUD)
-    with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05) as bus:
+    with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S) as bus:
         actuator = mb.InspireLA(bus, 1, stroke_mm=30)
         before = actuator.status()
         actuator.enable()

@@ -19,7 +19,7 @@ from motorbus.devices.group import read_statuses
 from motorbus.protocol import la
 from motorbus.sim.la import LAModel
 from motorbus.sim.process import SimProcess
-from tests.blocking.frames import BAUD, query
+from tests.blocking.frames import BAUD, HOST_MARGIN_S, query
 from tests.helpers import PACINGS, sim_bus
 
 IDS = list(range(1, 16))
@@ -33,7 +33,7 @@ def test_fifteen_statuses_in_one_pipelined_round(tmp_path: Path) -> None:
     specs = [f"la:{i},position={position_of(i)}" for i in IDS]
     with SimProcess(specs, baud=BAUD, log_file=tmp_path / "sim.jsonl") as sim:
         transport = motorbus.open_transport(sim.path, baudrate=BAUD)
-        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05) as bus:
+        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S) as bus:
             statuses = mb.read_statuses(bus, IDS)
             again = bus.read_statuses(reversed(IDS))
             records = sim.log_records()

@@ -25,7 +25,13 @@ import motorbus
 import motorbus.blocking as mb
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.blocking.frames import BAUD, assert_paused_after, is_broadcast_follow, received
+from tests.blocking.frames import (
+    BAUD,
+    HOST_MARGIN_S,
+    assert_paused_after,
+    is_broadcast_follow,
+    received,
+)
 
 #: Longest wait for a condition, or for a child to start or exit (a bound, not a speed).
 BOUND_S = 20.0
@@ -56,7 +62,7 @@ def test_ctrl_c_during_a_blocking_move_pauses_the_actuator_and_is_raised(tmp_pat
     move = la.MoveTo(1, 2000, True).encode()
     with SimProcess([spec], baud=BAUD, log_file=tmp_path / "sim.jsonl") as sim:
         transport = motorbus.open_transport(sim.path, baudrate=BAUD)
-        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05)
+        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S)
         actuator = bus.la(1)
         actuator.enable()
         watcher = when(lambda: move in received(sim), _thread.interrupt_main)
@@ -74,7 +80,7 @@ def test_ctrl_c_during_a_blocking_move_pauses_the_actuator_and_is_raised(tmp_pat
 def test_ctrl_c_during_a_blocking_stream_wait_pauses_the_stream(tmp_path: Path) -> None:
     with SimProcess(["la:1-3"], baud=BAUD, log_file=tmp_path / "sim.jsonl") as sim:
         transport = motorbus.open_transport(sim.path, baudrate=BAUD)
-        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05)
+        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S)
         actuators = [bus.la(i) for i in (1, 2, 3)]
         stream = bus.streamer().follow(
             actuators, mb.Setpoint([900, 1000, 1100]), period=0.02, safe_action="pause"
@@ -102,6 +108,7 @@ STREAMING_SCRIPT = textwrap.dedent(
     import motorbus.blocking as mb
 
     port, how = sys.argv[1], sys.argv[2]
+    HOST_MARGIN_S = 0.25  # as tests/blocking/frames.py's (this program runs alone)
     transport = motorbus.open_transport(port, baudrate=921600)
 
     def start(bus):
@@ -116,11 +123,11 @@ STREAMING_SCRIPT = textwrap.dedent(
         return stream, setpoint
 
     if how == "wait":  # no with block: the blocking call's own Ctrl-C handling
-        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05)
+        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S)
         stream, _ = start(bus)
         stream.wait()
     elif how == "loop":  # a control loop of the LeRobot kind, in a with block
-        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05) as bus:
+        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S) as bus:
             stream, setpoint = start(bus)
             k = 0
             while True:
@@ -128,10 +135,10 @@ STREAMING_SCRIPT = textwrap.dedent(
                 setpoint.set([900 + k % 100, 1000, 1100])
                 time.sleep(0.01)
     elif how == "exit":  # the program just ends, the stream still running: atexit
-        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05)
+        bus = mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S)
         start(bus)
     elif how == "raise":
-        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05) as bus:
+        with mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S) as bus:
             start(bus)
             raise RuntimeError("the program failed")
     """

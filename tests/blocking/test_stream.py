@@ -13,6 +13,7 @@ import motorbus.blocking as mb
 from motorbus.sim.process import SimProcess
 from tests.blocking.frames import (
     BAUD,
+    HOST_MARGIN_S,
     assert_paused_after,
     broadcast_targets,
     is_broadcast_follow,
@@ -26,7 +27,7 @@ SEEN_TIMEOUT_S = 10.0
 
 def open_bus(port: str) -> mb.Bus:
     transport = motorbus.open_transport(port, baudrate=BAUD)
-    return mb.Bus(transport, families=[motorbus.Family.LA], host_margin=0.05)
+    return mb.Bus(transport, families=[motorbus.Family.LA], host_margin=HOST_MARGIN_S)
 
 
 def seen(sim: SimProcess, wanted: dict[int, int]) -> bool:

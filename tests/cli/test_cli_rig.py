@@ -21,6 +21,10 @@ from tests.helpers import cli
 SPEED, DEAD = 1000.0, 0.012
 TRUTH = f"stroke_speed={SPEED:g},accel=10000,dead_time={DEAD},position=300"
 SLOW = f"stroke_speed={SPEED * 0.8:g},accel=10000,dead_time={DEAD},position=300"
+#: How much later than the simulator a loaded host may read a reply (ms).  The rig stamps
+#: a sample when its reply is read (docs/rig.md), so a busy CI worker only ever adds to
+#: a measured delay: one such run read a 32 ms dead time as 38.9 ms.
+READ_LATE_MS = 10.0
 QUICK = ["--tests", "step,latency,repeat", "--latency-count", "6", "--repeat-count", "2"]
 
 
@@ -52,8 +56,8 @@ def test_the_rig_recovers_the_configured_truth_over_a_pty(runs: dict[str, Path])
     # Dead time as docs/rig.md defines it: the model's, plus the time its profile takes
     # to leave the 2-unit noise band from rest (sqrt(2 * 2 / accel) = 20 ms).
     moved_ms = DEAD * 1e3 + math.sqrt(2 * 2 / 10000) * 1e3
-    assert f["step.dead_time_ms"] == pytest.approx(moved_ms, rel=0.15)
-    assert f["latency.p50_ms"] == pytest.approx(moved_ms, rel=0.15)
+    for key in ("step.dead_time_ms", "latency.p50_ms"):
+        assert 0.85 * moved_ms <= f[key] <= moved_ms + READ_LATE_MS, (key, f[key], moved_ms)
     for key in (
         "step.overshoot_pct", "step.settling_time_ms", "step.steady_state_error",
         "latency.p99_ms", "repeat.spread", "repeat.backlash",
