@@ -441,6 +441,45 @@ async def test_viewers_connecting_between_two_pushes_share_one_snapshot_build(
         assert rig.dash.message() is not again  # message() itself is always built anew
 
 
+async def test_a_push_while_a_viewer_gets_its_snapshot_reaches_it_after_the_snapshot(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The push that goes out between a new viewer's snapshot and its joining the
+    # viewers, as a loaded machine made it: held back here until such a push went.
+    async with served(control=False) as rig:
+        await rig.rounds(2)
+        pushed_at: list[int] = []  # the dashboard's seq as each push was built
+        real_broadcast, real_snapshot = rig.lane.broadcast, rig.lane._snapshot
+
+        def broadcast(text: str) -> None:
+            pushed_at.append(rig.dash.state.seq)
+            real_broadcast(text)
+
+        async def snapshot() -> Callable[[], str]:
+            render = await real_snapshot()
+            taken = rig.dash.state.seq
+            # Until a push carried samples newer than the snapshot.
+            await rig.wait_for(lambda: any(seq > taken for seq in pushed_at))
+            return render
+
+        async with rig.client.ws_connect("/ws") as first:  # the pushes go out for it
+            await first.receive(timeout=WAIT_S)
+            monkeypatch.setattr(rig.lane, "broadcast", broadcast)
+            monkeypatch.setattr(rig.lane, "_snapshot", snapshot)
+            async with rig.client.ws_connect("/ws") as ws:
+                seen: list[float] = []
+                types = []
+                for _ in range(4):
+                    msg = json.loads((await ws.receive(timeout=WAIT_S)).data)
+                    types.append(msg["type"])
+                    seen += msg["buses"][0]["la"][0]["series"]["t"]
+                state = rig.dash.state
+                held = [state._rel(s[1]) for s in state.buses["arm"].la[1].samples]
+        assert types[0] == "full" and "full" not in types[1:], types
+        span = [t for t in held if min(seen) <= t <= max(seen)]
+        assert len(span) >= 4 and set(span) <= set(seen), sorted(set(span) - set(seen))
+
+
 async def test_a_viewer_gets_every_sample_across_its_snapshot_and_the_pushes() -> None:
     async with served(control=False) as rig:
         await rig.rounds(2)

@@ -106,11 +106,15 @@ class ViewerLane:
         self._thread: threading.Thread | None = None
         self._done: asyncio.Event | None = None
         self._tasks: set[asyncio.Task[Any]] = set()
+        #: Viewers whose snapshot is not sent yet, each with the pushes held for it
+        #: (``welcome``).
+        self._joining: dict[web.WebSocketResponse, list[str]] = {}
 
     @property
     def count(self) -> int:
-        """Viewers connected now (read from any thread)."""
-        return len(self.viewers)
+        """Viewers connected now, those still being sent their snapshot included (read
+        from any thread)."""
+        return len(self.viewers) + len(self._joining)
 
     async def start(self) -> None:
         """Start the lane's thread and its loop; returns once it accepts connections."""
@@ -157,7 +161,7 @@ class ViewerLane:
         try:
             await self._done.wait()
         finally:
-            for ws in list(self.viewers):
+            for ws in [*self.viewers, *self._joining]:
                 with contextlib.suppress(Exception):
                     await ws.close(code=1001, message=b"dashboard closing")
             await self._runner.cleanup()
@@ -194,7 +198,7 @@ class ViewerLane:
     def broadcast(self, text: str) -> None:
         """Send ``text`` to every viewer (once, built by the caller)."""
         loop = self.loop
-        if loop is None or not self.viewers:
+        if loop is None or not self.count:
             return
         with contextlib.suppress(RuntimeError):  # the lane has stopped
             loop.call_soon_threadsafe(self._broadcast, text)
@@ -206,11 +210,33 @@ class ViewerLane:
             with contextlib.suppress(ConnectionError, RuntimeError):
                 await ws.send_str(text)
 
+        for held in self._joining.values():
+            held.append(text)
         for ws in list(self.viewers):
             if not ws.closed:
                 task = asyncio.get_running_loop().create_task(send(ws))
                 self._tasks.add(task)
                 task.add_done_callback(self._tasks.discard)
+
+    async def welcome(self, ws: web.WebSocketResponse) -> None:
+        """Send a new viewer its snapshot, then every push from the moment it joined;
+        from then on it gets the pushes as they go (``viewers``).
+
+        It joins before its snapshot is taken, and a push that goes out while the
+        snapshot is taken or sent is held and sent after it, in order: a push is the
+        samples since the one before, so a viewer added only once its snapshot was sent
+        missed the samples of such a push (seen on a loaded machine).  It may get a
+        sample twice, which the page drops by its time.
+        """
+        held: list[str] = []
+        self._joining[ws] = held
+        try:
+            await ws.send_str(await self.snapshot())
+            while held:
+                await ws.send_str(held.pop(0))
+            self.viewers.add(ws)  # no await since ``held`` was seen empty
+        finally:
+            del self._joining[ws]
 
     async def snapshot(self) -> str:
         """A new viewer's first message: taken on the control loop, rendered here."""

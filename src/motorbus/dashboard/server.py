@@ -256,8 +256,7 @@ async def _ws(request: web.Request) -> web.WebSocketResponse:
     lane = request.app[LANE_KEY]
     ws = web.WebSocketResponse(heartbeat=20.0, compress=False)
     await ws.prepare(request)
-    await ws.send_str(await lane.snapshot())
-    lane.viewers.add(ws)
+    await lane.welcome(ws)
     try:
         async for msg in ws:  # viewers only listen; anything they send is ignored
             if msg.type == WSMsgType.ERROR:
