@@ -142,3 +142,27 @@ def test_follow_check_stops_the_stream_when_a_fresh_status_shows_no_motion() -> 
     with pytest.raises(CommandFailed, match=r"la:2 did not move 0.5 s after"):
         targets((grace + 3) * period, {2: la.Status(2, target=600, position=500)})
     assert check.stopped_at == grace + 3
+
+
+def test_without_a_status_in_the_stream_an_actuator_at_its_last_target_followed() -> None:
+    from motorbus.cli.stream import FollowCheck
+
+    def play(check: FollowCheck, statuses: dict[int, la.Status]) -> None:
+        source, k = check.source(0.02), 0
+        while source(k * 0.02, statuses) is not None:
+            k += 1
+
+    # A path out and back (368 -> 100 -> 373), no status read during the stream (no
+    # poll fitted between the ticks): its end at its last target says nothing against it.
+    rows = [(368 - 12 * k,) for k in range(23)] + [(100 + 12 * k,) for k in range(24)]
+    check = FollowCheck([1], (368,), rows)
+    play(check, {})
+    assert check.not_following({1: 375}) == []
+    # Ended where it started, far from its last target: it did not follow.
+    check = FollowCheck([1], (0,), [(10 * k,) for k in range(40)])
+    play(check, {})
+    assert check.not_following({1: 0}) == [1]
+    # With a status read during the stream, it is judged on what it reported.
+    check = FollowCheck([1], (368,), rows[:10])
+    play(check, {1: la.Status(1, target=368, position=368)})
+    assert check.not_following({1: 368}) == [1]

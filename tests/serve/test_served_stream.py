@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import signal
 import subprocess
 import sys
@@ -300,6 +301,18 @@ def test_motorbus_stream_connect_plays_a_csv_through_the_server(
     assert "streamed" in done.stdout
     assert_in_order(targets_at_sim(la_sim), ROWS)
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
+    # Again, from where the first left them: out and back to where they start.  No poll
+    # fits between the server's ticks (its 250 ms host margin), so the command knows
+    # only the final positions, which are the last targets: they followed (it said
+    # "did not follow" before).
+    again = subprocess.run(
+        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect", endpoint,
+         "--ramp", "0", "--period", "0.02", "--json"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert again.returncode == 0, again.stderr
+    summary = json.loads(again.stdout)
+    assert summary["polls"] == 0 and summary["not_following"] == [], summary
 
 
 async def test_a_stream_owns_its_actuators_for_its_client_and_a_hold_end_passes_them_back(

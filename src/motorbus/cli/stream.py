@@ -29,7 +29,9 @@ leaves free (or reads the feedback replies) and reads each position at the end. 
 actuator asked to move more than 10 units that never moved more than 10 units from
 where it started is reported ("did not follow") and makes the exit code 1; once a
 status read 0.5 s after it was asked to move shows that, the stream stops there (the
-others would go on without it).
+others would go on without it).  Where no poll fits between the ticks (a host margin
+longer than a tick leaves free; a served bus's is the server's), only the final
+position is read: an actuator that ended at its last target is taken to have followed.
 
 At the end (the last row, or a failure) the actuators are paused.  If the port is lost
 and comes back, the stream reads each position and ramps back to the trajectory at
@@ -357,6 +359,9 @@ class FollowCheck:
 
     ``source`` is the stream's target function: it plays ``rows`` and records how far
     each actuator's reported position (polls or feedback) got from where it started.
+    Where the stream read no status of an actuator (its polls did not fit between the
+    ticks: a host margin longer than a tick leaves, as a served bus may have), only its
+    final position is known: it is taken to have followed if that is its last target.
     An actuator asked to move beyond ``FOLLOW_TOLERANCE`` whose status, first read
     ``FOLLOW_GRACE_S`` or more after that, shows it has not ends the stream there
     (``CommandFailed``; ``stopped_at`` is the tick): the others would go on without it.
@@ -370,6 +375,9 @@ class FollowCheck:
         self.moved = dict.fromkeys(ids, 0)
         self.rows = rows
         self.stopped_at: int | None = None
+        #: The actuators whose status the stream read, and the last row sent.
+        self.seen: set[int] = set()
+        self.last: tuple[int, ...] | None = None
 
     def source(self, period: float) -> Any:
         rows, start, moved, asked, ids = self.rows, self.start, self.moved, self.asked, self.ids
@@ -383,6 +391,7 @@ class FollowCheck:
                 seen = fresh.get(ident)
                 if seen is None or seen[0] is not status:
                     fresh[ident] = (status, k)
+                    self.seen.add(ident)
                     moved[ident] = max(moved[ident], abs(status.position - start[ident]))
             stuck = [
                 i
@@ -397,7 +406,7 @@ class FollowCheck:
                 )
             if k >= len(rows):
                 return None
-            row = rows[k]
+            row = self.last = rows[k]
             for n, ident in enumerate(ids):
                 distance = abs(row[n] - start[ident])
                 if distance > asked[ident]:
@@ -409,13 +418,25 @@ class FollowCheck:
         return targets
 
     def not_following(self, final: dict[int, int]) -> list[int]:
-        """The actuators asked to move beyond ``FOLLOW_TOLERANCE`` that never did."""
+        """The actuators asked to move beyond ``FOLLOW_TOLERANCE`` that never did.
+
+        One of which the stream read no status and that ended at its last target (a
+        trajectory back to where it started) is not among them: nothing says that it
+        did not follow.
+        """
         for ident, position in final.items():
             self.moved[ident] = max(self.moved[ident], abs(position - self.start[ident]))
+        last = dict(zip(self.ids, self.last or (), strict=False))
+
+        def at_last_target(i: int) -> bool:
+            return i in final and i in last and abs(final[i] - last[i]) <= FOLLOW_TOLERANCE
+
         return [
             i
             for i in self.ids
-            if self.asked[i] > FOLLOW_TOLERANCE and self.moved[i] <= FOLLOW_TOLERANCE
+            if self.asked[i] > FOLLOW_TOLERANCE
+            and self.moved[i] <= FOLLOW_TOLERANCE
+            and (i in self.seen or not at_last_target(i))
         ]
 
 
