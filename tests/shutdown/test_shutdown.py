@@ -212,6 +212,44 @@ def test_a_sigterm_as_the_stop_hands_the_signals_over_does_not_kill_the_program(
     assert "the motion is stopped and the program is closing" in done.stderr
 
 
+#: A program whose second SIGTERM comes just as asyncio.run has closed the loop.
+_CLOSE_PROGRAM = """
+import asyncio, os, signal
+from motorbus.runtime import shutdown
+
+probe = asyncio.new_event_loop()
+loop_class = type(probe)
+probe.close()
+close = loop_class.close
+
+def close_then_sigterm(self):
+    close(self)
+    os.kill(os.getpid(), signal.SIGTERM)
+
+loop_class.close = close_then_sigterm
+
+async def main():
+    asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGTERM)
+    await asyncio.sleep(30)
+
+shutdown.run(main())
+"""
+
+
+def test_a_sigterm_as_the_loop_closes_does_not_kill_the_program() -> None:
+    """asyncio's Unix loop gives every signal it has a record of back to its default
+    disposition when it closes: SIGTERM's kills.  A repeated SIGTERM just after asyncio.run
+    closed the loop killed a program whose stop was done (a third Ctrl-C there printed a
+    traceback, seen with six test workers).  The loop no longer holds records of the
+    signals once the late handlers have them."""
+    done = subprocess.run(
+        [sys.executable, "-c", _CLOSE_PROGRAM], capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 128 + signal.SIGTERM, (done.returncode, done.stderr[-2000:])
+    assert "the motion is stopped and the program is closing" in done.stderr
+    assert "wakeup fd" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
 def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:
     """A teardown that hangs must not trap the user: the repeat after the absorbed one
     goes to the disposition run() found, and everything is given back."""

@@ -317,8 +317,18 @@ class SignalHandlers:
         ``uninstall`` gives the signals back through ``loop.remove_signal_handler``,
         which sets the default disposition first: a SIGTERM in the instant before the
         next handler is set would kill the process.  Replacing the handler and then
-        retiring leaves no such instant; the loop's records of the signals go with the
-        loop (``loop.close``)."""
+        retiring leaves no such instant.  asyncio's Unix loop would still do the same
+        when it closes (it removes every signal it has a record of), so its records of
+        these signals are dropped here, and its wakeup fd with the last of them, as
+        ``remove_signal_handler`` does (a signal written to the fd of a closed loop is
+        an "Exception ignored" message).  A loop that keeps no such records where they
+        can be reached (uvloop) still resets them when it closes."""
+        records = getattr(self.loop, "_signal_handlers", None)
+        if isinstance(records, dict) and _in_main_thread() and not self.loop.is_closed():
+            for sig in self._signals:
+                records.pop(sig, None)
+            if not records:
+                signal.set_wakeup_fd(-1)
         self._retired = True
         self._signals = []
         self._replaced = {}
