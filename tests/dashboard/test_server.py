@@ -150,11 +150,12 @@ async def test_five_viewers_make_the_same_bus_traffic_as_one() -> None:
 
         rounds1, sent1, frames1 = await window(1)
         rounds5, sent5, frames5 = await window(5)
-        # Within a round's granularity: the window may end while a round's last reply is
-        # on its way (one frame more or less), never more.
-        assert abs(sent1 - len(IDS) * rounds1) <= 1
-        assert abs(sent5 - len(IDS) * rounds5) <= 1
-        assert abs(sent5 / rounds5 - sent1 / rounds1) <= 2 / rounds1
+        # Within a round's granularity: the counts are read up to a round after its
+        # edges (10 ms apart, longer on a loaded run: 33 requests in 10 rounds of 3 seen),
+        # never more.  Five viewers' own traffic would be 15 a round.
+        assert abs(sent1 - len(IDS) * rounds1) <= len(IDS)
+        assert abs(sent5 - len(IDS) * rounds5) <= len(IDS)
+        assert abs(sent5 / rounds5 - sent1 / rounds1) <= 2 * len(IDS) / rounds1
         assert set(frames1) == set(frames5) == QUERIES  # viewers send nothing of their own
 
 

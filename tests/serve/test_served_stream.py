@@ -202,6 +202,8 @@ async def test_a_silent_client_gets_on_gap_ramp_back_to_its_targets(
         )
         await asyncio.wait_for(stream.wait(), 30)
         gap = await gaps.next(5)
+        while gap.cause == "behind":  # the server's own, starved on a loaded run (seen)
+            gap = await gaps.next(5)
         assert (gap.cause, gap.action, gap.ids) == ("client", "ramp", (1, 2))
         assert gap.missed >= 3 and gap.positions == {1: 500, 2: 500}
         # The stall's gap; a worker starved for 30 ms or more (seen) adds one more, each
