@@ -39,7 +39,7 @@ from tests.helpers import PACINGS
 
 LA_BAUD = 921600
 STEPPER_BAUD = 9600
-HOST_MARGIN_S = 0.05  # these tests assert frames, not timing
+HOST_MARGIN_S = 0.25  # these tests assert frames, not timing (50 ms timed out, 6 workers)
 
 PAUSE_1 = la.Control(1, la.ControlAction.PAUSE).encode()
 PAUSE_2 = la.Control(2, la.ControlAction.PAUSE).encode()

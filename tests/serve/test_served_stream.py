@@ -63,12 +63,16 @@ def collapse(rows: list[tuple[int, ...]]) -> list[tuple[int, ...]]:
     return [r for n, r in enumerate(rows) if n == 0 or r != rows[n - 1]]
 
 
-def assert_in_order(received: list[tuple[int, ...]], sent: list[tuple[int, ...]]) -> None:
+def assert_in_order(
+    received: list[tuple[int, ...]], sent: list[tuple[int, ...]], skipped: int = 0
+) -> None:
     """Every row received is one of ``sent``, in ``sent``'s order, none twice apart
-    from held repeats; the first and the last are there."""
+    from held repeats; the first and the last are there, unless the stream skipped
+    ticks (``skipped``: a server starved on a loaded run skips, never bursts)."""
     index = [sent.index(r) for r in collapse(received)]
     assert index == sorted(set(index)), index
-    assert index[0] == 0 and index[-1] == len(sent) - 1
+    if not skipped:
+        assert index[0] == 0 and index[-1] == len(sent) - 1, index
 
 
 ROWS = [(100 + 7 * n, 1900 - 7 * n) for n in range(40)]
@@ -95,7 +99,7 @@ async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
         assert stream.done and stream.error is None
     received = targets_at_sim(la_sim)
     published = [r for r in received if r in ROWS]
-    assert_in_order(published, ROWS)
+    assert_in_order(published, ROWS, stream.stats.skipped)
     if len(published) < len(received):
         # Rows of no target: the gap policy's ramp, when a target came later than its
         # tick (a client starved on a loaded machine, seen with one target per tick).
