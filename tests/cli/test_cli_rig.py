@@ -131,7 +131,7 @@ def test_rig_quad_times_runs_against_the_simulator() -> None:
     doc = json.loads(r.stdout)
     assert doc["what"] == "quad motor 2" and doc["runs"] == 3
     # 1600 pulses at 16,000 pulses/s = 100 ms, plus the frames on a 9600 bit/s wire (about
-    # 130 ms in all); a loaded run reads the done reply late, never early (over 200 ms
+    # 116 ms in all here); a loaded run reads the done reply late, never early (over 200 ms
     # seen with six workers), and a timed-out wait would take seconds.
     assert all(100.0 < t < 300.0 for t in doc["times_ms"]), doc["times_ms"]
 
