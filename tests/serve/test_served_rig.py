@@ -31,7 +31,9 @@ FREQUENCIES = "0.5,2"
 #: is not compared: on a loaded machine the local run's own skipped ticks move it by
 #: tens of ms at 0.5 Hz, where the phase moves by a few degrees.)
 RATIO_TOLERANCE = 0.1
-PHASE_TOLERANCE_DEG = 10.0
+#: A loaded run's late-read samples move one run's phase against the other's (12.9
+#: degrees at 2 Hz seen with six workers); the early stamping above is 90 off at 0.5 Hz.
+PHASE_TOLERANCE_DEG = 20.0
 
 
 def rig(*args: str) -> subprocess.CompletedProcess[str]:
