@@ -101,9 +101,10 @@ async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
     published = [r for r in received if r in ROWS]
     assert_in_order(published, ROWS, stream.stats.skipped)
     if len(published) < len(received):
-        # Rows of no target: the gap policy's ramp, when a target came later than its
-        # tick (a client starved on a loaded machine, seen with one target per tick).
-        assert kind == "a target per tick" and stream.stats.gaps >= 1, received
+        # Rows of no target: the gap policy's ramp, after a gap: a target that came later
+        # than its tick (a client starved on a loaded machine, seen with one target per
+        # tick), or a server that fell behind its ticks (seen with rows ahead).
+        assert stream.stats.gaps >= 1, received
     # One frame per tick the server served (its own count), and the safe action last.
     assert len(received) == stream.stats.ticks
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
