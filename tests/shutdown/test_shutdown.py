@@ -177,20 +177,12 @@ def test_a_ctrl_c_as_the_loop_gives_sigint_back_still_exits_with_the_first_statu
         signal.signal(signal.SIGINT, previous)
 
 
-#: A program whose second SIGTERM comes in the instant run() hands the signals from the
-#: loop's handlers to the late ones (``_LateRepeats``), and a third just after.
-_HANDOVER_PROGRAM = """
+#: A program stopped by a SIGTERM, whose repeats ``{probe}`` (code that runs first) sends
+#: at the instant a test chooses.
+_REPEATED_SIGTERM = """
 import asyncio, os, signal
 from motorbus.runtime import shutdown
-
-class Probe(shutdown._LateRepeats):
-    def __init__(self, before):
-        os.kill(os.getpid(), signal.SIGTERM)  # as the handover starts
-        super().__init__(before)
-        os.kill(os.getpid(), signal.SIGTERM)  # and as it ends: absorbed
-
-shutdown._LateRepeats = Probe
-
+{probe}
 async def main():
     asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGTERM)
     await asyncio.sleep(30)
@@ -199,24 +191,44 @@ shutdown.run(main())
 """
 
 
+def _stopped_by_sigterm_with_repeats(probe: str) -> str:
+    """Run ``_REPEATED_SIGTERM`` with ``probe``; it exited 143 with a repeat absorbed.
+    Returns its standard error."""
+    program = _REPEATED_SIGTERM.format(probe=probe)
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True,
+                          timeout=60)  # fmt: skip
+    assert done.returncode == 128 + signal.SIGTERM, (done.returncode, done.stderr[-2000:])
+    assert "the motion is stopped and the program is closing" in done.stderr
+    return done.stderr
+
+
 def test_a_sigterm_as_the_stop_hands_the_signals_over_does_not_kill_the_program() -> None:
     """The loop's handlers used to be removed (the default disposition: death) before
     the late ones were set: a repeated SIGTERM in that instant killed a program whose
     stop was done, before it could exit 143 or print its report (seen once on a loaded
     run of tests/integration/test_exit_paths.py).  Now the late handlers replace the
     loop's with no instant in between."""
-    done = subprocess.run(
-        [sys.executable, "-c", _HANDOVER_PROGRAM], capture_output=True, text=True, timeout=60
+    _stopped_by_sigterm_with_repeats(
+        """
+class Probe(shutdown._LateRepeats):
+    def __init__(self, before):
+        os.kill(os.getpid(), signal.SIGTERM)  # as the handover starts
+        super().__init__(before)
+        os.kill(os.getpid(), signal.SIGTERM)  # and as it ends: absorbed
+
+shutdown._LateRepeats = Probe
+"""
     )
-    assert done.returncode == 128 + signal.SIGTERM, (done.returncode, done.stderr[-2000:])
-    assert "the motion is stopped and the program is closing" in done.stderr
 
 
-#: A program whose second SIGTERM comes just as asyncio.run has closed the loop.
-_CLOSE_PROGRAM = """
-import asyncio, os, signal
-from motorbus.runtime import shutdown
-
+def test_a_sigterm_as_the_loop_closes_does_not_kill_the_program() -> None:
+    """asyncio's Unix loop gives every signal it has a record of back to its default
+    disposition when it closes: SIGTERM's kills.  A repeated SIGTERM just after asyncio.run
+    closed the loop killed a program whose stop was done (a third Ctrl-C there printed a
+    traceback, seen with six test workers).  The loop no longer holds records of the
+    signals once the late handlers have them."""
+    err = _stopped_by_sigterm_with_repeats(
+        """
 probe = asyncio.new_event_loop()
 loop_class = type(probe)
 probe.close()
@@ -227,27 +239,9 @@ def close_then_sigterm(self):
     os.kill(os.getpid(), signal.SIGTERM)
 
 loop_class.close = close_then_sigterm
-
-async def main():
-    asyncio.get_running_loop().call_later(0.05, os.kill, os.getpid(), signal.SIGTERM)
-    await asyncio.sleep(30)
-
-shutdown.run(main())
 """
-
-
-def test_a_sigterm_as_the_loop_closes_does_not_kill_the_program() -> None:
-    """asyncio's Unix loop gives every signal it has a record of back to its default
-    disposition when it closes: SIGTERM's kills.  A repeated SIGTERM just after asyncio.run
-    closed the loop killed a program whose stop was done (a third Ctrl-C there printed a
-    traceback, seen with six test workers).  The loop no longer holds records of the
-    signals once the late handlers have them."""
-    done = subprocess.run(
-        [sys.executable, "-c", _CLOSE_PROGRAM], capture_output=True, text=True, timeout=60
     )
-    assert done.returncode == 128 + signal.SIGTERM, (done.returncode, done.stderr[-2000:])
-    assert "the motion is stopped and the program is closing" in done.stderr
-    assert "wakeup fd" not in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert "wakeup fd" not in err and "Traceback" not in err, err
 
 
 def test_a_third_ctrl_c_still_interrupts_a_teardown() -> None:
