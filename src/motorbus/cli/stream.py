@@ -375,15 +375,16 @@ class FollowCheck:
         self.moved = dict.fromkeys(ids, 0)
         self.rows = rows
         self.stopped_at: int | None = None
-        #: The actuators whose status the stream read, and the last row sent.
-        self.seen: set[int] = set()
+        #: Per actuator, the last status the stream read and the tick it was first seen.
+        self.fresh: dict[int, tuple[la.Status, int]] = {}
+        #: The last row sent.
         self.last: tuple[int, ...] | None = None
 
     def source(self, period: float) -> Any:
         rows, start, moved, asked, ids = self.rows, self.start, self.moved, self.asked, self.ids
         grace = max(1, round(FOLLOW_GRACE_S / period))
         asked_at: dict[int, int] = {}  # the first tick whose target is beyond tolerance
-        fresh: dict[int, tuple[la.Status, int]] = {}  # the last status, and its first tick
+        fresh = self.fresh
 
         def targets(t: float, statuses: dict[int, la.Status]) -> tuple[int, ...] | None:
             k = round(t / period)
@@ -391,7 +392,6 @@ class FollowCheck:
                 seen = fresh.get(ident)
                 if seen is None or seen[0] is not status:
                     fresh[ident] = (status, k)
-                    self.seen.add(ident)
                     moved[ident] = max(moved[ident], abs(status.position - start[ident]))
             stuck = [
                 i
@@ -436,7 +436,7 @@ class FollowCheck:
             for i in self.ids
             if self.asked[i] > FOLLOW_TOLERANCE
             and self.moved[i] <= FOLLOW_TOLERANCE
-            and (i in self.seen or not at_last_target(i))
+            and (i in self.fresh or not at_last_target(i))
         ]
 
 
