@@ -18,6 +18,7 @@ import sys
 import tty
 from collections.abc import AsyncIterator, Iterator, Sequence
 from contextlib import asynccontextmanager, contextmanager
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -34,6 +35,7 @@ from tests.waiting import eventually
 
 __all__ = [
     "CLI_TIMEOUT_S",
+    "LOADED_HOST_MARGIN_MS",
     "NO_CONFIG_DIR",
     "PACINGS",
     "affinities",
@@ -41,6 +43,7 @@ __all__ = [
     "cli",
     "eventually",
     "json_lines",
+    "loaded_bus_file",
     "raw_pty",
     "rx_frames",
     "sim_bus",
@@ -109,6 +112,29 @@ def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
         timeout=CLI_TIMEOUT_S,
         env={**base, **(env or {})},
     )
+
+
+#: Host margin (ms) for a command-line run whose test never waits for a timeout: with the
+#: suite's workers on two CPUs, a reply can be read tens of ms after the simulator wrote
+#: it (a rig's move timed out at the command line's 50 ms in a 4-worker run).
+LOADED_HOST_MARGIN_MS = 250
+
+
+def loaded_bus_file(folder: Path, url: str, baud: int, devices: Sequence[str]) -> Path:
+    """A bus file in ``folder`` with one bus, ``main``, at ``url``, with
+    ``LOADED_HOST_MARGIN_MS``: for ``--bus-file`` where a test's command would otherwise
+    take the command line's default margin for ``--port``."""
+    path = folder / "loaded-bus.toml"
+    path.write_text(
+        "[[bus]]\n"
+        'name = "main"\n'
+        f"url = {json.dumps(url)}\n"
+        f"baud = {baud}\n"
+        f"devices = {json.dumps(list(devices))}\n"
+        f"host_margin_ms = {LOADED_HOST_MARGIN_MS}\n",
+        encoding="utf-8",
+    )
+    return path
 
 
 def stream_rows(out: str) -> int:

@@ -35,11 +35,11 @@ from motorbus.sim.pty import PtySim
 from motorbus.sim.quad_stepper import QuadStepperModel
 from motorbus.streams import Streamer
 from motorbus.transport.serial import SerialTransport
-from tests.helpers import PACINGS
+from tests.helpers import LOADED_HOST_MARGIN_MS, PACINGS
 
 LA_BAUD = 921600
 STEPPER_BAUD = 9600
-HOST_MARGIN_S = 0.25  # these tests assert frames, not timing (50 ms timed out, 6 workers)
+HOST_MARGIN_S = LOADED_HOST_MARGIN_MS / 1e3  # frames, not timing (50 ms timed out, 6 workers)
 
 PAUSE_1 = la.Control(1, la.ControlAction.PAUSE).encode()
 PAUSE_2 = la.Control(2, la.ControlAction.PAUSE).encode()

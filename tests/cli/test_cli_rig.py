@@ -16,7 +16,7 @@ import pytest
 
 from motorbus.sim.process import SimProcess
 from tests import packaging
-from tests.helpers import cli
+from tests.helpers import cli, loaded_bus_file
 
 SPEED, DEAD = 1000.0, 0.012
 TRUTH = f"stroke_speed={SPEED:g},accel=10000,dead_time={DEAD},position=300"
@@ -31,7 +31,8 @@ QUICK = ["--tests", "step,latency,repeat", "--latency-count", "6", "--repeat-cou
 def rig_runs(base: Path) -> None:
     for name, spec in (("golden", TRUTH), ("slow", SLOW)):
         with SimProcess([f"la:1,{spec}"], baud=921600) as sim:
-            r = cli("rig", "1", *QUICK, "--out", str(base / name), "--port", sim.path)
+            buses = loaded_bus_file(base, sim.path, 921600, ["la:1"])
+            r = cli("rig", "1", *QUICK, "--out", str(base / name), "--bus-file", str(buses))
             assert r.returncode == 0, r.stderr
 
 

@@ -30,7 +30,7 @@ from motorbus.sim.la import LAModel, PowerState
 from motorbus.sim.memory import MemorySim
 from motorbus.sim.pty import PtySim
 from motorbus.transport.memory import register_memory_link, unregister_memory_link
-from tests.helpers import CLI_TIMEOUT_S, NO_CONFIG_DIR, cli
+from tests.helpers import CLI_TIMEOUT_S, LOADED_HOST_MARGIN_MS, NO_CONFIG_DIR, cli
 from tests.waiting import eventually
 
 
@@ -192,7 +192,7 @@ def _arm(tmp_path: Path, port: str) -> Path:
         f'[[bus]]\nname = "arm"\nurl = "{port}"\nbaud = 921600\ncalibration = "arm.cal.toml"\n'
         # A loaded machine (the suite's workers, the simulator's thread) can hold a reply
         # past the default 2 ms margin; these tests judge ranges and frames, not timing.
-        "host_margin_ms = 250\n"
+        f"host_margin_ms = {LOADED_HOST_MARGIN_MS}\n"
         '\n[bus.la.gripper]\nid = 1\nstroke_mm = 30\nlimits = [100, 1900]\nunit = "mm"\n',
         encoding="utf-8",
     )

@@ -31,6 +31,7 @@ from motorbus.sim.bus import LogRecord
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from tests.dashboard.page import PageClient, page_client
+from tests.helpers import LOADED_HOST_MARGIN_MS
 
 IDS = (1, 2, 3)
 PERIOD = 0.03
@@ -75,7 +76,13 @@ async def served(
     log: list[LogRecord] = []
     async with MemorySim.start(list(models.values()), timer=timer, log=log.append) as sim:
         # No test here waits for a timeout: a loaded run's late replies must not make one.
-        bus = Bus(sim.transport, name="arm", families=[Family.LA], timer=timer, host_margin=0.25)
+        bus = Bus(
+            sim.transport,
+            name="arm",
+            families=[Family.LA],
+            timer=timer,
+            host_margin=LOADED_HOST_MARGIN_MS / 1e3,
+        )
         async with bus:
             dash = Dashboard([BusSetup(bus, list(IDS))], period=PERIOD, control=control,
                              window=window)  # fmt: skip

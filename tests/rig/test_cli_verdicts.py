@@ -15,7 +15,7 @@ from typing import Any
 import pytest
 
 from motorbus.sim.process import SimProcess
-from tests.helpers import cli
+from tests.helpers import cli, loaded_bus_file
 from tests.rig.figures import WRITTEN
 
 #: An actuator whose motor does not turn: ``seized`` (the simulator's dead actuator),
@@ -28,8 +28,9 @@ ONE = ["--latency-count", "1"]
 @pytest.mark.parametrize("dead", DEAD)
 def test_a_dead_actuator_fails_the_rig(tmp_path: Path, dead: str) -> None:
     with SimProcess([f"la:1,{dead}"], baud=921600) as sim:
+        buses = str(loaded_bus_file(tmp_path, sim.path, 921600, ["la:1"]))
         r = cli(
-            "rig", "1", "--tests", "step,latency", *ONE, "--out", str(tmp_path), "--port", sim.path
+            "rig", "1", "--tests", "step,latency", *ONE, "--out", str(tmp_path), "--bus-file", buses
         )
     assert r.returncode == 1, r.stdout + r.stderr
     assert re.search(r"FAILED la:1 step: did not follow: .*did not move", r.stderr), r.stderr
@@ -44,7 +45,10 @@ def test_a_dead_actuator_fails_the_rig(tmp_path: Path, dead: str) -> None:
 
 def test_a_dead_actuator_with_json_prints_one_error_object(tmp_path: Path) -> None:
     with SimProcess(["la:1,seized=1"], baud=921600) as sim:
-        r = cli("--json", "rig", "1", "--tests", "step", "--out", str(tmp_path), "--port", sim.path)
+        buses = str(loaded_bus_file(tmp_path, sim.path, 921600, ["la:1"]))
+        r = cli(
+            "--json", "rig", "1", "--tests", "step", "--out", str(tmp_path), "--bus-file", buses
+        )
     assert r.returncode == 1, r.stderr
     (line,) = r.stdout.splitlines()
     doc = json.loads(line)
@@ -151,9 +155,10 @@ def test_compare_fails_a_new_run_that_recorded_failures(tmp_path: Path, golden: 
 
 def test_an_aborted_run_exits_1_and_still_writes_its_report(tmp_path: Path) -> None:
     with SimProcess(["la:1,position=300"], baud=921600) as sim:  # it draws 300 mA moving
+        buses = str(loaded_bus_file(tmp_path, sim.path, 921600, ["la:1"]))
         r = cli(
             "rig", "1", "--tests", "step", "--max-current", "200", "--out", str(tmp_path),
-            "--port", sim.path,
+            "--bus-file", buses,
         )  # fmt: skip
     assert r.returncode == 1, r.stdout + r.stderr
     assert "FAILED la:1 step: la:1 drew 300 mA (ceiling 200 mA)" in r.stderr

@@ -21,6 +21,7 @@ pytest.importorskip("zenoh")
 
 from motorbus.dashboard.served import free_loopback_endpoint
 from motorbus.sim import SimProcess
+from tests.helpers import LOADED_HOST_MARGIN_MS
 
 #: Longest wait for a child process to say it is ready.
 READY_TIMEOUT_S = 30.0
@@ -104,7 +105,7 @@ def serve(port: str, baud: int, devices: str, endpoint: str, *extra: str) -> Chi
             # A loaded CI machine (a scan's status of la:1 timed out at 50 ms with eight
             # workers): no false timeouts.  The tests that wait for one ask an ID that
             # is not simulated, and wait for it as long as it takes.
-            "250",
+            str(LOADED_HOST_MARGIN_MS),
             *extra,
         ]
     )
