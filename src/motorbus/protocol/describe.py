@@ -10,6 +10,10 @@ two stepper families can look alike (docs/protocols.md A0-05).  Which family a r
 to is the caller's knowledge: ``family_hint`` supplies it, and without it the family the
 reassembler guessed is used, falling back to the other stepper family if that one's
 decoder refuses the bytes.
+
+The stepper families' modules are imported when a frame of theirs is first described:
+a process that only sees LA frames (an LA simulator, ``motorbus capture`` on an LA bus)
+does not pay for importing them at start-up.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from dataclasses import dataclass
 from typing import Any, TypeAlias
 
 from motorbus.errors import MotorbusError
-from motorbus.protocol import la, project_stepper, quad_stepper
+from motorbus.protocol import la
 from motorbus.protocol.base import FF_AA, Direction, Family, format_hex
 from motorbus.protocol.reassembler import Discarded, Frame, ProjectFinishedMarker
 
@@ -159,7 +163,7 @@ def describe(
             family.value,
             item.direction.value,
             _name_of(value),
-            _fields_of(value),
+            _fields_of(family, value),
             format_hex(raw),
         )
     family = families[0]
@@ -196,9 +200,13 @@ def _decode(family: Family, direction: Direction, raw: bytes) -> object:
     if family is Family.LA:
         return la.decode_request(raw) if request else la.decode_reply(raw)
     if family is Family.PROJECT_STEPPER:
+        from motorbus.protocol import project_stepper  # lazily: see the docstring
+
         if request:
             return project_stepper.decode_request(raw)
         return project_stepper.decode_reply_context_free(raw)
+    from motorbus.protocol import quad_stepper  # lazily: see the docstring
+
     if request:
         return quad_stepper.decode_request(raw)
     return quad_stepper.decode_reply_context_free(raw)
@@ -211,8 +219,9 @@ def _name_of(value: object) -> str:
 # -- turning decoded values into JSON-ready fields -------------------------------------------
 
 
-def _fields_of(value: object) -> dict[str, JSONValue]:
-    """The shown fields of a decoded value, plus a few derived ones worth seeing."""
+def _fields_of(family: Family, value: object) -> dict[str, JSONValue]:
+    """The shown fields of a value ``_decode`` gave for ``family``, plus a few derived
+    ones worth seeing."""
     if isinstance(value, la.Broadcast):
         # (id, position) pairs read better as objects than as nested lists.
         return {
@@ -228,10 +237,16 @@ def _fields_of(value: object) -> dict[str, JSONValue]:
             # A read covering exactly one documented register is worth naming and decoding.
             fields["register"] = register.name
             fields["value"] = register.decode_value(value.data)
-    elif isinstance(value, quad_stepper.QuadReply):
-        fields["motor"] = value.motor
-    elif isinstance(value, project_stepper.RepeatCount):
-        fields["forever"] = value.forever
+    elif family is Family.QUAD_STEPPER:
+        from motorbus.protocol.quad_stepper import QuadReply
+
+        if isinstance(value, QuadReply):
+            fields["motor"] = value.motor
+    elif family is Family.PROJECT_STEPPER:
+        from motorbus.protocol.project_stepper import RepeatCount
+
+        if isinstance(value, RepeatCount):
+            fields["forever"] = value.forever
     return fields
 
 
