@@ -27,8 +27,8 @@ def small_project(number: int = 2, *, repeat: int = 0, delay_ms: int = 20) -> ps
     step = ps.StepSpec(
         run_distance=1,
         direction=ps.RotationDirection.FORWARD,
-        start_hz=50,
-        accel_hz=30,
+        start_hz=1000,
+        accel_hz=300,
         speed_rpm=600,
         delay_ms=delay_ms,
     )
