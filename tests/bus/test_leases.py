@@ -3,6 +3,9 @@ release returns (``motorbus.bus.leases``, ``motorbus.protocol.safety``)."""
 
 from __future__ import annotations
 
+import sys
+from collections.abc import Callable
+
 import pytest
 
 from motorbus.bus.leases import PROGRAM, LeaseInfo, LeaseTable
@@ -69,6 +72,45 @@ def test_an_explicit_lease_takes_devices_over_from_the_implicit_one() -> None:
     assert table.owed("la:1") == (la.Control(1, la.ControlAction.ESTOP),)
     assert table.release(lease, hold=False) == [la.Control(1, la.ControlAction.ESTOP)]
     assert table.owner_of("la:1") is None
+
+
+def calls_in(fn: Callable[[], object]) -> int:
+    """Python and C function calls made while running ``fn()``."""
+    count = [0]
+
+    def profile(frame: object, event: str, arg: object) -> None:
+        if event in ("call", "c_call"):
+            count[0] += 1
+
+    sys.setprofile(profile)
+    try:
+        fn()
+    finally:
+        sys.setprofile(None)
+    return count[0]
+
+
+def test_a_status_read_between_ticks_leaves_the_next_tick_a_no_op() -> None:
+    """A status read pays nothing owed, so it changes nothing: the next tick's motion
+    is still the remembered one (before, every read made each tick redo the work for
+    each of its devices: a stream with a status poll a tick, as a rig or a dashboard
+    runs, paid for it every tick)."""
+    table = LeaseTable()
+    ids = range(1, 16)
+    lease = table.acquire("stream", [f"la:{i}" for i in ids], pause_for)
+    frame = la.Broadcast(la.BroadcastMode.FOLLOW, tuple((i, 500) for i in ids))
+    table.moved(frame)
+    table.moved(frame)
+    quiet = calls_in(lambda: table.moved(frame))  # the same motion, nothing in between
+    owed = table.owed("la:3")
+    table.sent(la.Control(3, la.ControlAction.QUERY_STATUS))
+    assert table.owed("la:3") is owed  # not even a copy
+    assert calls_in(lambda: table.moved(frame)) == quiet
+    table.sent(la.Control(3, la.ControlAction.PAUSE))  # a stop does pay: owed again next
+    assert table.owed("la:3") == ()
+    table.moved(frame)
+    assert table.owed("la:3") == (la.Control(3, la.ControlAction.PAUSE),)
+    assert table.release(lease, hold=True) == []
 
 
 def test_release_with_hold_returns_nothing_and_frees_the_devices() -> None:

@@ -511,9 +511,12 @@ class LeaseTable:
                 return
             entries = [entry]
         for entry in entries:
-            if entry.owed:
-                entry.owed = safety.pending_after(cmd, entry.owed)
-                self._owed_epoch += 1
+            owed = entry.owed
+            if owed:
+                left = safety.pending_after(cmd, owed)
+                if len(left) != len(owed):  # something was paid (a status read pays nothing)
+                    entry.owed = left
+                    self._owed_epoch += 1
 
     # -- releasing -------------------------------------------------------------------
 
