@@ -3,6 +3,7 @@ release returns (``motorbus.bus.leases``, ``motorbus.protocol.safety``)."""
 
 from __future__ import annotations
 
+import gc
 import sys
 from collections.abc import Callable
 
@@ -82,11 +83,15 @@ def calls_in(fn: Callable[[], object]) -> int:
         if event in ("call", "c_call"):
             count[0] += 1
 
+    collecting = gc.isenabled()
+    gc.disable()
     sys.setprofile(profile)
     try:
         fn()
     finally:
         sys.setprofile(None)
+        if collecting:
+            gc.enable()
     return count[0]
 
 
@@ -100,12 +105,15 @@ def test_a_status_read_between_ticks_leaves_the_next_tick_a_no_op() -> None:
     lease = table.acquire("stream", [f"la:{i}" for i in ids], pause_for)
     frame = la.Broadcast(la.BroadcastMode.FOLLOW, tuple((i, 500) for i in ids))
     table.moved(frame)
-    table.moved(frame)
-    quiet = calls_in(lambda: table.moved(frame))  # the same motion, nothing in between
+    # The fewest of a few tries: the suite's other threads and collector can add calls.
+    quiet = min(calls_in(lambda: table.moved(frame)) for _ in range(5))  # nothing between
     owed = table.owed("la:3")
-    table.sent(la.Control(3, la.ControlAction.QUERY_STATUS))
-    assert table.owed("la:3") is owed  # not even a copy
-    assert calls_in(lambda: table.moved(frame)) == quiet
+    after_read = []
+    for _ in range(5):
+        table.sent(la.Control(3, la.ControlAction.QUERY_STATUS))
+        assert table.owed("la:3") is owed  # not even a copy
+        after_read.append(calls_in(lambda: table.moved(frame)))
+    assert min(after_read) == quiet, (after_read, quiet)
     table.sent(la.Control(3, la.ControlAction.PAUSE))  # a stop does pay: owed again next
     assert table.owed("la:3") == ()
     table.moved(frame)
