@@ -12,6 +12,8 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import pytest
+
 from motorbus.bus.events import ProjectFinished
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.protocol import project_stepper as ps
@@ -78,3 +80,45 @@ async def test_events_with_no_request_in_flight_are_published_at_once() -> None:
     with bus.events.subscribe(ProjectFinished) as sub:
         bus._deliver(*finished(1))
         assert len(sub.pending()) == 1
+
+
+async def test_an_event_after_the_reply_that_comes_while_the_client_catches_up_is_not_stale() -> (
+    None
+):
+    """The start's reply counts one event before it; that event and the run's own EE DD
+    (event 2) come together, after the reply, while the client waits for the first.  The
+    second belongs after the reply: it must end the run, not be taken as stale (a loaded
+    run with eight workers lost it and timed out after 10 s)."""
+    site = FakeSite()
+    bus = ServedBus(site, "b", PROJECT)  # type: ignore[arg-type]
+    stepper = ProjectStepper(bus)  # type: ignore[arg-type]
+    site.events_before = 1
+    loop = asyncio.get_running_loop()
+
+    def both() -> None:
+        bus._deliver(*finished(1))
+        bus._deliver(*finished(2))
+
+    site.before_reply.append(lambda: loop.call_later(0.05, both))
+    await asyncio.wait_for(stepper.run_project(1, timeout=2), 5)
+
+
+class FailingSite(FakeSite):
+    """Delivers the events of ``before_reply``, then fails the request."""
+
+    async def _query(
+        self, key: str, body: dict[str, Any], timeout: float, *, urgent: bool = False
+    ) -> dict[str, Any]:
+        await super()._query(key, body, timeout, urgent=urgent)
+        raise ConnectionError("the server went away")
+
+
+async def test_an_event_held_by_a_request_that_fails_is_still_published() -> None:
+    site = FailingSite()
+    bus = ServedBus(site, "b", PROJECT)  # type: ignore[arg-type]
+    with bus.events.subscribe(ProjectFinished) as sub:
+        site.before_reply.append(lambda: bus._deliver(*finished(1)))
+        with pytest.raises(ConnectionError):
+            await bus.request(ps.StartProject(1))
+        event = await asyncio.wait_for(sub.next(1), 2)
+        assert isinstance(event, ProjectFinished)

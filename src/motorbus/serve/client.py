@@ -270,12 +270,19 @@ class ServedBus:
         try:
             what = "watch" if self._watch_key and safety.watch_allowed(cmd) else "request"
             result = await self._query(what, body, extra=timeout or 0.0, urgent=urgent)
-        finally:
+            before = result.get("events")
+            if isinstance(before, int) and not isinstance(before, bool):
+                # Still in flight: an event after the reply that comes while this waits
+                # for the ones before it is held too, not published as if before it.
+                await self._catch_up(before)
+            else:
+                before = None
+        except BaseException:
             self._in_flight -= 1
-        before = result.get("events")
-        if isinstance(before, int) and not isinstance(before, bool):
-            await self._catch_up(before)
-        self._publish_held(before if isinstance(before, int) else None)
+            self._release_soon()  # what this request held goes out, in order, after all
+            raise
+        self._in_flight -= 1
+        self._publish_held(before)
         reply = result.get("reply")
         return None if reply is None else cmd.decode_reply(bytes.fromhex(reply))
 
@@ -316,10 +323,14 @@ class ServedBus:
         self._held = [(seq, e) for seq, e in self._held if before is not None and seq > before]
         for event in now:
             self.events.publish(event)
+        self._release_soon()
+
+    def _release_soon(self) -> None:
+        """Publish the held events a few loop turns from now, if no request is in flight
+        then: three turns, for the request's task to end and its awaiting caller to run
+        on (one more for a caller that wraps it in a task of its own)."""
         if self._held and not self._in_flight:
             loop = asyncio.get_running_loop()
-            # Three turns: the request's task ends, its awaiting caller runs on (one more
-            # for a caller that wraps it in a task of its own).
             loop.call_soon(loop.call_soon, loop.call_soon, self._release_held)
 
     def _release_held(self) -> None:
