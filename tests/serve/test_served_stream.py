@@ -185,7 +185,10 @@ async def test_a_silent_client_gets_on_gap_stop_the_safe_action_and_the_end(
         assert (gap.cause, gap.action, gap.missed) == ("client", "stop", 3)
         assert stream.stats.gaps == 1
     received = targets_at_sim(la_sim)
-    assert_in_order(received, ROWS[:10])
+    # The last rows may come after their ticks on a starved client (eight workers): the
+    # server holds those ticks (``unwritten``), and the first and last rows are required
+    # only when it wrote every row as sent.
+    assert_in_order(received, ROWS[:10], stream.stats.skipped + len(stream.unwritten))
     assert (500, 500) not in received
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
 
