@@ -58,7 +58,7 @@ async def test_an_event_that_overtakes_its_requests_reply_still_ends_the_run() -
     # The start's reply says no event came before it; its run's EE DD (event 1) arrives
     # first.
     site.events_before = 0
-    site.before_reply.append(lambda: bus._deliver(*finished(1)))
+    site.before_reply.append(lambda: bus._order.deliver(*finished(1)))
     await asyncio.wait_for(stepper.run_project(1, timeout=2), 5)
 
 
@@ -69,7 +69,7 @@ async def test_an_event_from_before_the_reply_is_stale_even_when_it_arrives_late
         # The reply says one event came before it; that event arrives after the reply.
         site.events_before = 1
         loop = asyncio.get_running_loop()
-        loop.call_later(0.05, bus._deliver, *finished(1))
+        loop.call_later(0.05, bus._order.deliver, *finished(1))
         await bus.request(ps.StartProject(1))
         # Published before request returned: a caller taking pending() as stale does.
         assert len(sub.pending()) == 1
@@ -78,7 +78,7 @@ async def test_an_event_from_before_the_reply_is_stale_even_when_it_arrives_late
 async def test_events_with_no_request_in_flight_are_published_at_once() -> None:
     bus = ServedBus(FakeSite(), "b", PROJECT)  # type: ignore[arg-type]
     with bus.events.subscribe(ProjectFinished) as sub:
-        bus._deliver(*finished(1))
+        bus._order.deliver(*finished(1))
         assert len(sub.pending()) == 1
 
 
@@ -96,8 +96,8 @@ async def test_an_event_after_the_reply_that_comes_while_the_client_catches_up_i
     loop = asyncio.get_running_loop()
 
     def both() -> None:
-        bus._deliver(*finished(1))
-        bus._deliver(*finished(2))
+        bus._order.deliver(*finished(1))
+        bus._order.deliver(*finished(2))
 
     site.before_reply.append(lambda: loop.call_later(0.05, both))
     await asyncio.wait_for(stepper.run_project(1, timeout=2), 5)
@@ -117,7 +117,7 @@ async def test_an_event_held_by_a_request_that_fails_is_still_published() -> Non
     site = FailingSite()
     bus = ServedBus(site, "b", PROJECT)  # type: ignore[arg-type]
     with bus.events.subscribe(ProjectFinished) as sub:
-        site.before_reply.append(lambda: bus._deliver(*finished(1)))
+        site.before_reply.append(lambda: bus._order.deliver(*finished(1)))
         with pytest.raises(ConnectionError):
             await bus.request(ps.StartProject(1))
         event = await asyncio.wait_for(sub.next(1), 2)

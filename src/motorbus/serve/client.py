@@ -30,7 +30,6 @@ from types import TracebackType
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from motorbus.bus.events import (
-    BusEvent,
     BusStateChanged,
     EventHub,
 )
@@ -51,6 +50,7 @@ from motorbus.errors import (
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
+from motorbus.serve.event_order import EventOrder
 from motorbus.serve.zconf import client_config, on_zenoh_thread, zenoh
 
 if TYPE_CHECKING:
@@ -100,10 +100,6 @@ def error_from(payload: dict[str, Any]) -> Exception:
     if kind == "refused":
         return ServeRefused(message)
     return MotorbusError(message)
-
-
-#: Longest a reply waits for the events the server published before it (s).
-EVENT_CATCH_UP_S = 0.5
 
 
 class ServedLease:
@@ -164,12 +160,8 @@ class ServedBus:
         self.events = EventHub()
         self._timer: Timer | None = None
         self._leases: list[ServedLease] = []
-        # Events travel apart from replies: held while a request is in flight, those a
-        # reply counts ("events") are published before its caller resumes, later ones after.
-        self._events_seen = 0
-        self._held: list[tuple[int, BusEvent]] = []
-        self._in_flight = 0
-        self._seen_more: asyncio.Event | None = None
+        # Events travel apart from replies: put back in the server's order around them.
+        self._order = EventOrder(self.events.publish)
         #: The one sender of safe actions, as ``Bus.lease_keeper`` (``stop``,
         #: ``stop_soon``, ``safe_commands``): emergency requests through the server.
         self.lease_keeper = SafeStopper(name, self.families, self.request)
@@ -266,76 +258,17 @@ class ServedBus:
                 body["lease"] = held.number
         # An e-stop also travels first on the link (Zenoh's real-time lane, not batched).
         urgent = priority is Priority.EMERGENCY
-        self._in_flight += 1
+        self._order.begin()
         try:
             what = "watch" if self._watch_key and safety.watch_allowed(cmd) else "request"
             result = await self._query(what, body, extra=timeout or 0.0, urgent=urgent)
-            before = result.get("events")
-            if isinstance(before, int) and not isinstance(before, bool):
-                # Still in flight: an event after the reply that comes while this waits
-                # for the ones before it is held too, not published as if before it.
-                await self._catch_up(before)
-            else:
-                before = None
         except BaseException:
-            self._in_flight -= 1
-            self._release_soon()  # what this request held goes out, in order, after all
+            self._order.fail()
             raise
-        self._in_flight -= 1
-        self._publish_held(before)
+        before = result.get("events")
+        await self._order.end(before if type(before) is int else None)
         reply = result.get("reply")
         return None if reply is None else cmd.decode_reply(bytes.fromhex(reply))
-
-    # -- events, in order with the replies -----------------------------------------------
-
-    def _deliver(self, seq: int | None, event: BusEvent) -> None:
-        """An event publication arrived (on the loop)."""
-        if seq is None:  # a server that numbers no events: as it comes
-            self.events.publish(event)
-            return
-        self._events_seen = max(self._events_seen, seq)
-        if self._seen_more is not None:
-            self._seen_more.set()
-        if self._in_flight:
-            self._held.append((seq, event))
-        else:
-            self._publish_held(None)
-            self.events.publish(event)
-
-    async def _catch_up(self, before: int) -> None:
-        """Wait (briefly) for the events the server published before a reply."""
-        deadline = time.monotonic() + EVENT_CATCH_UP_S
-        while self._events_seen < before and (left := deadline - time.monotonic()) > 0:
-            self._seen_more = asyncio.Event()
-            with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(left):
-                    await self._seen_more.wait()
-        self._seen_more = None
-
-    def _publish_held(self, before: int | None) -> None:
-        """Publish the held events up to ``before`` now, the rest a few loop turns later:
-        after the caller of the request that just returned has run on (it takes what
-        came before its reply as stale, as ``run_project`` does)."""
-        if not self._held:
-            return
-        self._held.sort(key=lambda item: item[0])
-        now = [e for seq, e in self._held if before is None or seq <= before]
-        self._held = [(seq, e) for seq, e in self._held if before is not None and seq > before]
-        for event in now:
-            self.events.publish(event)
-        self._release_soon()
-
-    def _release_soon(self) -> None:
-        """Publish the held events a few loop turns from now, if no request is in flight
-        then: three turns, for the request's task to end and its awaiting caller to run
-        on (one more for a caller that wraps it in a task of its own)."""
-        if self._held and not self._in_flight:
-            loop = asyncio.get_running_loop()
-            loop.call_soon(loop.call_soon, loop.call_soon, self._release_held)
-
-    def _release_held(self) -> None:
-        if not self._in_flight:
-            self._publish_held(None)
 
     def _bound_lease(self) -> ServedLease | None:
         """The running task's lease on this bus: the newest that is held, or one that
@@ -609,7 +542,7 @@ class ServedSite:
                 return
             if event is not None:
                 seq = body.get("seq")
-                bus._deliver(seq if isinstance(seq, int) else None, event)
+                bus._order.deliver(seq if isinstance(seq, int) else None, event)
 
         return handle
 
