@@ -160,8 +160,11 @@ async def test_bad_target_ends_the_stream_with_its_safe_action(pacing: Pacing) -
         with pytest.raises(StreamEnded, match=r"targets?.*2500.*0\.\.2000|2500"):
             await asyncio.wait_for(stream.wait(), 5)
         targets = [t for _, cmd, t in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
-        assert targets == [1000, 1100]
-        assert stream.stats.ticks == 2
+        # Nothing after the bad target; each row before it sent, or (a loaded machine,
+        # eight workers) skipped as a tick started a period late: counted, never sent.
+        assert targets and targets == [t for t in (1000, 1100) if t in targets]
+        assert stream.stats.ticks == len(targets)
+        assert stream.stats.ticks + stream.stats.skipped == 2
         await streamer.close()
 
 
