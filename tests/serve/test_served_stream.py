@@ -99,7 +99,9 @@ async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
         assert stream.done and stream.error is None
     received = targets_at_sim(la_sim)
     published = [r for r in received if r in ROWS]
-    assert_in_order(published, ROWS, stream.stats.skipped)
+    # A starved client (six workers) can publish tick 0's row after the server asked for
+    # it: that tick is ``unwritten``, as a skipped one is.
+    assert_in_order(published, ROWS, stream.stats.skipped + len(stream.unwritten))
     if len(published) < len(received):
         # Rows of no target: the gap policy's ramp, after a gap: a target that came later
         # than its tick (a client starved on a loaded machine, seen with one target per
