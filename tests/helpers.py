@@ -40,6 +40,7 @@ __all__ = [
     "PACINGS",
     "affinities",
     "affinity_kept",
+    "bus_file",
     "cli",
     "eventually",
     "json_lines",
@@ -120,21 +121,25 @@ def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
 LOADED_HOST_MARGIN_MS = 250
 
 
-def loaded_bus_file(folder: Path, url: str, baud: int, devices: Sequence[str]) -> Path:
-    """A bus file in ``folder`` with one bus, ``main``, at ``url``, with
-    ``LOADED_HOST_MARGIN_MS``: for ``--bus-file`` where a test's command would otherwise
-    take the command line's default margin for ``--port``."""
-    path = folder / "loaded-bus.toml"
-    path.write_text(
-        "[[bus]]\n"
-        'name = "main"\n'
-        f"url = {json.dumps(url)}\n"
-        f"baud = {baud}\n"
-        f"devices = {json.dumps(list(devices))}\n"
-        f"host_margin_ms = {LOADED_HOST_MARGIN_MS}\n",
-        encoding="utf-8",
-    )
+def bus_file(folder: Path, url: str, *, baud: int, name: str = "arm", **keys: object) -> Path:
+    """``folder/buses.toml``: one bus ``name`` on ``url`` at ``baud``, with the given
+    extra keys (booleans as TOML's, the rest as their ``repr``)."""
+    lines = ["[[bus]]", f"name = {json.dumps(name)}", f"url = {json.dumps(url)}", f"baud = {baud}"]
+    for key, value in keys.items():
+        text = str(value).lower() if isinstance(value, bool) else repr(value)
+        lines.append(f"{key} = {text}")
+    path = folder / "buses.toml"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     return path
+
+
+def loaded_bus_file(folder: Path, url: str, baud: int, devices: Sequence[str]) -> Path:
+    """``bus_file`` with ``devices`` and ``LOADED_HOST_MARGIN_MS``: for ``--bus-file``
+    where a test's command would otherwise take the command line's default margin for
+    ``--port``."""
+    return bus_file(
+        folder, url, baud=baud, devices=list(devices), host_margin_ms=LOADED_HOST_MARGIN_MS
+    )
 
 
 def stream_rows(out: str) -> int:

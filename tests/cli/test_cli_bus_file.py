@@ -31,6 +31,7 @@ from motorbus.sim.bus import SimBus
 from motorbus.sim.la import LAModel
 from motorbus.sim.process import SimProcess
 from motorbus.transport.serial import SerialTransport
+from tests import helpers
 from tests.helpers import affinities, affinity_kept, cli, json_lines
 
 LA_BAUD = 921600
@@ -83,13 +84,7 @@ def device() -> Iterator[EchoingLA]:
 
 def bus_file(tmp_path: Path, url: str, **keys: object) -> Path:
     """A bus file with one bus ``arm`` on ``url`` and the given extra keys."""
-    lines = ["[[bus]]", 'name = "arm"', f'url = "{url}"', f"baud = {LA_BAUD}"]
-    for key, value in keys.items():
-        text = str(value).lower() if isinstance(value, bool) else repr(value)
-        lines.append(f"{key} = {text}")
-    path = tmp_path / "buses.toml"
-    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return path
+    return helpers.bus_file(tmp_path, url, baud=LA_BAUD, **keys)
 
 
 def status(path: Path, *, debug: bool = True) -> tuple[int, str, str]:
