@@ -23,6 +23,9 @@ from tests.rig.figures import WRITTEN
 DEAD = ["seized=1", "stroke_speed=0.000001"]
 #: One small step: the old rig waited out every move of a dead actuator (5 s each).
 ONE = ["--latency-count", "1"]
+#: A dead actuator fails its first move when this ends: 1 s, not the default 5 s (the
+#: simulated actuator's moves here settle well within it).
+SOON = ["--settle-timeout", "1"]
 
 
 @pytest.mark.parametrize("dead", DEAD)
@@ -30,10 +33,12 @@ def test_a_dead_actuator_fails_the_rig(tmp_path: Path, dead: str) -> None:
     with SimProcess([f"la:1,{dead}"], baud=921600) as sim:
         buses = str(loaded_bus_file(tmp_path, sim.path, 921600, ["la:1"]))
         r = cli(
-            "rig", "1", "--tests", "step,latency", *ONE, "--out", str(tmp_path), "--bus-file", buses
-        )
+            "rig", "1", "--tests", "step,latency", *ONE, *SOON, "--out", str(tmp_path),
+            "--bus-file", buses,
+        )  # fmt: skip
     assert r.returncode == 1, r.stdout + r.stderr
     assert re.search(r"FAILED la:1 step: did not follow: .*did not move", r.stderr), r.stderr
+    assert "limit settle_timeout=1 s" in r.stderr, r.stderr
     assert "not run: latency" in r.stderr
     page = (tmp_path / "report.html").read_text(encoding="utf-8")
     top = page[: page.index("<h2>")]
@@ -47,8 +52,9 @@ def test_a_dead_actuator_with_json_prints_one_error_object(tmp_path: Path) -> No
     with SimProcess(["la:1,seized=1"], baud=921600) as sim:
         buses = str(loaded_bus_file(tmp_path, sim.path, 921600, ["la:1"]))
         r = cli(
-            "--json", "rig", "1", "--tests", "step", "--out", str(tmp_path), "--bus-file", buses
-        )
+            "--json", "rig", "1", "--tests", "step", *SOON, "--out", str(tmp_path),
+            "--bus-file", buses,
+        )  # fmt: skip
     assert r.returncode == 1, r.stderr
     (line,) = r.stdout.splitlines()
     doc = json.loads(line)
@@ -137,6 +143,15 @@ def test_a_bad_plan_with_json_is_one_error_object_and_exit_2() -> None:
     doc = json.loads(r.stdout)
     assert doc["code"] == 2 and doc["field"] == "tests"
     assert "'spin' is not a test" in doc["error"]
+
+
+@pytest.mark.parametrize("value", ["0.05", "61", "nan"])
+def test_a_settle_timeout_out_of_range_is_refused_naming_it(value: str) -> None:
+    r = cli("--json", "rig", "1", "--settle-timeout", value, "--out", "/nonexistent/x")
+    assert r.returncode == 2, r.stderr
+    doc = json.loads(r.stdout)
+    assert doc["field"] == "settle_timeout", doc
+    assert f"settle_timeout={float(value)!r}" in doc["error"] and "0.1..60 s" in doc["error"]
 
 
 def test_compare_fails_a_new_run_that_recorded_failures(tmp_path: Path, golden: Path) -> None:

@@ -89,6 +89,12 @@ def register(subparsers: Any) -> None:
     p.add_argument("--period", type=float, default=0.01, help="stream tick, 0.01..0.05 s")
     p.add_argument("--latency-count", type=int, default=50, help="small steps (default 50)")
     p.add_argument("--repeat-count", type=int, default=5, help="approaches per side (default 5)")
+    p.add_argument(
+        "--settle-timeout",
+        type=float,
+        default=5.0,
+        help="seconds a move may take to settle before the actuator fails (0.1..60, default 5)",
+    )
     p.add_argument("--max-current", type=int, default=1500, help="abort above, mA")
     p.add_argument("--max-force", type=int, default=30000, help="abort above, grams")
     p.add_argument("--runs", type=int, default=10, help="project/quad: runs (default 10)")
@@ -122,6 +128,7 @@ def _plan(args: argparse.Namespace) -> RigPlan:
         window=(args.min, args.max),
         step_start=args.start,
         step_end=args.end,
+        settle_timeout=args.settle_timeout,
         period=args.period,
         frequencies=freqs,
         cycles=args.cycles,
