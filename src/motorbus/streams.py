@@ -58,6 +58,7 @@ from typing import Any
 
 from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
+from motorbus.bus.jobs import BusJob
 from motorbus.bus.leases import Lease, lease_for
 from motorbus.bus.timer import Timer
 from motorbus.devices.la import InspireLA
@@ -563,6 +564,7 @@ class Streamer:
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
         sent: list[float] = []
+        lead: list[BusJob] = []  # the job of the first frame written or waiting
         step = la.MAX_BROADCAST_ENTRIES
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
@@ -610,11 +612,16 @@ class Streamer:
                     future = ready.send()
                     if ready.job.attempts or not future.done():
                         futures.append(future)  # written, or waiting its turn
+                        if not lead:
+                            lead.append(ready.job)
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
             if futures and futures[0].done():  # an idle bus wrote it inside send()
-                sent.append(timer.now())
+                # When its write was issued, as the kernel sees it: after the write
+                # this thread may wait for the GIL (a server's Zenoh threads), which
+                # the wire does not.
+                sent.append(lead[0].tx_start)
             fired.set_result(futures)
 
         handle = timer.call_at(deadline, fire)
@@ -624,7 +631,8 @@ class Streamer:
             for f in futures:
                 await f
                 if not sent:  # it waited its turn (a reply owed, or the spacing)
-                    sent.append(timer.now())
+                    job = lead[0]
+                    sent.append(job.tx_start if job.attempts else timer.now())
                     slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)

@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
-from motorbus.streams import StreamStats
+import pytest
+
+from motorbus.devices.la import InspireLA
+from motorbus.protocol import la
+from motorbus.streams import Streamer, StreamStats
+from tests.fakeclock import rig
 
 
 def test_summary_is_text_and_as_dict_has_the_same_figures() -> None:
@@ -14,3 +19,24 @@ def test_summary_is_text_and_as_dict_has_the_same_figures() -> None:
     d = stats.as_dict()
     assert (d["ticks"], d["late"], d["skipped"], d["polls"]) == (300, 2, 1, 40)
     assert d["jitter_max_us"] > 0
+
+
+async def test_a_tick_is_timed_from_when_its_write_was_issued() -> None:
+    """A write after which this thread waits 3 ms (a server whose Zenoh threads hold the
+    GIL when the write returns) left on time: the stream counts its tick from when the
+    write was issued, as a trace of the write(2) calls does, not from when the thread
+    ran on (which counted every such tick late)."""
+    async with rig(ids=range(1, 4), write_time=lambda: 3e-3) as r:
+        streamer = Streamer(r.bus)
+        actuators = [InspireLA(r.bus, i) for i in range(1, 4)]
+        stream = streamer.follow(actuators, [[1000 + k] * 3 for k in range(20)], period=0.01)
+        await stream.wait()
+        await streamer.close()
+    stats = stream.stats
+    assert stats.ticks == 20 and stats.skipped == 0, stats.summary()
+    assert stats.late == 0 and stats.slipped == 0, stats.summary()
+    issued = [w.before for w in r.wire.writes if w.data[4] == la.CMD_BROADCAST_FOLLOW]
+    assert len(issued) == 20
+    lateness = [t - (stream.origin + k * stream.period) for k, t in enumerate(issued)]
+    assert max(lateness) == pytest.approx(stats.jitter.max, abs=1e-9), (lateness, stats.summary())
+    assert stats.jitter.max < 1e-4, stats.summary()

@@ -152,7 +152,7 @@ class BusCore(Generic[J]):
         from the completed write; a request's deadline is set from it."""
         self.count_sent(job, expects)
         self.schedule.wrote(job, before, after)
-        job.tx_time = after
+        job.tx_start, job.tx_time = before, after
         if expects:
             self.matcher.written(job, before, after, baud)
 

@@ -91,6 +91,7 @@ class Job:
     after_write: float = 0.0  # completed write to the earliest next write (Occupancy)
     answered: float = 0.0  # what it holds when its device answers in time (Occupancy)
     reserved: bool = False  # a stream tick's frame: it owns the reserved window
+    tx_start: float = 0.0  # when the write was issued (a stream tick's lateness)
     tx_time: float = 0.0  # when the write returned
     rx_mark: int = 0  # stream offset of the first received byte that may be its reply
     earliest: float = 0.0  # wire floor (wire_floor=True only)

@@ -71,7 +71,10 @@ class StreamStats:
 
     Every count is a number of ticks, frames or polls, as its name says; durations are
     in seconds.  A tick is late when its first frame went out more than
-    ``LATE_AFTER_S`` (1 ms) after its deadline, ``origin + k * period``.
+    ``LATE_AFTER_S`` (1 ms) after its deadline, ``origin + k * period``.  "Went out" is
+    when the bus issued the write (the clock read just before ``write``), the moment a
+    trace of the write(2) calls shows: not when this thread ran on after it, which on
+    a busy process (a server's Zenoh threads wanting the GIL) can be later.
     """
 
     ticks: int = 0
