@@ -26,8 +26,8 @@ Stop means stop: once a stream starts stopping (``stop``, the end of its ``async
 block, an error), nothing more of it is written.  Its frames are prepared ahead of the
 deadline (``Bus.prepare(refresh=...)``) and re-checked at the write, rebuilt from the
 streams still running only if one stopped, so a tick queued or prepared when the stop
-began is dropped, not sent after the safe
-action's pause (a follow target would resume a paused actuator, LA manual 3.5.4).
+began is dropped, not sent after the safe action's pause (a follow target would resume
+a paused actuator, LA manual 3.5.4).
 
 Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
 of its ``async with`` block, an error, a gap it was told to stop on, the bus closing),
@@ -562,9 +562,8 @@ class Streamer:
             return None, 0, False
         bus = self.bus
         loop = asyncio.get_running_loop()
-        fired: asyncio.Future[list[asyncio.Future[Any]]] = loop.create_future()
+        fired: asyncio.Future[list[BusJob]] = loop.create_future()  # written or waiting
         sent: list[float] = []
-        lead: list[BusJob] = []  # the job of the first frame written or waiting
         step = la.MAX_BROADCAST_ENTRIES
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
@@ -594,7 +593,7 @@ class Streamer:
         def fire() -> None:
             if fired.done():
                 return
-            futures = []
+            jobs = []
             try:
                 for build, ready in prepared:
                     if ready is None:  # refused ahead: prepared now, or refused again
@@ -611,27 +610,21 @@ class Streamer:
                     # One path: send() re-checks the frame (its refresh) and writes it.
                     future = ready.send()
                     if ready.job.attempts or not future.done():
-                        futures.append(future)  # written, or waiting its turn
-                        if not lead:
-                            lead.append(ready.job)
+                        jobs.append(ready.job)  # written, or waiting its turn
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
-            if futures and futures[0].done():  # an idle bus wrote it inside send()
-                # When its write was issued, as the kernel sees it: after the write
-                # this thread may wait for the GIL (a server's Zenoh threads), which
-                # the wire does not.
-                sent.append(lead[0].tx_start)
-            fired.set_result(futures)
+            if jobs and jobs[0].future.done():  # an idle bus wrote it inside send()
+                sent.append(jobs[0].tx_start)  # when issued (see StreamStats)
+            fired.set_result(jobs)
 
         handle = timer.call_at(deadline, fire)
         slipped = False
         try:
-            futures = await fired
-            for f in futures:
-                await f
+            jobs = await fired
+            for job in jobs:
+                await job.future
                 if not sent:  # it waited its turn (a reply owed, or the spacing)
-                    job = lead[0]
                     sent.append(job.tx_start if job.attempts else timer.now())
                     slipped = True
         except MotorbusError as err:
@@ -639,7 +632,7 @@ class Streamer:
             return None, 0, False
         finally:
             handle.cancel()
-        return (sent[0] if sent else None), len(futures), slipped
+        return (sent[0] if sent else None), len(jobs), slipped
 
     async def _poll(self, due: list[Stream]) -> None:
         """Use the slots left before the next tick to poll statuses round-robin.
