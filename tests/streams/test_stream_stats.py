@@ -22,10 +22,10 @@ def test_summary_is_text_and_as_dict_has_the_same_figures() -> None:
 
 
 async def test_a_tick_is_timed_from_when_its_write_was_issued() -> None:
-    """A write after which this thread waits 3 ms (a server whose Zenoh threads hold the
-    GIL when the write returns) left on time: the stream counts its tick from when the
-    write was issued, as a trace of the write(2) calls does, not from when the thread
-    ran on (which counted every such tick late)."""
+    """A write whose call takes 3 ms to return (on a server, the thread can wait for the
+    GIL after the bytes went, while a Zenoh thread runs): the stream times its tick from
+    when the write was issued, as a trace of the write(2) calls does (their entry), not
+    from when the call returned (which counted every such tick late)."""
     async with rig(ids=range(1, 4), write_time=lambda: 3e-3) as r:
         streamer = Streamer(r.bus)
         actuators = [InspireLA(r.bus, i) for i in range(1, 4)]
