@@ -573,19 +573,19 @@ class Streamer:
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
+
+        def prepare(frame: la.Broadcast, build: Callable[[], la.Broadcast | None]) -> Any:
+            return bus.prepare(
+                frame, priority=Priority.HIGH, reserved=True, refresh=build, lease=self.lease
+            )
+
         for first in range(0, len(entries), step):
             build = broadcast_builder(entries[first : first + step])
             frame = build()
             ready = None
             if frame is not None:
                 try:
-                    ready = bus.prepare(
-                        frame,
-                        priority=Priority.HIGH,
-                        reserved=True,
-                        refresh=build,
-                        lease=self.lease,
-                    )
+                    ready = prepare(frame, build)
                 except MotorbusError:  # refused now (the port away, a lease): prepared
                     ready = None  # again at the deadline, or refused again there
             prepared.append((build, ready))
@@ -600,13 +600,7 @@ class Streamer:
                         frame = build()
                         if frame is None:
                             continue
-                        ready = bus.prepare(
-                            frame,
-                            priority=Priority.HIGH,
-                            reserved=True,
-                            refresh=build,
-                            lease=self.lease,
-                        )
+                        ready = prepare(frame, build)
                     # One path: send() re-checks the frame (its refresh) and writes it.
                     future = ready.send()
                     if ready.job.attempts or not future.done():
