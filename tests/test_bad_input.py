@@ -489,6 +489,25 @@ async def test_streamer_refuses_bad_phase(phase: Any) -> None:
     assert info.value.field == "phase" and "0..0.05 s" in str(info.value)
 
 
+STREAMER_LEADS = (NAN, INF, -INF, "0.1", True, -0.001, 5.001)
+
+
+@pytest.mark.parametrize("lead", STREAMER_LEADS, ids=[repr(p) for p in STREAMER_LEADS])
+async def test_streamer_refuses_bad_lead(lead: Any) -> None:
+    host, _peer = memory_pair()
+    bus = Bus(host)
+    with pytest.raises(LocalProtocolError, match="lead") as info:
+        Streamer(bus, lead=lead)
+    assert info.value.field == "lead" and "0..5 s" in str(info.value)
+
+
+async def test_a_local_streamer_takes_a_lead_it_has_no_use_for() -> None:
+    """``lead`` is a served bus's (how far ahead its targets travel); a local streamer
+    checks it and goes on, so a program moves between the two unchanged."""
+    host, _peer = memory_pair()
+    assert isinstance(Streamer(Bus(host), lead=0.3), Streamer)
+
+
 async def test_streamer_refuses_what_is_not_a_bus() -> None:
     with pytest.raises(LocalProtocolError, match="bus must be a Bus"):
         Streamer("memory://arm")  # type: ignore[arg-type]

@@ -82,7 +82,7 @@ from motorbus.streaming.model import (
 )
 from motorbus.streaming.stream import Stream, StreamGap, actuator_group, earliest_tick
 from motorbus.streaming.targets import TargetSource, ramp_step
-from motorbus.validation import PHASE_MAX_S, check_number
+from motorbus.validation import LEAD_MAX_S, PHASE_MAX_S, check_number
 
 __all__ = [
     "PERIOD_MAX_S",
@@ -114,16 +114,20 @@ class Streamer:
     Args:
         bus: an open bus carrying LA actuators, or a served one (``motorbus.connect``).
         phase: offset of this bus's tick grid in seconds (the manager spreads buses).
+        lead: served buses only: how far ahead of their ticks the targets go to the
+            server (0..5 s, default 0.1); a local bus checks it and has no use for it.
     """
 
-    def __new__(cls, bus: Any, *, phase: float = 0.0) -> Any:
+    def __new__(cls, bus: Any, *, phase: float = 0.0, lead: float | None = None) -> Any:
         served = getattr(bus, "served_streamer", None)
-        return super().__new__(cls) if served is None else served(phase=phase)
+        return super().__new__(cls) if served is None else served(phase=phase, lead=lead)
 
-    def __init__(self, bus: Bus, *, phase: float = 0.0) -> None:
+    def __init__(self, bus: Bus, *, phase: float = 0.0, lead: float | None = None) -> None:
         if not isinstance(bus, Bus):
             raise LocalProtocolError(f"bus must be a Bus, got {bus!r}", field="bus", value=bus)
         phase = check_number("phase", phase, 0.0, PHASE_MAX_S, "s")
+        if lead is not None:
+            check_number("lead", lead, 0.0, LEAD_MAX_S, "s")
         self.bus = bus
         self.phase = phase
         self.streams: list[Stream] = []

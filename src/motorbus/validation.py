@@ -34,6 +34,7 @@ __all__ = [
     "BAUD_MIN",
     "HOST_MARGIN_MAX_S",
     "LATE_GUARD_MAX_S",
+    "LEAD_MAX_S",
     "MIN_SPACING_MAX_S",
     "PHASE_MAX_S",
     "RETRIES_MAX",
@@ -60,6 +61,9 @@ LATE_GUARD_MAX_S = 2.0
 RETRIES_MAX = 10
 #: Streamer phase offset, seconds: 0 up to the longest follow-mode period (3.5.3).
 PHASE_MAX_S = 0.050
+#: A served stream's lead, seconds: how far ahead of their ticks its targets travel to
+#: the server (and the server's longest ``start_in``).
+LEAD_MAX_S = 5.0
 
 
 def check_number(

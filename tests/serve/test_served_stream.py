@@ -266,6 +266,11 @@ async def test_bad_stream_options_are_refused_naming_the_field_and_nothing_is_se
         with pytest.raises(LocalProtocolError) as refused:
             Streamer(bus).follow(InspireLA(bus, 1), [100, 200], **options)
         assert refused.value.field == field
+        # The lead, the client's own option: a server across a slow link gets more.
+        assert Streamer(bus, lead=0.3).lead == 0.3
+        with pytest.raises(LocalProtocolError) as refused:
+            Streamer(bus, lead=6)
+        assert refused.value.field == "lead"
     # The server checks them too (a client in another language).
     body = {"client": "x", "op": "open", "ids": [1], **options}
     answer = raw_query(endpoint, k.bus_key("bus", "stream"), k.encode_json(body))

@@ -114,9 +114,9 @@ class BusView(Closing, Proxy[B]):
         """The 4-axis stepper controller on this bus."""
         return QuadStepper(self)
 
-    def streamer(self, *, phase: float = 0.0) -> Streamer:
-        """A new streamer of this bus (``Streamer(bus, phase=...)``)."""
-        return Streamer(self, phase=phase)
+    def streamer(self, *, phase: float = 0.0, lead: float | None = None) -> Streamer:
+        """A new streamer of this bus (``Streamer(bus, phase=..., lead=...)``)."""
+        return Streamer(self, phase=phase, lead=lead)
 
 
 class Bus(BusView[_bus.Bus]):

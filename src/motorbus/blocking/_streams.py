@@ -100,13 +100,17 @@ class Streamer(Proxy[_streams.Streamer]):
         bus: an open :class:`motorbus.blocking.Bus` carrying LA actuators, or a
             served one (``motorbus.blocking.connect(...).bus()``).
         phase: offset of this bus's tick grid in seconds.
+        lead: a served bus's streams only: how far ahead of their ticks the targets go
+            to the server (as :class:`motorbus.Streamer`).
     """
 
     _bus: BusView[Any]
 
-    def __init__(self, bus: BusView[Any], *, phase: float = 0.0) -> None:
+    def __init__(self, bus: BusView[Any], *, phase: float = 0.0, lead: float | None = None) -> None:
         self._runner = bus._runner
-        self._aio = self._runner.call_sync(lambda: _streams.Streamer(bus._any, phase=phase))
+        self._aio = self._runner.call_sync(
+            lambda: _streams.Streamer(bus._any, phase=phase, lead=lead)
+        )
         self._bus = bus
 
     @classmethod

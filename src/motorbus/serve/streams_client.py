@@ -56,7 +56,7 @@ from motorbus.streaming.model import (
 )
 from motorbus.streaming.stream import StreamGap, actuator_group
 from motorbus.streaming.targets import TargetAdapter, TargetSource
-from motorbus.validation import PHASE_MAX_S, check_number
+from motorbus.validation import LEAD_MAX_S, PHASE_MAX_S, check_number
 
 if TYPE_CHECKING:
     from motorbus.serve.client import ServedBus
@@ -103,7 +103,7 @@ class ServedStreamer:
     def __init__(self, bus: ServedBus, *, phase: float = 0.0, lead: float = LEAD_S) -> None:
         self.bus = bus
         self.phase = check_number("phase", phase, 0.0, PHASE_MAX_S, "s")
-        self.lead = check_number("lead", lead, 0.0, 5.0, "s")
+        self.lead = check_number("lead", lead, 0.0, LEAD_MAX_S, "s")
         self.streams: list[ServedStream] = []
 
     def follow(

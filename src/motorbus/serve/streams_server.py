@@ -50,6 +50,7 @@ from motorbus.streaming.model import GAP_TICKS, GapPolicy, SafeAction, check_fol
 from motorbus.streaming.stream import Stream, StreamGap
 from motorbus.streaming.targets import TargetAdapter, Targets
 from motorbus.streams import Streamer
+from motorbus.validation import LEAD_MAX_S
 
 if TYPE_CHECKING:
     from motorbus.serve.server import BusServer, _Client
@@ -72,7 +73,7 @@ STREAM_OPS = ("open", "stop", "pause", "resume", "stats")
 #: Default and largest ``start_in``: seconds from the open to the stream's tick 0, the
 #: time the client has to get its first targets there.
 START_IN_DEFAULT_S = 0.1
-START_IN_MAX_S = 5.0
+START_IN_MAX_S = LEAD_MAX_S
 #: Most rows in one targets publication.
 MAX_ROWS = 10_000
 #: How often a running stream's counters and statuses are published (seconds).
