@@ -52,9 +52,10 @@ class ObservedServedBus:
     def __getattr__(self, name: str) -> Any:
         return getattr(self._bus, name)
 
-    def served_streamer(self, *, phase: float = 0.0) -> Any:
-        """``Streamer(bus)``: the served bus's, its targets ``RIG_LEAD_S`` ahead."""
-        return self._bus.served_streamer(phase=phase, lead=RIG_LEAD_S)
+    def served_streamer(self, *, phase: float = 0.0, lead: float | None = None) -> Any:
+        """``Streamer(bus)``: the served bus's, its targets ``RIG_LEAD_S`` ahead (or
+        ``lead``, if given)."""
+        return self._bus.served_streamer(phase=phase, lead=RIG_LEAD_S if lead is None else lead)
 
     def add_observer(self, observer: Any) -> None:
         if observer not in self._observers:
