@@ -564,7 +564,6 @@ class Streamer:
         """
         if not parts:
             return None, 0, False
-        bus = self.bus
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[BusJob]] = loop.create_future()  # written or waiting
         sent: list[float] = []
@@ -577,12 +576,7 @@ class Streamer:
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
-
-        def prepare(frame: la.Broadcast, build: Callable[[], la.Broadcast | None]) -> Any:
-            return bus.prepare(
-                frame, priority=Priority.HIGH, reserved=True, refresh=build, lease=self.lease
-            )
-
+        prepare = self._prepare
         for first in range(0, len(entries), step):
             build = broadcast_builder(entries[first : first + step])
             frame = build()
@@ -631,6 +625,14 @@ class Streamer:
         finally:
             handle.cancel()
         return (sent[0] if sent else None), len(jobs), slipped
+
+    def _prepare(
+        self, frame: la.Broadcast, build: Callable[[], la.Broadcast | None]
+    ) -> PreparedSubmit[Any]:
+        """A tick's frame as a bus job (``Bus.prepare``), re-checked by ``build`` at the write."""
+        return self.bus.prepare(
+            frame, priority=Priority.HIGH, reserved=True, refresh=build, lease=self.lease
+        )
 
     async def _poll(self, due: list[Stream]) -> None:
         """Use the slots left before the next tick to poll statuses round-robin.
