@@ -35,13 +35,19 @@ from tests.helpers import affinities, affinity_kept
 
 @pytest.fixture(autouse=True)
 def fresh_realtime_state(monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
-    """Each test starts with no request, no environment setting and GC as it was."""
+    """Each test starts with no request, no environment setting and nothing frozen in
+    GC (the suite freezes what collection built, tests/conftest.py: a test here that ran
+    first in its worker saw that); afterwards GC is as it was."""
     monkeypatch.delenv(realtime.ENV_VAR, raising=False)
     monkeypatch.setattr(realtime, "_process", realtime._Process())
     threshold = gc.get_threshold()
+    suite_froze = gc.get_freeze_count() > 0
+    gc.unfreeze()
     yield
     realtime._gc.active = False
     gc.unfreeze()
+    if suite_froze:
+        gc.freeze()
     gc.set_threshold(*threshold)
     gc.enable()
 
