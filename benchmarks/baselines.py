@@ -209,7 +209,8 @@ class PolledWork:
     Attributes:
         frame: the tick's frame, ``frame(k)`` for tick ``k`` (built for each bus, each
             tick, as a bus's stream does).
-        queries: the query frames, one per tick, round-robin.
+        queries: the query frames, one per tick, round-robin; none, no queries (the
+            ticks alone).
         reply_size: bytes of one reply (replies are counted as bytes read / this).
         period: tick period, seconds.
         poll_offset: how long after its bus's tick a query is written, seconds.
@@ -282,6 +283,8 @@ async def polled_timerfd_loop(
             for fd in groups[g]:
                 _write(fd, work.frame(k))
             counts["ticks"] += len(groups[g])
+            if not work.queries:
+                s += 1  # no query step
         steps[g] = s = s + 1
         if s < 2 * ticks:
             timer.arm(due(g, s) - (spin if s % 2 == 0 else 0.0))

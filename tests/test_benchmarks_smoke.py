@@ -913,6 +913,35 @@ def test_the_timerfd_baselines_do_ours_work_on_ours_phases(tmp_path: Path) -> No
     assert [[cmd for _, cmd in frames] for frames in per_pty] == [[broadcast, query] * 40] * 3
 
 
+def test_polls_none_leaves_the_queries_out_of_every_loop(tmp_path: Path) -> None:
+    """``--polls none`` (issue 40's streams-alone goal): ours, the timerfd baseline and
+    the minimal loop each write their ticks' broadcasts and not one query."""
+    import asyncio
+
+    import baselines
+
+    responder = bench_cpu.Responder(2, tmp_path / "rec.json")
+    try:
+        work = bench_cpu.polled_work(2, polls=False)
+        base = asyncio.run(baselines.polled_timerfd_loop(responder.paths, work, 0.2, spin=0.0))
+        minimal = asyncio.run(bench_cpu.minimal(responder.paths, 0.2, polls=False))
+        ours = asyncio.run(bench_cpu.ours(responder.paths, 0.2, polls="none"))
+    finally:
+        responder.stop()
+    assert (base["ticks"], base["polls"], base["replies"]) == (2 * 20, 0, 0)
+    assert (minimal["polls"], minimal["replies"]) == (0, 0)
+    assert 2 * 20 <= minimal["ticks"] <= 2 * 21  # its end is a float compare
+    assert (ours["polls"], ours["replies"], ours["stream_errors"]) == (0, 0, 0)
+    assert ours["ticks"] >= 2 * 19  # the stream's own start; its last tick may fall off
+    per_pty = json.loads((tmp_path / "rec.json").read_text())["frames"]
+    broadcast, control = bench_cpu.broadcast_bytes(0)[4], bench_cpu.QUERIES[0][4]
+    for frames in per_pty:
+        # Broadcasts only, then ours's stream end: a pause (CMD_MC, as a query is) to each
+        # actuator.  A poll would have come between two broadcasts.
+        cmds = [cmd for _, cmd in frames]
+        assert cmds == [broadcast] * (len(cmds) - 15) + [control] * 15
+
+
 def record(t: float, hexstr: str, direction: str = "request") -> dict[str, Any]:
     return {"t": t, "kind": "frame", "direction": direction, "hex": hexstr}
 
