@@ -162,6 +162,27 @@ async def test_a_bus_file_without_timing_keys_keeps_the_cli_margin(
         assert bus.transport.share is False  # type: ignore[attr-defined]
 
 
+@pytest.mark.parametrize(("env_ms", "margin_s"), [("250", 0.25), ("5", 0.05), (None, 0.05)])
+def test_the_environments_host_margin_raises_the_cli_margin_never_lowers_it(
+    env_ms: str | None, margin_s: float
+) -> None:
+    """``MOTORBUS_HOST_MARGIN_MS`` raises the deadlines of every bus a program opens
+    (docs/hardware.md): the one-shot commands' too, when it asks for more than their
+    50 ms; a smaller one leaves them at 50 ms.  (Read at import: a fresh interpreter.)"""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "MOTORBUS_HOST_MARGIN_MS"}
+    if env_ms is not None:
+        env["MOTORBUS_HOST_MARGIN_MS"] = env_ms
+    code = "from motorbus.cli.bus_options import CLI_HOST_MARGIN_S as m; print(repr(m))"
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert float(out.stdout) == pytest.approx(margin_s)
+
+
 @pytest.mark.parametrize(("keys", "margin_ms"), [({}, 50.0), ({"host_margin_ms": 7.5}, 7.5)])
 def test_the_dashboard_opens_a_bus_file_with_the_margin_every_command_uses(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, keys: dict[str, Any], margin_ms: float

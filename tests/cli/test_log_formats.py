@@ -19,7 +19,7 @@ from motorbus.cli.main import main
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la, logview
 from motorbus.sim.process import SimProcess
-from tests.helpers import CLI_TIMEOUT_S, raw_pty
+from tests.helpers import CLI_TIMEOUT_S, LOADED_HOST_MARGIN_MS, raw_pty
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_1 = la.Status(1, target=100, position=90).encode()
@@ -197,11 +197,14 @@ def test_replay_loops_at_speed_through_a_simulator(tmp_path: Path) -> None:
     ]  # fmt: skip
     path = tmp_path / "two.jsonl"
     path.write_text("".join(json.dumps(x) + "\n" for x in lines), encoding="utf-8")
+    # Behaviour, not speed: the loaded-host margin (replay --to takes no bus file; a reply
+    # once came more than the command line's 50 ms late in a fresh-clone run).
+    env = {**os.environ, "MOTORBUS_HOST_MARGIN_MS": str(LOADED_HOST_MARGIN_MS)}
     with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "sim.jsonl") as sim:
         r = subprocess.run(
             [sys.executable, "-m", "motorbus", "replay", str(path), "--to", sim.path,
              "--loop", "3", "--speed", "2", "--wait", "0.1"],
-            capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
+            capture_output=True, text=True, timeout=CLI_TIMEOUT_S, env=env,
         )  # fmt: skip
         heard = [x["hex"] for x in sim.log_records() if x["direction"] == "request"]
     assert r.returncode == 0, r.stderr

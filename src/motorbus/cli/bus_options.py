@@ -34,6 +34,7 @@ import motorbus
 from motorbus import (
     BACKENDS,
     DEFAULT_BACKEND,
+    DEFAULT_HOST_MARGIN_S,
     Bus,
     Transport,
     open_transport,
@@ -92,8 +93,9 @@ STEPPER_BAUD = STEPPER_DEFAULT_BAUD
 #: cold (first read of a fresh port, a busy machine, a USB adapter's 1..16 ms latency
 #: timer, docs/platform.md 5) and sends a handful of requests, so it trades a little time
 #: for no false timeouts.  ``stream`` keeps the library default: its budget check needs it.
-#: A bus file's ``host_margin_ms`` replaces it.
-CLI_HOST_MARGIN_S = 0.050
+#: ``MOTORBUS_HOST_MARGIN_MS`` raises it too, when it asks for more (it is "every bus" of
+#: the program, docs/hardware.md); a bus file's ``host_margin_ms`` replaces it.
+CLI_HOST_MARGIN_S = max(0.050, DEFAULT_HOST_MARGIN_S)
 #: Where :func:`resolve_port` keeps the chosen ``[[bus]]`` (a ``BusSpec``) on ``args``,
 #: and the keys its table sets.
 _SPEC_ATTR = "bus_spec"
