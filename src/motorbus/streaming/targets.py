@@ -24,6 +24,9 @@ TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable;
 EXHAUSTED: Any = object()
 #: Exactly these types (not bool, not a numpy scalar) take the fast path of ``_values``.
 _PLAIN_NUMBERS = frozenset((int, float))
+#: What a function source returns on every tick, and never awaitable: no awaitable check
+#: (``inspect.isawaitable`` is six calls a tick, an ABC check among them).
+_PLAIN_ITEMS = frozenset((list, tuple, dict, int, float, type(None)))
 
 
 class TargetAdapter:
@@ -84,7 +87,7 @@ class TargetAdapter:
                 return None
         elif self.function is not None:
             item = self.function(t, statuses)
-            if inspect.isawaitable(item):
+            if type(item) not in _PLAIN_ITEMS and inspect.isawaitable(item):
                 item = await item
         else:
             item = self.next_item(index)
