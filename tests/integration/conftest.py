@@ -1,9 +1,15 @@
 """Fixtures of the integration tests: a simulator process behind the real ser2net.
 
-``ser2net_server`` starts ``motorbus sim`` (LA IDs 1-3 at 921600 baud) on a pty and a
-ser2net 4.x in front of it with two accepters on 127.0.0.1: raw TCP (``socket://``)
-and RFC 2217 (``rfc2217://``), configured as docs/platform.md section 4 recommends.  The
-tests skip, with the reason, when ser2net is not installed; ``.ci/run`` installs it.
+``ser2net_server`` starts two ``motorbus sim`` processes (LA IDs 1-3 at 921600 baud),
+each on its own pty, and a ser2net 4.x in front of them with an accepter each on
+127.0.0.1: raw TCP (``socket://``) and RFC 2217 (``rfc2217://``), configured as
+docs/platform.md section 4 recommends.  The tests skip, with the reason, when ser2net is
+not installed; ``.ci/run`` installs it.
+
+Each accepter has its own device because ser2net lets one connection at a time hold a
+device: while a connection of the other accepter is open, or still closing, a new one is
+told "Port's device already in use" and closed.  A fresh-clone CI run failed that way: the
+RFC 2217 test's connection was still closing when the next raw test connected.
 """
 
 from __future__ import annotations
@@ -45,15 +51,15 @@ connection: &bus0-raw
     options:
       kickolduser: true
       chardelay: false
-    connector: serialdev,{device},{baud}n81,local
+    connector: serialdev,{raw_device},{baud}n81,local
 
-connection: &bus0-rfc2217
+connection: &bus1-rfc2217
     accepter: telnet(rfc2217),tcp,127.0.0.1,{rfc2217_port}
     enable: on
     options:
       kickolduser: true
       chardelay: false
-    connector: serialdev,{device},{baud}n81,local
+    connector: serialdev,{rfc2217_device},{baud}n81,local
 """
 
 
@@ -78,9 +84,10 @@ def require_ser2net() -> str:
 
 @dataclass(frozen=True, slots=True)
 class Ser2netServer:
-    """A running ser2net in front of a simulator process."""
+    """A running ser2net in front of two simulator processes."""
 
-    sim: SimProcess
+    sim: SimProcess  # behind raw_url
+    rfc2217_sim: SimProcess  # behind rfc2217_url
     raw_url: str  # socket://127.0.0.1:PORT
     rfc2217_url: str  # rfc2217://127.0.0.1:PORT
     log_file: Path  # ser2net's own stdout and stderr
@@ -111,16 +118,24 @@ def _wait_accepting(proc: subprocess.Popen[bytes], ports: list[int], log_file: P
 
 @pytest.fixture(scope="module")
 def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2netServer]:
-    """A simulator (la:1-3, 921600 baud, frame log) served by ser2net on two TCP ports."""
+    """Two simulators (la:1-3, 921600 baud, frame logs) served by ser2net, one on each of
+    two TCP ports."""
     ser2net = require_ser2net()
     workdir = tmp_path_factory.mktemp("ser2net")
-    with SimProcess(SIM_DEVICES, baud=SIM_BAUD, log_file=workdir / "sim.jsonl") as sim:
+    with (
+        SimProcess(SIM_DEVICES, baud=SIM_BAUD, log_file=workdir / "sim.jsonl") as sim,
+        SimProcess(SIM_DEVICES, baud=SIM_BAUD, log_file=workdir / "rfc2217.jsonl") as sim2,
+    ):
         raw_port = free_tcp_port()
         rfc2217_port = free_tcp_port()
         config = workdir / "ser2net.yaml"
         config.write_text(
             SER2NET_CONFIG.format(
-                raw_port=raw_port, rfc2217_port=rfc2217_port, device=sim.path, baud=SIM_BAUD
+                raw_port=raw_port,
+                rfc2217_port=rfc2217_port,
+                raw_device=sim.path,
+                rfc2217_device=sim2.path,
+                baud=SIM_BAUD,
             ),
             encoding="utf-8",
         )
@@ -136,6 +151,7 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
             _wait_accepting(proc, [raw_port, rfc2217_port], log_file)
             yield Ser2netServer(
                 sim=sim,
+                rfc2217_sim=sim2,
                 raw_url=f"socket://127.0.0.1:{raw_port}",
                 rfc2217_url=f"rfc2217://127.0.0.1:{rfc2217_port}",
                 log_file=log_file,
