@@ -90,10 +90,13 @@ async def remote_bus(server: Ser2netServer, backend: str) -> AsyncIterator[Bus]:
     """A settled bus on ser2net's raw accepter.
 
     ser2net refuses a new connection (it sends "Port's device already in use" and closes)
-    while the connection before it still holds the device: the previous test's, or the
-    fixture's readiness probes.  Closing one took 2-13 ms on a quiet machine, longer under
-    load, so a refusal before the first reply is retried on a new connection, with a pause,
-    until CONNECT_WINDOW_S has passed; anything after the settling round trip fails the test.
+    while another connection holds the device, or is still closing (2-13 ms after its
+    client left, on a quiet machine).  The fixture gives each accepter its own device,
+    which ended the refusals CI saw; a connection that follows another on the same
+    accepter waited its turn in 250 tries here, with and without CPU hogs.  Should one
+    still be refused before its first reply, it is retried on a new connection, with a
+    pause, until CONNECT_WINDOW_S has passed; anything after the settling round trip
+    fails the test.
     """
     loop = asyncio.get_running_loop()
     deadline = loop.time() + CONNECT_WINDOW_S
