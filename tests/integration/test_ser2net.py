@@ -90,10 +90,11 @@ async def remote_bus(server: Ser2netServer, backend: str) -> AsyncIterator[Bus]:
     """A settled bus on ser2net's raw accepter.
 
     ser2net refuses a new connection (it sends "Port's device already in use" and closes)
-    while another connection holds the device, or is still closing (2-13 ms after its
-    client left, on a quiet machine).  The fixture gives each accepter its own device,
-    which ended the refusals CI saw; a connection that follows another on the same
-    accepter waited its turn in 250 tries here, with and without CPU hogs.  Should one
+    while another connection holds the device, or is still being closed after its client
+    left.  The fixture gives each accepter its own device, which ended the refusals CI
+    saw (test_a_client_of_the_rfc2217_accepter_does_not_hold_the_raw_device fails with
+    one device for both); a connection that follows another on the same accepter waits
+    its turn (it did in 250 tries here, with and without CPU hogs).  Should one
     still be refused before its first reply, it is retried on a new connection, with a
     pause, until CONNECT_WINDOW_S has passed; anything after the settling round trip
     fails the test.
