@@ -3,8 +3,9 @@
 ``ser2net_server`` starts two ``motorbus sim`` processes (LA IDs 1-3 at 921600 baud),
 each on its own pty, and a ser2net 4.x in front of them with an accepter each on
 127.0.0.1: raw TCP (``socket://``) and RFC 2217 (``rfc2217://``), configured as
-docs/platform.md section 4 recommends.  The tests skip, with the reason, when ser2net is
-not installed; ``.ci/run`` installs it.
+docs/platform.md section 4 recommends; a third accepter serves a device that does not
+exist (what a server with its adapter unplugged says).  The tests skip, with the
+reason, when ser2net is not installed; ``.ci/run`` installs it.
 
 Each accepter has its own device because ser2net lets one connection at a time hold a
 device: while a connection of the other accepter is open, or still closing, a new one is
@@ -60,6 +61,13 @@ connection: &bus1-rfc2217
       kickolduser: true
       chardelay: false
     connector: serialdev,{rfc2217_device},{baud}n81,local
+
+connection: &bus2-missing
+    accepter: tcp,127.0.0.1,{missing_port}
+    enable: on
+    options:
+      chardelay: false
+    connector: serialdev,{missing_device},{baud}n81,local
 """
 
 
@@ -90,6 +98,7 @@ class Ser2netServer:
     rfc2217_sim: SimProcess  # behind rfc2217_url
     raw_url: str  # socket://127.0.0.1:PORT
     rfc2217_url: str  # rfc2217://127.0.0.1:PORT
+    missing_url: str  # socket://127.0.0.1:PORT of a device that does not exist
     log_file: Path  # ser2net's own stdout and stderr
 
 
@@ -128,6 +137,7 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
     ):
         raw_port = free_tcp_port()
         rfc2217_port = free_tcp_port()
+        missing_port = free_tcp_port()
         config = workdir / "ser2net.yaml"
         config.write_text(
             SER2NET_CONFIG.format(
@@ -135,6 +145,8 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
                 rfc2217_port=rfc2217_port,
                 raw_device=sim.path,
                 rfc2217_device=sim2.path,
+                missing_port=missing_port,
+                missing_device=workdir / "no-such-device",
                 baud=SIM_BAUD,
             ),
             encoding="utf-8",
@@ -154,6 +166,7 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
                 rfc2217_sim=sim2,
                 raw_url=f"socket://127.0.0.1:{raw_port}",
                 rfc2217_url=f"rfc2217://127.0.0.1:{rfc2217_port}",
+                missing_url=f"socket://127.0.0.1:{missing_port}",
                 log_file=log_file,
             )
         finally:

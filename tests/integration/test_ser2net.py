@@ -44,6 +44,8 @@ BACKEND_PARAMS = [
     )
     for name in BACKENDS
 ]
+#: The backends that hand over what ser2net said before it closed a connection.
+QUOTING_PARAMS = [p for p in BACKEND_PARAMS if p.values[0] != "pyserial-asyncio"]
 
 #: Host-latency allowance of a remote bus (docs/remote-buses.md): the default 2 ms is
 #: sized for a local port; through ser2net two more processes sit in every round trip,
@@ -162,6 +164,24 @@ async def test_a_client_of_the_rfc2217_accepter_does_not_hold_the_raw_device(
         writer.close()
         await writer.wait_closed()
     del reader
+
+
+@pytest.mark.parametrize("backend", QUOTING_PARAMS)
+async def test_a_missing_device_behind_ser2net_is_named_in_the_error(
+    ser2net_server: Ser2netServer, backend: str
+) -> None:
+    # ser2net accepts the connection, writes why it cannot serve and closes it: the
+    # error the program gets quotes it, where it used to say only "closed".  (Not with
+    # pyserial-asyncio: pyserial drops what it read when it finds the connection closed;
+    # tests/transport/test_serial_transport.py says how.)
+    transport = open_transport(ser2net_server.missing_url, baudrate=SIM_BAUD, backend=backend)
+    async with Bus(transport, name="remote", families=[Family.LA], reconnect=False) as bus:
+        with pytest.raises(BusClosedError) as caught:
+            await bus.request(
+                la.Control(1, la.ControlAction.QUERY_STATUS), timeout=SETTLE_TIMEOUT_S, retries=0
+            )
+        assert bus.stats.disconnects == 1
+    assert 'the server closed the connection, saying "Device open failure' in str(caught.value)
 
 
 @pytest.mark.parametrize("backend", BACKEND_PARAMS)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import sys
@@ -232,6 +233,61 @@ async def test_socket_url_round_trip_and_server_close(
     assert len(host.lost) == 1
     assert isinstance(host.lost[0], OSError)  # BusClosedError or SerialException
     await t.close()
+
+
+@contextlib.asynccontextmanager
+async def refusing_server(first: bytes) -> AsyncIterator[int]:
+    """A TCP 'serial server' that writes ``first`` to each client and closes, as ser2net
+    does when it cannot serve ("Device open failure: ...")."""
+
+    async def handle(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(first)
+        await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(handle, "127.0.0.1", 0)
+    try:
+        yield server.sockets[0].getsockname()[1]
+    finally:
+        server.close()
+        await server.wait_closed()
+
+
+async def _loss_from(first: bytes, backend: str) -> BaseException:
+    async with refusing_server(first) as port:
+        t = open_transport(f"socket://127.0.0.1:{port}", baudrate=9600, backend=backend)
+        host = Recorder()
+        await t.open(host.on_data, host.on_lost)
+        await host.wait_for(lambda: host.lost)
+        await t.close()
+    assert len(host.lost) == 1
+    assert host.received == first  # the bus still gets the bytes (counted as garbage)
+    return host.lost[0]
+
+
+#: The backends that hand over what a connection said before it closed: pyserial's
+#: ``socket://`` read, which pyserial-asyncio calls for 1024 bytes, drops the bytes it
+#: read when it then finds the end of the connection ("socket disconnected").
+QUOTING = [b for b in INSTALLED if b != "pyserial-asyncio"]
+
+
+@pytest.mark.parametrize("backend", QUOTING)
+async def test_a_server_that_closes_with_a_reason_is_quoted_in_the_loss(backend: str) -> None:
+    lost = await _loss_from(b"Device open failure: Value or file not found\r\n", backend)
+    assert isinstance(lost, BusClosedError)
+    assert 'closed the connection, saying "Device open failure: Value or file not found"' in str(
+        lost
+    )
+
+
+@pytest.mark.parametrize(
+    "first",
+    [b"\xaa\x55\x11\x01Port's device already in use\r\n", b"x" * 300, b"\x00\x01"],
+    ids=["binary first", "longer than a message", "binary"],
+)
+async def test_bytes_that_are_not_a_servers_message_are_not_quoted(first: bytes) -> None:
+    lost = await _loss_from(first, "fast")
+    assert "saying" not in str(lost)
 
 
 @pytest.mark.parametrize("backend", INSTALLED)

@@ -75,6 +75,11 @@ _BACKEND_MODULES: dict[str, tuple[str, str]] = {
     "serialx": ("serialx", "motorbus[serialx]"),
     "pyserial-asyncio": ("serial_asyncio", "motorbus[pyserial-asyncio]"),
 }
+#: How many of the first bytes a network connection (``socket://``, ``rfc2217://``)
+#: receives are kept while they are text: a serial server that will not serve writes its
+#: reason as a line of text and closes (ser2net: "Port's device already in use", "Device
+#: open failure: ..."), and the loss then says so instead of only "closed".
+SERVER_TEXT_MAX = 200
 #: Read size for serialx: its default 256 KiB buffer costs ~15 µs a read (docs/platform.md §2)
 #: while a bus reply is tens of bytes.
 SERIALX_MAX_READ = 4096
@@ -344,6 +349,9 @@ class SerialTransport(CountingTransport):
         self._adapter: _Adapter | None = None
         self._on_data: DataCallback | None = None
         self._on_lost: LostCallback | None = None
+        #: What a network connection said first, while it is text (``SERVER_TEXT_MAX``);
+        #: None for a device, and from the first byte that is not text on.
+        self._server_text: bytearray | None = None
 
     def __repr__(self) -> str:
         state = "open" if self.is_open else "closed"
@@ -390,6 +398,7 @@ class SerialTransport(CountingTransport):
         self._on_data = on_data
         self._on_lost = on_lost
         self._echo.reset()
+        self._server_text = None if is_device_path(device) else bytearray()
         try:
             self._configure(self._transport)
         except BaseException:
@@ -518,19 +527,41 @@ class SerialTransport(CountingTransport):
         self._echo.reset()
 
     def _data_received(self, data: bytes) -> None:
+        if self._server_text is not None:
+            self._hear(data)
         data = self._incoming(data)
         if data and self._on_data is not None:
             self._on_data(data)
 
+    def _hear(self, data: bytes) -> None:
+        """Keep the start of what a network connection says while it is text."""
+        text = self._server_text
+        assert text is not None
+        text += data[: SERVER_TEXT_MAX - len(text)]
+        if len(text) >= SERVER_TEXT_MAX or not _is_text(text):
+            self._server_text = None  # the devices talk (or a long text): no message
+
     def _connection_lost(self, exc: BaseException | None) -> None:
         on_lost = self._on_lost
+        said = self._server_text.decode("ascii").strip() if self._server_text else ""
+        self._server_text = None
         self._detach()
-        if exc is None:
+        if said:
+            # The server told why it closed (ser2net: the device is missing or in use).
+            cause = exc
+            exc = BusClosedError(f'{self.url}: the server closed the connection, saying "{said}"')
+            exc.__cause__ = cause
+        elif exc is None:
             # The peer closed (TCP end of file): still a loss, report it as one.
             exc = BusClosedError(f"{self.url}: the connection was closed by the other end")
         _log.debug("%s: port lost: %r", self.url, exc)
         if on_lost is not None:
             on_lost(exc)
+
+
+def _is_text(data: bytes | bytearray) -> bool:
+    """True if ``data`` is printable ASCII text, in lines."""
+    return data.isascii() and data.translate(None, b"\r\n\t").decode("ascii").isprintable()
 
 
 def _poller(transport: object) -> Any:
