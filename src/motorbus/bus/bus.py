@@ -486,7 +486,7 @@ class Bus:
         job = prepared.job
         state = self._engine.state
         if state is not BusState.OPEN:
-            raise BusClosedError(f"bus {self.name} is {state.value}")
+            raise self._engine.not_open_error()
         if asyncio.get_running_loop() is not self._loop:
             raise self._wrong_loop_error(job.cmd)
         if job.moves and self._stopping:
@@ -665,7 +665,7 @@ class Bus:
             check_request_options(timeout, retries, priority)
         state = self._engine.state
         if state is not BusState.OPEN:
-            raise BusClosedError(f"bus {self.name} is {state.value}")
+            raise self._engine.not_open_error()
         moves = cmd.starts_motion
         if self._stopping and moves:
             raise self._closing_error(cmd)

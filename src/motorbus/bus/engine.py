@@ -81,6 +81,9 @@ class BusEngine:
         self.stats = BusStats()
         self.events = EventHub()
         self.state = BusState.CLOSED
+        #: Why the port was last lost ("" before any loss): errors raised while it is
+        #: lost say it (a server's "Device open failure", a pulled adapter).
+        self.lost_detail = ""
         #: The pure core: when frames may start, whose frame a received one is.
         timing = BusTiming(
             transport.baudrate, config.min_spacing, config.host_margin, config.turnaround
@@ -410,6 +413,13 @@ class BusEngine:
         self.stats.events += 1
         self.events.publish(event)
 
+    def not_open_error(self) -> BusClosedError:
+        """Why nothing is sent now: the bus's state, and the last loss while it is lost."""
+        lost = self.state is BusState.LOST and self.lost_detail
+        return BusClosedError(
+            f"bus {self.name} is {self.state.value}" + (f" ({self.lost_detail})" if lost else "")
+        )
+
     def publish_state(self, state: str, detail: str = "") -> None:
         self.events.publish(BusStateChanged(self.name, self.clock.now(), state, detail))
 
@@ -453,6 +463,7 @@ class BusEngine:
         self.stats.disconnects += 1
         self.state = BusState.LOST
         detail = f"{type(exc).__name__}: {exc}" if exc else "port closed"
+        self.lost_detail = detail
         log.warning("bus %s lost its port (%s)", self.name, detail)
         self.fail_all(BusClosedError(f"bus {self.name} lost its port: {detail}"))
         self.core.new_stream()
