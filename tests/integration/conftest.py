@@ -50,7 +50,6 @@ connection: &bus0-raw
     accepter: tcp,127.0.0.1,{raw_port}
     enable: on
     options:
-      kickolduser: true
       chardelay: false
     connector: serialdev,{raw_device},{baud}n81,local
 
@@ -58,7 +57,6 @@ connection: &bus1-rfc2217
     accepter: telnet(rfc2217),tcp,127.0.0.1,{rfc2217_port}
     enable: on
     options:
-      kickolduser: true
       chardelay: false
     connector: serialdev,{rfc2217_device},{baud}n81,local
 

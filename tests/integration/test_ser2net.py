@@ -166,6 +166,24 @@ async def test_a_client_of_the_rfc2217_accepter_does_not_hold_the_raw_device(
     del reader
 
 
+async def test_a_second_program_on_the_port_is_refused_and_the_first_goes_on(
+    ser2net_server: Ser2netServer,
+) -> None:
+    # docs/remote-buses.md's configuration (no kickolduser): one client at a time, as a
+    # local port's lock gives.  The second is told why; the first loses nothing.  (With
+    # kickolduser the two took the port from each other in turn, each losing requests.)
+    async with remote_bus(ser2net_server, "fast") as first:
+        transport = open_transport(ser2net_server.raw_url, baudrate=SIM_BAUD)
+        async with Bus(transport, name="second", families=[Family.LA], reconnect=False) as second:
+            with pytest.raises(BusClosedError, match='saying "Port already in use"'):
+                await second.request(
+                    la.Control(1, la.ControlAction.QUERY_STATUS), timeout=SETTLE_TIMEOUT_S
+                )
+        for ident in IDS:
+            assert (await InspireLA(first, ident).status()).id == ident
+        assert first.stats.disconnects == 0 and first.stats.timeouts == 0
+
+
 @pytest.mark.parametrize("backend", QUOTING_PARAMS)
 async def test_a_missing_device_behind_ser2net_is_named_in_the_error(
     ser2net_server: Ser2netServer, backend: str
