@@ -10,6 +10,7 @@ import grp
 import io
 import json
 import os
+import socket
 from collections.abc import Sequence
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -313,3 +314,16 @@ async def test_without_stream_no_follow_frame_is_sent() -> None:
     # Every frame the devices received is a status query: 55 AA 03 ID 04 00 22.
     requests = [str(r["hex"]) for r in records if r["dir"] == "rx"]
     assert requests and all(h.startswith("55 AA 03 ") and h[12:20] == "04 00 22" for h in requests)
+
+
+async def test_a_network_port_where_nothing_listens_is_red_with_what_to_check() -> None:
+    with socket.socket() as s:  # a port that was free a moment ago: nothing listens there
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"socket://127.0.0.1:{port}"
+    report = await diagnose(DoctorConfig(url, 921600, measure_s=0))
+    found = {f.check: f for f in report.findings}
+    assert found["open"].level is Level.RED
+    assert found["open"].summary.startswith(f"cannot open {url}: ")
+    assert "check that the server runs and listens at this address" in found["open"].fix
+    assert found["devices"].level is Level.SKIP

@@ -22,6 +22,8 @@ import pytest
 
 from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
+from motorbus.doctor import DoctorConfig, diagnose
+from motorbus.doctor.checks import Level
 from motorbus.errors import BusClosedError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
@@ -182,6 +184,24 @@ async def test_a_second_program_on_the_port_is_refused_and_the_first_goes_on(
         for ident in IDS:
             assert (await InspireLA(first, ident).status()).id == ident
         assert first.stats.disconnects == 0 and first.stats.timeouts == 0
+
+
+async def test_the_doctor_names_a_busy_port_and_a_missing_device_with_what_to_do(
+    ser2net_server: Ser2netServer,
+) -> None:
+    # What `motorbus doctor --port socket://...` reports where it used to stop with a
+    # traceback-free but bare "lost its port": a red "open" line with ser2net's reason.
+    async with remote_bus(ser2net_server, "fast"):  # another program holds the port
+        busy = await diagnose(DoctorConfig(ser2net_server.raw_url, SIM_BAUD, measure_s=0))
+    missing = await diagnose(DoctorConfig(ser2net_server.missing_url, SIM_BAUD, measure_s=0))
+    for report, said, advice in (
+        (busy, "Port already in use", "another client is connected to this port"),
+        (missing, "Device open failure", "the server cannot open its serial device"),
+    ):
+        found = {f.check: f for f in report.findings}
+        assert found["open"].level is Level.RED, report.findings
+        assert said in found["open"].summary and advice in found["open"].fix
+        assert {found[c].level for c in ("echo", "devices", "line")} == {Level.SKIP}
 
 
 @pytest.mark.parametrize("backend", QUOTING_PARAMS)

@@ -54,6 +54,7 @@ from motorbus.doctor.host import check_host
 from motorbus.doctor.report import DoctorReport
 from motorbus.doctor.system import host_facts, latency_facts, port_facts
 from motorbus.errors import (
+    BusClosedError,
     LocalProtocolError,
     NotSentError,
     RemoteProtocolError,
@@ -209,14 +210,41 @@ async def echo_facts(config: DoctorConfig, ident: int) -> EchoFacts:
     """Write one status query with echo removal off; keep what comes back."""
     transport = _transport(config, config.baud, False)
     got = bytearray()
-    await transport.open(got.extend, lambda exc: None)
+    lost: list[BaseException | None] = []
+    await transport.open(got.extend, lost.append)
     raw = _query(ident).encode()
     try:
         transport.write(raw)
         await asyncio.sleep(ECHO_WAIT_S + wire_time(3 * la.STATUS_FRAME_SIZE, config.baud))
     finally:
         await transport.close()
+    if lost:  # a server that would not serve closed it (its reason is in the error)
+        raise lost[0] if isinstance(lost[0], OSError) else BusClosedError(f"{config.url} closed")
     return EchoFacts(raw, bytes(got), config.remove_echo)
+
+
+def open_failed(url: str, err: BaseException) -> Finding:
+    """The red finding of a port that did not open, or was closed at once."""
+    said = str(err).removeprefix(f"{url}: ")
+    return Finding("open", Level.RED, f"cannot open {url}: {said}", open_advice(url, err))
+
+
+def open_advice(url: str, err: BaseException) -> str:
+    """The one thing to do about a port that did not open (or was closed at once)."""
+    said = str(err)
+    if "already in use" in said:  # ser2net: "Port already in use", "Port's device ..."
+        return (
+            "another client is connected to this port on the server, which serves one at a "
+            "time: end that program (docs/remote-buses.md)"
+        )
+    if "Device open failure" in said:
+        return (
+            "the server cannot open its serial device: check the adapter on that machine "
+            "and the device path in its ser2net configuration"
+        )
+    if "://" in url:
+        return "check that the server runs and listens at this address (docs/remote-buses.md)"
+    return "see the port check"
 
 
 async def scan_devices(config: DoctorConfig, remove_echo: bool) -> DeviceScan:
@@ -469,16 +497,19 @@ async def diagnose(
         try:
             echo = await echo_facts(config, (config.ids or (la.ID_MIN,))[0])
         except OSError as err:
-            add(
-                Finding("open", Level.RED, f"cannot open {config.url}: {err}", "see the port check")
-            )
+            add(open_failed(config.url, err))
             usable, why = False, "the port did not open"
         else:
             add(checks.check_echo(echo, config.where))
             remove_echo = remove_echo or echo.echoes
             later.remove("echo")
     if usable:
-        devices = await scan_devices(config, remove_echo)
+        try:
+            devices = await scan_devices(config, remove_echo)
+        except BusClosedError as err:  # a server that closed the connection a moment later
+            add(open_failed(config.url, err))
+            usable, why = False, "the port did not open"
+    if usable:
         add(checks.check_devices(devices, config.where))
         later.remove("devices")
         found = devices.found
