@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from motorbus.bus import engine
 from motorbus.bus.bus import Bus, BusState
 from motorbus.bus.events import BusStateChanged
 from motorbus.devices.la import InspireLA
@@ -115,3 +116,64 @@ async def test_pty_disconnect_fault_reopens_same_symlink(tmp_path: Path, pacing:
     await asyncio.sleep(0)
     leaked = [t for t in asyncio.all_tasks() - before_tasks if not t.done()]
     assert not leaked, leaked
+
+
+class FlappingServer:
+    """A TCP 'serial server' that accepts each connection and closes it at once (as
+    ser2net does for a second client: "Port already in use"), until told to serve:
+    then it keeps the connection open, until ``drop()`` closes it."""
+
+    def __init__(self) -> None:
+        self.serving = False
+        self.accepted = 0
+        self.writers: list[asyncio.StreamWriter] = []
+
+    async def handle(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self.accepted += 1
+        if not self.serving:
+            writer.write(b"Port already in use\r\n")
+            writer.close()
+            return
+        self.writers.append(writer)
+        await reader.read()  # until the client goes, or drop()
+
+    def drop(self) -> None:
+        for writer in self.writers:
+            writer.close()
+        self.writers.clear()
+
+
+async def test_a_server_that_closes_each_connection_at_once_is_retried_with_backoff(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Each reopen "succeeds" (the TCP connection opens) and is lost at once: the backoff
+    # went back to its first 50 ms every time (20 reopens a second and a warning each).
+    # Now it goes on growing until the port stays up for RECONNECT_STABLE_S, and a loss
+    # after that starts again from the first delay.
+    monkeypatch.setattr(engine, "RECONNECT_FIRST_S", 0.01)
+    monkeypatch.setattr(engine, "RECONNECT_FACTOR", 4.0)
+    monkeypatch.setattr(engine, "RECONNECT_MAX_S", 1.0)
+    monkeypatch.setattr(engine, "RECONNECT_STABLE_S", 0.2)
+    server = FlappingServer()
+    listener = await asyncio.start_server(server.handle, "127.0.0.1", 0)
+    port = listener.sockets[0].getsockname()[1]
+    transport = SerialTransport(f"socket://127.0.0.1:{port}", baudrate=LA_BAUD)
+    try:
+        async with Bus(transport, families=[Family.LA]) as bus:
+            # Delays 0.01, 0.04, 0.16, 0.64, then 1.0 s: five reopens in the first 1.2 s
+            # at most (a slow machine makes fewer), against one every 10 ms before.
+            await asyncio.sleep(1.2)
+            assert 2 <= server.accepted <= 6, server.accepted
+            server.serving = True
+            await bus.wait_state(BusState.OPEN, timeout=REOPEN_BOUND_S)
+            await asyncio.sleep(0.3)  # up for longer than RECONNECT_STABLE_S
+            server.drop()
+            await bus.wait_state(BusState.LOST, timeout=REOPEN_BOUND_S)
+            lost = asyncio.get_running_loop().time()
+            await bus.wait_state(BusState.OPEN, timeout=REOPEN_BOUND_S)
+            # From the first delay again (0.01 s), not the 1 s the flapping grew it to.
+            assert asyncio.get_running_loop().time() - lost < 0.5
+    finally:
+        server.drop()
+        listener.close()
+        await listener.wait_closed()

@@ -55,6 +55,10 @@ log = logging.getLogger("motorbus.bus")
 RECONNECT_FIRST_S = 0.05
 RECONNECT_FACTOR = 2.0
 RECONNECT_MAX_S = 2.0
+#: A port lost again within this long of reopening was not back (a serial server that
+#: accepts the connection, then closes it: ser2net's "Port already in use"): the next
+#: reopen goes on from the delay before, instead of again from ``RECONNECT_FIRST_S``.
+RECONNECT_STABLE_S = 5.0
 
 #: ``tap(outgoing, data, at)``: a frame written (``outgoing``) or bytes read, at the bus
 #: clock's ``at`` (``Bus.add_wire_tap``).
@@ -84,6 +88,9 @@ class BusEngine:
         #: Why the port was last lost ("" before any loss): errors raised while it is
         #: lost say it (a server's "Device open failure", a pulled adapter).
         self.lost_detail = ""
+        #: The wait before the next reopen, and when the port was last reopened.
+        self.reconnect_delay = RECONNECT_FIRST_S
+        self.reopened_at: float | None = None
         #: The pure core: when frames may start, whose frame a received one is.
         timing = BusTiming(
             transport.baudrate, config.min_spacing, config.host_margin, config.turnaround
@@ -468,13 +475,15 @@ class BusEngine:
         self.fail_all(BusClosedError(f"bus {self.name} lost its port: {detail}"))
         self.core.new_stream()
         self.publish_state("lost", detail)
+        if self.reopened_at is None or self.clock.now() - self.reopened_at >= RECONNECT_STABLE_S:
+            self.reconnect_delay = RECONNECT_FIRST_S
         if self.config.reconnect:
             self.reconnect_task = asyncio.get_running_loop().create_task(
                 self._reconnect(), name=f"motorbus reconnect {self.name}"
             )
 
     async def _reconnect(self) -> None:
-        delay = RECONNECT_FIRST_S
+        delay = self.reconnect_delay
         while not self.closing:
             await asyncio.sleep(delay)
             self.publish_state("reconnecting")
@@ -485,6 +494,8 @@ class BusEngine:
                 delay = min(delay * RECONNECT_FACTOR, RECONNECT_MAX_S)
                 continue
             self.stats.reconnects += 1
+            self.reconnect_delay = min(delay * RECONNECT_FACTOR, RECONNECT_MAX_S)
+            self.reopened_at = self.clock.now()
             self.state = BusState.OPEN
             self.core.schedule.restart()
             # Safe actions owed since the loss go out first (emergency priority).
