@@ -133,9 +133,9 @@ def test_rig_quad_times_runs_against_the_simulator() -> None:
     assert doc["what"] == "quad motor 2" and doc["runs"] == 3
     # 1600 pulses at 16,000 pulses/s = 100 ms, plus the frames on a 9600 bit/s wire (about
     # 116 ms in all here).  A loaded run reads the done reply late (over 200 ms seen with
-    # six workers), and can stamp the start late too: the start is the bus's clock read
-    # just after the write returns, and a process descheduled between the two read 99 ms
-    # once.  A timed-out wait would take seconds; a run not waited for, almost nothing.
+    # six workers), and can stamp the start late too (the start is the bus's clock read
+    # just after the write returns): a suite run beside other load read 99 ms once.  A
+    # timed-out wait would take seconds; a run not waited for, almost nothing.
     assert all(50.0 < t < 300.0 for t in doc["times_ms"]), doc["times_ms"]
 
 
