@@ -43,30 +43,24 @@ SER2NET_RETRY_S = 0.02
 #: Longest wait for ser2net to exit after SIGTERM before it is killed.
 SER2NET_STOP_TIMEOUT_S = 5.0
 
-SER2NET_CONFIG = """\
-%YAML 1.1
----
-connection: &bus0-raw
-    accepter: tcp,127.0.0.1,{raw_port}
+#: One connection of the configuration, as docs/remote-buses.md recommends it.
+SER2NET_CONNECTION = """\
+connection: &{alias}
+    accepter: {accepter}
     enable: on
     options:
       chardelay: false
-    connector: serialdev,{raw_device},{baud}n81,local
-
-connection: &bus1-rfc2217
-    accepter: telnet(rfc2217),tcp,127.0.0.1,{rfc2217_port}
-    enable: on
-    options:
-      chardelay: false
-    connector: serialdev,{rfc2217_device},{baud}n81,local
-
-connection: &bus2-missing
-    accepter: tcp,127.0.0.1,{missing_port}
-    enable: on
-    options:
-      chardelay: false
-    connector: serialdev,{missing_device},{baud}n81,local
+    connector: serialdev,{device},{baud}n81,local
 """
+
+
+def ser2net_config(baud: int, *connections: tuple[str, str, object]) -> str:
+    """ser2net's YAML for ``(alias, accepter, device)`` connections at ``baud``."""
+    blocks = [
+        SER2NET_CONNECTION.format(alias=alias, accepter=accepter, device=device, baud=baud)
+        for alias, accepter, device in connections
+    ]
+    return "%YAML 1.1\n---\n" + "\n".join(blocks)
 
 
 def free_tcp_port() -> int:
@@ -138,14 +132,11 @@ def ser2net_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Ser2net
         missing_port = free_tcp_port()
         config = workdir / "ser2net.yaml"
         config.write_text(
-            SER2NET_CONFIG.format(
-                raw_port=raw_port,
-                rfc2217_port=rfc2217_port,
-                raw_device=sim.path,
-                rfc2217_device=sim2.path,
-                missing_port=missing_port,
-                missing_device=workdir / "no-such-device",
-                baud=SIM_BAUD,
+            ser2net_config(
+                SIM_BAUD,
+                ("bus0-raw", f"tcp,127.0.0.1,{raw_port}", sim.path),
+                ("bus1-rfc2217", f"telnet(rfc2217),tcp,127.0.0.1,{rfc2217_port}", sim2.path),
+                ("bus2-missing", f"tcp,127.0.0.1,{missing_port}", workdir / "no-such-device"),
             ),
             encoding="utf-8",
         )
