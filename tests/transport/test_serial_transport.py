@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import logging
 import os
+import socket
 import sys
 import tty
 from collections.abc import AsyncIterator, Iterator
@@ -345,3 +346,87 @@ def test_warn_if_latency_exceeds(
     assert len(records) == int(warned)
     if warned:
         assert f"up to {latency_ms} ms" in records[0].getMessage()
+
+
+@contextlib.contextmanager
+def unanswered_port() -> Iterator[int]:
+    """A TCP port whose connections hang: a listener with a backlog of 0, already full, so
+    the kernel drops each new connection's SYN (as a host that is off the network does)
+    until the listener closes; its close refuses them."""
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)
+    port = listener.getsockname()[1]
+    filler = socket.create_connection(("127.0.0.1", port))  # fills the backlog
+    try:
+        yield port
+    finally:
+        listener.close()
+        filler.close()
+
+
+@pytest.mark.parametrize("backend", INSTALLED)
+async def test_opening_a_network_port_that_does_not_answer_keeps_the_loop_running(
+    backend: str,
+) -> None:
+    # pyserial-asyncio opened the port on the event loop's thread: pyserial's connect to
+    # a host that does not answer held every other bus's ticks for its 5 s timeout.
+    loop = asyncio.get_running_loop()
+    longest = [0.0]
+
+    async def ticker() -> None:
+        last = loop.time()
+        while True:
+            await asyncio.sleep(0.01)
+            now = loop.time()
+            longest[0] = max(longest[0], now - last)
+            last = now
+
+    with unanswered_port() as port:
+        t = open_transport(f"socket://127.0.0.1:{port}", baudrate=9600, backend=backend)
+        ticking = asyncio.create_task(ticker())
+        opening = asyncio.create_task(t.open(Recorder().on_data, Recorder().on_lost))
+        await asyncio.sleep(0.5)
+        assert not opening.done()  # still connecting: the host does not answer
+        opening.cancel()
+        with contextlib.suppress(asyncio.CancelledError, OSError):
+            await opening
+        ticking.cancel()
+    # A loaded machine may hold a tick up for a while, never for the connect's seconds.
+    assert longest[0] < 0.4, longest[0]
+    assert not t.is_open
+
+
+@pytest.mark.skipif("pyserial-asyncio" not in INSTALLED, reason="pyserial-asyncio not installed")
+async def test_a_connection_that_opens_after_its_open_was_cancelled_is_closed() -> None:
+    # pyserial-asyncio's port is opened in a thread (the test above), which a cancel cannot
+    # stop: the connection it makes afterwards must not stay open.  It would hold
+    # ser2net's one client slot against the program's next try.  (fast and serialx
+    # connect with asyncio, whose cancel aborts the connect itself.)
+    loop = asyncio.get_running_loop()
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)
+    listener.settimeout(5.0)  # bounded waits below
+    port = listener.getsockname()[1]
+    filler = socket.create_connection(("127.0.0.1", port))
+    try:
+        url = f"socket://127.0.0.1:{port}"
+        t = open_transport(url, baudrate=9600, backend="pyserial-asyncio")
+        opening = asyncio.create_task(t.open(Recorder().on_data, Recorder().on_lost))
+        await asyncio.sleep(0.3)
+        assert not opening.done()
+        opening.cancel()
+        with contextlib.suppress(asyncio.CancelledError, OSError):
+            await opening
+        # Room in the backlog now: the SYN the kernel dropped is sent again and accepted.
+        first, _ = await loop.run_in_executor(None, listener.accept)  # the filler's
+        first.close()
+        late, _ = await loop.run_in_executor(None, listener.accept)  # the cancelled open's
+        late.settimeout(5.0)
+        with late:
+            assert await loop.run_in_executor(None, late.recv, 100) == b""  # closed
+        assert not t.is_open
+    finally:
+        filler.close()
+        listener.close()

@@ -124,7 +124,32 @@ def _load_backend(backend: str) -> _ConnectionFactory:
         raise ImportError(
             f"serial backend {backend!r} needs the {module_name!r} package: pip install {extra}"
         ) from err
+    if backend == "pyserial-asyncio":
+        return _opened_in_a_thread(module)
     return cast(_ConnectionFactory, module.create_serial_connection)
+
+
+def _opened_in_a_thread(module: Any) -> _ConnectionFactory:
+    """pyserial-asyncio's connection, with the port opened in a worker thread.
+
+    Its ``create_serial_connection`` opens the port on the event loop's thread: pyserial's
+    connect for a ``socket://`` host that does not answer then held every other bus's
+    ticks for its 5 s timeout.  pyserial-asyncio-fast opens in a thread too.
+    """
+    import serial  # a dependency of every backend
+
+    async def connect(
+        loop: asyncio.AbstractEventLoop, protocol_factory: Any, url: str, **kwargs: Any
+    ) -> tuple[asyncio.BaseTransport, Any]:
+        # A cancel leaves the thread to finish; a port it opens after all is closed as
+        # soon as nothing holds it (pyserial's ports close themselves when freed).
+        port = await loop.run_in_executor(None, lambda: serial.serial_for_url(url, **kwargs))
+        return cast(
+            tuple[asyncio.BaseTransport, Any],
+            await module.connection_for_serial(loop, protocol_factory, port),
+        )
+
+    return connect
 
 
 def available_backends() -> list[str]:
