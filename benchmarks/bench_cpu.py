@@ -613,8 +613,9 @@ def main() -> int:
         "spin_s_timerfd_spin": SPIN_S,
     }
     print(f"largest bus count ours keeps up with: {result['max_buses_keeping_up']}")
-    goal_ratio = GOAL_RATIO_NO_POLLS if args.polls == "none" else GOAL_RATIO
-    goal_key = "ratio_le_1.2x_timerfd_no_polls" if args.polls == "none" else "ratio_le_1.5x_timerfd"
+    alone = args.polls == "none"
+    goal_ratio = GOAL_RATIO_NO_POLLS if alone else GOAL_RATIO
+    goal_key = f"ratio_le_{goal_ratio:g}x_timerfd" + ("_no_polls" if alone else "")
     result["goals"] = {
         goal_key: None if not goal_ratios else max(goal_ratios) <= goal_ratio,
         "32_buses_lt_35pct": None
