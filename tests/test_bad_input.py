@@ -39,6 +39,7 @@ from motorbus.streams import StreamEnded, Streamer
 from motorbus.transport.memory import memory_pair
 from motorbus.transport.serial import SerialTransport
 from tests.helpers import sim_bus
+from tests.waiting import eventually
 
 #: Wrong types for an integer (or enum) argument.  ``True`` is refused: it is not a number.
 WRONG_INT = ("1", 1.5, None, True)
@@ -537,18 +538,47 @@ BAD_TARGET_ITEMS: tuple[Any, ...] = (
 )
 
 
-#: Rows of a bad target: one a tick for a second.  A loaded machine may start a stream
-#: a tick or more late, and the stream skips the rows of ticks it missed (it never
-#: bursts): a stream of a single row once skipped it and ended with nothing checked.
-BAD_ROWS = 100
-
-
 @pytest.mark.parametrize("item", BAD_TARGET_ITEMS, ids=[repr(i) for i in BAD_TARGET_ITEMS])
-async def test_a_bad_target_ends_the_stream_before_it_is_sent(item: Any) -> None:
+async def test_a_sequence_with_a_bad_row_is_refused_at_follow(item: Any) -> None:
+    # A sequence is all there at follow(): it is checked whole, so a bad row far into
+    # it refuses the stream before its first frame, naming the row (it used to end the
+    # stream at that row's tick, having moved the actuator through the rows before).
     model = LAModel(1)
     async with sim_bus([model]) as (bus, _sim):
         streamer = Streamer(bus)
-        stream = streamer.follow(InspireLA(bus, 1), [item] * BAD_ROWS, period=0.01)
+        rows = [1000, 1100, item, 1200]
+        with pytest.raises(LocalProtocolError, match=r"^targets row 2 \(of 4\): ") as info:
+            streamer.follow(InspireLA(bus, 1), rows, period=0.01)
+        assert "nothing sent" in str(info.value)
+        assert streamer.streams == []
+        assert bus.lease_keeper.table.owner_of("la:1") is None  # nothing taken
+        assert model.received == []
+        await streamer.close()
+
+
+async def test_set_targets_refuses_a_bad_sequence_and_the_stream_goes_on() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        streamer = Streamer(bus)
+        stream = streamer.follow(InspireLA(bus, 1), lambda t, statuses: 900, period=0.01)
+        await eventually(lambda: stream.stats.ticks >= 2, "two ticks")
+        with pytest.raises(LocalProtocolError, match=r"^targets row 1 \(of 3\): .*2001"):
+            stream.set_targets([1000, 2001, 1000])
+        ticks = stream.stats.ticks
+        await eventually(lambda: stream.stats.ticks >= ticks + 2, "two more ticks")
+        assert not stream.done
+        assert {t for _, _, t in model.received} == {900}  # the old source, unchanged
+        await streamer.close()
+
+
+@pytest.mark.parametrize("item", BAD_TARGET_ITEMS, ids=[repr(i) for i in BAD_TARGET_ITEMS])
+async def test_a_bad_target_from_a_function_ends_the_stream_before_it_is_sent(item: Any) -> None:
+    # A function's targets exist only at their tick: checked there, and the first bad
+    # one ends the stream unsent.
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        streamer = Streamer(bus)
+        stream = streamer.follow(InspireLA(bus, 1), lambda t, statuses: item, period=0.01)
         with pytest.raises(StreamEnded) as info:
             await asyncio.wait_for(stream.wait(), 5)
         assert isinstance(info.value.__cause__, LocalProtocolError)

@@ -24,11 +24,11 @@ from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol.base import check_choice, check_flag, check_int, check_timeout
 from motorbus.sim.la import LAModel
-from motorbus.streams import StreamEnded, Streamer
+from motorbus.streams import Streamer
 from motorbus.transport.memory import memory_pair
 from tests.fakeclock import rig as fake_rig
 from tests.helpers import sim_bus
-from tests.test_bad_input import BAD_ROWS, COMMANDS
+from tests.test_bad_input import COMMANDS
 
 NP_INTS = (np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64)
 
@@ -259,21 +259,44 @@ async def test_a_callable_may_return_numpy_rows() -> None:
     ],
     ids=["nan", "out-of-range", "bool-array", "numpy-bool", "too-many-columns", "1d-nan"],
 )
-async def test_bad_numpy_targets_end_the_stream_before_a_frame(rows: Any, match: str) -> None:
+async def test_bad_numpy_targets_are_refused_at_follow(rows: Any, match: str) -> None:
     models = [LAModel(1), LAModel(2)]
     async with sim_bus(models) as (bus, _sim):
         streamer = Streamer(bus)
         one = isinstance(rows, np.ndarray) and rows.ndim == 1
         group = InspireLA(bus, 1) if one else [InspireLA(bus, 1), InspireLA(bus, 2)]
-        # Every row bad, a second of them: a loaded machine may start the stream a tick
-        # late, and the stream skips the rows of ticks it missed.
-        rows = (
-            np.repeat(rows, BAD_ROWS, axis=0) if isinstance(rows, np.ndarray) else rows * BAD_ROWS
-        )
-        stream = streamer.follow(group, rows, period=0.01)
-        with pytest.raises(StreamEnded) as info:
-            await asyncio.wait_for(stream.wait(), 5)
-        assert isinstance(info.value.__cause__, LocalProtocolError)
-        assert re.search(match, str(info.value.__cause__)), str(info.value.__cause__)
+        with pytest.raises(LocalProtocolError) as info:
+            streamer.follow(group, rows, period=0.01)
+        assert re.search(match, str(info.value)), str(info.value)
+        assert str(info.value).startswith("targets row 0 (of 1): ")
+        assert streamer.streams == []
         assert all(m.received == [] for m in models)
+        await streamer.close()
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, 2001.0, -0.6], ids=repr)
+async def test_the_one_bad_value_of_a_long_array_is_named_by_its_row(bad: float) -> None:
+    models = [LAModel(1), LAModel(2)]
+    async with sim_bus(models) as (bus, _sim):
+        streamer = Streamer(bus)
+        rows = np.full((20_000, 2), 1000.0)
+        rows[16_543, 1] = bad
+        with pytest.raises(LocalProtocolError, match=r"^targets row 16543 \(of 20000\): ") as info:
+            streamer.follow([InspireLA(bus, 1), InspireLA(bus, 2)], rows, period=0.01)
+        assert "targets[2]" in str(info.value) and "0..2000" in str(info.value)
+        assert info.value.field == "targets[2]"
+        assert all(m.received == [] for m in models)
+        await streamer.close()
+
+
+async def test_a_good_numpy_array_is_checked_in_c_and_streams() -> None:
+    models = [LAModel(1), LAModel(2)]
+    async with sim_bus(models) as (bus, _sim):
+        streamer = Streamer(bus)
+        rows = np.array([[1000.4, 2000], [0, 999.6]])
+        stream = streamer.follow([InspireLA(bus, 1), InspireLA(bus, 2)], rows, period=0.01)
+        await asyncio.wait_for(stream.wait(), 5)
+        sent = _follow_targets(models[0]) + _follow_targets(models[1])
+        assert set(sent) <= {1000, 0, 2000}  # a late first tick may skip to the last row
+        assert _follow_targets(models[0])[-1] == 0 and _follow_targets(models[1])[-1] == 1000
         await streamer.close()

@@ -332,9 +332,7 @@ class Streamer:
         self, group: list[InspireLA], keys: list[str], targets: TargetSource, options: Any
     ) -> Stream:
         self._attach()
-        # One owner per motion: the actuators are this streamer's until the stream ends;
-        # another owner (an explicit lease) is refused here, before anything is sent.
-        taken = self._take(keys)
+        # The targets first (a sequence is checked whole): a refused stream takes nothing.
         stream = Stream(
             self,
             group,
@@ -347,11 +345,13 @@ class Streamer:
             max_speed=options.max_speed,
             max_missed=options.max_missed,
         )
-        try:
+        taken: list[str] = []
+        try:  # one owner per motion: another's lease is refused here, nothing sent
+            taken = self._take(keys)
             self.budget.admit(self.bus.timing, stream)
-        except LocalProtocolError:
+        except BaseException:
             stream.gaps.close()
-            if self.lease is not None:
+            if taken and self.lease is not None:
                 self.lease.table.release(self.lease, hold=True, keys=taken)
             raise
         starting = self._task is None or self._task.done()

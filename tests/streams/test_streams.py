@@ -14,7 +14,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.runtime import realtime
 from motorbus.sim.bus import Pacing
-from motorbus.sim.la import LAModel
+from motorbus.sim.la import LAModel, PowerState
 from motorbus.streams import SafeAction, StreamEnded, Streamer
 from tests.fakeclock import rig
 from tests.helpers import PACINGS, sim_bus
@@ -42,6 +42,25 @@ async def test_fifteen_actuators_one_broadcast_per_tick(pacing: Pacing) -> None:
         for i, model in enumerate(models):
             got = [target for _, cmd, target in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
             assert got == [row[i] for row in rows]
+        await streamer.close()
+
+
+@pytest.mark.parametrize("rows", [[700], [700, 800, 900]], ids=["one-row", "three-rows"])
+async def test_ticks_skipped_past_the_end_of_the_rows_still_send_the_last_row(
+    rows: list[int],
+) -> None:
+    # A first tick two periods late skips the rows of the ticks it missed (the skip
+    # rule keeps a stream on its time grid).  A one-row stream once skipped its only
+    # row and ended having sent nothing; the last row is where the trajectory ends, so
+    # it goes out, once.
+    model = LAModel(1)
+    async with rig(models=[model]) as r:
+        streamer = Streamer(r.bus)
+        stream = streamer.follow(InspireLA(r.bus, 1), rows, period=0.01)
+        r.timer.advance(0.035)  # fake time: the first tick's deadline passes unserved
+        await asyncio.wait_for(stream.wait(), 5)
+        assert [t for _, _, t in model.received] == [rows[-1]]
+        assert (stream.stats.ticks, stream.stats.skipped) == (1, 2)
         await streamer.close()
 
 
@@ -154,17 +173,18 @@ async def test_bad_target_ends_the_stream_with_its_safe_action(pacing: Pacing) -
     model = LAModel(1)
     async with sim_bus([model], pacing=pacing) as (bus, _):
         streamer = Streamer(bus)
+        # An iterator: its items exist only at their ticks, so each is checked there (a
+        # sequence is checked whole at follow: tests/test_bad_input.py).
         stream = streamer.follow(
-            InspireLA(bus, 1), [1000, 1100, 2500, 1200], period=0.01, safe_action="pause"
+            InspireLA(bus, 1), iter([1000, 1100, 2500, 1200]), period=0.01, safe_action="pause"
         )
         with pytest.raises(StreamEnded, match=r"targets?.*2500.*0\.\.2000|2500"):
             await asyncio.wait_for(stream.wait(), 5)
-        targets = [t for _, cmd, t in model.received if cmd == la.CMD_BROADCAST_FOLLOW]
-        # Nothing after the bad target; each row before it sent, or (a loaded machine,
-        # eight workers) skipped as a tick started a period late: counted, never sent.
-        assert targets and targets == [t for t in (1000, 1100) if t in targets]
-        assert stream.stats.ticks == len(targets)
-        assert stream.stats.ticks + stream.stats.skipped == 2
+        # Every item before the bad one (an iterator skips none), nothing after it, and
+        # the stream's safe action.
+        assert [t for _, _, t in model.received] == [1000, 1100]
+        assert stream.stats.ticks == 2
+        assert model.power_state is PowerState.PAUSED
         await streamer.close()
 
 

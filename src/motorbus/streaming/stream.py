@@ -82,7 +82,8 @@ class Stream:
     from ``source``, one of:
 
     * a sequence (list, tuple, array): item ``k`` each tick; the stream ends after the
-      last item;
+      last item.  It is checked whole when it is given (a bad row refuses the stream,
+      nothing sent), and its last row goes out even if the ticks before were skipped;
     * an iterator or generator: the next item each tick, ending with it;
     * an async iterator: awaited each tick;
     * a callable ``f(t, statuses)``, where ``statuses`` maps ID to the latest
@@ -116,6 +117,9 @@ class Stream:
         self.streamer = streamer
         self.actuators = tuple(actuators)
         self.ids = tuple(a.id for a in self.actuators)
+        #: The target source, adapted to this stream's actuators (``streaming.targets``):
+        #: first, so that a sequence with a bad row refuses the stream before it is made.
+        self.source = TargetAdapter(self.ids, source)
         #: The actuators as lease keys (``"la:3"``).
         self.keys = frozenset(f"la:{i}" for i in self.ids)
         self.number = next(Stream._numbers)
@@ -149,8 +153,6 @@ class Stream:
         #: True from the moment the stream starts to stop: nothing more of it is written.
         self.stopping = False
         self.done = False
-        #: The target source, adapted to this stream's actuators (``streaming.targets``).
-        self.source = TargetAdapter(self.ids, source)
         self._finished = asyncio.get_running_loop().create_future()
         self._poll_cursor = 0
 

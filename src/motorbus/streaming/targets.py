@@ -68,12 +68,63 @@ class TargetAdapter:
                 f"f(t, statuses); got {type(source).__name__}",
                 field="targets",
             )
+        if sequence is not None:
+            self.check_rows(sequence)
+        #: The highest index of the sequence handed out (``next_item``).
+        self.last_index = -1
         self.sequence, self.iterator, self.aiterator, self.function = (
             sequence,
             iterator,
             aiterator,
             function,
         )
+
+    def check_rows(self, rows: Sequence[Any]) -> None:
+        """Check every row of a sequence now, so that a bad one refuses the stream before
+        anything of it is sent (a sequence is all there at ``follow``; an iterator or a
+        function is checked item by item, at its tick).  A numpy array of numbers is
+        checked in C (its minimum and maximum); a list row by row, about 3 us a row here.
+
+        Raises:
+            LocalProtocolError: a row that ``normalise`` refuses, named by its index
+                (``targets row INDEX``) with the reason.
+        """
+        if self._numbers_in_range(rows):
+            return
+        try:
+            count = len(rows)
+        except TypeError:  # a 0-d numpy array: __len__ is there, and refuses
+            raise LocalProtocolError(
+                f"targets must be rows (one a tick), got a {type(rows).__name__} without a "
+                "length; nothing sent",
+                field="targets",
+                value=rows,
+            ) from None
+        for index in range(count):
+            item = rows[index]
+            if item is None:
+                return  # the stream ends here: the rows after it are never sent
+            try:
+                self.normalise(item)
+            except LocalProtocolError as err:
+                raise LocalProtocolError(
+                    f"targets row {index} (of {count}): {err}; nothing sent",
+                    field=err.field,
+                    value=err.value,
+                ) from None
+
+    def _numbers_in_range(self, rows: Any) -> bool:
+        """True for a numpy array of numbers shaped for ``ids`` with every value in range
+        (any doubt, a NaN among them, goes to the row-by-row check for its message)."""
+        ndim = getattr(rows, "ndim", None)
+        if getattr(getattr(rows, "dtype", None), "kind", None) not in ("i", "u", "f"):
+            return False
+        shaped = (ndim == 1 and len(self.ids) == 1) or (
+            ndim == 2 and tuple(rows.shape)[1:] == (len(self.ids),)
+        )
+        if not shaped or not len(rows):
+            return False
+        return bool(rows.min() >= la.POSITION_MIN and rows.max() <= la.POSITION_MAX)
 
     async def next(self, t: float, statuses: Mapping[int, Any], index: int) -> Targets | None:
         """The targets at time ``t`` (a callable's argument, with ``statuses``), or the
@@ -98,8 +149,18 @@ class TargetAdapter:
     def next_item(self, index: int) -> Any:
         """Item ``index`` of a sequence, or the next of an iterator; ``EXHAUSTED`` at
         the end.  (Async iterators and functions are called by the tick loop.)"""
-        if self.sequence is not None:
-            return self.sequence[index] if index < len(self.sequence) else EXHAUSTED
+        rows = self.sequence
+        if rows is not None:
+            if index < len(rows):
+                self.last_index = index
+                return rows[index]
+            last = len(rows) - 1
+            if self.last_index < last:
+                # Ticks skipped past the end (a late start, a loaded host): the last row
+                # is where the trajectory ends, so it still goes out, once.
+                self.last_index = last
+                return rows[last]
+            return EXHAUSTED
         assert self.iterator is not None
         return next(self.iterator, EXHAUSTED)
 
