@@ -27,6 +27,18 @@ def test_rows_are_served_on_their_ticks_and_the_end_ends_it() -> None:
     assert tick(feed, 3) is None
 
 
+@pytest.mark.parametrize("rows", [[700], [700, 800, 900]], ids=["one-row", "three-rows"])
+def test_ticks_skipped_past_the_end_still_serve_the_last_row(rows: list[int]) -> None:
+    # The server's stream started late (or fell behind) past the last row: the rows of
+    # the ticks it missed are dropped, but the last one, where the trajectory ends, goes
+    # out once, as a local stream's does (it used to end having sent nothing).
+    feed = TargetFeed((1,), P, GapPolicy.RAMP)
+    feed.put(0, [feed.row(n, "r") for n in rows], end=True)
+    assert tick(feed, len(rows) + 1) == {1: rows[-1]}
+    assert tick(feed, len(rows) + 2) is None
+    assert feed.unwritten == list(range(len(rows) - 1))
+
+
 def test_later_rows_replace_from_their_tick_on_and_past_ticks_are_dropped() -> None:
     feed = TargetFeed((1,), P, GapPolicy.RAMP)
     feed.put(0, [feed.row(n, "r") for n in (1, 2, 3, 4)], end=True)

@@ -154,10 +154,17 @@ class TargetFeed:
 
     def source(self, t: float, statuses: Mapping[int, la.Status]) -> Targets | None:
         k_now = round(t / self.period)
+        targets = None
         for stale in range(self.low, k_now):  # one a tick, however many are buffered
-            self.rows.pop(stale, None)
-            self._unwritten(stale)  # a tick the stream skipped
-        targets = self.rows.pop(k_now, None)
+            row = self.rows.pop(stale, None)
+            if row is not None and stale + 1 == self.end:
+                # Skipped past the end: the last row, where the trajectory ends, still
+                # goes out (now), as a local stream's does.
+                targets = row
+            elif self.end is None or stale < self.end:
+                self._unwritten(stale)  # a tick the stream skipped (past the end: no row)
+        if targets is None:
+            targets = self.rows.pop(k_now, None)
         self.low = max(self.low, k_now + 1)
         if targets is not None:
             self._resume()
