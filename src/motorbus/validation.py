@@ -39,6 +39,7 @@ __all__ = [
     "PHASE_MAX_S",
     "RETRIES_MAX",
     "TURNAROUND_MAX_S",
+    "CheckedRows",
     "check_baud",
     "check_families",
     "check_name",
@@ -48,6 +49,13 @@ __all__ = [
     "target_id",
     "target_position",
 ]
+
+
+class CheckedRows(list[dict[int, int] | None]):
+    """Rows of follow targets ``{id: position}`` already checked whole, against limits
+    at least as narrow as the stroke (``devices.calibration.limited_targets``): a
+    stream takes them without checking each row again (``TargetAdapter.check_rows``)."""
+
 
 #: Plausible serial line speeds, bit/s (see the module docstring).
 BAUD_MIN = 300

@@ -46,6 +46,7 @@ from typing import Any, Protocol
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.protocol.base import as_real, check_int
+from motorbus.validation import CheckedRows
 
 __all__ = [
     "CALIBRATION_KEYS",
@@ -463,7 +464,7 @@ def limited_targets(devices: Sequence[Positioned], source: Any, unit: str | None
     if isinstance(source, Sequence) or (
         hasattr(source, "__len__") and hasattr(source, "__getitem__")
     ):
-        return [convert(item) for item in source]
+        return CheckedRows([convert(item) for item in source])
     if hasattr(source, "__anext__"):
         return _converted_async(source, convert)
     if hasattr(source, "__next__") or (hasattr(source, "__iter__") and not callable(source)):

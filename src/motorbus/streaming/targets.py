@@ -13,7 +13,7 @@ from typing import Any, TypeAlias
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
-from motorbus.validation import is_scalar, target_id, target_position
+from motorbus.validation import CheckedRows, is_scalar, target_id, target_position
 
 __all__ = ["EXHAUSTED", "TargetAdapter", "TargetSource", "Targets", "ramp_step"]
 
@@ -89,7 +89,7 @@ class TargetAdapter:
             LocalProtocolError: a row that ``normalise`` refuses, named by its index
                 (``targets row INDEX``) with the reason.
         """
-        if self._numbers_in_range(rows):
+        if type(rows) is CheckedRows or self._numbers_in_range(rows):
             return
         try:
             count = len(rows)
