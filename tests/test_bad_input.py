@@ -556,6 +556,26 @@ async def test_a_sequence_with_a_bad_row_is_refused_at_follow(item: Any) -> None
         await streamer.close()
 
 
+class _LabelTable:
+    """A table indexed by column label, as a pandas DataFrame is: a length, no rows."""
+
+    def __len__(self) -> int:
+        return 3
+
+    def __getitem__(self, key: object) -> object:
+        raise KeyError(key)
+
+
+async def test_a_table_whose_rows_cannot_be_read_is_refused_at_follow() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        streamer = Streamer(bus)
+        with pytest.raises(LocalProtocolError, match=r"row 0 \(of 3\) could not be read"):
+            streamer.follow(InspireLA(bus, 1), _LabelTable(), period=0.01)
+        assert streamer.streams == [] and model.received == []
+        await streamer.close()
+
+
 async def test_set_targets_refuses_a_bad_sequence_and_the_stream_goes_on() -> None:
     model = LAModel(1)
     async with sim_bus([model]) as (bus, _sim):

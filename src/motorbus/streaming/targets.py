@@ -101,7 +101,15 @@ class TargetAdapter:
                 value=rows,
             ) from None
         for index in range(count):
-            item = rows[index]
+            try:
+                item = rows[index]
+            except Exception as err:  # a table indexed by label (pandas), say
+                raise LocalProtocolError(
+                    f"targets row {index} (of {count}) could not be read ({type(err).__name__}: "
+                    f"{err}): give rows as a list or a 2-D numpy array; nothing sent",
+                    field="targets",
+                    value=type(rows).__name__,
+                ) from err
             if item is None:
                 return  # the stream ends here: the rows after it are never sent
             try:
