@@ -6,11 +6,12 @@ from typing import Any
 
 import pytest
 
+from motorbus.devices.calibration import Calibration
 from motorbus.devices.la import InspireLA, scan
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.sim.bus import Pacing
-from motorbus.sim.la import LAModel
+from motorbus.sim.la import LAModel, PowerState
 from tests.devices.variants import LA_VARIANTS
 from tests.helpers import PACINGS, sim_bus
 
@@ -100,3 +101,44 @@ async def test_change_id_whose_answer_is_lost_is_confirmed_at_the_new_id(pacing:
         assert bus.stats.timeouts >= 1
         with pytest.raises(ReplyTimeoutError, match="la:4"):
             await InspireLA(bus, 4).status()
+
+
+async def test_recover_re_enables_an_estopped_actuator_and_resends_its_target() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        a = InspireLA(bus, 1)
+        await a.move_to(1300)
+        await a.estop()
+        assert model.power_state is PowerState.ESTOPPED
+        status = await a.recover()
+        assert model.power_state is PowerState.WORKING
+        assert status.target == 1300 and model.received[-1][2] == 1300
+
+
+@pytest.mark.parametrize("target", [1950, 50, 5000, 1.5e300, 1.5])
+async def test_recover_checks_its_target_before_it_enables_the_actuator(target: float) -> None:
+    # A target the soft limits refuse used to be refused only after the "work" frame: an
+    # e-stopped actuator was powered again, and the error said "nothing sent".
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, sim):
+        a = InspireLA(bus, 1, calibration=Calibration(limits=(100, 1900)))
+        await a.estop()
+        sent = sim.bus.stats.requests
+        with pytest.raises(LocalProtocolError, match=r"position.*(out of range|integer)"):
+            await a.recover(target=target)
+        assert sim.bus.stats.requests == sent  # nothing at all: not even the query
+        assert model.power_state is PowerState.ESTOPPED
+
+
+async def test_recover_resends_the_reported_target_in_raw_units_on_a_calibrated_actuator() -> None:
+    # The status reports the target raw; it was re-sent in the actuator's own unit (mm
+    # here), so raw 1000 became 1000 mm: refused after the actuator was enabled, and a
+    # small raw target would have moved it elsewhere.
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        a = InspireLA(bus, 1, calibration=Calibration(stroke_mm=30, unit="mm"))
+        await a.move_to(15.0)  # raw 1000
+        await a.estop()
+        status = await a.recover()
+        assert status.target == 1000 and model.received[-1][2] == 1000
+        assert model.power_state is PowerState.WORKING

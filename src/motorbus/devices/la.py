@@ -260,21 +260,32 @@ class InspireLA:
         """Clear stall, over-current and motor-abnormal faults (not over-temperature, 3.8)."""
         return await self._control(la.ControlAction.CLEAR_FAULT, Priority.HIGH)
 
-    async def recover(self, target: int | None = None) -> la.Status:
+    async def recover(self, target: float | None = None) -> la.Status:
         """The recovery recipe of A2-18: query, clear latched faults, work, re-send the target.
 
+        The target is checked against the soft limits before the actuator is enabled: a
+        target that would be refused never leaves an e-stopped actuator powered.
+
         Args:
-            target: position to re-send (default: the target the status reports).
+            target: position to re-send, in :attr:`unit` (default: the target the
+                status reports, in raw units as it reports it).
 
         Returns:
             The status after the final move command.
+
+        Raises:
+            LocalProtocolError: the target (given, or reported) is outside the soft
+                limits; only the status query was sent.
         """
+        raw = None if target is None else self.from_unit(target)  # before anything is sent
         status = await self.status()
+        if raw is None:
+            raw = self.from_unit(status.target, "raw")  # before the actuator is enabled
         clearable = la.ErrorFlags.STALL | la.ErrorFlags.OVER_CURRENT | la.ErrorFlags.MOTOR_ABNORMAL
         if status.errors & clearable:
             await self.clear_fault()
         await self.enable()
-        moved = await self.move_to(status.target if target is None else target)
+        moved = await self.move_to(raw, unit="raw")
         assert moved is not None
         return moved
 
