@@ -478,6 +478,23 @@ async def test_bus_refuses_text_for_a_duration_with_a_named_error() -> None:
         Bus(host, min_spacing="1")  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize("start_by", [NAN, "1", True], ids=repr)
+async def test_submit_refuses_a_start_by_that_is_no_time_and_the_bus_goes_on(
+    start_by: Any,
+) -> None:
+    # A NaN start_by was taken: its timer callback then failed (NaN to an integer
+    # deadline) and every later request on the bus hung.
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, sim):
+        query = la.Control(1, la.ControlAction.QUERY_STATUS)
+        held = bus.submit(query)  # a frame holds the bus: the next one would wait
+        with pytest.raises(LocalProtocolError, match=r"start_by must be a time in seconds"):
+            bus.submit(query, start_by=start_by)
+        await held
+        assert sim.bus.stats.requests == 1
+        assert (await bus.request(query)).id == 1
+
+
 #: Each streamer option, a bad value and the range its error names.  ``lead`` may be
 #: None (the default: a served bus's own); ``phase`` may not.
 STREAMER_OPTIONS = [

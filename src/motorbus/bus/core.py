@@ -110,10 +110,15 @@ class BusCore(Generic[J]):
             if isinstance(getattr(kind, "family", None), Family):
                 self.checked_types.add(kind)  # a class attribute: every instance is the same
         if start_by is not None and not (
-            isinstance(start_by, int | float) and not isinstance(start_by, bool)
+            isinstance(start_by, int | float)
+            and not isinstance(start_by, bool)
+            and start_by == start_by  # NaN: its timer callback failed, and the bus hung
         ):
             raise LocalProtocolError(
-                f"start_by must be a time in seconds, got {start_by!r}", field="start_by"
+                f"start_by must be a time in seconds on the bus.timer clock (a number, "
+                f"not NaN), got {start_by!r}; nothing sent",
+                field="start_by",
+                value=start_by,
             )
 
     def occupancy(self, cmd: Command[object], request_size: int | None = None) -> Occupancy:
