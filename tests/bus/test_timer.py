@@ -24,6 +24,8 @@ from motorbus.bus.timer import (
     default_timer,
     timerfd_available,
 )
+from motorbus.errors import LocalProtocolError
+from tests.waiting import eventually
 
 WAIT_S = 5.0  # generous bound for callbacks due within a few milliseconds
 
@@ -577,3 +579,16 @@ async def test_the_timerfd_timer_spins_only_where_asked(monkeypatch: pytest.Monk
     finally:
         for t in timers:
             t.close()
+
+
+async def test_a_nan_deadline_is_refused_and_the_timer_goes_on() -> None:
+    # A NaN deadline sat in the heap, where no comparison orders it, and failed when the
+    # timer armed for it: nothing after it ran.
+    timer = default_timer()
+    with pytest.raises(LocalProtocolError, match="deadline must be a time"):
+        timer.call_at(float("nan"), lambda: None)
+    with pytest.raises(LocalProtocolError, match="deadline must be a time"):
+        await timer.sleep_until(float("nan"))
+    ran: list[bool] = []
+    timer.call_at(timer.now() + 0.001, lambda: ran.append(True))
+    await eventually(lambda: ran == [True], "the next deadline's callback")

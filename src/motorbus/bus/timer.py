@@ -37,6 +37,7 @@ from collections.abc import Callable
 from typing import Any
 
 from motorbus import lifecycle
+from motorbus.errors import LocalProtocolError
 
 __all__ = [
     "LoopTimer",
@@ -187,9 +188,16 @@ class Timer(abc.ABC):
 
         Raises:
             RuntimeError: the timer is closed.
+            LocalProtocolError: ``deadline`` is NaN.
         """
         if self._closed:
             raise RuntimeError(f"{type(self).__name__} is closed")
+        if deadline != deadline:  # NaN: it would sit in the heap out of order, and never arm
+            raise LocalProtocolError(
+                "deadline must be a time in seconds (time.monotonic clock), got nan",
+                field="deadline",
+                value=deadline,
+            )
         handle = TimerHandle(self, deadline, callback, precise)
         heap = self._heap
         self._seq += 1
