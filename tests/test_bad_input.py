@@ -495,6 +495,32 @@ async def test_submit_refuses_a_start_by_that_is_no_time_and_the_bus_goes_on(
         assert (await bus.request(query)).id == 1
 
 
+BAD_RELEASE_KEYS: tuple[Any, ...] = (["LA:1"], ["la:0"], "bogus", 5, ["project_stepper"], [1])
+
+
+@pytest.mark.parametrize("keys", BAD_RELEASE_KEYS, ids=repr)
+async def test_release_refuses_keys_that_name_no_device_here(keys: Any) -> None:
+    # A malformed key used to be let go of silently: release() returned, la:1 stayed
+    # held and was not paused, and the program believed it had stopped it.
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, sim):
+        await InspireLA(bus, 1).move_to(1200)
+        sent = sim.bus.stats.requests
+        with pytest.raises(LocalProtocolError, match=r"key"):
+            await bus.release(keys)
+        lease = bus.lease("la:2", owner="rig")
+        if keys != ["project_stepper"]:  # well formed: a lease's table knows no families
+            with pytest.raises(LocalProtocolError, match=r"key"):
+                await lease.release(keys=keys)
+        assert lease.active and "la:2" in lease.keys
+        assert bus.lease_keeper.table.owner_of("la:1") == "program"
+        assert sim.bus.stats.requests == sent  # nothing sent
+        await lease.release(hold=True)
+        await bus.release(["la:1"])  # a good key still works: la:1 is paused
+        assert bus.lease_keeper.table.owner_of("la:1") is None
+        assert sim.bus.stats.requests == sent + 1
+
+
 #: Each streamer option, a bad value and the range its error names.  ``lead`` may be
 #: None (the default: a served bus's own); ``phase`` may not.
 STREAMER_OPTIONS = [

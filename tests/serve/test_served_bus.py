@@ -13,6 +13,7 @@ pytest.importorskip("zenoh")
 
 import motorbus
 from motorbus import BusClosedError, InspireLA, LeaseConflictError
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim import SimProcess
 from tests.serve.conftest import Child, client, serve
@@ -47,6 +48,26 @@ async def test_served_status_move_and_the_clients_lease(
     sent = requests_to_sim(la_sim)
     assert la.MoveTo(1, 1500, True).encode() in sent
     assert sent.index(PAUSE_1) > sent.index(la.MoveTo(1, 1500, True).encode())
+
+
+async def test_a_served_release_refuses_keys_that_name_no_device_here(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    # As a local bus's: a malformed key was passed on, and the server let go of nothing.
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        await InspireLA(bus, 1).move_to(1500)
+        lease = bus.lease("la:2", owner="arm")
+        for keys in (["LA:1"], "bogus", 5, ["project_stepper"]):
+            with pytest.raises(LocalProtocolError, match="key"):
+                await bus.release(keys)
+            with pytest.raises(LocalProtocolError, match="key"):
+                await lease.release(keys=keys)
+        assert [(i.key, i.owner) for i in bus.leases] == [("la:1", "program"), ("la:2", "arm")]
+        await lease.release(hold=True)
+        await bus.release(["la:1"])
+        assert bus.leases == ()
+    assert requests_to_sim(la_sim)[-1] == PAUSE_1
 
 
 async def test_a_clean_close_ends_the_clients_leases_with_their_safe_action(

@@ -206,8 +206,8 @@ class LeaseKeeper(SafeStopper):
         if keys is None:
             program = table.program
             keys = program.keys if program is not None else ()
-        elif isinstance(keys, str):
-            keys = (keys,)
+        else:  # checked as a lease's are: a malformed key was ignored, and nothing sent
+            keys = safety.check_lease_keys(keys, self.families, self.name)
         await self.send_safe(table.release_keys(keys, hold=hold))
 
     def hand_over(self, lease: Lease, keys: Iterable[str]) -> None:

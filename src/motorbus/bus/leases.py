@@ -174,7 +174,8 @@ class Lease:
         """
         if not self.active:
             return
-        wanted = None if keys is None else frozenset(self.table.expand(_as_keys(keys)))
+        # Checked as a lease's keys are (a malformed one was let go of silently: nothing).
+        wanted = None if keys is None else frozenset(self.table._wanted(keys))
         failed: Exception | None = None
         try:
             for ender in list(self.enders):
@@ -635,7 +636,7 @@ def lease_for(table: LeaseTable) -> Lease | None:
 def _as_keys(keys: Iterable[DeviceKey] | DeviceKey) -> tuple[DeviceKey, ...]:
     if isinstance(keys, str):
         return (keys,)
-    return tuple(keys)
+    return safety.as_keys(keys)
 
 
 def _check_owner(owner: object) -> str:

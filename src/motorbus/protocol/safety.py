@@ -34,6 +34,7 @@ from motorbus.protocol.families import FAMILIES
 __all__ = [
     "AT_REST_AFTER_PROJECT_END",
     "SAFE_ACTIONS",
+    "as_keys",
     "at_rest_after_done",
     "check_key",
     "check_lease_keys",
@@ -108,12 +109,28 @@ def check_key(key: object) -> str:
     return key
 
 
+def as_keys(keys: Iterable[str] | str) -> tuple[str, ...]:
+    """``keys`` (one device key, or several) as a tuple; ``LocalProtocolError`` for
+    anything else (the keys themselves are checked by ``check_key``)."""
+    if isinstance(keys, str):
+        return (keys,)
+    try:
+        return tuple(keys)
+    except TypeError:
+        raise LocalProtocolError(
+            f'keys must be a device key ("la:3", "project_stepper", "quad_stepper") or '
+            f"several, got {keys!r}",
+            field="keys",
+            value=keys,
+        ) from None
+
+
 def check_lease_keys(
     keys: Iterable[str] | str, families: Iterable[Family], bus: str
 ) -> tuple[str, ...]:
     """The keys of a lease on bus ``bus``, each a device key of a family the bus
     carries (``LocalProtocolError`` naming the key otherwise: nothing is taken)."""
-    wanted = (keys,) if isinstance(keys, str) else tuple(keys)
+    wanted = as_keys(keys)
     carried = frozenset(families)
     for key in wanted:
         family = family_of_key(check_key(key))

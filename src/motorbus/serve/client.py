@@ -134,7 +134,9 @@ class ServedLease:
         check_flag("hold", hold)
         body: dict[str, Any] = {"op": "release", "lease": self.number, "hold": hold}
         if keys is not None:
-            body["keys"] = list(keys)
+            keys = body["keys"] = list(
+                safety.check_lease_keys(keys, self.bus.families, self.bus.name)
+            )
         result = await self.bus._query("lease", body)
         self.active = bool(result.get("active", False))
         if keys is not None:
@@ -328,7 +330,7 @@ class ServedBus:
         """``Bus.release``: end this client's motion outside its leases on ``keys``."""
         body: dict[str, Any] = {"op": "release_implicit", "hold": check_flag("hold", hold)}
         if keys is not None:
-            body["keys"] = list(keys)
+            body["keys"] = list(safety.check_lease_keys(keys, self.families, self.name))
         await self._query("lease", body)
 
     @property
