@@ -234,6 +234,7 @@ def _la_calls() -> dict[str, tuple[Call, tuple[Any, ...]]]:
         "InspireLA(id)": (lambda b, v: _sync(InspireLA(b, v)), (*WRONG_INT, 0, 255)),
         "move_to(position)": (lambda b, v: dev(b).move_to(v), (*WRONG_INT, -1, 2001)),
         "move_to(reply)": (lambda b, v: dev(b).move_to(5, reply=v), WRONG_FLAG),
+        "move_to(wait)": (lambda b, v: dev(b).move_to(5, wait=v), (*WRONG_FLAG, "no")),
         "follow(position)": (lambda b, v: dev(b).follow(v), (*WRONG_INT, -1, 2001)),
         "follow(reply)": (lambda b, v: dev(b).follow(5, reply=v), WRONG_FLAG),
         "read(register)": (lambda b, v: dev(b).read(v), (*WRONG_INT, 55, "TARGET")),
@@ -260,6 +261,11 @@ def _la_calls() -> dict[str, tuple[Call, tuple[Any, ...]]]:
         ),
         "set_baud_code": (lambda b, v: dev(b).set_baud_code(v), (*WRONG_INT, 4, -1)),
         "change_id": (lambda b, v: dev(b).change_id(v), (*WRONG_INT, 0, 255)),
+        "change_id(save)": (lambda b, v: dev(b).change_id(2, save=v), (*WRONG_FLAG, "x")),
+        "submit(reserved)": (
+            lambda b, v: _sync(b.submit(la.Control(1, la.ControlAction.QUERY_STATUS), reserved=v)),
+            (*WRONG_FLAG, "yes"),
+        ),
         "scan(ids)": (lambda b, v: scan(b, [v]), (*WRONG_INT, 0, 255)),
         "scan(timeout)": (lambda b, v: scan(b, [1], timeout=v), WRONG_SECONDS),
         "follow(actuators)": (
@@ -672,6 +678,15 @@ def test_serial_transport_refuses_flags_that_are_not_bools(option: str, bad: Any
 
 
 MANAGER_BUS = {"name": "arm", "url": "memory://arm", "baud": 921600}
+
+
+@pytest.mark.parametrize("bad", (*WRONG_FLAG, "no"), ids=repr)
+def test_manager_refuses_a_safe_stop_that_is_no_bool(bad: Any) -> None:
+    # "no" is truthy: it kept the safe stop it was meant to turn off.
+    with pytest.raises(LocalProtocolError, match=r"safe_stop must be True or False"):
+        BusManager(safe_stop=bad)
+
+
 MANAGER_CASES: list[tuple[str, dict[str, Any]]] = [
     ("baud", {"baud": 0}),
     ("baud", {"baud": "921600"}),

@@ -34,7 +34,8 @@ _EXPORTS: dict[str, tuple[str, ...]] = {
     "motorbus.bus.bus": ("DEFAULT_HOST_MARGIN_S", "Bus", "BusState", "PreparedSubmit", "Priority"),
     "motorbus.bus.events": ("BusStateChanged", "FaultChanged", "ProjectFinished", "QuadDone"),
     "motorbus.bus.leases": ("Lease", "LeaseInfo"),
-    "motorbus.devices.la": ("SCAN_PASSES_MAX", "InspireLA", "ScanReport", "scan"),
+    "motorbus.devices.la": ("InspireLA", "ScanReport", "scan"),
+    "motorbus.devices.la_scan": ("SCAN_PASSES_MAX",),
     "motorbus.devices.group": ("read_statuses",),
     "motorbus.devices.calibration": ("Calibration", "NamedActuator", "write_calibration_file"),
     "motorbus.devices.project_stepper": ("ProjectStepper",),
@@ -91,10 +92,10 @@ if TYPE_CHECKING:
     from motorbus.devices.calibration import NamedActuator as NamedActuator
     from motorbus.devices.calibration import write_calibration_file as write_calibration_file
     from motorbus.devices.group import read_statuses as read_statuses
-    from motorbus.devices.la import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.la import InspireLA as InspireLA
     from motorbus.devices.la import ScanReport as ScanReport
     from motorbus.devices.la import scan as scan
+    from motorbus.devices.la_scan import SCAN_PASSES_MAX as SCAN_PASSES_MAX
     from motorbus.devices.project_stepper import ProjectStepper as ProjectStepper
     from motorbus.devices.quad_stepper import QuadStepper as QuadStepper
     from motorbus.doctor import DoctorConfig as DoctorConfig

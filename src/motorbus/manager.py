@@ -43,7 +43,7 @@ from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import project_stepper as ps
-from motorbus.protocol.base import Command
+from motorbus.protocol.base import Command, check_flag
 from motorbus.runtime import guard as guard_process
 from motorbus.runtime import realtime, shutdown
 from motorbus.runtime.process_groups import ProcessGroup, choose_group
@@ -125,7 +125,7 @@ class BusManager:
     """
 
     def __init__(self, *, safe_stop: bool = True) -> None:
-        self.safe_stop = safe_stop
+        self.safe_stop = check_flag("safe_stop", safe_stop)
         #: What the last safe stop could not do (empty if every device was reached).
         self.safe_stop_failures: list[str] = []
         #: The last safe stop, device by device (None before the first close).

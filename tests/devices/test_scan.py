@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from motorbus.devices import la as device
+from motorbus.devices import la_scan as device
 from motorbus.devices.la import ScanReport, scan
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la

@@ -663,6 +663,8 @@ class Bus:
             core.check(cmd, start_by)
         if timeout is not None or retries is not None or type(priority) is not Priority:
             check_request_options(timeout, retries, priority)
+        if type(reserved) is not bool:  # a truthy text would skip the reservations
+            check_flag("reserved", reserved)
         state = self._engine.state
         if state is not BusState.OPEN:
             raise self._engine.not_open_error()

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from motorbus.bus.occupancy import BusTiming, command_occupancy
-from motorbus.devices.la import SCAN_BUDGET_MAX_S, SCAN_HOST_ALLOWANCE_S, SCAN_PASSES_MAX
+from motorbus.devices.la_scan import SCAN_BUDGET_MAX_S, SCAN_HOST_ALLOWANCE_S, SCAN_PASSES_MAX
 from motorbus.errors import LocalProtocolError, RemoteProtocolError, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol.base import Family, check_int
