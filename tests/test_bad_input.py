@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import inspect
+import os
 import subprocess
 import sys
 from collections.abc import Awaitable, Callable
@@ -22,6 +23,7 @@ from typing import Any
 import pytest
 
 from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.options import host_margin_from_env
 from motorbus.devices.la import InspireLA, scan
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
@@ -750,3 +752,28 @@ def test_cli_usage_errors_exit_2_with_one_line(argv: list[str]) -> None:
 def test_priority_values_are_accepted_as_ints() -> None:
     # The check must not refuse the documented IntEnum values given as plain ints.
     assert [int(p) for p in Priority] == [0, 1, 2, 3]
+
+
+@pytest.mark.parametrize("text", ["abc", "-5", "nan", "20000", ""], ids=repr)
+def test_a_bad_host_margin_in_the_environment_is_refused_naming_the_variable(text: str) -> None:
+    # "abc" failed as a bare "could not convert string to float" when motorbus.bus was
+    # first imported; "nan" and "-5" failed every Bus() for an argument not given.
+    with pytest.raises(LocalProtocolError, match=r"^MOTORBUS_HOST_MARGIN_MS=.*0\.\.10000") as info:
+        host_margin_from_env(text)
+    assert info.value.field == "MOTORBUS_HOST_MARGIN_MS"
+    assert (host_margin_from_env("5"), host_margin_from_env(None)) == (0.005, 0.002)
+
+
+def test_the_command_line_names_a_bad_host_margin_in_one_line() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "motorbus", "la", "status", "1", "--port", "/dev/null"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+        env={**os.environ, "MOTORBUS_HOST_MARGIN_MS": "abc"},
+    )
+    assert done.returncode == 2, done
+    assert done.stderr.strip().splitlines() == [
+        "motorbus: MOTORBUS_HOST_MARGIN_MS='abc' is not a host margin: give milliseconds, 0..10000"
+    ]

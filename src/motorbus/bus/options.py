@@ -8,6 +8,7 @@ with ``check_request_options`` before anything is queued: a bad value raises
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -44,12 +45,37 @@ MIN_SPACING_S = 1e-3
 #: Worst-case device turnaround, request end to reply start, per family: the registry's
 #: ``FamilyInfo.turnaround_s`` (protocol/families.py says where each figure comes from).
 DEFAULT_TURNAROUND: Mapping[Family, float] = families.DEFAULT_TURNAROUND
+
+
+def host_margin_from_env(text: str | None) -> float:
+    """``MOTORBUS_HOST_MARGIN_MS`` (``text``; None: unset, 2 ms) in seconds.
+
+    Raises:
+        LocalProtocolError: not a number of milliseconds in 0..10000, naming the
+            variable (it reached every bus's deadlines, or failed without its name).
+    """
+    if text is None:
+        return 2e-3
+    try:
+        ms = float(text)
+    except ValueError:
+        ms = math.nan
+    if not 0 <= ms <= HOST_MARGIN_MAX_S * 1e3:  # NaN too
+        raise LocalProtocolError(
+            f"MOTORBUS_HOST_MARGIN_MS={text!r} is not a host margin: give milliseconds, "
+            f"0..{HOST_MARGIN_MAX_S * 1e3:g}",
+            field="MOTORBUS_HOST_MARGIN_MS",
+            value=text,
+        )
+    return ms / 1e3
+
+
 #: Host-side latency allowance added to every deadline: scheduling, the pty or the USB
 #: adapter (an FTDI in low-latency mode holds bytes up to 1 ms, docs/platform.md 5).  The
 #: demo's LA round trips over a pty to a simulator process on this 2-core machine had a
 #: p99 near 2 ms (benchmarks/bench_bus.py measures it), hence 2 ms.  On a loaded or
 #: slow host, raise it for every bus at once with ``MOTORBUS_HOST_MARGIN_MS``.
-DEFAULT_HOST_MARGIN_S = float(os.environ.get("MOTORBUS_HOST_MARGIN_MS", "2")) / 1e3
+DEFAULT_HOST_MARGIN_S = host_margin_from_env(os.environ.get("MOTORBUS_HOST_MARGIN_MS"))
 #: After a timeout, the next request to the same device waits this long, so that the
 #: device's late answer (if it comes) arrives before a new question it could be
 #: mistaken for.  Requests to other devices are not held.

@@ -220,7 +220,11 @@ def _command_of(argv: Sequence[str]) -> str | None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; return the exit code."""
     rest, flags = _split_global_flags(sys.argv[1:] if argv is None else argv)
-    parser = build_parser(only=_command_of(rest))
+    try:
+        parser = build_parser(only=_command_of(rest))
+    except LocalProtocolError as err:  # the environment, read as the commands load
+        print(f"motorbus: {err}", file=sys.stderr)
+        return EXIT_USAGE
     if "--json" in flags:
         _json_errors(parser)
     args = parser.parse_args(rest)
