@@ -33,6 +33,7 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol.base import Command, Family
+from motorbus.serve.client import connect
 from motorbus.sim.la import LAModel
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.project_stepper import ProjectStepperModel
@@ -777,3 +778,21 @@ def test_the_command_line_names_a_bad_host_margin_in_one_line() -> None:
     assert done.stderr.strip().splitlines() == [
         "motorbus: MOTORBUS_HOST_MARGIN_MS='abc' is not a host margin: give milliseconds, 0..10000"
     ]
+
+
+@pytest.mark.parametrize(
+    ("given", "field"),
+    [
+        ({"config_file": 5}, "config_file"),
+        ({"config_file": "/nonexistent/zenoh.json5"}, "config_file"),
+        ({"name": "x" * 65}, "name"),
+        ({"name": 5}, "name"),
+    ],
+    ids=["config-int", "config-missing", "name-long", "name-int"],
+)
+def test_connect_refuses_bad_arguments_when_called(given: dict[str, Any], field: str) -> None:
+    # The asyncio client took them and failed at open() with a raw TypeError or Zenoh's
+    # "No such file or directory" (the blocking one checked them already).
+    with pytest.raises(LocalProtocolError) as bad:
+        connect("tcp/127.0.0.1:7447", **given)
+    assert bad.value.field == field

@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import os
 from collections.abc import Iterable
-from pathlib import Path
 from types import TracebackType
 from typing import Any, cast
 
@@ -38,9 +37,6 @@ from motorbus.serve.tools_client import ServedScan
 from motorbus.serve.zconf import zenoh
 
 __all__ = ["FrameFeed", "ServedBus", "ServedSite", "connect"]
-
-#: Longest client name (it goes into the client's ID, the server's lease owners, logs).
-NAME_MAX = 64
 
 _STATES = {"open": BusState.OPEN, "lost": BusState.LOST, "closed": BusState.CLOSED}
 
@@ -83,9 +79,7 @@ class ServedSite(Closing, Proxy[_client.ServedSite]):
         name: str = "",
     ) -> None:
         zenoh()  # ServeUnavailable, naming the extra, before anything else
-        checked_name = _check_name(name)
-        checked_file = _check_config_file(config_file)
-        aio = _client.connect(endpoint, config_file=checked_file, name=checked_name)
+        aio = _client.connect(endpoint, config_file=config_file, name=name)  # checks them
         self._runner = runner()
         self._aio = aio
         self._views = {}
@@ -309,26 +303,3 @@ class FrameFeed:
     ) -> None:
         self._queue = None
         self._runner.finish(self._context.__aexit__(None, None, None))
-
-
-def _check_name(name: object) -> str:
-    if not isinstance(name, str) or len(name) > NAME_MAX:
-        raise LocalProtocolError(
-            f"name={name!r}: a label of at most {NAME_MAX} characters (default: none)",
-            field="name",
-            value=name,
-        )
-    return name
-
-
-def _check_config_file(config_file: object) -> str | None:
-    if config_file is None:
-        return None
-    if not isinstance(config_file, str | os.PathLike) or not Path(config_file).is_file():
-        raise LocalProtocolError(
-            f"config_file={config_file!r}: the path of an existing Zenoh configuration "
-            "file, or None",
-            field="config_file",
-            value=config_file,
-        )
-    return os.fspath(config_file)

@@ -626,7 +626,9 @@ def _reply_value(reply: Any) -> tuple[dict[str, Any] | None, Exception | None]:
         return None, MotorbusError(f"the server's answer did not decode: {err}")
 
 
-def connect(endpoint: str, *, config_file: str | None = None, name: str = "") -> ServedSite:
+def connect(
+    endpoint: str, *, config_file: str | os.PathLike[str] | None = None, name: str = ""
+) -> ServedSite:
     """The buses a ``motorbus serve`` serves at ``endpoint`` (a Zenoh endpoint such as
     ``tcp/127.0.0.1:7447``): ``async with motorbus.connect(EP) as site: bus =
     site.bus("arm")``, then ``InspireLA(bus, 3)`` as on a local bus.
@@ -636,10 +638,18 @@ def connect(endpoint: str, *, config_file: str | None = None, name: str = "") ->
         config_file: a Zenoh configuration file (TLS, user/password).
         name: a label for this client in the server's lease owners and logs.
 
+    Raises:
+        LocalProtocolError: a bad endpoint, ``config_file`` (not an existing file) or
+            ``name`` (at once, nothing sent).
+
     Raises (on ``open``/``async with``):
         ServeUnavailable: Eclipse Zenoh is not installed (``pip install 'motorbus[serve]'``).
         BusClosedError: no server answers there.
     """
-    from motorbus.serve.zconf import check_endpoint
+    from motorbus.serve.zconf import check_client_name, check_config_file, check_endpoint
 
-    return ServedSite(check_endpoint("endpoint", endpoint), config_file=config_file, name=name)
+    return ServedSite(
+        check_endpoint("endpoint", endpoint),
+        config_file=check_config_file(config_file),
+        name=check_client_name(name),
+    )

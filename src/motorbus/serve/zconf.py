@@ -4,6 +4,8 @@ and of a client."""
 from __future__ import annotations
 
 import json
+import os
+from pathlib import Path
 from typing import Any
 
 from motorbus.errors import LocalProtocolError, ServeUnavailable
@@ -61,6 +63,35 @@ def check_endpoint(field: str, value: object) -> str:
             value=value,
         )
     return value
+
+
+#: Longest client name (it goes into the client's ID, the server's lease owners, logs).
+CLIENT_NAME_MAX = 64
+
+
+def check_client_name(name: object) -> str:
+    """A client's label (``connect(name=...)``): text of at most ``CLIENT_NAME_MAX``."""
+    if not isinstance(name, str) or len(name) > CLIENT_NAME_MAX:
+        raise LocalProtocolError(
+            f"name={name!r}: a label of at most {CLIENT_NAME_MAX} characters (default: none)",
+            field="name",
+            value=name,
+        )
+    return name
+
+
+def check_config_file(config_file: object) -> str | None:
+    """The path of an existing Zenoh configuration file, or None."""
+    if config_file is None:
+        return None
+    if not isinstance(config_file, str | os.PathLike) or not Path(config_file).is_file():
+        raise LocalProtocolError(
+            f"config_file={config_file!r}: the path of an existing Zenoh configuration "
+            "file, or None",
+            field="config_file",
+            value=config_file,
+        )
+    return os.fspath(config_file)
 
 
 def _base(config_file: str | None) -> Any:
