@@ -49,7 +49,7 @@ WRONG_INT = ("1", 1.5, None, True)
 #: Wrong types for a flag: truthy text or None must never pick a command.
 WRONG_FLAG = ("yes", 1.5, None, 0)
 #: Wrong values for a duration in seconds that may be left out (None is its default).
-WRONG_SECONDS = ("1", True, float("nan"), float("inf"), -1.0)
+WRONG_SECONDS = ("1", True, float("nan"), float("inf"), -1.0, 1e300)
 STEPPER_BAUD = 115200
 
 # -- protocol command constructors ------------------------------------------------------------

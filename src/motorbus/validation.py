@@ -39,6 +39,7 @@ __all__ = [
     "PHASE_MAX_S",
     "RETRIES_MAX",
     "TURNAROUND_MAX_S",
+    "WAIT_TIMEOUT_MAX_S",
     "CheckedRows",
     "check_baud",
     "check_families",
@@ -57,6 +58,10 @@ class CheckedRows(list[dict[int, int] | None]):
     stream takes them without checking each row again (``TargetAdapter.check_rows``)."""
 
 
+#: Longest a call waits for a motion to end (a project's run, a quad move, a quad LED
+#: command's done reply), and the command line's longest duration option: one day, a
+#: guard against typos such as ``timeout=1e9``, not a device limit.
+WAIT_TIMEOUT_MAX_S = 86400.0
 #: Plausible serial line speeds, bit/s (see the module docstring).
 BAUD_MIN = 300
 BAUD_MAX = 4_000_000

@@ -5,12 +5,13 @@ from __future__ import annotations
 import math
 
 from motorbus.errors import LocalProtocolError
+from motorbus.validation import WAIT_TIMEOUT_MAX_S
 
 __all__ = ["MAX_SECONDS", "STEP_ANGLE_SCALE", "check_seconds", "step_angle_x100"]
 
-#: Longest duration any CLI option accepts, seconds (one day): a guard against typos
-#: such as ``--timeout 1e9``, not a device limit.
-MAX_SECONDS = 86400.0
+#: Longest duration any CLI option accepts, seconds: the library's (one day), a guard
+#: against typos such as ``--timeout 1e9``, not a device limit.
+MAX_SECONDS = WAIT_TIMEOUT_MAX_S
 
 
 def check_seconds(field: str, value: float | None, lo: float = 0.0) -> float | None:

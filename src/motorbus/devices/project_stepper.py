@@ -25,6 +25,7 @@ from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
+from motorbus.validation import WAIT_TIMEOUT_MAX_S
 
 __all__ = ["ProjectInvalidError", "ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 
@@ -316,7 +317,7 @@ class ProjectStepper:
 
         Args:
             number: the project, 1..4.
-            timeout: seconds to wait for ``EE DD`` (default 600).
+            timeout: seconds to wait for ``EE DD``, 0..86400 (default 600).
             keep_running: on timeout, leave the project running instead of stopping it
                 (also after the bus closes: it ends the program's hold with ``hold``).
 
@@ -325,7 +326,11 @@ class ProjectStepper:
                 the project was stopped ("stopped it (0x5E sent)") or is still running.
             ProjectStopped: ``stop_project`` was called meanwhile.
         """
-        limit = DEFAULT_RUN_TIMEOUT_S if timeout is None else check_timeout("timeout", timeout)
+        limit = (
+            DEFAULT_RUN_TIMEOUT_S
+            if timeout is None
+            else check_timeout("timeout", timeout, WAIT_TIMEOUT_MAX_S)
+        )
         check_flag("keep_running", keep_running)
         start = ps.StartProject(number)  # validates the number before anything is sent
         self._stop_requested = False

@@ -12,6 +12,7 @@ from motorbus.errors import LeaseConflictError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol import safety
 from motorbus.protocol.base import check_flag, check_timeout
+from motorbus.validation import WAIT_TIMEOUT_MAX_S
 
 __all__ = ["QuadStepper"]
 
@@ -128,7 +129,7 @@ class QuadStepper:
         Args:
             motor: 1..4.
             wait: wait for the done reply (default) or return on the ack.
-            timeout: seconds to wait for done; default ``DEFAULT_DONE_TIMEOUT_S``
+            timeout: seconds to wait for done, 0..86400; default ``DEFAULT_DONE_TIMEOUT_S``
                 (600 s: the manual gives no duration and a slow long move can take
                 minutes).
             keep_running: on a timeout, leave the motor running (the error says how
@@ -141,7 +142,11 @@ class QuadStepper:
         cmd = q.Run(motor)
         check_flag("wait", wait)
         check_flag("keep_running", keep_running)
-        limit = DEFAULT_DONE_TIMEOUT_S if timeout is None else check_timeout("timeout", timeout)
+        limit = (
+            DEFAULT_DONE_TIMEOUT_S
+            if timeout is None
+            else check_timeout("timeout", timeout, WAIT_TIMEOUT_MAX_S)
+        )
         try:
             if not wait:
                 await self.bus.request(cmd)
@@ -209,7 +214,7 @@ class QuadStepper:
         """Switch LED ``led`` (1..4, 5 = all); with ``wait``, return after its done reply."""
         cmd = q.SetLed(led, on)
         check_flag("wait", wait)
-        check_timeout("timeout", timeout)
+        check_timeout("timeout", timeout, WAIT_TIMEOUT_MAX_S)
         if not wait:
             await self.bus.request(cmd)
             return

@@ -167,7 +167,7 @@ def check_timeout(field: str, value: object, maximum: float = math.inf) -> float
             deadline used to reach the timer and break its callback).
     """
     number = as_real(value)
-    shown = "" if maximum == math.inf else f"..{maximum:g}"
+    shown = " or more" if maximum == math.inf else f"..{maximum:g}"
     if number is None:
         raise LocalProtocolError(
             f"{field} must be a number of seconds 0{shown}, got {value!r} ({type(value).__name__})",
