@@ -796,3 +796,22 @@ def test_connect_refuses_bad_arguments_when_called(given: dict[str, Any], field:
     with pytest.raises(LocalProtocolError) as bad:
         connect("tcp/127.0.0.1:7447", **given)
     assert bad.value.field == field
+
+
+@pytest.mark.parametrize("make", [InspireLA, QuadStepper, ProjectStepper], ids=lambda c: c.__name__)
+@pytest.mark.parametrize("bus", [None, "arm", 5], ids=repr)
+def test_a_device_refuses_what_is_not_a_bus_when_made(make: Any, bus: Any) -> None:
+    # They were made, and failed with an AttributeError at their first call.
+    args = (bus, 1) if make is InspireLA else (bus,)
+    with pytest.raises(LocalProtocolError, match=r"^bus must be a motorbus Bus") as info:
+        make(*args)
+    assert info.value.field == "bus"
+
+
+async def test_the_manager_names_an_unknown_bus_and_one_not_open_yet() -> None:
+    mgr = BusManager()
+    mgr.add_bus("arm", "memory://arm-bad-input", baud=921600, devices=["la:1"])
+    with pytest.raises(LocalProtocolError, match=r"no bus named 'nope'; buses: \['arm'\]"):
+        mgr.project_stepper("nope")  # a bare KeyError: 'nope' before
+    with pytest.raises(LocalProtocolError, match=r"bus 'arm' is not open: use the manager as"):
+        mgr.la("arm", 1)  # "no bus named 'arm'; buses: ['arm']" before

@@ -429,12 +429,19 @@ class BusManager:
     # -- devices ----------------------------------------------------------------------
 
     def bus(self, name: str) -> Bus:
-        """The bus called ``name``."""
+        """The bus called ``name`` (the manager open: ``async with`` or ``open()``)."""
         try:
             return self.buses[name]
-        except KeyError:
+        except (KeyError, TypeError):
+            if isinstance(name, str) and name in self.specs:
+                raise LocalProtocolError(
+                    f"bus {name!r} is not open: use the manager as `async with mgr:` (or "
+                    "await mgr.open()) before asking for its buses and devices",
+                    field="bus",
+                    value=name,
+                ) from None
             raise LocalProtocolError(
-                f"no bus named {name!r}; buses: {sorted(self.specs)}", field="bus"
+                f"no bus named {name!r}; buses: {sorted(self.specs)}", field="bus", value=name
             ) from None
 
     def la(self, bus: str, id: int) -> InspireLA:
@@ -510,11 +517,12 @@ class BusManager:
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
+        handle = self.bus(bus)  # a bus that is not there is named first
         motor = next(
             (d.motor for d in self.specs[bus].devices if d.kind == "project_stepper"),
             ps.DEFAULT_MOTOR,
         )
-        return ProjectStepper(self.bus(bus), motor=motor)
+        return ProjectStepper(handle, motor=motor)
 
     def quad_stepper(self, bus: str) -> QuadStepper:
         """The quad stepper on bus ``bus``."""

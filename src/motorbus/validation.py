@@ -39,9 +39,9 @@ __all__ = [
     "PHASE_MAX_S",
     "RETRIES_MAX",
     "TURNAROUND_MAX_S",
-    "WAIT_TIMEOUT_MAX_S",
     "CheckedRows",
     "check_baud",
+    "check_device_bus",
     "check_families",
     "check_name",
     "check_number",
@@ -58,10 +58,6 @@ class CheckedRows(list[dict[int, int] | None]):
     stream takes them without checking each row again (``TargetAdapter.check_rows``)."""
 
 
-#: Longest a call waits for a motion to end (a project's run, a quad move, a quad LED
-#: command's done reply), and the command line's longest duration option: one day, a
-#: guard against typos such as ``timeout=1e9``, not a device limit.
-WAIT_TIMEOUT_MAX_S = 86400.0
 #: Plausible serial line speeds, bit/s (see the module docstring).
 BAUD_MIN = 300
 BAUD_MAX = 4_000_000
@@ -177,6 +173,18 @@ def is_scalar(item: Any) -> bool:
     if hasattr(item, "__len__"):
         return getattr(item, "ndim", None) == 0
     return hasattr(item, "__index__") or hasattr(item, "__float__")
+
+
+def check_device_bus(value: object) -> None:
+    """A device's bus: a ``Bus``, or a served one (``motorbus.connect``): anything with a
+    ``request`` (an object without one failed at the device's first call)."""
+    if not callable(getattr(value, "request", None)):
+        raise LocalProtocolError(
+            f"bus must be a motorbus Bus (or a served bus from motorbus.connect), got "
+            f"{value!r} ({type(value).__name__})",
+            field="bus",
+            value=value,
+        )
 
 
 def target_position(value: Any, name: str) -> int:

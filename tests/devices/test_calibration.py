@@ -6,12 +6,14 @@ import asyncio
 
 import pytest
 
+from motorbus.bus.bus import Bus
 from motorbus.devices.calibration import Calibration
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, StreamEnded
 from motorbus.manager import BusManager
 from motorbus.sim.la import LAModel, PowerState
 from motorbus.sim.memory import MemorySim
+from motorbus.transport.memory import memory_pair
 from motorbus.validation import CheckedRows
 from tests.helpers import eventually
 
@@ -63,12 +65,15 @@ def test_limits_are_named_in_the_unit_asked() -> None:
 
 
 def test_the_existing_millimetre_api_follows_the_calibration() -> None:
-    a = InspireLA(None, 3, stroke_mm=30)  # type: ignore[arg-type]
+    bus = Bus(memory_pair()[0])  # not opened: conversions send nothing
+    a = InspireLA(bus, 3, stroke_mm=30)
     assert (a.from_mm(15), a.to_mm(2000), a.unit, a.name) == (1000, 30.0, "raw", "la:3")
-    b = InspireLA(None, 3, calibration=Calibration(stroke_mm=20), stroke_mm=40)  # type: ignore[arg-type]
+    b = InspireLA(bus, 3, calibration=Calibration(stroke_mm=20), stroke_mm=40)
     assert b.stroke_mm == 40.0  # stroke_mm replaces the calibration's
     with pytest.raises(LocalProtocolError, match="name='3x' is not allowed"):
-        InspireLA(None, 3, name="3x")  # type: ignore[arg-type]
+        InspireLA(bus, 3, name="3x")
+    with pytest.raises(LocalProtocolError, match=r"bus must be a motorbus Bus .* got None"):
+        InspireLA(None, 3)  # type: ignore[arg-type]  # it failed at its first call
 
 
 async def test_a_stream_of_named_devices_refuses_targets_outside_the_limits() -> None:

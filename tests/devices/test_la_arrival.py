@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import pytest
 
+from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.la import LAModel
+from motorbus.transport.memory import memory_pair
 from tests.helpers import sim_bus
 
 
@@ -68,4 +70,4 @@ async def test_millimetres_map_linearly_onto_0_to_2000() -> None:
 
 def test_a_bad_stroke_is_refused_at_construction() -> None:
     with pytest.raises(LocalProtocolError, match=r"stroke_mm=0 is out of range: allowed 1\.\.1000"):
-        InspireLA(None, 1, stroke_mm=0)  # type: ignore[arg-type]
+        InspireLA(Bus(memory_pair()[0]), 1, stroke_mm=0)

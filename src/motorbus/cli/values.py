@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 
 from motorbus.errors import LocalProtocolError
-from motorbus.validation import WAIT_TIMEOUT_MAX_S
+from motorbus.protocol.base import WAIT_TIMEOUT_MAX_S
 
 __all__ = ["MAX_SECONDS", "STEP_ANGLE_SCALE", "check_seconds", "step_angle_x100"]
 

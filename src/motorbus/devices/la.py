@@ -16,6 +16,7 @@ from motorbus.devices.la_scan import scan as scan
 from motorbus.errors import ArrivalTimeoutError, LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import la, safety
 from motorbus.protocol.base import check_choice, check_flag, check_int, check_timeout
+from motorbus.validation import check_device_bus
 
 __all__ = ["ArrivalTimeoutError", "InspireLA"]
 
@@ -58,6 +59,7 @@ class InspireLA:
         calibration: Calibration | None = None,
         name: str | None = None,
     ) -> None:
+        check_device_bus(bus)
         self.bus = bus
         self.id = check_int("id", id, la.ID_MIN, la.ID_MAX)
         cal = Calibration() if calibration is None else calibration

@@ -24,8 +24,8 @@ from motorbus.errors import (
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol import safety
-from motorbus.protocol.base import check_flag, check_timeout
-from motorbus.validation import WAIT_TIMEOUT_MAX_S
+from motorbus.protocol.base import WAIT_TIMEOUT_MAX_S, check_flag, check_timeout
+from motorbus.validation import check_device_bus
 
 __all__ = ["ProjectInvalidError", "ProjectStepper", "ProjectStopped", "ProjectVerifyError"]
 
@@ -52,6 +52,7 @@ class ProjectStepper:
     """
 
     def __init__(self, bus: Bus, *, motor: int = ps.DEFAULT_MOTOR) -> None:
+        check_device_bus(bus)
         ps.ManualStop(motor=motor)  # validates the motor byte (refuses 0x00 and opcodes)
         self.bus = bus
         self.motor = motor

@@ -11,8 +11,8 @@ from motorbus.bus.events import QuadDone
 from motorbus.errors import LeaseConflictError, MotorbusError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol import safety
-from motorbus.protocol.base import check_flag, check_timeout
-from motorbus.validation import WAIT_TIMEOUT_MAX_S
+from motorbus.protocol.base import WAIT_TIMEOUT_MAX_S, check_flag, check_timeout
+from motorbus.validation import check_device_bus
 
 __all__ = ["QuadStepper"]
 
@@ -37,6 +37,7 @@ class QuadStepper:
     """
 
     def __init__(self, bus: Bus) -> None:
+        check_device_bus(bus)
         self.bus = bus
         # A single-motor run's done reply is addressed to 0x00, not to the motor (A1-02):
         # with two awaited runs in flight it could not be attributed, so awaited runs

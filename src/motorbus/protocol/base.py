@@ -23,6 +23,7 @@ __all__ = [
     "LA_REPLY_HEADER",
     "LA_REQUEST_HEADER",
     "PROJECT_FINISHED_BYTES",
+    "WAIT_TIMEOUT_MAX_S",
     "Command",
     "Direction",
     "Family",
@@ -157,6 +158,12 @@ def as_real(value: object) -> float | None:
         number = _as_int(value)  # an integer-like object that is not registered as Real
         return None if number is None else float(number)
     return float(value)
+
+
+#: Longest a call waits for a motion to end (a project's run, a quad move, a quad LED
+#: command's done reply), and the command line's longest duration option: one day, a
+#: guard against typos such as ``timeout=1e9``, not a device limit.
+WAIT_TIMEOUT_MAX_S = 86400.0
 
 
 def check_timeout(field: str, value: object, maximum: float = math.inf) -> float:
