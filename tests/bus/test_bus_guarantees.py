@@ -130,7 +130,8 @@ async def test_polling_stream_keeps_its_ticks_while_three_request_loops_run(
         await asyncio.gather(*loops)
         await streamer.close()
         stats = stream.stats
-        assert stats.ticks + stats.skipped == ticks
+        # (A skip past the end still sends the last row, a tick later.)
+        assert stats.ticks + stats.skipped in (ticks, ticks + 1)
         assert stats.ticks >= 0.99 * ticks, stats.summary()
         assert counts[0] > 100  # the user loops were served too
         # Polls that found no free slot are counted, not silent.

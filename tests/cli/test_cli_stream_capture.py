@@ -132,7 +132,8 @@ def test_stream_ramps_from_the_reported_positions(la_sim: SimProcess, tmp_path: 
     assert expected[0][0] == 100 + (1000 - 100) // 10
     rows = [(1000 + k, 800 + 2 * k, 1200 - k) for k in range(5)]
     sent = [tuple(p for _, p in f3_entries(h)) for h in broadcasts(la_sim)[before:]]
-    assert len(sent) == summary["ticks"] == 15 - summary["skipped"]
+    # Each tick sent or skipped; a skip past the end still sends the last row, a tick later.
+    assert len(sent) == summary["ticks"] in (15 - summary["skipped"], 16 - summary["skipped"])
     if summary["gaps"] == 0:  # a host stalled 3 ticks or more ramps in between (a gap)
         assert is_subsequence(sent, expected + rows), sent
 

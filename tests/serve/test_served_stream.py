@@ -103,10 +103,11 @@ async def test_targets_reach_the_simulator_in_order_on_the_servers_ticks(
     # it: that tick is ``unwritten``, as a skipped one is.
     assert_in_order(published, ROWS, stream.stats.skipped + len(stream.unwritten))
     if len(published) < len(received):
-        # Rows of no target: the gap policy's ramp, after a gap: a target that came later
-        # than its tick (a client starved on a loaded machine, seen with one target per
-        # tick), or a server that fell behind its ticks (seen with rows ahead).
-        assert stream.stats.gaps >= 1, received
+        # Rows of no target: the ramp back to the targets after ticks the server held (a
+        # target that came later than its tick: a client starved on a loaded machine) or
+        # a gap (a server that fell behind its ticks).  A gap event needs GAP_TICKS held
+        # in a row; the ramp follows any held tick (seen: 8 held, no gap, a CPU hog).
+        assert stream.stats.gaps >= 1 or stream.stats.held >= 1, received
     # One frame per tick the server served (its own count), and the safe action last.
     assert len(received) == stream.stats.ticks
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}

@@ -30,8 +30,9 @@ async def test_a_silent_actuators_polls_count_as_poll_timeouts_and_the_stream_go
         await asyncio.wait_for(stream.wait(), 10)  # ends normally: nothing raised
         stats = stream.stats
         await streamer.close()
-    # Every row was sent, or skipped (a tick a loaded machine started over a period late).
-    assert stats.ticks + stats.skipped == TICKS and stats.ticks > 0
+    # Every row was sent, or skipped (a tick a loaded machine started over a period late);
+    # a skip past the end still sends the last row, a tick later.
+    assert stats.ticks + stats.skipped in (TICKS, TICKS + 1) and stats.ticks > 0
     assert stats.poll_timeouts >= 1
     assert stats.feedback_timeouts == 0  # no feedback was asked for
     assert set(stream.statuses) == {1, 2}  # the answering ones were read
