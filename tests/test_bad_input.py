@@ -444,12 +444,20 @@ BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
     "reconnect": ("yes", 1, 0, None),
     "wire_floor": ("yes", 1, 0, None),
     "safe_action": ("stop", "", "PAUSE", 1, None, True),
+    "timer": ("x", 5, []),  # made, and failed only when the bus opened
 }
 
 
 def test_every_bus_option_is_in_the_table() -> None:
-    options = set(inspect.signature(Bus).parameters) - {"transport", "timer"}
+    options = set(inspect.signature(Bus).parameters) - {"transport"}
     assert options == set(BUS_OPTIONS)
+
+
+@pytest.mark.parametrize("transport", [None, "memory://x", 5], ids=repr)
+def test_bus_refuses_what_is_not_a_transport(transport: Any) -> None:
+    # Bus(None) failed with an AttributeError on the transport's URL.
+    with pytest.raises(LocalProtocolError, match=r"^transport must be a motorbus Transport"):
+        Bus(transport)
 
 
 @pytest.mark.parametrize(
@@ -815,3 +823,9 @@ async def test_the_manager_names_an_unknown_bus_and_one_not_open_yet() -> None:
         mgr.project_stepper("nope")  # a bare KeyError: 'nope' before
     with pytest.raises(LocalProtocolError, match=r"bus 'arm' is not open: use the manager as"):
         mgr.la("arm", 1)  # "no bus named 'arm'; buses: ['arm']" before
+
+
+def test_manager_refuses_a_transport_that_is_not_one_when_the_bus_is_added() -> None:
+    # It was taken, and the manager's open failed with an AttributeError on 'baudrate'.
+    with pytest.raises(LocalProtocolError, match=r"^transport must be a motorbus Transport"):
+        BusManager().add_bus("arm", "memory://arm", baud=921600, transport="x")  # type: ignore[arg-type]

@@ -49,7 +49,7 @@ from motorbus.runtime import realtime, shutdown
 from motorbus.runtime.process_groups import ProcessGroup, choose_group
 from motorbus.runtime.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Stream, Streamer
-from motorbus.transport.base import Transport
+from motorbus.transport.base import Transport, check_transport
 from motorbus.transport.serial import open_transport
 
 __all__ = [
@@ -195,6 +195,8 @@ class BusManager:
         """Add a bus; ``transport`` overrides opening ``spec.url`` (e.g. an in-memory link)."""
         if not isinstance(spec, BusSpec):
             raise LocalProtocolError(f"spec must be a BusSpec, got {spec!r}", field="spec")
+        if transport is not None:
+            check_transport(transport)  # else it failed only when the manager opened
         try:
             check_distinct(spec, list(self.specs.values()))
         except LocalProtocolError as err:

@@ -68,13 +68,13 @@ from motorbus.bus.options import DEFAULT_TURNAROUND as DEFAULT_TURNAROUND
 from motorbus.bus.options import MIN_SPACING_S as MIN_SPACING_S
 from motorbus.bus.options import REQUEST_TIMEOUT_MAX_S as REQUEST_TIMEOUT_MAX_S
 from motorbus.bus.options import BusConfig as BusConfig
-from motorbus.bus.options import check_bus_options, check_request_options
+from motorbus.bus.options import check_bus_options, check_request_options, check_timer
 from motorbus.bus.schedule import Priority, ReservationSource
 from motorbus.bus.timer import Timer, default_timer
 from motorbus.errors import BusClosedError, LocalProtocolError, WrongLoopError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
-from motorbus.transport.base import Transport
+from motorbus.transport.base import Transport, check_transport
 from motorbus.validation import check_families, check_name
 
 __all__ = ["DEFAULT_TURNAROUND", "Bus", "BusObserver", "BusState", "PreparedSubmit", "Priority"]
@@ -176,10 +176,10 @@ class Bus:
             wire_floor=wire_floor,
         )
         self.safe_action = safety.check_safe_action(safe_action)
-        self.transport = transport
+        self.transport = check_transport(transport)
         self.name: str = name or transport.url
         self.families = frozenset(families)
-        self._timer = timer
+        self._timer = check_timer(timer)
         self._lease_keeper = LeaseKeeper(
             self.name, self.families, self.safe_action, self.request, lambda: self.state.value
         )

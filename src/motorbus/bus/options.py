@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 
 from motorbus.bus.schedule import Priority
+from motorbus.bus.timer import Timer
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import families
 from motorbus.protocol.base import Family, check_flag, check_int, check_timeout
@@ -37,6 +38,7 @@ __all__ = [
     "BusConfig",
     "check_bus_options",
     "check_request_options",
+    "check_timer",
 ]
 
 #: Minimum start-to-start spacing of two frames: "keep the command interval >= 1 ms"
@@ -160,3 +162,16 @@ def check_request_options(timeout: object, retries: object, priority: object) ->
             field="priority",
             value=priority,
         )
+
+
+def check_timer(value: object) -> Timer | None:
+    """``value`` if it is a timer (a :class:`Timer`, or anything with its ``now`` and
+    ``call_at``) or None; ``LocalProtocolError`` naming it otherwise (a bus given one
+    failed only when it opened)."""
+    if value is not None and not all(
+        callable(getattr(value, method, None)) for method in ("now", "call_at")
+    ):
+        raise LocalProtocolError(
+            f"timer must be a motorbus Timer or None, got {value!r}", field="timer", value=value
+        )
+    return value  # type: ignore[return-value]  # a Timer by its methods

@@ -214,3 +214,16 @@ class CountingTransport(Transport):
             data, removed = self._echo.feed(data)
             self.stats.echo_bytes_removed += removed
         return data
+
+
+def check_transport(value: object) -> Transport:
+    """``value`` if it is a :class:`Transport`; ``LocalProtocolError`` naming it otherwise
+    (``Bus(None)`` failed with an ``AttributeError`` on the transport's URL)."""
+    if not isinstance(value, Transport):
+        raise LocalProtocolError(
+            f"transport must be a motorbus Transport (motorbus.open_transport(url, "
+            f"baudrate=...)), got {value!r}",
+            field="transport",
+            value=value,
+        )
+    return value
