@@ -24,6 +24,7 @@ import pytest
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.options import host_margin_from_env
+from motorbus.devices.calibration import NamedActuator
 from motorbus.devices.la import InspireLA, scan
 from motorbus.devices.project_stepper import ProjectStepper
 from motorbus.devices.quad_stepper import QuadStepper
@@ -829,3 +830,9 @@ def test_manager_refuses_a_transport_that_is_not_one_when_the_bus_is_added() -> 
     # It was taken, and the manager's open failed with an AttributeError on 'baudrate'.
     with pytest.raises(LocalProtocolError, match=r"^transport must be a motorbus Transport"):
         BusManager().add_bus("arm", "memory://arm", baud=921600, transport="x")  # type: ignore[arg-type]
+
+
+def test_a_named_actuator_refuses_a_calibration_that_is_not_one_when_made() -> None:
+    # It was made, and refused only when the manager handed out the device.
+    with pytest.raises(LocalProtocolError, match=r"^calibration='x': not a Calibration"):
+        NamedActuator("grip", 1, calibration="x")  # type: ignore[arg-type]

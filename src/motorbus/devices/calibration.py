@@ -291,6 +291,12 @@ class NamedActuator:
     def __post_init__(self) -> None:
         check_device_name("name", self.name)
         check_int("id", self.id, la.ID_MIN, la.ID_MAX)
+        if not isinstance(self.calibration, Calibration):  # else refused only at mgr.device
+            raise LocalProtocolError(
+                f"calibration={self.calibration!r}: not a Calibration",
+                field="calibration",
+                value=self.calibration,
+            )
 
 
 def _labelled(where: str, err: LocalProtocolError) -> LocalProtocolError:
