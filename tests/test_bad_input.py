@@ -24,6 +24,7 @@ import pytest
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.options import host_margin_from_env
+from motorbus.busfile import BusSpec, DeviceSpec
 from motorbus.devices.calibration import NamedActuator
 from motorbus.devices.la import InspireLA, scan
 from motorbus.devices.project_stepper import ProjectStepper
@@ -836,3 +837,24 @@ def test_a_named_actuator_refuses_a_calibration_that_is_not_one_when_made() -> N
     # It was made, and refused only when the manager handed out the device.
     with pytest.raises(LocalProtocolError, match=r"^calibration='x': not a Calibration"):
         NamedActuator("grip", 1, calibration="x")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda: DeviceSpec("la", ids=5), r"^ids must be a list of IDs 1\.\.254, got 5"),
+        (
+            lambda: BusSpec(name="a", url="memory://a", baud=921600, devices=None),
+            r"^bus 'a': devices must be a list of DeviceSpec, got None",
+        ),
+        (
+            lambda: BusSpec(name="a", url="memory://a", baud=921600, la=5),
+            r"^bus 'a': la must be a list of NamedActuator, got 5",
+        ),
+    ],
+    ids=["device-ids-int", "bus-devices-none", "bus-la-int"],
+)
+def test_bus_specs_refuse_lists_that_are_not_lists(make: Any, message: str) -> None:
+    # Each raised a bare "TypeError: ... is not iterable".
+    with pytest.raises(LocalProtocolError, match=message):
+        make()

@@ -90,10 +90,10 @@ from __future__ import annotations
 import os
 import re
 import tomllib
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S
 from motorbus.devices.calibration import (
@@ -118,6 +118,9 @@ from motorbus.streams import SafeAction
 from motorbus.transport.serial import BACKENDS
 from motorbus.transport.usb import is_usb_url, parse_usb_url
 from motorbus.validation import RETRIES_MAX, check_baud, check_name, check_number
+
+#: The kind of values a bus spec lists (``_listed``).
+T = TypeVar("T")
 
 __all__ = [
     "BUS_KEYS",
@@ -208,6 +211,12 @@ class DeviceSpec:
                 field="devices",
                 value=self.kind,
             )
+        if isinstance(self.ids, str | bytes) or not isinstance(self.ids, Iterable):
+            raise LocalProtocolError(
+                f"ids must be a list of IDs {la.ID_MIN}..{la.ID_MAX}, got {self.ids!r}",
+                field="devices",
+                value=self.ids,
+            )
         ids = tuple(check_int("id", i, la.ID_MIN, la.ID_MAX) for i in self.ids)
         if self.kind == "la" and not ids:
             raise LocalProtocolError("an la device needs at least one ID", field="devices")
@@ -268,17 +277,24 @@ def parse_devices(items: Sequence[str]) -> list[DeviceSpec]:
     return out
 
 
-def _check_devices(devices: Sequence[DeviceSpec]) -> list[DeviceSpec]:
-    """Refuse an ID listed twice, or a stepper controller listed twice, on one bus."""
-    if isinstance(devices, str | bytes) or not isinstance(devices, Sequence):
+def _listed(values: object, key: str, kind: type[T]) -> list[T]:
+    """``values`` (a bus's ``devices`` or ``la``) as a list of ``kind``; refused, naming
+    ``key``, if it is no list of them (``None`` raised a bare ``TypeError``)."""
+    if isinstance(values, str | bytes) or not isinstance(values, Sequence):
         raise LocalProtocolError(
-            f"devices must be a list of DeviceSpec, got {devices!r}", field="devices"
+            f"{key} must be a list of {kind.__name__}, got {values!r}", field=key, value=values
         )
-    bad = [d for d in devices if not isinstance(d, DeviceSpec)]
+    bad = [v for v in values if not isinstance(v, kind)]
     if bad:
         raise LocalProtocolError(
-            f"devices must be DeviceSpec values, got {bad[0]!r}", field="devices", value=bad[0]
+            f"{key} must be {kind.__name__} values, got {bad[0]!r}", field=key, value=bad[0]
         )
+    return list(values)
+
+
+def _check_devices(devices: Sequence[DeviceSpec]) -> list[DeviceSpec]:
+    """Refuse an ID listed twice, or a stepper controller listed twice, on one bus."""
+    devices = _listed(devices, "devices", DeviceSpec)
     ids = [i for d in devices for i in d.ids]
     twice = sorted({i for i in ids if ids.count(i) > 1})
     if twice:
@@ -428,8 +444,10 @@ class BusSpec:
         values = {key: getattr(self, key) for key in BUS_KEYS if key not in ("devices", "la")}
         try:
             checked = _check_fields(values)
-            self.la = tuple(self.la)
-            self.devices = _check_devices(_check_named(self.la, list(self.devices)))
+            self.la = tuple(_listed(self.la, "la", NamedActuator))
+            self.devices = _check_devices(
+                _check_named(self.la, _listed(self.devices, "devices", DeviceSpec))
+            )
             _check_baud_for(checked["baud"], self.devices)
         except LocalProtocolError as err:
             raise labelled(f"bus {self.name!r}", err) from None
