@@ -27,6 +27,8 @@ from typing import Any
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
+from motorbus.protocol.base import BAUD_MAX as BAUD_MAX
+from motorbus.protocol.base import BAUD_MIN as BAUD_MIN
 from motorbus.protocol.base import Family, as_real, check_int
 
 __all__ = [
@@ -58,9 +60,6 @@ class CheckedRows(list[dict[int, int] | None]):
     stream takes them without checking each row again (``TargetAdapter.check_rows``)."""
 
 
-#: Plausible serial line speeds, bit/s (see the module docstring).
-BAUD_MIN = 300
-BAUD_MAX = 4_000_000
 #: Upper bounds of the bus timing options, seconds.
 MIN_SPACING_MAX_S = 1.0
 HOST_MARGIN_MAX_S = 10.0

@@ -62,6 +62,12 @@ def one_line(text: str) -> str:
         ),
         (["la", "set-id", "1", "300"], "motorbus la: new id=300 is out of range: allowed 1..254"),
         (["scan", "--ids", "1-255"], "motorbus scan: --ids id=255 is out of range: allowed 1..254"),
+        # The range the transport allows (it said 1..10000000, and then 5 was refused).
+        (
+            ["la", "status", "1", "--baud", "0"],
+            "motorbus la: --baud=0 is out of range: allowed 300..4000000",
+        ),
+        (["scan", "--baud", "5"], "motorbus scan: --baud=5 is out of range: allowed 300..4000000"),
         (
             ["monitor", "--ids", "1", "--count", "0"],
             "motorbus monitor: --count=0 is out of range: allowed 1..1000000000",

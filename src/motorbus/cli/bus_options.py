@@ -43,7 +43,7 @@ from motorbus.cli.main import UsageError
 from motorbus.cli.output import add_json_option
 from motorbus.cli.realtime_option import add_realtime_option
 from motorbus.errors import PortInUseError
-from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.base import BAUD_MAX, BAUD_MIN, Family, check_int
 from motorbus.protocol.families import LA_DEFAULT_BAUD, STEPPER_DEFAULT_BAUD
 from motorbus.runtime import realtime
 
@@ -311,7 +311,7 @@ def open_port(args: argparse.Namespace, *, url: str | None = None) -> Transport:
         UsageError: no port, a bad baud rate, or the backend's package is missing.
     """
     port = url if url is not None else resolve_port(args)
-    baud = check_int("--baud", args.baud, 1, 10_000_000)
+    baud = check_int("--baud", args.baud, BAUD_MIN, BAUD_MAX)
     spec, _ = _spec(args)
     options: dict[str, Any] = spec.transport_options() if spec is not None else {}
     try:

@@ -50,7 +50,7 @@ from motorbus.cli.output import fail
 from motorbus.cli.output import print_json as _print_json
 from motorbus.cli.values import check_seconds
 from motorbus.protocol import la
-from motorbus.protocol.base import Family, check_int
+from motorbus.protocol.base import BAUD_MAX, BAUD_MIN, Family, check_int
 
 __all__ = [
     "ALL_BAUDS",
@@ -255,7 +255,7 @@ def run(args: argparse.Namespace) -> int:
     check_seconds("--timeout", args.timeout, 1e-4)
     check_int("--passes", args.passes, 1, SCAN_PASSES_MAX)
     if args.baud is not None:
-        check_int("--baud", args.baud, 1, 10_000_000)
+        check_int("--baud", args.baud, BAUD_MIN, BAUD_MAX)
     if getattr(args, "connect", None):
         from motorbus.cli.served import run_scan
 

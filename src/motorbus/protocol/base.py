@@ -18,6 +18,8 @@ from typing import ClassVar, Generic, NamedTuple, TypeVar
 from motorbus.errors import LocalProtocolError, RemoteProtocolError
 
 __all__ = [
+    "BAUD_MAX",
+    "BAUD_MIN",
     "BITS_PER_BYTE",
     "FF_AA",
     "LA_REPLY_HEADER",
@@ -160,6 +162,10 @@ def as_real(value: object) -> float | None:
     return float(value)
 
 
+#: Plausible serial line speeds, bit/s (motorbus.validation says why): the bus's, the
+#: transports' and the command line's ``--baud``.
+BAUD_MIN = 300
+BAUD_MAX = 4_000_000
 #: Longest a call waits for a motion to end (a project's run, a quad move, a quad LED
 #: command's done reply), and the command line's longest duration option: one day, a
 #: guard against typos such as ``timeout=1e9``, not a device limit.
