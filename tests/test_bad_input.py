@@ -22,7 +22,7 @@ from typing import Any
 
 import pytest
 
-from motorbus.bus.bus import Bus, Priority
+from motorbus.bus.bus import Bus, BusState, Priority
 from motorbus.bus.options import host_margin_from_env
 from motorbus.busfile import BusSpec, DeviceSpec
 from motorbus.devices.calibration import NamedActuator
@@ -858,3 +858,16 @@ def test_bus_specs_refuse_lists_that_are_not_lists(make: Any, message: str) -> N
     # Each raised a bare "TypeError: ... is not iterable".
     with pytest.raises(LocalProtocolError, match=message):
         make()
+
+
+async def test_wait_state_refuses_a_state_or_timeout_that_is_none() -> None:
+    # "closed" raised an AttributeError (no .value); a negative or NaN timeout reached
+    # asyncio.  The value of a state is taken as the state.
+    async with sim_bus([LAModel(1)]) as (bus, _sim):
+        with pytest.raises(LocalProtocolError, match=r"^state='shut' is not a bus state"):
+            await bus.wait_state("shut")  # type: ignore[arg-type]
+        with pytest.raises(LocalProtocolError, match=r"^timeout=-1 is out of range"):
+            await bus.wait_state(BusState.LOST, timeout=-1)
+        with pytest.raises(LocalProtocolError, match=r"^timeout=nan is out of range"):
+            await bus.wait_state(BusState.LOST, timeout=NAN)
+        await bus.wait_state("open")  # type: ignore[arg-type]  # already: returns at once

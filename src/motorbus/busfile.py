@@ -93,7 +93,7 @@ import tomllib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import Any
 
 from motorbus.bus.bus import DEFAULT_HOST_MARGIN_S
 from motorbus.devices.calibration import (
@@ -117,10 +117,8 @@ from motorbus.runtime.process_groups import (
 from motorbus.streams import SafeAction
 from motorbus.transport.serial import BACKENDS
 from motorbus.transport.usb import is_usb_url, parse_usb_url
+from motorbus.transport.usb import port_identity as port_identity
 from motorbus.validation import RETRIES_MAX, check_baud, check_name, check_number
-
-#: The kind of values a bus spec lists (``_listed``).
-T = TypeVar("T")
 
 __all__ = [
     "BUS_KEYS",
@@ -212,11 +210,8 @@ class DeviceSpec:
                 value=self.kind,
             )
         if isinstance(self.ids, str | bytes) or not isinstance(self.ids, Iterable):
-            raise LocalProtocolError(
-                f"ids must be a list of IDs {la.ID_MIN}..{la.ID_MAX}, got {self.ids!r}",
-                field="devices",
-                value=self.ids,
-            )
+            msg = f"ids must be a list of IDs {la.ID_MIN}..{la.ID_MAX}, got {self.ids!r}"
+            raise LocalProtocolError(msg, field="devices", value=self.ids)
         ids = tuple(check_int("id", i, la.ID_MIN, la.ID_MAX) for i in self.ids)
         if self.kind == "la" and not ids:
             raise LocalProtocolError("an la device needs at least one ID", field="devices")
@@ -277,7 +272,7 @@ def parse_devices(items: Sequence[str]) -> list[DeviceSpec]:
     return out
 
 
-def _listed(values: object, key: str, kind: type[T]) -> list[T]:
+def _listed(values: object, key: str, kind: type) -> list[Any]:
     """``values`` (a bus's ``devices`` or ``la``) as a list of ``kind``; refused, naming
     ``key``, if it is no list of them (``None`` raised a bare ``TypeError``)."""
     if isinstance(values, str | bytes) or not isinstance(values, Sequence):
@@ -499,17 +494,6 @@ class BusSpec:
             "low_latency": self.low_latency,
             "share": self.share,
         }
-
-
-def port_identity(url: str) -> str:
-    """What makes two URLs one port: a device path resolved through its symlinks
-    (``/dev/serial/by-id/...`` is its ``/dev/ttyUSBn``), a ``usb:`` URL in its canonical
-    spelling (lower-case hex), any other URL as written."""
-    if is_usb_url(url):
-        return str(parse_usb_url(url))
-    if "://" in url:
-        return url
-    return os.path.realpath(url)
 
 
 def check_distinct(spec: BusSpec, others: Sequence[BusSpec]) -> None:

@@ -635,6 +635,7 @@ class Bus:
 
     async def wait_state(self, state: BusState, timeout: float | None = None) -> None:
         """Wait until the bus reaches ``state`` (e.g. ``OPEN`` after a reconnect)."""
+        state = BusState.checked(state)
         if self.state is state:
             return
         async with self.events.subscribe(BusStateChanged, lambda e: e.state == state.value) as sub:

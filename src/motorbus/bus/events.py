@@ -19,6 +19,7 @@ from types import TracebackType
 from typing import Any, Generic, TypeVar
 
 from motorbus.errors import ReplyTimeoutError
+from motorbus.protocol.base import check_timeout
 
 __all__ = [
     "BusEvent",
@@ -122,7 +123,10 @@ class Subscription(Generic[E]):
             self._waiter.set_result(None)
 
     async def next(self, timeout: float | None = None) -> E:
-        """The next event; raises ``ReplyTimeoutError`` if none comes within ``timeout`` s."""
+        """The next event; raises ``ReplyTimeoutError`` if none comes within ``timeout`` s
+        (``LocalProtocolError`` for a timeout that is no number of seconds >= 0)."""
+        if timeout is not None:
+            check_timeout("timeout", timeout)
         while not self._queue:
             if self.closed:
                 raise StopAsyncIteration

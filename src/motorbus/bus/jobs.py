@@ -16,6 +16,7 @@ from typing import Any, Protocol
 
 from motorbus.bus.schedule import Job
 from motorbus.bus.timer import TimerHandle
+from motorbus.errors import LocalProtocolError
 from motorbus.protocol.base import Command
 
 __all__ = ["BusJob", "BusObserver", "BusState", "Refresh"]
@@ -37,6 +38,20 @@ class BusState(enum.Enum):
     CLOSED = "closed"
     OPEN = "open"
     LOST = "lost"  # the port went away; reconnecting if enabled
+
+    @classmethod
+    def checked(cls, value: object) -> BusState:
+        """``value`` (a ``BusState``, or its value: ``"open"``) as a ``BusState``;
+        ``LocalProtocolError`` naming the allowed ones otherwise."""
+        try:
+            return cls(value)
+        except ValueError:
+            raise LocalProtocolError(
+                f"state={value!r} is not a bus state: choose one of "
+                f"{', '.join(s.value for s in cls)} (motorbus.BusState)",
+                field="state",
+                value=value,
+            ) from None
 
 
 #: Called at the moment a queued frame is written: returns the command to send now

@@ -46,6 +46,7 @@ __all__ = [
     "is_usb_url",
     "list_serial_ports",
     "parse_usb_url",
+    "port_identity",
     "port_info",
     "read_latency_timer_ms",
     "resolve_port",
@@ -378,3 +379,14 @@ def resolve_port(url: str, *, sysfs: str | None = None, dev: str | None = None) 
     if "://" not in url and os.path.islink(url):
         return os.path.realpath(url)
     return url  # a device node (or COM3 on Windows) as given: realpath would mangle COM3
+
+
+def port_identity(url: str) -> str:
+    """What makes two URLs one port: a device path resolved through its symlinks
+    (``/dev/serial/by-id/...`` is its ``/dev/ttyUSBn``), a ``usb:`` URL in its canonical
+    spelling (lower-case hex), any other URL as written."""
+    if is_usb_url(url):
+        return str(parse_usb_url(url))
+    if "://" in url:
+        return url
+    return os.path.realpath(url)
