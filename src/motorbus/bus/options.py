@@ -13,9 +13,9 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 from motorbus.bus.schedule import Priority
-from motorbus.bus.timer import Timer
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import families
 from motorbus.protocol.base import Family, check_flag, check_int, check_timeout
@@ -27,6 +27,9 @@ from motorbus.validation import (
     check_number,
     check_turnaround,
 )
+
+if TYPE_CHECKING:  # the type only: this module stays free of asyncio
+    from motorbus.bus.timer import Timer
 
 __all__ = [
     "DEFAULT_HOST_MARGIN_S",
