@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -301,10 +302,27 @@ def test_written_toml_is_what_upload_documents() -> None:
             "start_input='in3' is not allowed: choose one of none, in1, in2, in5",
         ),
         ("number = [", "not valid TOML"),
+        # Each named the protocol's field (run_distance, repeat_count and its 0..255) or
+        # left out the range (NaN).
+        (
+            "number=1\nsubdivision=8\nstep_angle=1.8\ndistance_per_rev=1\n[[step]]\n"
+            "distance=1.5\nspeed_rpm=1\n",
+            "step 1: distance must be an integer in 0..16777215, got 1.5 (float)",
+        ),
+        (
+            "number=1\nsubdivision=8\nstep_angle=1.8\ndistance_per_rev=1\nrepeat='always'\n"
+            "[[step]]\ndistance=1\nspeed_rpm=1\n",
+            "repeat must be an integer in 0..254, or \"forever\", got 'always' (str)",
+        ),
+        (
+            "number=1\nsubdivision=8\nstep_angle=nan\ndistance_per_rev=1\n[[step]]\n"
+            "distance=1\nspeed_rpm=1\n",
+            "step_angle=nan is out of range: allowed 0.01..2.55 degrees",
+        ),
     ],
 )
 def test_bad_project_files_are_refused(text: str, message: str) -> None:
-    with pytest.raises(LocalProtocolError, match=message.replace("(", r"\(")):
+    with pytest.raises(LocalProtocolError, match=re.escape(message)):
         project_from_toml(text)
 
 

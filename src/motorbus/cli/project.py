@@ -192,10 +192,12 @@ def _as_written(err: LocalProtocolError) -> LocalProtocolError:
     """``err`` with the protocol's field name replaced by the key the file uses."""
     message = str(err)
     for field, key in _FILE_KEYS.items():
-        if err.field == field or message.startswith(f"{field}="):
-            message = message.replace(f"{field}=", f"{key}=", 1)
+        if err.field == field or field in message:
+            # "run_distance=1.5 ..." and "run_distance must be an integer ...", after a
+            # "step 1: " prefix or not: the file's key, and the file's range for repeat.
+            message = message.replace(field, key, 1)
             if field == "repeat_count":
-                message = message.replace("allowed 0..255", 'allowed 0..254, or "forever"')
+                message = message.replace("0..255", '0..254, or "forever"')
             return LocalProtocolError(message, field=key, value=err.value)
     return err
 

@@ -51,7 +51,14 @@ def step_angle_x100(field: str, degrees: object, maximum: int) -> int:
             f"{field}={degrees!r} must be a number of degrees, e.g. 1.8", field=field
         )
     scaled = degrees * STEP_ANGLE_SCALE
-    if not math.isfinite(scaled) or abs(scaled - round(scaled)) > 1e-6:
+    if not math.isfinite(scaled):
+        raise LocalProtocolError(
+            f"{field}={degrees} is out of range: allowed 0.01..{maximum / STEP_ANGLE_SCALE:g} "
+            "degrees",
+            field=field,
+            value=degrees,
+        )
+    if abs(scaled - round(scaled)) > 1e-6:
         raise LocalProtocolError(
             f"{field}={degrees} is not a multiple of 0.01 degree (the stored resolution)",
             field=field,
