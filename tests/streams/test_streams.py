@@ -225,7 +225,12 @@ async def test_pause_resume_and_new_targets_on_the_fly(pacing: Pacing) -> None:
         stream.set_targets([900, 901, 902])
         stream.resume()
         await asyncio.wait_for(stream.wait(), 5)
-        assert [t for _, _, t in model.received][-3:] == [900, 901, 902]
+        targets = [t for _, _, t in model.received]
+        new = targets[next(n for n, t in enumerate(targets) if t != 700) :]
+        # The new rows in order, none of the old after them; a loaded machine may skip a
+        # row's tick (seen: [900, 902]), but the last row always goes out.
+        assert new == sorted(set(new)) and set(new) <= {900, 901, 902}, targets
+        assert new[-1] == 902 and len(new) + stream.stats.skipped >= 3, targets
         await streamer.close()
 
 
