@@ -871,3 +871,15 @@ async def test_wait_state_refuses_a_state_or_timeout_that_is_none() -> None:
         with pytest.raises(LocalProtocolError, match=r"^timeout=nan is out of range"):
             await bus.wait_state(BusState.LOST, timeout=NAN)
         await bus.wait_state("open")  # type: ignore[arg-type]  # already: returns at once
+
+
+@pytest.mark.parametrize(
+    "given", [5, la.Control(1, la.ControlAction.PAUSE)], ids=["int", "one-command-unlisted"]
+)
+async def test_a_lease_refuses_safe_commands_that_are_no_list(given: Any) -> None:
+    # A bare TypeError ("not iterable") before; nothing is taken either way.
+    async with sim_bus([LAModel(1)]) as (bus, sim):
+        with pytest.raises(LocalProtocolError, match=r"^safe_commands must be a list"):
+            bus.lease("la:1", owner="rig", safe_commands=given)
+        assert bus.lease_keeper.table.owner_of("la:1") is None
+        assert sim.bus.stats.requests == 0

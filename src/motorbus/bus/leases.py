@@ -593,6 +593,11 @@ def own_safe_commands(
     """
     held = frozenset(keys)
     own: dict[DeviceKey, tuple[Command[object], ...]] = {}
+    if isinstance(commands, Command) or not isinstance(commands, Iterable):
+        raise LocalProtocolError(
+            f"safe_commands must be a list of motorbus Commands, got {commands!r}",
+            field="safe_commands",
+        )
     for cmd in commands:
         if not isinstance(cmd, Command):
             raise LocalProtocolError(
