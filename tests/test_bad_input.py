@@ -621,6 +621,8 @@ async def test_a_sequence_with_a_bad_row_is_refused_at_follow(item: Any) -> None
 class _LabelTable:
     """A table indexed by column label, as a pandas DataFrame is: a length, no rows."""
 
+    dtypes = ("float64",)  # a DataFrame's: data held, so checked at follow
+
     def __len__(self) -> int:
         return 3
 
@@ -883,3 +885,24 @@ async def test_a_lease_refuses_safe_commands_that_are_no_list(given: Any) -> Non
             bus.lease("la:1", owner="rig", safe_commands=given)
         assert bus.lease_keeper.table.owner_of("la:1") is None
         assert sim.bus.stats.requests == 0
+
+
+class _Computed:
+    """Rows computed on access, a billion of them: checked whole, follow would hang."""
+
+    def __len__(self) -> int:
+        return 10**9
+
+    def __getitem__(self, k: int) -> list[int]:
+        return [1000 + k % 2]
+
+
+async def test_a_sequence_that_computes_its_rows_is_checked_at_each_tick_not_at_follow() -> None:
+    model = LAModel(1)
+    async with sim_bus([model]) as (bus, _sim):
+        streamer = Streamer(bus)
+        stream = streamer.follow(InspireLA(bus, 1), _Computed(), period=0.01)  # at once
+        await eventually(lambda: len(model.received) >= 3, "three computed rows sent")
+        await stream.stop()
+        assert {t for _, _, t in model.received} <= {1000, 1001}
+        await streamer.close()

@@ -80,10 +80,12 @@ class TargetAdapter:
         )
 
     def check_rows(self, rows: Sequence[Any]) -> None:
-        """Check every row of a sequence now, so that a bad one refuses the stream before
-        anything of it is sent (a sequence is all there at ``follow``; an iterator or a
-        function is checked item by item, at its tick).  A numpy array of numbers is
-        checked in C (its minimum and maximum); a list row by row, about 3 us a row here.
+        """Check every row of a list, a tuple or an array now, so that a bad one refuses
+        the stream before anything of it is sent (they are all there at ``follow``).  A
+        numpy array of numbers is checked in C (its minimum and maximum); a list row by
+        row, about 3 us a row here.  An iterator, a function, and a sequence of another
+        kind (one that computes its rows on access, perhaps 10**9 of them) are checked
+        item by item, at their tick.
 
         Raises:
             LocalProtocolError: a row that ``normalise`` refuses, named by its index
@@ -91,6 +93,9 @@ class TargetAdapter:
         """
         if type(rows) is CheckedRows or self._numbers_in_range(rows):
             return
+        held = isinstance(rows, list | tuple) or hasattr(rows, "dtype") or hasattr(rows, "dtypes")
+        if not held:
+            return  # rows computed on access, as many as it likes: checked at each tick
         try:
             count = len(rows)
         except TypeError:  # a 0-d numpy array: __len__ is there, and refuses
