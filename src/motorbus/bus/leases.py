@@ -376,7 +376,7 @@ class LeaseTable:
         self._hold(lease, [k for k in wanted if not self._is(k, lease)])
 
     def _wanted(self, keys: Iterable[DeviceKey] | DeviceKey) -> tuple[DeviceKey, ...]:
-        return self.expand(safety.check_key(k) for k in _as_keys(keys))
+        return self.expand(safety.check_key(k) for k in safety.as_keys(keys))
 
     def _is(self, key: DeviceKey, lease: Lease) -> bool:
         entry = self._entries.get(key)
@@ -636,12 +636,6 @@ def lease_for(table: LeaseTable) -> Lease | None:
         if lease.table is table and lease.active:
             return lease
     return None
-
-
-def _as_keys(keys: Iterable[DeviceKey] | DeviceKey) -> tuple[DeviceKey, ...]:
-    if isinstance(keys, str):
-        return (keys,)
-    return safety.as_keys(keys)
 
 
 def _check_owner(owner: object) -> str:

@@ -83,7 +83,7 @@ class TargetAdapter:
         """Check every row of a list, a tuple or an array now, so that a bad one refuses
         the stream before anything of it is sent (they are all there at ``follow``).  A
         numpy array of numbers is checked in C (its minimum and maximum); a list row by
-        row, about 3 us a row here.  An iterator, a function, and a sequence of another
+        row, in Python.  An iterator, a function, and a sequence of another
         kind (one that computes its rows on access, perhaps 10**9 of them) are checked
         item by item, at their tick.
 
