@@ -76,6 +76,7 @@ from motorbus.streaming.model import (
     SafeAction,
     StreamStats,
     broadcast_builder,
+    broadcast_parts,
     check_follow_options,
     hold_flag,
     while_sending,
@@ -567,18 +568,16 @@ class Streamer:
         loop = asyncio.get_running_loop()
         fired: asyncio.Future[list[BusJob]] = loop.create_future()  # written or waiting
         sent: list[float] = []
-        step = la.MAX_BROADCAST_ENTRIES
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
-        entries = [(s, pair) for s, targets in parts for pair in targets.items()]
         # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
         # deadline (all kept while every stream of a frame still sends, and the leases
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
         prepare = self._prepare
-        for first in range(0, len(entries), step):
-            build = broadcast_builder(entries[first : first + step])
+        for frame_parts in broadcast_parts(parts, la.MAX_BROADCAST_ENTRIES):
+            build = broadcast_builder(frame_parts)
             frame = build()
             ready = None
             if frame is not None:

@@ -7,7 +7,7 @@ is started, before anything is sent.
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -29,6 +29,7 @@ __all__ = [
     "SafeAction",
     "StreamStats",
     "broadcast_builder",
+    "broadcast_parts",
     "check_follow_options",
     "hold_flag",
     "while_sending",
@@ -230,28 +231,51 @@ def while_sending(stream: Sending, cmd: la.Follow) -> Callable[[], la.Follow | N
 
 
 def broadcast_builder(
-    chunk: Sequence[tuple[Sending, tuple[int, int]]],
+    parts: Sequence[tuple[Sending, tuple[tuple[int, int], ...]]],
 ) -> Callable[[], la.Broadcast | None]:
-    """A ``refresh`` that builds one 0xF3 frame from the entries still sending.
+    """A ``refresh`` that builds one 0xF3 frame from the parts still sending: each part a
+    stream and its ``(id, position)`` pairs in this frame (15 in all at most).
 
     The frame is built once, here, when the tick is prepared; while every stream of the
-    chunk still sends, the refresh returns that same frame (the bus then writes the
+    frame still sends, the refresh returns that same frame (the bus then writes the
     bytes it encoded ahead), and the call is only the check.  A frame is built again
-    only for a chunk some of whose streams stopped.
+    only when some of its streams stopped.
     """
-    streams = tuple({s: None for s, _ in chunk})
-    # (List comprehensions, no generators: one call each, not one an entry.)
-    frame = la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, tuple([p for _, p in chunk]))
+    pairs = parts[0][1] if len(parts) == 1 else tuple(p for _, ps in parts for p in ps)
+    frame = la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
 
     def build() -> la.Broadcast | None:
-        for s in streams:
+        for s, _ in parts:
             if not s.sending:
                 break
         else:
             return frame
-        pairs = tuple([pair for s, pair in chunk if s.sending])
-        if not pairs:
+        left = tuple(p for s, ps in parts if s.sending for p in ps)
+        if not left:
             return None
-        return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
+        return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, left)
 
     return build
+
+
+def broadcast_parts(
+    targets: Sequence[tuple[Sending, Mapping[int, int]]], size: int
+) -> list[list[tuple[Sending, tuple[tuple[int, int], ...]]]]:
+    """The frames of one tick: the streams' targets in order, ``size`` entries a frame
+    (a stream's entries may span two), as ``broadcast_builder``'s parts."""
+    frames: list[list[tuple[Sending, tuple[tuple[int, int], ...]]]] = []
+    current: list[tuple[Sending, tuple[tuple[int, int], ...]]] = []
+    room = size
+    for s, mapping in targets:
+        pairs = tuple(mapping.items())
+        while pairs:
+            current.append((s, pairs[:room]))
+            taken = min(room, len(pairs))
+            pairs = pairs[taken:]
+            room -= taken
+            if not room:
+                frames.append(current)
+                current, room = [], size
+    if current:
+        frames.append(current)
+    return frames
