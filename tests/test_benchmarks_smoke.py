@@ -970,3 +970,27 @@ def test_a_safe_stops_spread_runs_to_the_last_present_actuators_first_pause() ->
     assert b.spread_ms([], {2}) is None
     s = b.summary([6.0, None, 10.0])
     assert (s["median_ms"], s["max_ms"], s["runs_missing_a_pause"]) == (8.0, 10.0, 1)
+
+
+def test_the_parts_taken_out_come_back_and_the_stream_still_ticks(tmp_path: Path) -> None:
+    """``bench_cpu_parts.py``: each variant replaces its parts of the bus for its run
+    only; with all of them out, the workload still sends its ticks (over a pty)."""
+    import bench_cpu_parts as parts
+    from motorbus.bus.engine import BusEngine
+    from motorbus.bus.lease_shell import LeaseKeeper
+
+    claim, queue = LeaseKeeper.__dict__["claim"], BusEngine.__dict__["queue"]
+    with parts.without(("no_leases",)):
+        assert LeaseKeeper.__dict__["claim"] is parts._nothing
+        assert BusEngine.__dict__["queue"] is queue
+    with pytest.raises(RuntimeError), parts.without(parts.PARTS):
+        assert BusEngine.__dict__["queue"] is not queue
+        raise RuntimeError("a run that failed")
+    assert (LeaseKeeper.__dict__["claim"], BusEngine.__dict__["queue"]) == (claim, queue)
+    responder = bench_cpu.Responder(1, tmp_path / "rec.json")
+    try:
+        out = parts.run_once("without_all", responder.paths, 0.2, "none")
+    finally:
+        responder.stop()
+    assert out["stream_errors"] == 0 and out["ticks"] >= 15
+    assert (LeaseKeeper.__dict__["claim"], BusEngine.__dict__["queue"]) == (claim, queue)
