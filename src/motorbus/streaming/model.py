@@ -241,6 +241,7 @@ def broadcast_builder(
     bytes it encoded ahead), and the call is only the check.  A frame is built again
     only when some of its streams stopped.
     """
+    # (One stream's part, the common case, is the frame's entries as they are.)
     pairs = parts[0][1] if len(parts) == 1 else tuple(p for _, ps in parts for p in ps)
     frame = la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
 
@@ -269,10 +270,9 @@ def broadcast_parts(
     for s, mapping in targets:
         pairs = tuple(mapping.items())
         while pairs:
-            current.append((s, pairs[:room]))
-            taken = min(room, len(pairs))
-            pairs = pairs[taken:]
-            room -= taken
+            part, pairs = pairs[:room], pairs[room:]
+            current.append((s, part))
+            room -= len(part)
             if not room:
                 frames.append(current)
                 current, room = [], size
