@@ -9,8 +9,8 @@ doing nothing, and the least loop (``timerfd``, issue 23's baseline (b)) beside 
 
 * ``no_leases``: the lease rule (``LeaseKeeper.claim``, at each frame's preparation) and
   the owed safe actions (``LeaseTable.moved``, after each write) do nothing;
-* ``no_stats``: the bus's and the streams' statistics (``BusCore.count_sent``,
-  ``LatencyHistogram.record``) do nothing;
+* ``no_stats``: the bus's and the streams' statistics (``BusCore.count_sent`` for each
+  frame, ``BusCore.accepted`` for each reply, ``LatencyHistogram.record``) do nothing;
 * ``direct_write``: a frame that expects no reply, on a bus with nothing queued and no
   reply owed, is written at once by ``BusEngine.queue`` without the scheduler (no
   spacing rule, no occupancy, no sequence number);
@@ -79,7 +79,8 @@ def without(parts: tuple[str, ...]) -> Iterator[None]:
     if "no_leases" in parts:
         patches += [(LeaseKeeper, "claim", _nothing), (LeaseTable, "moved", _nothing)]
     if "no_stats" in parts:
-        patches += [(BusCore, "count_sent", _nothing), (LatencyHistogram, "record", _nothing)]
+        patches += [(BusCore, "count_sent", _nothing), (BusCore, "accepted", _nothing)]
+        patches.append((LatencyHistogram, "record", _nothing))
     if "direct_write" in parts:
         patches.append((BusEngine, "queue", _direct_queue(BusEngine.queue)))
     saved = [(cls, name, cls.__dict__[name]) for cls, name, _ in patches]
