@@ -12,8 +12,9 @@ doing nothing, and the least loop (``timerfd``, issue 23's baseline (b)) beside 
 * ``no_stats``: the bus's and the streams' statistics (``BusCore.count_sent`` for each
   frame, ``BusCore.accepted`` for each reply, ``LatencyHistogram.record``) do nothing;
 * ``direct_write``: a frame that expects no reply, on a bus with nothing queued and no
-  reply owed, is written at once by ``BusEngine.queue`` without the scheduler (no
-  spacing rule, no occupancy, no sequence number);
+  reply owed, goes from ``BusEngine.queue`` straight to its write (``_transmit``, with
+  everything it records) without asking the scheduler whether it may start (no
+  spacing rule, no reservations, no sequence number);
 * ``without_all``: the three together.
 
 What a variant saves is what that part costs, whatever a profiler would say.  The
@@ -21,9 +22,9 @@ variants break the bus's guarantees (that is the point): they exist only in this
 benchmark's process, for its run.  Every round runs each side once, in an order that
 rotates from round to round (a slow spell of the shared machine falls on all alike);
 the figures are each side's CPU (user + system over wall) over the rounds, and the
-median over the rounds of its ratio to ``ours`` and to (b) in the same round.  Every
-side must send every tick (``ticks_min``, the fewest of a round): a side that fell
-behind did less work, and its CPU says nothing.  ``--polls tick`` adds ``bench_cpu.py``'s
+median over the rounds of its ratio to ``ours`` and to (b) in the same round.
+``ticks_min``, the fewest ticks a side sent in a round, says whether it kept up: a side
+that fell behind did less work, and its CPU says less.  ``--polls tick`` adds ``bench_cpu.py``'s
 status query each tick to every side.
 
     python benchmarks/bench_cpu_parts.py [--buses 16] [--seconds 3] [--rounds 4]
@@ -59,15 +60,10 @@ def _nothing(*_args: Any, **_kwargs: Any) -> None:
 
 def _direct_queue(real: Callable[..., None]) -> Callable[..., None]:
     def queue(self: BusEngine, job: Any, start_by: float | None, *, checked: bool = False) -> None:
-        core = self.core
-        if job.expects or core.schedule.heap or core.matcher.pending is not None:
+        if job.expects or self.core.schedule.heap or self.core.matcher.pending is not None:
             real(self, job, start_by, checked=checked)
             return
-        job.attempts += 1
-        job.tx_start = self.clock.now()
-        self.transport.write(job.raw)
-        if not job.future.done():
-            job.future.set_result(None)
+        self._transmit(job, checked=checked)  # the write and its bookkeeping, as queue's
 
     return queue
 

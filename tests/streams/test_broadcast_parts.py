@@ -5,10 +5,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from motorbus.protocol import la
+from motorbus.protocol.la.wire import LA_REQUEST_HEADER, build_frame
 from motorbus.streaming.model import broadcast_builder, broadcast_parts
 
 
@@ -27,6 +29,20 @@ def ticks(draw: st.DrawFn) -> list[tuple[FakeStream, dict[int, int]]]:
     ]
 
 
+def byte_by_byte(entries: tuple[tuple[int, int], ...]) -> bytes:
+    """The 0xF3 frame as the manual lays it out (3.5.3): ``55 AA``, the length, ``FF F3``
+    and each entry's ID, position low byte and high byte, then the checksum."""
+    body = [la.BROADCAST_ID, la.BroadcastMode.FOLLOW]
+    for ident, pos in entries:
+        body += [ident, pos & 0xFF, pos >> 8]
+    return build_frame(LA_REQUEST_HEADER, bytes(body))
+
+
+def test_a_frame_with_no_room_is_refused() -> None:
+    with pytest.raises(ValueError, match="size=0 is out of range"):
+        broadcast_parts([(FakeStream(), {1: 500})], 0)
+
+
 @given(ticks(), st.integers(1, la.MAX_BROADCAST_ENTRIES))
 def test_every_target_goes_once_in_order_and_no_frame_is_over_full(
     tick: list[tuple[FakeStream, dict[int, int]]], size: int
@@ -41,7 +57,7 @@ def test_every_target_goes_once_in_order_and_no_frame_is_over_full(
         frame = broadcast_builder(parts)()
         assert frame is not None
         assert frame.entries == tuple(pair for _, pairs in parts for pair in pairs)
-        assert frame.encode() == la.Broadcast(la.BroadcastMode.FOLLOW, frame.entries).encode()
+        assert frame.encode() == byte_by_byte(frame.entries)
 
 
 @given(ticks(), st.data())

@@ -264,6 +264,8 @@ def broadcast_parts(
 ) -> list[list[tuple[Sending, tuple[tuple[int, int], ...]]]]:
     """The frames of one tick: the streams' targets in order, ``size`` entries a frame
     (a stream's entries may span two), as ``broadcast_builder``'s parts."""
+    if size < 1:
+        raise ValueError(f"size={size!r} is out of range: allowed 1..15 entries a frame")
     frames: list[list[tuple[Sending, tuple[tuple[int, int], ...]]]] = []
     current: list[tuple[Sending, tuple[tuple[int, int], ...]]] = []
     room = size
