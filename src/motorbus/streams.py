@@ -576,7 +576,7 @@ class Streamer:
         # left.  The frame is rebuilt then only if a stream stopped since.
         prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
         prepare = self._prepare
-        for frame_parts in broadcast_parts(parts, la.MAX_BROADCAST_ENTRIES):
+        for frame_parts in broadcast_parts(parts):
             build = broadcast_builder(frame_parts)
             frame = build()
             ready = None

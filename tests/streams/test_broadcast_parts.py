@@ -41,6 +41,8 @@ def byte_by_byte(entries: tuple[tuple[int, int], ...]) -> bytes:
 def test_a_frame_with_no_room_is_refused() -> None:
     with pytest.raises(ValueError, match="size=0 is out of range"):
         broadcast_parts([(FakeStream(), {1: 500})], 0)
+    with pytest.raises(ValueError, match=r"size=16 is out of range: allowed 1\.\.15"):
+        broadcast_parts([(FakeStream(), {1: 500})], 16)
 
 
 @given(ticks(), st.integers(1, la.MAX_BROADCAST_ENTRIES))

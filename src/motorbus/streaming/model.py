@@ -241,8 +241,9 @@ def broadcast_builder(
     bytes it encoded ahead), and the call is only the check.  A frame is built again
     only when some of its streams stopped.
     """
-    # (One stream's part, the common case, is the frame's entries as they are.)
-    pairs = parts[0][1] if len(parts) == 1 else tuple(p for _, ps in parts for p in ps)
+    # (One stream's part, the common case, is the frame's entries as they are; list
+    # comprehensions, no generators: one call each, not one an entry.)
+    pairs = parts[0][1] if len(parts) == 1 else tuple([p for _, ps in parts for p in ps])
     frame = la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, pairs)
 
     def build() -> la.Broadcast | None:
@@ -251,7 +252,7 @@ def broadcast_builder(
                 break
         else:
             return frame
-        left = tuple(p for s, ps in parts if s.sending for p in ps)
+        left = tuple([p for s, ps in parts if s.sending for p in ps])
         if not left:
             return None
         return la.Broadcast.prevalidated(la.BroadcastMode.FOLLOW, left)
@@ -260,12 +261,15 @@ def broadcast_builder(
 
 
 def broadcast_parts(
-    targets: Sequence[tuple[Sending, Mapping[int, int]]], size: int
+    targets: Sequence[tuple[Sending, Mapping[int, int]]], size: int = la.MAX_BROADCAST_ENTRIES
 ) -> list[list[tuple[Sending, tuple[tuple[int, int], ...]]]]:
     """The frames of one tick: the streams' targets in order, ``size`` entries a frame
-    (a stream's entries may span two), as ``broadcast_builder``'s parts."""
-    if size < 1:
-        raise ValueError(f"size={size!r} is out of range: allowed 1..15 entries a frame")
+    (at most the manual's 15; a stream's entries may span two), as
+    ``broadcast_builder``'s parts."""
+    if not 1 <= size <= la.MAX_BROADCAST_ENTRIES:
+        raise ValueError(
+            f"size={size!r} is out of range: allowed 1..{la.MAX_BROADCAST_ENTRIES} entries a frame"
+        )
     frames: list[list[tuple[Sending, tuple[tuple[int, int], ...]]]] = []
     current: list[tuple[Sending, tuple[tuple[int, int], ...]]] = []
     room = size
