@@ -529,8 +529,11 @@ class Streamer:
                 s.stats.frames += 1
         finally:
             self._active = None
-        if sent_at is None:
-            return  # the port went away before anything left
+        if sent_at is None:  # refused (the port away, the bus closing): nothing left
+            for s in served:
+                if s.sending:
+                    s.stats.skipped += 1
+            return
         for s in served:
             lateness = max(0.0, sent_at - (s.origin + (s.next_tick - 1) * s.period))
             s.stats.ticks += 1
@@ -559,7 +562,8 @@ class Streamer:
         is prepared before the deadline (``Bus.prepare(refresh=...)``) and re-checked
         when written: rebuilt from the streams still sending only if one stopped or
         paused since, so such a stream sends nothing more, even from a frame that had
-        to wait its turn.
+        to wait its turn.  A frame refused when prepared (the port away, the bus
+        closing) is not sent this tick: there is no second way to send it.
         Returns (when the first frame left, or None if nothing left; frames sent; whether
         the tick slipped: its first frame could not be written at the deadline itself).
         """
@@ -574,30 +578,26 @@ class Streamer:
         # deadline (all kept while every stream of a frame still sends, and the leases
         # do not change): at the deadline only the cheap re-checks and the write are
         # left.  The frame is rebuilt then only if a stream stopped since.
-        prepared: list[tuple[Callable[[], la.Broadcast | None], PreparedSubmit[Any] | None]] = []
+        prepared: list[PreparedSubmit[Any]] = []
         prepare = self._prepare
         for frame_parts in broadcast_parts(parts):
             build = broadcast_builder(frame_parts)
             frame = build()
-            ready = None
-            if frame is not None:
-                try:
-                    ready = prepare(frame, build)
-                except MotorbusError:  # refused now (the port away, a lease): prepared
-                    ready = None  # again at the deadline, or refused again there
-            prepared.append((build, ready))
+            if frame is None:
+                continue
+            try:
+                prepared.append(prepare(frame, build))
+            except MotorbusError as err:  # refused (the port away, the bus closing)
+                log.debug("stream tick on bus %s not prepared: %s", self.bus.name, err)
+        if not prepared:
+            return None, 0, False  # nothing goes out this tick (the caller counts it)
 
         def fire() -> None:
             if fired.done():
                 return
             jobs = []
             try:
-                for build, ready in prepared:
-                    if ready is None:  # refused ahead: prepared now, or refused again
-                        frame = build()
-                        if frame is None:
-                            continue
-                        ready = prepare(frame, build)
+                for ready in prepared:
                     # One path: send() re-checks the frame (its refresh) and writes it.
                     future = ready.send()
                     if ready.job.attempts or not future.done():

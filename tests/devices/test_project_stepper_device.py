@@ -110,6 +110,28 @@ async def test_a_run_that_times_out_is_stopped_and_says_so() -> None:
         assert not model.running
 
 
+async def test_the_stop_of_a_timed_out_run_is_the_lease_keepers() -> None:
+    # One sender of safe actions (issue 40): the run's stop is asked of the keeper, which
+    # sends it at emergency priority with the safe stops' retries.
+    model = ProjectStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        stepper = ProjectStepper(bus)
+        await stepper.upload(small_project(1, repeat=255), verify=False, save=False)
+        keeper = bus.lease_keeper
+        asked: list[tuple[str, ...]] = []
+        send_stop = keeper.send_stop
+
+        async def recording(commands: Any, *, who: str) -> list[object]:
+            asked.append(tuple(type(c).__name__ for c in commands))
+            return await send_stop(commands, who=who)
+
+        keeper.send_stop = recording  # type: ignore[method-assign]
+        with pytest.raises(ReplyTimeoutError, match="stopped it"):
+            await stepper.run_project(1, timeout=0.05)
+        assert asked == [("StopProject",)]
+        assert not model.running
+
+
 async def test_keep_running_leaves_a_timed_out_run_going_and_says_how_to_stop() -> None:
     model = ProjectStepperModel()
     async with sim_bus([model], baud=115200) as (bus, _):

@@ -9,6 +9,7 @@ import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
+from motorbus.bus.lease_shell import raise_unexpected
 from motorbus.bus.leases import PROGRAM, Lease
 from motorbus.errors import (
     BusClosedError,
@@ -364,9 +365,9 @@ class ProjectStepper:
                     if keep_running:
                         await self._keep_running()
                         raise ReplyTimeoutError(f"{waited}: still running; {STOP_HINT}") from None
-                    raise ReplyTimeoutError(f"{waited}: {await self._stop_after(number)}") from None
+                    raise ReplyTimeoutError(f"{waited}: {await self._stop_after(start)}") from None
             except asyncio.CancelledError:
-                await self._stop_after(number)
+                await self._stop_after(start)
                 raise
             finally:
                 self._run_sub = None
@@ -377,14 +378,23 @@ class ProjectStepper:
         with contextlib.suppress(LeaseConflictError):
             await self.release(hold=True)
 
-    async def _stop_after(self, number: int) -> str:
-        """Send stop project after a run ended without ``EE DD``; say what happened."""
+    async def _stop_after(self, start: ps.StartProject) -> str:
+        """Stop the run of ``start`` after it ended without ``EE DD``; say what happened.
+
+        The stop is the lease keeper's (the one sender of safe actions): what ends the
+        motion ``start`` began (``safety.motion_stops``: stop project, 0x5E), at
+        emergency priority with its retries; a failure is logged there.  Ctrl-C waits
+        for it."""
         self._last_stop = time.monotonic()
-        try:
-            await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)
-        except (MotorbusError, OSError) as err:
-            log.warning("project %d: stop project (0x5E) failed: %s", number, err)
-            return f"the stop (0x5E) failed ({err}): it may still be running; {STOP_HINT}"
+        stops = safety.motion_stops(start) or ()
+        with deferred_interrupts():
+            results = await self.bus.lease_keeper.send_stop(
+                stops, who=f"project {start.project}'s run"
+            )
+        raise_unexpected(results)
+        for result in results:
+            if isinstance(result, BaseException):
+                return f"the stop (0x5E) failed ({result}): it may still be running; {STOP_HINT}"
         return "stopped it (0x5E sent)"
 
     async def stop_project(self) -> None:
