@@ -591,6 +591,7 @@ class Streamer:
                 log.debug("stream tick on bus %s not prepared: %s", self.bus.name, err)
         if not prepared:
             return None, 0, False  # nothing goes out this tick (the caller counts it)
+        send = self.bus.send_prepared
 
         def fire() -> None:
             if fired.done():
@@ -598,14 +599,14 @@ class Streamer:
             jobs = []
             try:
                 for ready in prepared:
-                    # One path: send() re-checks the frame (its refresh) and writes it.
-                    future = ready.send()
+                    # One path: the bus re-checks the frame (its refresh) and writes it.
+                    future = send(ready)
                     if ready.job.attempts or not future.done():
                         jobs.append(ready.job)  # written, or waiting its turn
             except MotorbusError as err:
                 fired.set_exception(err)
                 return
-            if jobs and jobs[0].future.done():  # an idle bus wrote it inside send()
+            if jobs and jobs[0].future.done():  # an idle bus wrote it inside send_prepared
                 sent.append(jobs[0].tx_start)  # when issued (see StreamStats)
             fired.set_result(jobs)
 

@@ -60,10 +60,10 @@ async def test_nothing_is_written_before_send_and_a_send_happens_once() -> None:
         frame = follow(1, 2)
         ready = bus.prepare(frame, priority=Priority.HIGH, reserved=True, lease=lease)
         assert written.frames == []
-        await ready.send()  # a broadcast: no reply
+        await bus.send_prepared(ready)  # a broadcast: no reply
         assert written.frames == [frame.encode()]
         with pytest.raises(LocalProtocolError, match="sent once"):
-            ready.send()
+            bus.send_prepared(ready)
         assert written.frames == [frame.encode()]
         await lease.release(hold=True)
 
@@ -77,7 +77,7 @@ async def test_a_lease_taken_over_before_send_refuses_it_with_nothing_written() 
         await stream.release(hold=True)
         rig = bus.lease(["la:2"], owner="rig", bind=False)
         with pytest.raises(LeaseConflictError, match="la:2 is leased by 'rig'"):
-            ready.send()
+            bus.send_prepared(ready)
         assert written.frames == []
         await rig.release(hold=True)
 
@@ -93,7 +93,7 @@ async def test_the_lease_rule_is_checked_again_for_the_frame_as_refreshed() -> N
         await stream.release(hold=True, keys=["la:2"])
         rig = bus.lease(["la:2"], owner="rig", bind=False)
         wanted[0] = follow(1)
-        await ready.send()
+        await bus.send_prepared(ready)
         assert written.frames == [follow(1).encode()]
         await rig.release(hold=True)
         await stream.release(hold=True)
@@ -103,7 +103,7 @@ async def test_a_refresh_that_no_longer_wants_the_frame_drops_it_unsent() -> Non
     async with sim_bus([LAModel(1)]) as (bus, _):
         written = watch(bus)
         ready = bus.prepare(follow(1), reserved=True, refresh=lambda: None)
-        await ready.send()  # resolves, with nothing written
+        await bus.send_prepared(ready)  # resolves, with nothing written
         assert written.frames == []
         assert bus.stats.dropped_by_refresh == 1
 
@@ -113,8 +113,21 @@ async def test_a_bus_closed_before_send_refuses_it() -> None:
         written = watch(bus)
         ready = bus.prepare(follow(1), reserved=True)
     with pytest.raises(BusClosedError):
-        ready.send()
+        bus.send_prepared(ready)
     assert follow(1).encode() not in written.frames
+
+
+async def test_a_prepared_submission_is_sent_once_and_by_its_own_bus() -> None:
+    async with sim_bus([LAModel(1)]) as (bus, _), sim_bus([LAModel(1)]) as (other, _):
+        written, elsewhere = watch(bus), watch(other)
+        ready = bus.prepare(follow(1), reserved=True)
+        with pytest.raises(LocalProtocolError, match="by the bus that prepared it"):
+            other.send_prepared(ready)
+        assert elsewhere.frames == [] and written.frames == []
+        await bus.send_prepared(ready)
+        with pytest.raises(LocalProtocolError, match="sent once"):
+            bus.send_prepared(ready)
+        assert written.frames == [follow(1).encode()]
 
 
 async def test_prepare_refuses_what_submit_refuses() -> None:
@@ -139,7 +152,7 @@ async def test_a_send_from_another_event_loop_is_refused_with_nothing_written() 
 
         async def elsewhere() -> None:
             try:
-                ready.send()
+                bus.send_prepared(ready)
             except BaseException as err:
                 raised.append(err)
 
@@ -169,7 +182,7 @@ async def test_a_prepared_frame_keeps_the_spacing_and_waits_for_an_owed_reply() 
         # Right after a write: the spacing from it still runs.
         await bus.submit(follow(1))
         spaced = bus.prepare(follow(1, 2), reserved=True)
-        await spaced.send()
+        await bus.send_prepared(spaced)
         assert written.at[1] - written.at[0] >= bus.config.min_spacing
         # A reply owed (from la:3, which is silent) after the spacing has run: the
         # prepared frame waits until the reply's deadline, never written while it is owed.
@@ -177,7 +190,7 @@ async def test_a_prepared_frame_keeps_the_spacing_and_waits_for_an_owed_reply() 
         asked = bus.submit(silent, retries=0)
         await asyncio.sleep(2 * bus.config.min_spacing)
         owed = bus.prepare(follow(2), reserved=True)
-        sent = owed.send()
+        sent = bus.send_prepared(owed)
         assert not sent.done()
         await sent
         assert asked.done() and isinstance(asked.exception(), ReplyTimeoutError)

@@ -252,7 +252,7 @@ async def test_a_tick_frame_is_built_once_and_checked_once_at_its_deadline(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """Issue 40: one path from deadline to wire.  A tick's frame is built when the tick
-    is prepared and checked once at its deadline (``PreparedSubmit.send``), which writes
+    is prepared and checked once at its deadline (``Bus.send_prepared``), which writes
     it on an idle bus: no fallback ``submit``, no third build at the write."""
     import motorbus.streams as streams_mod
     from motorbus.streaming import model

@@ -52,7 +52,7 @@ import contextlib
 import logging
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from types import TracebackType
-from typing import Any, Generic, TypeVar
+from typing import Generic, TypeVar
 
 from motorbus import lifecycle
 from motorbus.bus.core import BusCore
@@ -86,35 +86,19 @@ R = TypeVar("R")
 
 
 class PreparedSubmit(Generic[R]):
-    """A ``submit`` checked and built ahead of its moment (``Bus.prepare``): a handle on
-    its bus, as an ``asyncio.Handle`` is on its loop."""
+    """A ``submit`` checked and built ahead of its moment (``Bus.prepare``), sent once
+    with ``Bus.send_prepared``: a record, which calls nothing."""
 
     __slots__ = ("bus", "job", "lease", "lease_version", "sent")
 
     def __init__(self, bus: Bus, job: BusJob, lease: Lease | None, lease_version: int) -> None:
+        #: The bus that prepared it (another refuses it).
         self.bus = bus
         self.job = job
         self.lease = lease
         #: The lease table's version when its rule was checked (-1: check again).
         self.lease_version = lease_version
         self.sent = False
-
-    def send(self) -> asyncio.Future[R]:
-        """Queue it now (an idle bus writes it before this returns); once only.
-
-        Returns the future of its decoded reply, as ``Bus.submit`` does; it resolves
-        to None at once if the ``refresh`` (run here, and again at a later write if the
-        frame must wait) drops the frame.
-
-        Raises:
-            BusClosedError: the bus is no longer open, or is closing (motion).
-            LeaseConflictError: a lease changed since and another owner holds a device.
-            LocalProtocolError: it was sent already.
-        """
-        if self.sent:
-            raise LocalProtocolError("a prepared submission is sent once", field="prepared")
-        self.sent = True
-        return self.bus._send_prepared(self)
 
 
 class Bus:
@@ -447,7 +431,7 @@ class Bus:
         """Check and build a ``submit`` ahead of the moment it must be sent.
 
         Everything ``submit`` does before queueing is done now (checks, the lease rule,
-        encoding, the job); ``PreparedSubmit.send()``, called at the deadline (from a
+        encoding, the job); ``send_prepared``, called at the deadline (from a
         timer callback: the stream ticks), only re-checks what may have changed since
         (the bus still open and not closing; the ``refresh``; the lease rule again if any
         lease changed) and sends it as ``submit`` does: an idle bus writes it then, with
@@ -480,9 +464,26 @@ class Bus:
             "refused (nothing sent); the devices are being stopped"
         )
 
-    def _send_prepared(self, prepared: PreparedSubmit[Any]) -> asyncio.Future[Any]:
-        """``PreparedSubmit.send``: the cheap re-checks and the refresh, then the one
-        send path (``BusEngine.queue``; see ``prepare``)."""
+    def send_prepared(self, prepared: PreparedSubmit[R]) -> asyncio.Future[R]:
+        """Send what ``prepare`` made, now (an idle bus writes it before this returns);
+        once only.  The cheap re-checks and the refresh, then the one send path
+        (``BusEngine.queue``; see ``prepare``).
+
+        Returns the future of its decoded reply, as ``submit`` does; it resolves to None
+        at once if the ``refresh`` (run here, and again at a later write if the frame
+        must wait) drops the frame.
+
+        Raises:
+            BusClosedError: the bus is no longer open, or is closing (motion).
+            LeaseConflictError: a lease changed since and another owner holds a device.
+            LocalProtocolError: it was sent already, or prepared by another bus.
+        """
+        if prepared.sent or prepared.bus is not self:
+            raise LocalProtocolError(
+                "a prepared submission is sent once, by the bus that prepared it",
+                field="prepared",
+            )
+        prepared.sent = True
         job = prepared.job
         state = self._engine.state
         if state is not BusState.OPEN:

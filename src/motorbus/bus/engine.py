@@ -143,7 +143,7 @@ class BusEngine:
         self.core.new_stream()
 
     def queue(self, job: BusJob, start_by: float | None, *, checked: bool = False) -> None:
-        """The one way a checked job goes out (``submit``, ``PreparedSubmit.send``): an
+        """The one way a checked job goes out (``submit``, ``send_prepared``): an
         idle bus whose rules let it start now writes it here, before this returns;
         otherwise it is queued (with its ``start_by`` expiry) for ``_pump``.
 

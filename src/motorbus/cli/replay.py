@@ -602,7 +602,7 @@ class _Sender:
         if self._done.done():
             return
         try:
-            future = prepared.send()
+            future = self.bus.send_prepared(prepared)
         except MotorbusError as err:
             self._done.set_exception(err)
             return
