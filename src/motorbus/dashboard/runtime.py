@@ -422,14 +422,18 @@ class Dashboard:
             )
         sub, priority = ACTIONS[action]
         plan: list[tuple[str, Command[object], Priority, str]] = []
+        stops = action in ("estop", "pause")
         for name, one in self._targets(bus, ident):
             s = self.setups[name]
+            keeper = s.bus.lease_keeper
             ids = [one] if one is not None else sorted(self.state.buses[name].la)
             for i in ids:
-                plan.append((name, la.Control(i, sub), priority, f"la:{i}"))
-            if one is None and action in ("estop", "pause"):
-                # The steppers' stop, as the bus's lease table defines it.
-                keeper = s.bus.lease_keeper
+                key = f"la:{i}"
+                # A stop is the safe action as the bus's lease table defines it.
+                cmds = keeper.safe_commands(key, action) if stops else (la.Control(i, sub),)
+                plan.extend((name, cmd, priority, key) for cmd in cmds)
+            if one is None and stops:
+                # The steppers' stop, likewise.
                 if s.project_motor is not None:
                     key = "project_stepper"
                     for cmd in keeper.safe_commands(key, motor=s.project_motor):
