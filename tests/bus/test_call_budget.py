@@ -25,8 +25,10 @@ tick and 140 a request on the fake clock, 136 and 126-148 on the default timer (
 request that waits out the spacing takes a timer wake-up more than one that need not).
 Then a tick's 0xF3 frames cut from each stream's pairs and their entries packed in C
 (2026-12-07): 126 a tick (``starmap`` is a call) and 142 a request on the fake clock, 139
-and 149 on the default timer.  The fake clock's bounds are what the bus reaches now,
-with a small margin."""
+and 149 on the default timer.  Then the LA fast path's checksum asked of the rulebook
+(``la_sum_ok``, the judge's) instead of a sum written a second time (2026-12-07): a
+request 143 on the fake clock and 150 on the default timer.  The fake clock's bounds are
+what the bus reaches now, with a small margin."""
 
 from __future__ import annotations
 

@@ -68,6 +68,7 @@ from motorbus.protocol.frames import PROJECT_DUMP_SIZE as PROJECT_DUMP_SIZE
 from motorbus.protocol.frames import PROJECT_REQUEST_SIZE as PROJECT_REQUEST_SIZE
 from motorbus.protocol.frames import QUAD_REQUEST_SIZE as QUAD_REQUEST_SIZE
 from motorbus.protocol.frames import STEPPER_REPLY_SIZE as STEPPER_REPLY_SIZE
+from motorbus.protocol.rulebook import la_sum_ok
 from motorbus.protocol.valid_index import ValidIndex
 
 __all__ = [
@@ -244,7 +245,8 @@ class Reassembler:
         return keep
 
     def _scan_la_only(self, buf: bytes, pos: int, out: list[Item]) -> int:
-        """Fast path for a stream of LA frames only: one find and one sum per frame.
+        """Fast path for a stream of LA frames only: the rulebook's length bounds and
+        checksum (``la_sum_ok``), one frame after another, no search.
 
         Returns at the first position it does not settle by itself (garbage, a bad
         frame, an incomplete tail); the general loop takes over from there.
@@ -253,6 +255,7 @@ class Reassembler:
         direction = Direction.REPLY if header == LA_REPLY_HEADER else Direction.REQUEST
         first, second = header
         max_len = LA_MAX_LEN
+        sum_ok = la_sum_ok
         la = Family.LA
         new = tuple.__new__
         append = out.append
@@ -263,13 +266,9 @@ class Reassembler:
             end = pos + length + 5
             if end > n or length < LA_MIN_LEN or length > max_len[buf[pos + 4]]:
                 break
-            frame = buf[pos:end]
-            check = frame[-1]
-            # The checksum covers Len..last data byte: the frame's sum minus the two
-            # header bytes (0x55 + 0xAA = 0xFF either way round) minus the checksum.
-            if (sum(frame) - 0xFF - check) & 0xFF != check:
+            if not sum_ok(buf, pos, end):  # the rulebook's checksum, as the judge's
                 break
-            append(new(Frame, (la, direction, frame)))
+            append(new(Frame, (la, direction, buf[pos:end])))
             count += 1
             pos = end
         self.stats.frames += count
