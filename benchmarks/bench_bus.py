@@ -54,7 +54,6 @@ import argparse
 import asyncio
 import contextlib
 import cProfile
-import datetime
 import importlib
 import inspect
 import io
@@ -62,8 +61,6 @@ import itertools
 import json
 import math
 import multiprocessing
-import os
-import platform
 import pstats
 import statistics
 import sys
@@ -76,6 +73,7 @@ from typing import Any
 
 import serial
 
+from harness import machine_info, write_report
 from kernel_clock import KernelWriteTrace, grid_jitter, port_figures, write_gaps
 from motorbus.bus.bus import Bus
 from motorbus.bus.timer import Timer, TimerHandle, default_timer
@@ -683,16 +681,13 @@ def main(argv: list[str] | None = None) -> int:
         "backend": args.backend,
         "loop": args.loop,
         "timer": res["timer"],
-        "machine": f"{platform.platform()}, {os.cpu_count()} cpus, Python {sys.version.split()[0]}",
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
     print_table(report)
     if "profile" in res:
         print("\ncProfile of the rate run (sorted by own time):\n")
         print(res["profile"])
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"\nwrote {args.out}")
+    print()
+    write_report(args.out, report)
     if args.samples is not None:
         samples = {
             "unit": "s",
@@ -907,9 +902,11 @@ def print_table(r: dict[str, Any]) -> None:
         ]
     if not r.get("rate_kernel_measured"):
         print(f"kernel clock: not measured: {r.get('rate_kernel_why')}")
+    m = machine_info()
     print(
         f"bench_bus: backend={r['backend']} loop={r['loop']} timer={r['timer']} n={r['n']} "
-        f"rate run {r['rate_seconds']:.1f} s\n{r['machine']}\n"
+        f"rate run {r['rate_seconds']:.1f} s\n"
+        f"{m['platform']}, {m['cpus']} cpus, Python {m['python']}\n"
     )
     width = max(len(name) for name, _, _ in rows)
     for name, value, target in rows:

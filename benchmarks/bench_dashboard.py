@@ -45,19 +45,17 @@ import argparse
 import asyncio
 import itertools
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 
 import bench_dashboard_served
+from harness import write_report
 from motorbus import Bus, Family
 from motorbus.dashboard import BusSetup, Dashboard
 from motorbus.dashboard.server import make_app, serve_page
@@ -200,13 +198,6 @@ async def measure(
     lots = [r["frames_per_s"] for r in rows if r["viewers"] == many]
     mean1, mean_many = sum(one) / len(one), sum(lots) / len(lots)
     return {
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": {
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-            "load_avg": list(os.getloadavg()),
-        },
         "actuators": len(IDS),
         "period_s": PERIOD_S,
         "expected_frames_per_s": len(IDS) / PERIOD_S,
@@ -285,9 +276,7 @@ def main() -> None:
             f"{b['estop_ms']:>10.1f} {b['all_connected_ms']:>10.1f} "
             f"{b['longest_silence_ms']:>12.1f} {b['snapshot_bytes'] / 1e3:>12.1f}"
         )
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {RESULTS}")
+    write_report(RESULTS, report)
 
 
 if __name__ == "__main__":

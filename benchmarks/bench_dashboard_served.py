@@ -17,8 +17,6 @@ import argparse
 import asyncio
 import itertools
 import json
-import os
-import platform
 import signal
 import socket
 import statistics
@@ -26,12 +24,12 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 import aiohttp
 
+from harness import write_report
 from kernel_clock import KernelWriteTrace, grid_jitter
 from motorbus.sim.process import SimProcess
 
@@ -389,13 +387,6 @@ def summary(
         a, b = _median(quiet, key), _median(burst, key)
         ratios[key] = None if not a or b is None else b / a
     return {
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
-        "machine": {
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "cpus": os.cpu_count(),
-            "load_avg": list(os.getloadavg()),
-        },
         "actuators": len(IDS),
         "poll_s": POLL_S,
         "app": app,
@@ -450,6 +441,4 @@ def main(args: argparse.Namespace, script: str) -> None:
             f"({quiet['ticks']} ticks) without viewers, {busy['p99_us']:.0f} us "
             f"({busy['ticks']}) with: {pooled['p99_ratio']:.2f}x"
         )
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {RESULTS}")
+    write_report(RESULTS, report)

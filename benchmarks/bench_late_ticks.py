@@ -27,14 +27,12 @@ import gc
 import json
 import math
 import os
-import platform
 import selectors
 import subprocess
 import sys
 import tempfile
 import time
 from array import array
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +46,7 @@ from bench_load import (  # README's stream, set up as the load benchmark sets i
     go_realtime,
     trajectory,
 )
-from harness import TimerProbe, steal_seconds
+from harness import TimerProbe, steal_seconds, write_report
 from kernel_clock import KernelWriteTrace, busiest_fd, port_figures
 from late_ticks import CAUSES, LateTick, TickRecords, attribute, summarise
 from motorbus.bus.timer import TimerfdTimer, default_timer
@@ -390,13 +388,7 @@ def main() -> int:
         "hogs": args.hogs,
         "threshold_us": args.threshold_us,
         "every_syscall": args.every_syscall,
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-            "load_avg_before": load_before,
-        },
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
+        "machine": {"load_avg_before": load_before},  # write_report adds the rest
         "command": "python benchmarks/bench_late_ticks.py " + " ".join(sys.argv[1:]),
     }
     mode = "real-time" if args.realtime else "SCHED_OTHER"
@@ -444,9 +436,7 @@ def main() -> int:
             )
     for name, met in goals.items():
         print(f"goal {name}: {'met' if met else 'NOT met'}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

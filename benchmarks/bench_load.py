@@ -30,16 +30,15 @@ import contextlib
 import json
 import math
 import os
-import platform
 import subprocess
 import sys
 import tempfile
 import time
 from collections.abc import Iterator
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
 from kernel_clock import KernelWriteTrace, port_figures
 from motorbus.manager import BusManager
 from motorbus.protocol import la
@@ -211,13 +210,6 @@ def main() -> int:
         "hogs": HOGS,
         "seconds": args.seconds,
         "wall_s": round(wall, 1),
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-            "load_avg": [round(x, 2) for x in os.getloadavg()],
-        },
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
     }
     print(
         f"stream under load: {N_ACTUATORS} actuators, {PERIOD_S * 1e3:.0f} ms, poll_status, "
@@ -231,9 +223,7 @@ def main() -> int:
         print(f"{key:34}{'n/a' if a is None else a:>12}{'n/a' if b is None else b:>12}")
     for key in ("host_late", "host_skipped", "polls", "poll_timeouts"):
         print(f"{key:34}{plain[key]:>12}{rt[key]:>12}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

@@ -35,10 +35,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
-import datetime
 import json
-import os
-import platform
 import pstats
 import random
 import sys
@@ -47,6 +44,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
 from motorbus.protocol import la
 from motorbus.protocol.base import Direction, Family, sum8
 from motorbus.protocol.reassembler import Frame, Reassembler
@@ -468,19 +466,11 @@ def main(argv: list[str] | None = None) -> int:
             "chunks": list(JUNK_CHUNKS),
             "repeats": args.repeats,
             "quick": args.quick,
-            "machine": {
-                "platform": platform.platform(),
-                "python": platform.python_version(),
-                "cpu_count": os.cpu_count(),
-            },
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         }
         out = (
             args.out if args.out != DEFAULT_OUT else DEFAULT_OUT.with_name("reassembler_junk.json")
         )
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(report_junk, indent=2) + "\n", encoding="utf-8")
-        print(f"wrote {out}")
+        write_report(out, report_junk)
         return 0
     seconds = 0.2 if args.quick else args.seconds
     count = STREAM_FRAMES // 4 if args.quick else STREAM_FRAMES
@@ -549,16 +539,8 @@ def main(argv: list[str] | None = None) -> int:
         "repeats": args.repeats,
         "quick": args.quick,
         "pymodbus": {"version": pymodbus_version, "calls": "one handleFrame per frame"},
-        "machine": {
-            "platform": platform.platform(),
-            "python": platform.python_version(),
-            "cpu_count": os.cpu_count(),
-        },
-        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, report)
     if args.profile:
         profile_decoding(clean)
     return 0

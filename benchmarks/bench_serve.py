@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import os
 import platform
 import signal
@@ -35,6 +34,7 @@ import time
 from pathlib import Path
 
 import motorbus
+from harness import write_report
 from motorbus import Bus, InspireLA, open_transport
 from motorbus.protocol import la
 from motorbus.sim import SimProcess
@@ -165,7 +165,6 @@ def main(argv: list[str] | None = None) -> int:
                 server.wait(15)
     ms = 1e3
     report = {
-        "machine": platform.platform(),
         "python": platform.python_version(),
         "command": "python benchmarks/bench_serve.py " + " ".join(argv or sys.argv[1:]),
         "requests": args.requests,
@@ -200,8 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         f"deadman SIGSTOP -> pause at the simulator: median {ds['median']:.0f} ms, "
         f"max {ds['max']:.0f} ms over {len(stops)} freezes (--liveness 1 s)"
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_report(args.out, report)
     return 0
 
 

@@ -56,6 +56,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from harness import write_report
+
 HERE = Path(__file__).resolve().parent
 DEFAULT_OUT = HERE / "results" / "serve_scale.json"
 BAUD = 921600
@@ -502,7 +504,6 @@ def main(argv: list[str] | None = None) -> int:
     if not 0.5 <= args.seconds <= 600:
         parser.error(f"--seconds={args.seconds}: allowed 0.5..600")
     report = {
-        "machine": platform.platform(),
         "python": platform.python_version(),
         "cpus": os.cpu_count(),
         "load_avg_before": list(os.getloadavg()),
@@ -514,8 +515,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     report["load_avg_after"] = list(os.getloadavg())
     print(table(report["sizes"], args.seconds))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    write_report(args.out, report)
     return 0
 
 

@@ -33,7 +33,6 @@ import argparse
 import asyncio
 import json
 import os
-import platform
 import socket
 import statistics
 import subprocess
@@ -43,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 import motorbus
+from harness import write_report
 from kernel_clock import KernelWriteTrace, port_figures
 from motorbus import Bus, InspireLA, Streamer, open_transport
 from motorbus.sim import SimProcess
@@ -201,16 +201,14 @@ def main(argv: list[str] | None = None) -> int:
     report = {
         "benchmark": "serve_stream",
         "command": "python benchmarks/bench_serve_stream.py " + " ".join(argv or sys.argv[1:]),
-        "machine": {"python": platform.python_version(), "cpus": os.cpu_count()},
         "period_s": PERIOD_S,
         "seconds": args.seconds,
         "rounds": args.rounds,
         "summary": summary,
         "runs": runs,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1, default=str) + "\n")
-    print(f"wrote {args.out}")
+    # Anything not JSON-ready is written as its str(), as before write_report.
+    write_report(args.out, json.loads(json.dumps(report, default=str)))
     return 0
 
 

@@ -39,8 +39,6 @@ Usage: ``python benchmarks/bench_startup.py [--runs 7] [--before-ref main |
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
 import platform
 import statistics
@@ -51,6 +49,8 @@ import tempfile
 import time
 from pathlib import Path
 from typing import Any
+
+from harness import write_report
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "startup.json"
@@ -199,22 +199,18 @@ def main(argv: list[str] | None = None) -> int:
         result["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
     result.update(
         {
-            "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
             "command": "python benchmarks/bench_startup.py " + " ".join(argv or sys.argv[1:]),
             "runs": runs,
             "before": before,
             "bytecode": args.bytecode,
             "python": platform.python_version(),
-            "machine": platform.platform(),
             "cpus": os.cpu_count(),
             "goal_s": GOAL_S,
             "goals_met": {c: result["trees"]["after"][c]["median_s"] <= GOAL_S for c in GOALS},
         }
     )
     print_table(result)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     return 0
 
 

@@ -44,19 +44,17 @@ import asyncio
 import json
 import math
 import os
-import platform
 import resource
 import signal
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
 from baselines import BASELINES, run_baseline
-from harness import TimerProbe
+from harness import TimerProbe, write_report
 from kernel_clock import KernelWriteTrace, port_figures, worst_tick_figures
 from motorbus.bus.timer import default_timer
 from motorbus.manager import BusManager
@@ -372,12 +370,6 @@ def main() -> int:
         "backend": args.backend,
         "timer": default_timer_name(),
         "loop": "asyncio default",
-        "machine": {
-            "platform": platform.platform(),
-            "python": sys.version.split()[0],
-            "cpus": os.cpu_count(),
-        },
-        "date": datetime.now(UTC).isoformat(timespec="seconds"),
         "note": "one-bus: the LA simulator in its own process; scaling: pty_recorder.py; "
         "both share the 2 cores with the streams",
     }
@@ -409,9 +401,7 @@ def main() -> int:
     print()
     for name, ok in result["goals"].items():
         print(f"goal {name:28} {'met' if ok else 'NOT met'}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, result)
     if args.samples is not None:
         samples = {
             "unit": "s",

@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import json
 import platform
 import statistics
 import time
 import timeit
 from pathlib import Path
 
+from harness import write_report
 from motorbus import Bus, InspireLA
 from motorbus.bus.engine import BusEngine
 from motorbus.bus.timer import default_timer
@@ -130,7 +130,6 @@ def main() -> int:
     report = {
         "benchmark": "wire_tap",
         "python": platform.python_version(),
-        "machine": platform.machine(),
         "requests": args.requests,
         "rounds": args.rounds,
         "tap_call_ns": calls,
@@ -138,9 +137,7 @@ def main() -> int:
         "round_trip_p50_us": {"without": trips["without"], "with": trips["with"]},
         "round_trip_p50_us_median": {"without": without, "with": with_tap},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-    print(f"wrote {args.out}")
+    write_report(args.out, report)
     return 0
 
 

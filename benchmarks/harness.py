@@ -39,8 +39,11 @@ def steal_seconds() -> float | None:
 
 def write_report(out: Path, result: dict[str, Any]) -> None:
     """Write ``result`` to ``out`` as indented JSON, with ``machine`` and ``date`` added
-    (the machine now, the time now in UTC), creating its folder; print where it went."""
-    report = {**result, "machine": machine_info(), "date": now_utc()}
+    (the machine now, the time now in UTC), creating its folder; print where it went.
+    A ``machine`` of ``result``'s own adds its keys to the machine description (e.g. the
+    load average before the run)."""
+    machine = {**machine_info(), **result.get("machine", {})}
+    report = {**result, "machine": machine, "date": now_utc()}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     print(f"wrote {out}")

@@ -21,7 +21,6 @@ import argparse
 import asyncio
 import bisect
 import cProfile
-import json
 import math
 import pstats
 import time
@@ -29,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import motorbus
-from harness import TimerProbe
+from harness import TimerProbe, write_report
 from motorbus.sim.process import SimProcess
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "profile_tick.json"
@@ -133,19 +132,15 @@ def main() -> int:
             f"{r['self_us_per_tick']:12.1f} {r['cum_us_per_tick']:12.1f} "
             f"{r['calls_per_tick']:10.1f}  {r['function']}"
         )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(
-        json.dumps(
-            {
-                "cpu_us_per_tick": per_tick_us,
-                "calls_per_tick": calls_per_tick,
-                "plain": plain,
-                "top": rows[:100],
-            },
-            indent=2,
-        )
+    write_report(
+        args.out,
+        {
+            "cpu_us_per_tick": per_tick_us,
+            "calls_per_tick": calls_per_tick,
+            "plain": plain,
+            "top": rows[:100],
+        },
     )
-    print(f"wrote {args.out}")
     return 0
 
 

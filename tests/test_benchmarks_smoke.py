@@ -6,6 +6,7 @@ small fake reports shaped like each script's JSON.
 
 from __future__ import annotations
 
+import ast
 import json
 import math
 import sys
@@ -994,3 +995,53 @@ def test_the_parts_taken_out_come_back_and_the_stream_still_ticks(tmp_path: Path
         responder.stop()
     assert out["stream_errors"] == 0 and out["ticks"] >= 15
     assert (LeaseKeeper.__dict__["claim"], BusEngine.__dict__["queue"]) == (claim, queue)
+
+
+#: benchmarks/*.py that are not scripts writing a report of their own: the harness, the
+#: full run and its parts, soak, and modules or children the scripts use.
+NOT_REPORTING = {
+    "harness.py",
+    "run.py",
+    "run_results.py",
+    "run_report.py",
+    "report_plots.py",
+    "soak.py",
+    "pty_recorder.py",
+    "sim_many.py",
+    "guard_victim.py",
+    "baselines.py",
+    "kernel_clock.py",
+    "late_ticks.py",
+}
+
+
+def test_every_benchmark_script_writes_its_report_with_write_report() -> None:
+    """A script's report gets its machine, date and writing from harness.write_report."""
+    scripts = sorted(p for p in BENCHMARKS.glob("*.py") if p.name not in NOT_REPORTING)
+    assert all((BENCHMARKS / name).is_file() for name in NOT_REPORTING)
+    assert len(scripts) > 20
+    missing = []
+    for path in scripts:
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        calls = [
+            node.func
+            for node in ast.walk(tree)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name | ast.Attribute)
+        ]
+        names = {f.id if isinstance(f, ast.Name) else f.attr for f in calls}
+        if "write_report" not in names:
+            missing.append(path.name)
+    assert missing == []
+
+
+def test_write_report_adds_the_machine_and_date_and_keeps_a_scripts_own_machine_keys(
+    tmp_path: Path,
+) -> None:
+    import harness
+
+    out = tmp_path / "deep" / "r.json"
+    harness.write_report(out, {"x": 1, "machine": {"load_avg_before": [0.5, 0.4, 0.3]}})
+    report = json.loads(out.read_text(encoding="utf-8"))
+    assert report["x"] == 1 and report["date"]
+    assert report["machine"]["load_avg_before"] == [0.5, 0.4, 0.3]
+    assert {"platform", "python", "cpus", "load_avg"} <= set(report["machine"])
