@@ -258,6 +258,22 @@ def test_architecture_says_why_each_dependency() -> None:
     assert not missing, f"docs/architecture.md does not say why {missing}"
 
 
+def test_every_benchmark_script_says_what_published_figure_it_feeds() -> None:
+    # Issue 40: each script in benchmarks/ feeds a published figure, named in the table
+    # of benchmarks/README.md; a module that serves them is named below it.
+    text = (ROOT / "benchmarks" / "README.md").read_text(encoding="utf-8")
+    table = text[: text.index("Modules, not benchmarks:")]
+    modules = text[text.index("Modules, not benchmarks:") :].split("\n\n", 1)[0]
+    rows = set(re.findall(r"^\| `([a-z0-9_]+\.py)`", table, re.MULTILINE))
+    named = set(re.findall(r"`([a-z0-9_]+\.py)`", modules))
+    scripts = {p.name for p in (ROOT / "benchmarks").glob("*.py")}
+    assert not scripts - rows - named, f"not in benchmarks/README.md: {scripts - rows - named}"
+    assert not rows - scripts, f"rows for scripts that are gone: {rows - scripts}"
+    for row in re.findall(r"^\| `[a-z0-9_]+\.py`.*$", table, re.MULTILINE):
+        where = row.rstrip(" |").rsplit("|", 1)[1].strip()
+        assert where and "nowhere" not in where, row
+
+
 #: A unit, in a field's description: what the number counts or measures.
 UNIT = re.compile(r"\b(ms|seconds?|units(/s)?|mA|grams|Hz|degrees|percent|no unit)\b")
 
