@@ -1,14 +1,16 @@
-"""Direct writes on a pyserial port (``transport/direct_io.py``), over real ptys.
+"""Direct reads and writes on a pyserial port (``transport/direct_io.py``), over real ptys.
 
-The contract is pyserial's, minus its spin: a write to a full port raises
-``BlockingIOError`` (pyserial's own non-blocking write spins until the port drains),
-which the backend answers by buffering.  Reads stay pyserial's: a read with nothing to
-read returns no bytes, a hung-up port raises ``SerialException``.
+The contract is pyserial's, minus its per-call ``select``: a read with nothing to read
+returns no bytes unless the port hung up, a hang-up or a failed read raises
+``SerialException``, and a write to a full port raises ``BlockingIOError`` (pyserial's
+own non-blocking write spins until the port drains), which the backend answers by
+buffering.
 """
 
 from __future__ import annotations
 
 import asyncio
+import errno
 import os
 import select
 
@@ -55,15 +57,33 @@ def test_a_write_returns_what_the_port_took(pty: Pty) -> None:  # noqa: F811
         port.close()
 
 
-def test_a_port_whose_other_end_hung_up_raises_on_read(pty: Pty) -> None:  # noqa: F811
-    # The slave of a pty whose master closed reads 0 bytes while select says readable:
-    # the case of an unplugged USB adapter, whose tty hung up; pyserial's read says so.
+def test_a_port_whose_other_end_hung_up_raises_as_pyserial_does(pty: Pty) -> None:  # noqa: F811
+    # The slave of a pty whose master closed reads 0 bytes and polls POLLHUP: the case
+    # of an unplugged USB adapter, whose tty hung up.
     port = _open(pty.path)
     try:
         pty.close_master()
         with pytest.raises(serial.SerialException, match="returned no data"):
             port.read(64)
     finally:
+        port.close()
+
+
+def test_a_failed_read_raises_as_pyserial_does(
+    pty: Pty,  # noqa: F811
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    port = _open(pty.path)
+
+    def failing(fd: int, n: int) -> bytes:
+        raise OSError(errno.EIO, "Input/output error")
+
+    try:
+        monkeypatch.setattr(direct_io.os, "read", failing)
+        with pytest.raises(serial.SerialException, match="read failed"):
+            port.read(64)
+    finally:
+        monkeypatch.undo()
         port.close()
 
 
@@ -108,8 +128,7 @@ async def test_the_fast_backend_delivers_a_frame_the_full_port_held_back_once_it
     await other.open(other_host.on_data, other_host.on_lost)
     try:
         port = t._transport.get_extra_info("serial")  # type: ignore[union-attr]
-        assert port.write.__module__ == direct_io.__name__  # the default backend uses it
-        assert getattr(port.read, "__module__", "") != direct_io.__name__  # pyserial's
+        assert port.read.__module__ == direct_io.__name__  # the default backend uses it
         # Fill the port's output until it refuses, as a device that stopped reading.
         filler = b"\x00" * 4096
         sent = 0
@@ -135,7 +154,7 @@ async def test_the_fast_backend_delivers_a_frame_the_full_port_held_back_once_it
 
 
 @pytest.mark.parametrize("backend", ["pyserial-asyncio", "serialx"])
-async def test_other_backends_keep_their_own_writes(pty: Pty, backend: str) -> None:  # noqa: F811
+async def test_other_backends_keep_their_own_reads(pty: Pty, backend: str) -> None:  # noqa: F811
     from motorbus.transport import available_backends
 
     if backend not in available_backends():
@@ -145,8 +164,8 @@ async def test_other_backends_keep_their_own_writes(pty: Pty, backend: str) -> N
     await t.open(host.on_data, host.on_lost)
     try:
         port = t._transport.get_extra_info("serial")  # type: ignore[union-attr]
-        write = getattr(port, "write", None)
-        assert write is None or getattr(write, "__module__", "") != direct_io.__name__
+        read = getattr(port, "read", None)
+        assert read is None or getattr(read, "__module__", "") != direct_io.__name__
         pty.write(b"\xaa\x55")
         await host.wait_for(lambda: host.received == b"\xaa\x55")
     finally:

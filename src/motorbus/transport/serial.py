@@ -445,7 +445,7 @@ class SerialTransport(CountingTransport):
             transport.max_size = SERIALX_MAX_READ
         pyserial = transport.get_extra_info("serial")
         if self.backend == "fast" and is_device_path(self.device):
-            direct_io.install(pyserial)  # one syscall a write, no spin on a full port
+            direct_io.install(pyserial)  # one syscall a read and a write
         if self.rs485:
             self._set_rs485(pyserial)
         tty_name = usb_serial_name(self.device)
