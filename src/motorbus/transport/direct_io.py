@@ -5,10 +5,12 @@ pyserial's ``Serial.read`` asks ``select`` before every ``os.read`` and builds a
 in a busy loop while the output buffer is full, which holds the event loop, and every
 bus on it, until the port drains (a device that stopped reading, an adapter that
 stalls).  The ``"fast"`` backend calls both once per chunk and per frame.  :func:`install`
-gives one opened port replacements with pyserial's contract, minus that work.  It is kept
-for the write: with pyserial's, one port whose device stopped reading stalls every bus of
-the loop, stop commands included (``tests/transport/test_direct_io.py``); the CPU the read
-saves is small and no published figure rests on it (benchmarks/README.md, ``ab_cpu.py``):
+gives one opened port replacements with pyserial's contract, minus that work.  The write
+is kept because with pyserial's, one port whose device stopped reading stalls every bus
+of the loop, stop commands included (``tests/transport/test_direct_io.py``).  The read is
+kept for the request round trip: without it, ``bench_bus.py``'s ratio to a minimal client
+went from 1.09 to 1.105 (medians of four alternating pairs, 2026-12-07), past issue 40's
+1.1 (benchmarks/README.md, "The direct read and the round trip"):
 
 * ``read(size)``: one ``os.read``.  A raw tty read with nothing to read returns no bytes
   (``VMIN = 0``), as a hung-up one does, so an empty read asks ``poll`` which of the two
