@@ -38,6 +38,7 @@ from typing import Any
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from harness import write_report
 from motorbus.bus.bus import Bus, BusState
 from motorbus.bus.timer import default_timer
 from motorbus.devices.la import InspireLA
@@ -76,6 +77,8 @@ WARMUP_SHARE = 0.2
 #: ~10 000 requests, far fewer than a 2-minute run makes.  RSS is reported, not used:
 #: the allocator does not hand freed arenas back, so RSS only ever rises by steps.
 MEMORY_FLAT_KB = 1024
+#: Status error flags that forbid motion: an actuator reporting one keeps its target.
+BLOCKING_FAULTS = la.ErrorFlags.STALL | la.ErrorFlags.OVER_CURRENT | la.ErrorFlags.OVER_TEMPERATURE
 PAGE_KB = os.sysconf("SC_PAGE_SIZE") // 1024
 
 
@@ -132,6 +135,7 @@ async def request_loop(
     bus: Bus, models: list[LAModel], counters: Counters, stop: asyncio.Event
 ) -> None:
     targets = dict.fromkeys(LA_IDS, 0)
+    held: dict[int, int] = {}  # the target each actuator last took
     k = 0
     while not stop.is_set():
         ident = LA_IDS[k % len(LA_IDS)]
@@ -143,13 +147,19 @@ async def request_loop(
             status = await guarded(bus, counters, actuator.move_to(target))
             if status is None:
                 pass
-            elif status.id == ident and status.target != target and status.errors:
-                # The actuator answered, in a fault that forbids motion (a stall on an end
-                # stop, reversing at speed near it): it keeps its target until the fault
-                # clears (docs/protocols.md C.7: 5 s, or 0x1E).  The reply is this request's.
+            elif (
+                status.id == ident
+                and status.errors & BLOCKING_FAULTS
+                and status.target == held.get(ident)
+            ):
+                # The actuator answered in a fault that forbids motion (a stall on an end
+                # stop, reversing at speed near it): it keeps the target it held until the
+                # fault clears (docs/protocols.md C.7: 5 s, or 0x1E).
                 counters.refused_in_fault += 1
             elif (status.id, status.target) != (ident, target):
                 counters.mismatch(f"move_to({ident}, {target}) -> {status}")
+            else:
+                held[ident] = target
         elif what == 1:
             status = await guarded(bus, counters, actuator.status())
             if status is not None and status.id != ident:
@@ -507,8 +517,7 @@ def main(argv: list[str] | None = None) -> int:
         "memory_flat": result["memory_growth_kb"] < MEMORY_FLAT_KB,
         "fuzz_clean": result["fuzz"]["exceptions"] == 0,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=2, default=str) + "\n")
+    write_report(args.out, json.loads(json.dumps(result, default=str)))
     f = result["faults_injected"]
     print(
         f"\nsummary over {result['duration_s']} s at fault rate {args.fault_rate}:\n"

@@ -998,14 +998,13 @@ def test_the_parts_taken_out_come_back_and_the_stream_still_ticks(tmp_path: Path
 
 
 #: benchmarks/*.py that are not scripts writing a report of their own: the harness, the
-#: full run and its parts, soak, and modules or children the scripts use.
+#: full run and its parts, and modules or children the scripts use.
 NOT_REPORTING = {
     "harness.py",
     "run.py",
     "run_results.py",
     "run_report.py",
     "report_plots.py",
-    "soak.py",
     "pty_recorder.py",
     "sim_many.py",
     "guard_victim.py",
