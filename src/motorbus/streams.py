@@ -562,8 +562,7 @@ class Streamer:
         is prepared before the deadline (``Bus.prepare(refresh=...)``) and re-checked
         when written: rebuilt from the streams still sending only if one stopped or
         paused since, so such a stream sends nothing more, even from a frame that had
-        to wait its turn.  A frame refused when prepared (the port away, the bus
-        closing) is not sent this tick: there is no second way to send it.
+        to wait its turn; one refused when prepared is not sent (no second way).
         Returns (when the first frame left, or None if nothing left; frames sent; whether
         the tick slipped: its first frame could not be written at the deadline itself).
         """

@@ -9,7 +9,7 @@ import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
-from motorbus.bus.lease_shell import raise_unexpected
+from motorbus.bus.lease_shell import finish_shielded, raise_unexpected
 from motorbus.bus.leases import PROGRAM, Lease
 from motorbus.errors import (
     BusClosedError,
@@ -383,14 +383,19 @@ class ProjectStepper:
 
         The stop is the lease keeper's (the one sender of safe actions): what ends the
         motion ``start`` began (``safety.motion_stops``: stop project, 0x5E), at
-        emergency priority with its retries; a failure is logged there.  Ctrl-C waits
-        for it."""
+        emergency priority with its retries; a failure is logged there.  Ctrl-C and a
+        cancellation wait for it."""
         self._last_stop = time.monotonic()
-        stops = safety.motion_stops(start) or ()
-        with deferred_interrupts():
-            results = await self.bus.lease_keeper.send_stop(
-                stops, who=f"project {start.project}'s run"
-            )
+        keeper = self.bus.lease_keeper
+        # What ends this motion; the controller's whole safe action if that were unknown.
+        stops = safety.motion_stops(start) or keeper.safe_commands(KEY, motor=self.motor)
+        results: list[object] = []
+
+        async def stop() -> None:
+            results.extend(await keeper.send_stop(stops, who=f"project {start.project}'s run"))
+
+        with deferred_interrupts():  # and a cancellation waits for it too, as send_safe's
+            await finish_shielded(asyncio.ensure_future(stop()))
         raise_unexpected(results)
         for result in results:
             if isinstance(result, BaseException):

@@ -9,8 +9,8 @@ gives one opened port replacements with pyserial's contract, minus that work.  T
 is kept because with pyserial's, one port whose device stopped reading stalls every bus
 of the loop, stop commands included (``tests/transport/test_direct_io.py``).  The read is
 kept for the request round trip: without it, ``bench_bus.py``'s ratio to a minimal client
-went from 1.09 to 1.105 (medians of four alternating pairs, 2026-12-07), past issue 40's
-1.1 (benchmarks/README.md, "The direct read and the round trip"):
+went from 1.094 to 1.102 (medians of four alternating pairs, 2026-12-07), across issue
+40's 1.1 (benchmarks/README.md, "The direct read and the round trip"):
 
 * ``read(size)``: one ``os.read``.  A raw tty read with nothing to read returns no bytes
   (``VMIN = 0``), as a hung-up one does, so an empty read asks ``poll`` which of the two
