@@ -86,6 +86,14 @@ async def test_a_cancelled_upload_clears_once_and_ends_its_lease() -> None:
         await stepper.upload(ten_steps(distance=9))  # a valid project 1, saved
         written = Written()
         bus.add_observer(written)
+        keeper, asked = bus.lease_keeper, []
+        send_stop = keeper.send_stop
+
+        async def recording(commands: Any, *, who: str) -> list[object]:
+            asked.extend(commands)  # the one sender of safe actions sends the clear
+            return await send_stop(commands, who=who)
+
+        keeper.send_stop = recording  # type: ignore[method-assign]
         task = asyncio.create_task(stepper.upload(ten_steps()))
         await eventually(lambda: len(written.commands) >= 12, "12 upload frames written")
         assert bus.leases == (upload_lease(CLEAR_1),)
@@ -101,6 +109,7 @@ async def test_a_cancelled_upload_clears_once_and_ends_its_lease() -> None:
         assert bus.leases == ()
         clears = [c for c in written.commands if isinstance(c, ps.ClearProject)]
         assert clears == [CLEAR_1] and written.commands[-1] == CLEAR_1  # once, last
+        assert asked == [CLEAR_1]
         with pytest.raises(ProjectInvalidError):
             await stepper.check_project(1)
         n = len(written.commands)

@@ -252,7 +252,12 @@ class ProjectStepper:
             return what
         with deferred_interrupts():
             try:
-                await self.bus.request(ps.ClearProject(number), priority=Priority.EMERGENCY)
+                # The upload's safe action, sent by the one sender of safe actions.
+                (result,) = await self.bus.lease_keeper.send_stop(
+                    [ps.ClearProject(number)], who=f"project {number}'s upload"
+                )
+                if isinstance(result, BaseException):
+                    raise result
             except (MotorbusError, OSError) as err:
                 what = (
                     f"{head}clearing it (0x1E) failed ({err}): the project on the device may "
