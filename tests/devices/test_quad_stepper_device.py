@@ -86,6 +86,26 @@ async def test_a_run_that_times_out_is_stopped_and_says_so() -> None:
         assert not model.motors[1].running
 
 
+async def test_the_stop_of_a_timed_out_run_is_the_lease_keepers() -> None:
+    # One sender of safe actions (issue 40): the motor's stop is asked of the keeper.
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        quad = QuadStepper(bus)
+        await _long_move(quad)
+        keeper, asked = bus.lease_keeper, []
+        send_stop = keeper.send_stop
+
+        async def recording(commands: Any, *, who: str) -> list[object]:
+            asked.append(tuple(commands))
+            return await send_stop(commands, who=who)
+
+        keeper.send_stop = recording  # type: ignore[method-assign]
+        with pytest.raises(ReplyTimeoutError, match="stopped it"):
+            await quad.run(1, timeout=0.05)
+        assert [[(type(c).__name__, c.motor) for c in cmds] for cmds in asked] == [[("Stop", 1)]]
+        assert not model.motors[1].running
+
+
 async def test_keep_running_leaves_the_motor_going_and_says_how_to_stop() -> None:
     model = QuadStepperModel()
     async with sim_bus([model], baud=115200) as (bus, _):

@@ -134,6 +134,21 @@ class SafeStopper:
                 )
         return results
 
+    async def stop_shielded(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
+        """``send_stop`` for an ending (a run abandoned, timed out or cancelled): it runs
+        to its end however often the caller is cancelled meanwhile (the cancellation is
+        delivered after), and Ctrl-C waits for it.  Returns each command's result or
+        exception, in order; an unexpected error (a bug) is raised once all went."""
+        results: list[object] = []
+
+        async def send() -> None:
+            results.extend(await self.send_stop(commands, who=who))
+
+        with lifecycle.deferred_interrupts():
+            await finish_shielded(asyncio.ensure_future(send()))
+        raise_unexpected(results)
+        return results
+
 
 class LeaseKeeper(SafeStopper):
     """The leases of one bus and the sending of their safe actions.

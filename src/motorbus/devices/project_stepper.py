@@ -9,7 +9,6 @@ import time
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import ProjectFinished, Subscription
-from motorbus.bus.lease_shell import finish_shielded, raise_unexpected
 from motorbus.bus.leases import PROGRAM, Lease
 from motorbus.errors import (
     BusClosedError,
@@ -394,14 +393,7 @@ class ProjectStepper:
         keeper = self.bus.lease_keeper
         # What ends this motion; the controller's whole safe action if that were unknown.
         stops = safety.motion_stops(start) or keeper.safe_commands(KEY, motor=self.motor)
-        results: list[object] = []
-
-        async def stop() -> None:
-            results.extend(await keeper.send_stop(stops, who=f"project {start.project}'s run"))
-
-        with deferred_interrupts():  # and a cancellation waits for it too, as send_safe's
-            await finish_shielded(asyncio.ensure_future(stop()))
-        raise_unexpected(results)
+        results = await keeper.stop_shielded(stops, who=f"project {start.project}'s run")
         for result in results:
             if isinstance(result, BaseException):
                 return f"the stop (0x5E) failed ({result}): it may still be running; {STOP_HINT}"

@@ -8,7 +8,7 @@ import logging
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import QuadDone
-from motorbus.errors import LeaseConflictError, MotorbusError, ReplyTimeoutError
+from motorbus.errors import LeaseConflictError, ReplyTimeoutError
 from motorbus.protocol import quad_stepper as q
 from motorbus.protocol import safety
 from motorbus.protocol.base import WAIT_TIMEOUT_MAX_S, check_flag, check_timeout
@@ -164,10 +164,10 @@ class QuadStepper:
                             raise ReplyTimeoutError(
                                 f"{waited}: still running; `motorbus quad stop {motor}` ends it"
                             ) from None
-                        stopped = await self._stop_after(motor)
+                        stopped = await self._stop_after(cmd)
                         raise ReplyTimeoutError(f"{waited}: {stopped}") from None
         except asyncio.CancelledError:
-            await self._stop_after(motor)
+            await self._stop_after(cmd)
             raise
 
     async def _keep_running(self) -> None:
@@ -176,19 +176,23 @@ class QuadStepper:
         with contextlib.suppress(LeaseConflictError):
             await self.release(hold=True)
 
-    async def _stop_after(self, motor: int) -> str:
-        """Stop ``motor`` after a run was abandoned (stop all if that fails); say what was done."""
-        try:
-            await self.stop(motor)
-        except (MotorbusError, OSError) as err:
-            log.warning("motor %d: stop failed (%s); sending stop all", motor, err)
-        else:
+    async def _stop_after(self, run: q.Run) -> str:
+        """Stop the motor of ``run`` after the run was abandoned (stop all if that fails);
+        say what was done.  The stops are the lease keeper's (the one sender of safe
+        actions): emergency priority with their retries; Ctrl-C and a cancellation wait
+        for them."""
+        keeper = self.bus.lease_keeper
+        motor = run.motor
+        stops = safety.motion_stops(run) or (q.Stop(motor),)
+        (result,) = await keeper.stop_shielded(stops, who=f"motor {motor}'s run")
+        if not isinstance(result, BaseException):
             return f"stopped it (stop 0x{q.CMD_STOP:02X} to motor {motor} sent)"
-        try:
-            await self.stop_all()
-        except (MotorbusError, OSError) as err:
-            log.warning("stop all failed: %s", err)
-            return f"the stop got no answer ({err}): it may still be running"
+        log.warning("motor %d: stop failed (%s); sending stop all", motor, result)
+        (result,) = await keeper.stop_shielded(
+            keeper.safe_commands(KEY), who=f"motor {motor}'s run, stop all"
+        )
+        if isinstance(result, BaseException):
+            return f"the stop got no answer ({result}): it may still be running"
         return f"stopped it (stop 0x{q.CMD_STOP:02X} to all motors sent)"
 
     async def run_all(self) -> None:
