@@ -184,6 +184,62 @@ def test_no_module_but_the_lease_table_sends_safe_stops() -> None:
     assert bad == []
 
 
+#: Stop frames of the steppers (and the upload's clear), by constructor name.
+STEPPER_STOPS = ("StopProject", "ManualStop", "Stop", "StopAll", "ClearProject")
+#: The methods that send one as the user's own command (``motorbus project stop``,
+#: ``QuadStepper.stop``): not an ending, so not the lease table's.
+USER_COMMANDS = {
+    ("devices/project_stepper.py", "stop_project"),
+    ("devices/project_stepper.py", "stop"),
+    ("devices/project_stepper.py", "clear_project"),
+    ("devices/quad_stepper.py", "stop"),
+    ("devices/quad_stepper.py", "stop_all"),
+}
+
+
+def _stepper_stops_sent(path: Path, rel: str) -> Iterator[str]:
+    """``x.request(<a stepper stop>(...))`` or ``x.submit(...)`` calls outside the
+    user-command methods."""
+    for func in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if not isinstance(func, ast.AsyncFunctionDef | ast.FunctionDef):
+            continue
+        if (rel, func.name) in USER_COMMANDS:
+            continue
+        for call in ast.walk(func):
+            if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute)):
+                continue
+            if call.func.attr not in ("request", "submit", "send") or not call.args:
+                continue
+            first = call.args[0]
+            if isinstance(first, ast.Call) and ast.unparse(first.func).endswith(STEPPER_STOPS):
+                yield f"{rel}:{func.name}: {ast.unparse(call)}"
+
+
+def test_no_ending_sends_a_stepper_stop_of_its_own() -> None:
+    # Issue 40: the run stops of both steppers and the upload's clear go through the
+    # lease keeper; only the user's own stop commands send them directly.
+    bad = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC).as_posix()
+        if rel.startswith(("protocol/", "sim/")) or rel == "bus/lease_shell.py":
+            continue
+        bad.extend(_stepper_stops_sent(path, rel))
+    assert bad == []
+
+
+def test_the_stepper_check_sees_a_stop_sent_from_an_ending(tmp_path: Path) -> None:
+    sample = tmp_path / "sample.py"
+    sample.write_text(
+        "async def _stop_after(self):\n"
+        "    await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)\n"
+        "async def stop_project(self):\n"
+        "    await self.bus.request(ps.StopProject())\n",
+        encoding="utf-8",
+    )
+    found = list(_stepper_stops_sent(sample, "devices/project_stepper.py"))
+    assert len(found) == 1 and found[0].startswith("devices/project_stepper.py:_stop_after")
+
+
 def test_the_source_check_sees_a_hand_built_stop(tmp_path: Path) -> None:
     sample = tmp_path / "sample.py"
     sample.write_text(
