@@ -135,7 +135,6 @@ async def request_loop(
     bus: Bus, models: list[LAModel], counters: Counters, stop: asyncio.Event
 ) -> None:
     targets = dict.fromkeys(LA_IDS, 0)
-    held: dict[int, int] = {}  # the target each actuator last took
     k = 0
     while not stop.is_set():
         ident = LA_IDS[k % len(LA_IDS)]
@@ -150,16 +149,15 @@ async def request_loop(
             elif (
                 status.id == ident
                 and status.errors & BLOCKING_FAULTS
-                and status.target == held.get(ident)
+                and status.target == models[ident - 1].target
             ):
                 # The actuator answered in a fault that forbids motion (a stall on an end
-                # stop, reversing at speed near it): it keeps the target it held until the
-                # fault clears (docs/protocols.md C.7: 5 s, or 0x1E).
+                # stop, reversing at speed near it): it keeps the target it held (the
+                # simulator's, which did not take this one) until the fault clears
+                # (docs/protocols.md C.7: 5 s, or 0x1E).
                 counters.refused_in_fault += 1
             elif (status.id, status.target) != (ident, target):
                 counters.mismatch(f"move_to({ident}, {target}) -> {status}")
-            else:
-                held[ident] = target
         elif what == 1:
             status = await guarded(bus, counters, actuator.status())
             if status is not None and status.id != ident:

@@ -10,6 +10,7 @@ sender (``LeaseKeeper.send_stop``), and read the source for any other sender.
 from __future__ import annotations
 
 import ast
+import asyncio
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
@@ -17,7 +18,7 @@ import pytest
 
 from motorbus.bus.lease_shell import LeaseKeeper
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError
+from motorbus.errors import BusClosedError, LocalProtocolError, ReplyTimeoutError
 from motorbus.manager import BusManager
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
@@ -147,6 +148,61 @@ async def test_the_steppers_safe_actions_are_the_table_s_too() -> None:
     )
 
 
+def _quad_keeper(request: object, state: str = "open") -> tuple[LeaseKeeper, list[Command[object]]]:
+    from motorbus.protocol.base import Family
+
+    sent: list[Command[object]] = []
+
+    async def recorded(cmd: Command[object], **kwargs: object) -> object:
+        sent.append(cmd)
+        return await request(cmd)  # type: ignore[operator]
+
+    keeper = LeaseKeeper("x", frozenset({Family.QUAD_STEPPER}), "pause", recorded, lambda: state)
+    return keeper, sent
+
+
+async def test_an_ending_s_stop_falls_back_to_stop_all_when_the_motor_s_stop_fails() -> None:
+    async def stop_fails(cmd: Command[object]) -> object:
+        if isinstance(cmd, q.Stop):
+            raise ReplyTimeoutError("no answer")
+        return None
+
+    keeper, sent = _quad_keeper(stop_fails)
+    tried = await keeper.stop_shielded((q.Stop(2),), (q.StopAll(),), who="test")
+    assert [type(c).__name__ for c in sent] == ["Stop", "StopAll"]
+    assert len(tried) == 2 and tried[1] == [None]
+
+
+async def test_an_ending_s_stop_is_owed_while_the_port_is_lost() -> None:
+    keeper, sent = _quad_keeper(_no_request, state="lost")
+    tried = await keeper.stop_shielded((q.Stop(2),), (q.StopAll(),), who="test")
+    assert sent == [] and keeper.owed == [q.Stop(2)]  # sent the moment the port is back
+    [[owed]] = tried
+    assert isinstance(owed, BusClosedError) and "owed" in str(owed)
+
+
+async def test_an_ending_s_stop_runs_to_its_end_when_cancelled_and_then_says_so() -> None:
+    release = asyncio.Event()
+
+    async def slow(cmd: Command[object]) -> object:
+        await release.wait()
+        return None
+
+    keeper, sent = _quad_keeper(slow)
+    task = asyncio.create_task(keeper.stop_shielded((q.Stop(2),), (q.StopAll(),), who="t"))
+    await asyncio.sleep(0)
+    await asyncio.sleep(0)
+    task.cancel()
+    await asyncio.sleep(0)
+    task.cancel()  # twice
+    await asyncio.sleep(0)
+    assert not task.done()
+    release.set()
+    with pytest.raises(asyncio.CancelledError):
+        await task
+    assert sent == [q.Stop(2)]  # sent, and no stop all needed
+
+
 async def _no_request(cmd: Command[object], **kwargs: object) -> object:
     raise AssertionError("nothing is sent here")
 
@@ -208,7 +264,11 @@ def _stepper_stops_sent(path: Path, rel: str) -> Iterator[str]:
         for call in ast.walk(func):
             if not (isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute)):
                 continue
-            if call.func.attr not in ("request", "submit", "send") or not call.args:
+            if (rel, call.func.attr) in USER_COMMANDS and ast.unparse(call.func.value) == "self":
+                # A user's stop command, called from an ending: the keeper's job.
+                yield f"{rel}:{func.name}: {ast.unparse(call)}"
+                continue
+            if call.func.attr not in ("request", "submit", "send", "prepare") or not call.args:
                 continue
             first = call.args[0]
             if isinstance(first, ast.Call) and ast.unparse(first.func).endswith(STEPPER_STOPS):
@@ -233,11 +293,16 @@ def test_the_stepper_check_sees_a_stop_sent_from_an_ending(tmp_path: Path) -> No
         "async def _stop_after(self):\n"
         "    await self.bus.request(ps.StopProject(), priority=Priority.EMERGENCY)\n"
         "async def stop_project(self):\n"
-        "    await self.bus.request(ps.StopProject())\n",
+        "    await self.bus.request(ps.StopProject())\n"
+        "async def _abandon(self):\n"
+        "    await self.stop_project()\n",
         encoding="utf-8",
     )
     found = list(_stepper_stops_sent(sample, "devices/project_stepper.py"))
-    assert len(found) == 1 and found[0].startswith("devices/project_stepper.py:_stop_after")
+    assert [f.split(": ")[0] for f in found] == [
+        "devices/project_stepper.py:_stop_after",
+        "devices/project_stepper.py:_abandon",
+    ]
 
 
 def test_the_source_check_sees_a_hand_built_stop(tmp_path: Path) -> None:
@@ -248,3 +313,15 @@ def test_the_source_check_sees_a_hand_built_stop(tmp_path: Path) -> None:
     )
     funcs = [ast.unparse(c.func) for c in _calls(sample)]
     assert "la.Control" in funcs and "send_together" in funcs
+
+
+async def test_a_cancellation_that_comes_as_the_stop_ends_is_still_delivered() -> None:
+    from motorbus.bus.lease_shell import finish_shielded
+
+    fut: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+    task = asyncio.create_task(finish_shielded(fut))
+    await asyncio.sleep(0)
+    fut.set_result(None)  # the stop ends, and in the same loop step the caller is cancelled
+    task.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await task

@@ -22,7 +22,7 @@ from motorbus import lifecycle
 from motorbus.bus import leases as _leases
 from motorbus.bus.leases import Lease, LeaseTable, SafeCommandsForKey
 from motorbus.bus.schedule import Priority
-from motorbus.errors import LocalProtocolError, MotorbusError
+from motorbus.errors import BusClosedError, LocalProtocolError, MotorbusError
 from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 
@@ -132,21 +132,6 @@ class SafeStopper:
                     cmd.device_key,
                     result,
                 )
-        return results
-
-    async def stop_shielded(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
-        """``send_stop`` for an ending (a run abandoned, timed out or cancelled): it runs
-        to its end however often the caller is cancelled meanwhile (the cancellation is
-        delivered after), and Ctrl-C waits for it.  Returns each command's result or
-        exception, in order; an unexpected error (a bug) is raised once all went."""
-        results: list[object] = []
-
-        async def send() -> None:
-            results.extend(await self.send_stop(commands, who=who))
-
-        with lifecycle.deferred_interrupts():
-            await finish_shielded(asyncio.ensure_future(send()))
-        raise_unexpected(results)
         return results
 
 
@@ -285,6 +270,41 @@ class LeaseKeeper(SafeStopper):
         with lifecycle.deferred_interrupts():
             await finish_shielded(asyncio.ensure_future(send_all()))
 
+    async def stop_shielded(
+        self, *steps: Sequence[Command[object]], who: str
+    ) -> list[list[object]]:
+        """An ending's stop (a run abandoned, timed out or cancelled): ``steps`` sent in
+        turn, each only if a command of the step before failed (a motor's stop, then the
+        controller's stop all).  It runs to its end however often the caller is cancelled
+        meanwhile (the cancellation is delivered after), and Ctrl-C waits for it.  While
+        the port is lost, the step due is owed instead, as ``send_safe`` owes (sent the
+        moment the port is back), and its results say so.  Returns each tried step's
+        results (a result or the exception, per command); an unexpected error (a bug) is
+        raised once all went."""
+        tried: list[list[object]] = []
+
+        async def send() -> None:
+            for commands in steps:
+                if self._state() == "lost":
+                    self.owed.extend(commands)
+                    owed = BusClosedError(
+                        f"bus {self.name} lost its port: the stop is owed, sent the moment "
+                        "the port is back"
+                    )
+                    log.warning("%s: %s", who, owed)
+                    tried.append([owed] * len(commands))
+                    return
+                results = await self.send_stop(commands, who=who)
+                tried.append(results)
+                if not any(isinstance(r, BaseException) for r in results):
+                    return
+
+        with lifecycle.deferred_interrupts():
+            await finish_shielded(asyncio.ensure_future(send()))
+        for results in tried:
+            raise_unexpected(results)
+        return tried
+
 
 async def send_together(request: SafeRequest, commands: Sequence[Command[object]]) -> list[object]:
     """Send every command of a safe stop with ``request`` (a bus's), at emergency
@@ -338,10 +358,11 @@ async def finish_shielded(fut: asyncio.Future[None]) -> None:
         try:
             await asyncio.shield(fut)
         except asyncio.CancelledError:
-            if fut.done():
-                break
+            # Delivered after, also when ``fut`` ended in the same loop step.
             cancelled = True
     if cancelled:
+        if not fut.cancelled() and fut.exception() is not None:
+            log.warning("a safe stop failed while its caller was cancelled: %s", fut.exception())
         raise asyncio.CancelledError
     fut.result()
 

@@ -393,7 +393,7 @@ class ProjectStepper:
         keeper = self.bus.lease_keeper
         # What ends this motion; the controller's whole safe action if that were unknown.
         stops = safety.motion_stops(start) or keeper.safe_commands(KEY, motor=self.motor)
-        results = await keeper.stop_shielded(stops, who=f"project {start.project}'s run")
+        [results] = await keeper.stop_shielded(stops, who=f"project {start.project}'s run")
         for result in results:
             if isinstance(result, BaseException):
                 return f"the stop (0x5E) failed ({result}): it may still be running; {STOP_HINT}"

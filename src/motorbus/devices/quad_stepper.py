@@ -184,13 +184,14 @@ class QuadStepper:
         keeper = self.bus.lease_keeper
         motor = run.motor
         stops = safety.motion_stops(run) or (q.Stop(motor),)
-        (result,) = await keeper.stop_shielded(stops, who=f"motor {motor}'s run")
-        if not isinstance(result, BaseException):
-            return f"stopped it (stop 0x{q.CMD_STOP:02X} to motor {motor} sent)"
-        log.warning("motor %d: stop failed (%s); sending stop all", motor, result)
-        (result,) = await keeper.stop_shielded(
-            keeper.safe_commands(KEY), who=f"motor {motor}'s run, stop all"
+        # The motor's stop, then stop all if that fails: one shielded ending, so that a
+        # second cancellation cannot fall between the two.
+        tried = await keeper.stop_shielded(
+            stops, keeper.safe_commands(KEY), who=f"motor {motor}'s run"
         )
+        (result,) = tried[-1]
+        if len(tried) == 1 and not isinstance(result, BaseException):
+            return f"stopped it (stop 0x{q.CMD_STOP:02X} to motor {motor} sent)"
         if isinstance(result, BaseException):
             return f"the stop got no answer ({result}): it may still be running"
         return f"stopped it (stop 0x{q.CMD_STOP:02X} to all motors sent)"
