@@ -568,9 +568,6 @@ class Streamer:
         """
         if not parts:
             return None, 0, False
-        loop = asyncio.get_running_loop()
-        fired: asyncio.Future[list[BusJob]] = loop.create_future()  # written or waiting
-        sent: list[float] = []
         # IDs were checked when the streams started (distinct across streams) and every
         # position by _position, so the frames are built without re-checking.
         # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
@@ -591,6 +588,8 @@ class Streamer:
         if not prepared:
             return None, 0, False  # nothing goes out this tick (the caller counts it)
         send = self.bus.send_prepared
+        fired: asyncio.Future[list[BusJob]] = asyncio.get_running_loop().create_future()
+        sent: list[float] = []  # when the first frame was issued
 
         def fire() -> None:
             if fired.done():

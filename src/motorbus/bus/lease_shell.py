@@ -244,55 +244,27 @@ class LeaseKeeper(SafeStopper):
         cut half way.  While the port is lost the commands are kept as owed and sent
         the moment it is back, before anything else (``pay_owed``), or at close.
         """
-        if not commands:
-            return
-        state = self._state()
-        if state != "open":
-            keys = ", ".join(dict.fromkeys(c.device_key for c in commands))
-            if state == "closed":
-                log.warning(
-                    "bus %s is closed: could not send the safe action to %s", self.name, keys
-                )
-                return
-            log.warning(
-                "bus %s is %s: the safe action to %s is owed; it goes out the moment "
-                "the port is back",
-                self.name,
-                state,
-                keys,
-            )
-            self.owed.extend(commands)
-            return
-
-        async def send_all() -> None:
-            raise_unexpected(await self.send_stop(commands, who="a lease ended"))
-
-        with lifecycle.deferred_interrupts():
-            await finish_shielded(asyncio.ensure_future(send_all()))
+        if commands and self._owe_unless_open(commands) is None:
+            await self.stop_shielded(commands, who="a lease ended")
 
     async def stop_shielded(
         self, *steps: Sequence[Command[object]], who: str
     ) -> list[list[object]]:
-        """An ending's stop (a run abandoned, timed out or cancelled): ``steps`` sent in
-        turn, each only if a command of the step before failed (a motor's stop, then the
-        controller's stop all).  It runs to its end however often the caller is cancelled
-        meanwhile (the cancellation is delivered after), and Ctrl-C waits for it.  While
-        the port is lost, the step due is owed instead, as ``send_safe`` owes (sent the
-        moment the port is back), and its results say so.  Returns each tried step's
-        results (a result or the exception, per command); an unexpected error (a bug) is
-        raised once all went."""
+        """A safe stop (a lease's end, a run abandoned, timed out or cancelled):
+        ``steps`` sent in turn, each only if a command of the step before failed (a
+        motor's stop, then the controller's stop all).  It runs to its end however often
+        the caller is cancelled meanwhile (the cancellation is delivered after), and
+        Ctrl-C waits for it.  While the port is lost, the step due is owed instead
+        (``_owe_unless_open``), and its results say so.  Returns each tried step's results
+        (a result or the exception, per command); an unexpected error (a bug) is raised
+        once all went."""
         tried: list[list[object]] = []
 
         async def send() -> None:
             for commands in steps:
-                if self._state() == "lost":
-                    self.owed.extend(commands)
-                    owed = BusClosedError(
-                        f"bus {self.name} lost its port: the stop is owed, sent the moment "
-                        "the port is back"
-                    )
-                    log.warning("%s: %s", who, owed)
-                    tried.append([owed] * len(commands))
+                refused = self._owe_unless_open(commands)
+                if refused is not None:
+                    tried.append([refused] * len(commands))
                     return
                 results = await self.send_stop(commands, who=who)
                 tried.append(results)
@@ -304,6 +276,31 @@ class LeaseKeeper(SafeStopper):
         for results in tried:
             raise_unexpected(results)
         return tried
+
+    def _owe_unless_open(self, commands: Sequence[Command[object]]) -> BusClosedError | None:
+        """None while the bus is open.  Else why ``commands`` are not sent now, logged:
+        owed while the port is lost (sent the moment it is back, ``pay_owed``, or at
+        close), dropped once the bus is closed."""
+        state = self._state()
+        if state == "open":
+            return None
+        keys = ", ".join(dict.fromkeys(c.device_key for c in commands))
+        if state == "closed":
+            log.warning("bus %s is closed: could not send the safe action to %s", self.name, keys)
+            return BusClosedError(
+                f"bus {self.name} is closed: could not send the safe action to {keys}"
+            )
+        log.warning(
+            "bus %s is %s: the safe action to %s is owed; it goes out the moment the port is back",
+            self.name,
+            state,
+            keys,
+        )
+        self.owed.extend(commands)
+        return BusClosedError(
+            f"bus {self.name} is {state}: the safe action to {keys} is owed; it goes out "
+            "the moment the port is back"
+        )
 
 
 async def send_together(request: SafeRequest, commands: Sequence[Command[object]]) -> list[object]:

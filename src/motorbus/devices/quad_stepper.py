@@ -183,7 +183,8 @@ class QuadStepper:
         for them."""
         keeper = self.bus.lease_keeper
         motor = run.motor
-        stops = safety.motion_stops(run) or (q.Stop(motor),)
+        # What ends this motion (that motor's stop); the whole safe action if unknown.
+        stops = safety.motion_stops(run) or keeper.safe_commands(KEY)
         # The motor's stop, then stop all if that fails: one shielded ending, so that a
         # second cancellation cannot fall between the two.
         tried = await keeper.stop_shielded(
