@@ -1044,3 +1044,26 @@ def test_write_report_adds_the_machine_and_date_and_keeps_a_scripts_own_machine_
     assert report["x"] == 1 and report["date"]
     assert report["machine"]["load_avg_before"] == [0.5, 0.4, 0.3]
     assert {"platform", "python", "cpus", "load_avg"} <= set(report["machine"])
+
+
+def test_instructions_a_tick_are_the_difference_of_two_runs_over_their_ticks() -> None:
+    import count_instructions as ci
+
+    # Start-up (1,000) cancels out: 200 ticks more cost 200 * 300 instructions more.
+    assert ci.per_tick((1_000 + 100 * 300, 100), (1_000 + 300 * 300, 300)) == 300
+    assert ci.per_tick((5, 100), (9, 100)) is None  # no more ticks: no figure
+    err = "==12== Events    : Ir\n==12== Collected : 1840315157\n==12==\n"
+    assert ci.collected(err) == 1_840_315_157
+    with pytest.raises(RuntimeError, match="no callgrind summary"):
+        ci.collected("valgrind: command not found")
+    assert ci.ratio(120.0, 100.0) == 1.2 and ci.ratio(None, 100.0) is None
+
+
+def test_the_instruction_counts_child_runs_one_side_and_prints_its_ticks(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import count_instructions as ci
+
+    ci.child("ours", 0.3, "none")
+    ticks = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["ticks"]
+    assert ticks >= 15

@@ -48,7 +48,7 @@ def test_ci_installs_the_debian_packages_the_tests_and_benchmarks_use() -> None:
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
     install = [ln for ln in ci.splitlines() if "apt-get install" in ln]
     assert install, ".ci/run installs no Debian package"
-    assert {"ser2net", "socat", "linux-perf"} <= set(install[0].split())
+    assert {"ser2net", "socat", "linux-perf", "valgrind"} <= set(install[0].split())
 
 
 def pyproject() -> dict[str, object]:
