@@ -1,19 +1,26 @@
-"""CPU per bus-tick as a count: the instructions ``bench_cpu.py``'s loops execute a tick.
+"""CPU per bus-tick as a count: the instructions ``bench_cpu.py``'s loops execute a tick,
+and their first-level cache misses.
 
 ``bench_cpu.py`` times the loops, and on this shared 2-core VM one round's ratio to (b)
 ranges from 0.95 to 2.5 for the same code.  This script counts instead: each loop
 (``ours``, (b) ``timerfd``, ``minimal``: ``bench_cpu.py``'s, on one bus, the same work)
-runs in a child process under valgrind's callgrind, which counts every user-space
-instruction the process executes, once for ``--short`` and once for ``--long`` seconds of
-ticks; the difference over the difference in ticks sent is the instructions one tick
-costs, the start-up (imports, opening the port) cancelling out.  A count does not move
-with the machine's load; two runs of the same code agree to about 1 %.
+runs in a child process under valgrind's cachegrind, which counts every user-space
+instruction the process executes and simulates its caches, once for ``--short`` and once
+for ``--long`` seconds of ticks; the difference over the difference in ticks sent is what
+one tick costs, the start-up (imports, opening the port) cancelling out.  A count does
+not move with the machine's load; two runs of the same code agree to about 1 %.
 
-What it does not see: the kernel's side of each system call (``bench_cpu.py``'s CPU
-includes it; ours makes about one more ``epoll_wait`` a tick than (b)), and how fast the
-instructions run (cache misses, branch misses).  Valgrind slows the child about 50x, so
-one bus only: a child that sent under 95 % of its ticks fell behind, and its row is
-marked (its count then includes skipped ticks' work, not only sent ones).  Ours's count
+Besides the instructions: the misses of the simulated first-level instruction and data
+caches (``I1``, ``D1``; valgrind sizes them as this machine's), a count of how much code
+and data a tick touches that the instructions alone do not show, and which makes the
+same instructions cost more time.  The simulated caches hold only this process's
+accesses: the misses after another process ran in the 10 ms between ticks are not in
+them.  Nor is the kernel's side of each system call (``bench_cpu.py``'s CPU includes
+it).  Valgrind slows the child about 50x, so one bus only.  A child kept up if it sent
+95 % of its ticks, with polls got as many replies, and had at most 5 % of its ticks late
+(over 1 ms); a run whose cache simulation slowed it past that is counted again without
+the simulation (instructions only; ``caches_simulated`` false), and a row that fell
+behind even so is marked (its count is of a saturated loop's work).  Ours's count
 includes ``harness.TimerProbe``, ``bench_cpu.py``'s counter of timer arms (a few dozen
 instructions an arm).
 
@@ -22,7 +29,7 @@ instructions an arm).
 
 Needs ``valgrind`` (Debian: ``apt-get install valgrind``).  Writes
 ``benchmarks/results/instructions.json``: per polls setting and side, the instructions
-a tick, and ours over (b) and over the minimal loop.
+and the I1 and D1 misses a tick, and ours over (b) and over the minimal loop.
 """
 
 from __future__ import annotations
@@ -42,10 +49,12 @@ from harness import write_report
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "instructions.json"
 SIDES = ("ours", "timerfd", "minimal")
-#: A child that sent fewer of its ticks fell behind under valgrind (its row is marked).
+#: A child kept up under valgrind if it sent this share of its ticks at least, with
+#: polls got as many replies, and had at most ``LATE_SHARE`` of its ticks late.
 KEPT_UP_SHARE = 0.95
-#: callgrind's summary line: "==pid== Collected : 1840315157".
-_COLLECTED = re.compile(r"Collected\s*:\s*(\d+)")
+LATE_SHARE = 0.05
+#: cachegrind's summary lines: "==pid== I   refs:      1,843,299,318", and so on.
+COUNTS = {"instructions": "I   refs", "i1_misses": "I1  misses", "d1_misses": "D1  misses"}
 
 
 def child(side: str, seconds: float, polls: str) -> None:
@@ -58,32 +67,48 @@ def child(side: str, seconds: float, polls: str) -> None:
             out = bench_cpu.run_side(side, responder.paths, seconds, polls, None)
         finally:
             responder.stop()
-    print(json.dumps({"ticks": out["ticks"], "replies": out.get("replies")}))
+    keys = ("ticks", "replies", "late_ticks")
+    print(json.dumps({k: out.get(k) for k in keys} | {"polls": polls}))
 
 
-def collected(stderr: str) -> int:
-    """The instruction count of callgrind's summary in ``stderr``."""
-    found = _COLLECTED.findall(stderr)
-    if not found:
-        raise RuntimeError(f"no callgrind summary in valgrind's output:\n{stderr[-2000:]}")
-    return int(found[-1])
+def collected(stderr: str, caches: bool = True) -> dict[str, int]:
+    """The counts of cachegrind's summary in ``stderr`` (``COUNTS``'s keys; without
+    ``caches``, the instructions only)."""
+    counts = {}
+    for key, label in COUNTS.items() if caches else [("instructions", COUNTS["instructions"])]:
+        found = re.findall(re.escape(label) + r":\s*([\d,]+)", stderr)
+        if not found:
+            raise RuntimeError(f"no cachegrind summary in valgrind's output:\n{stderr[-2000:]}")
+        counts[key] = int(found[-1].replace(",", ""))
+    return counts
 
 
 def per_tick(short: tuple[int, int], long: tuple[int, int]) -> float | None:
-    """Instructions a tick from two runs' (instructions, ticks): the difference of the
-    counts over the difference of the ticks (None if the ticks did not grow)."""
+    """A count a tick from two runs' (count, ticks): the difference of the counts over
+    the difference of the ticks (None if the ticks did not grow)."""
     ticks = long[1] - short[1]
     if ticks <= 0:
         return None
     return (long[0] - short[0]) / ticks
 
 
-def count(side: str, seconds: float, polls: str) -> tuple[int, int]:
-    """(instructions, ticks) of one child run under callgrind."""
+def kept_up(report: dict[str, Any], seconds: float) -> bool:
+    """Whether a child's run (its printed ``report``) kept up with its ticks."""
+    due = round(seconds / 0.01)
+    ticks = report["ticks"]
+    replies_ok = report["polls"] == "none" or (report["replies"] or 0) >= KEPT_UP_SHARE * due
+    late_ok = (report.get("late_ticks") or 0) <= LATE_SHARE * ticks
+    return ticks >= KEPT_UP_SHARE * due and replies_ok and late_ok
+
+
+def count(side: str, seconds: float, polls: str, caches: bool) -> tuple[dict[str, int], bool]:
+    """(counts with their ``"ticks"``, kept up) of one child run under cachegrind,
+    simulating the caches or not (the simulation slows the child further)."""
     cmd = [
         "valgrind",
-        "--tool=callgrind",
-        "--callgrind-out-file=/dev/null",
+        "--tool=cachegrind",
+        f"--cache-sim={'yes' if caches else 'no'}",
+        "--cachegrind-out-file=/dev/null",
         sys.executable,
         str(Path(__file__).resolve()),
         "--child",
@@ -93,11 +118,12 @@ def count(side: str, seconds: float, polls: str) -> tuple[int, int]:
         "--polls",
         polls,
     ]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, check=False)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=900, check=False)
     if done.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
-    ticks = json.loads(done.stdout.strip().splitlines()[-1])["ticks"]
-    return collected(done.stderr), int(ticks)
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    counts = collected(done.stderr, caches) | {"ticks": int(report["ticks"])}
+    return counts, kept_up(report, seconds)
 
 
 def ratio(a: float | None, b: float | None) -> float | None:
@@ -124,26 +150,51 @@ def main() -> int:
     if shutil.which("valgrind") is None:
         raise SystemExit("count_instructions.py needs valgrind (apt-get install valgrind)")
     result: dict[str, Any] = {"short_s": args.short, "long_s": args.long, "buses": 1}
-    print(f"{'polls':6} {'side':8} {'instructions a tick':>20} {'ticks (short, long)':>20}")
+    print(f"{'polls':6} {'side':8} {'instructions':>12} {'I1 misses':>10} {'D1 misses':>10}  ticks")
     for polls in settings:
         row: dict[str, Any] = {}
         for side in SIDES:
-            short, long = count(side, args.short, polls), count(side, args.long, polls)
-            expected = round(args.long / 0.01)
-            kept_up = long[1] >= KEPT_UP_SHARE * expected
-            value = per_tick(short, long)
-            row[side] = {
-                "instructions_per_tick": None if value is None else round(value),
-                "ticks": [short[1], long[1]],
-                "kept_up": kept_up,
+            caches = True
+            (short, short_ok), (long, long_ok) = (
+                count(side, args.short, polls, caches),
+                count(side, args.long, polls, caches),
+            )
+            if not (short_ok and long_ok):  # the simulation slowed it too much: without
+                caches = False
+                (short, short_ok), (long, long_ok) = (
+                    count(side, args.short, polls, caches),
+                    count(side, args.long, polls, caches),
+                )
+            figures = {
+                f"{key}_per_tick": per_tick(
+                    (short[key], short["ticks"]), (long[key], long["ticks"])
+                )
+                if key in long
+                else None
+                for key in COUNTS
             }
-            shown = "-" if value is None else f"{value:,.0f}"
-            mark = "" if kept_up else "  (fell behind)"
-            print(f"{polls:6} {side:8} {shown:>20} {(short[1], long[1])!s:>20}{mark}")
-        ours = row["ours"]["instructions_per_tick"]
-        row["ratio_timerfd"] = ratio(ours, row["timerfd"]["instructions_per_tick"])
-        row["ratio_minimal"] = ratio(ours, row["minimal"]["instructions_per_tick"])
-        print(f"{polls:6} ours / (b) {row['ratio_timerfd']}, ours / minimal {row['ratio_minimal']}")
+            row[side] = {
+                **{k: None if v is None else round(v) for k, v in figures.items()},
+                "ticks": [short["ticks"], long["ticks"]],
+                "caches_simulated": caches,
+                "kept_up": short_ok and long_ok,
+            }
+            shown = ["-" if v is None else f"{v:,.0f}" for v in figures.values()]
+            mark = "" if short_ok and long_ok else "  (fell behind)"
+            print(
+                f"{polls:6} {side:8} {shown[0]:>12} {shown[1]:>10} {shown[2]:>10}"
+                f"  {short['ticks']}, {long['ticks']}{mark}"
+            )
+        for key in COUNTS:
+            ours = row["ours"][f"{key}_per_tick"]
+            for base, name in (("timerfd", "timerfd"), ("minimal", "minimal")):
+                row[f"{key}_ratio_{name}"] = ratio(ours, row[base][f"{key}_per_tick"])
+        print(
+            f"{polls:6} ours / (b): instructions {row['instructions_ratio_timerfd']}, "
+            f"I1 misses {row['i1_misses_ratio_timerfd']}, "
+            f"D1 misses {row['d1_misses_ratio_timerfd']}; "
+            f"instructions / minimal {row['instructions_ratio_minimal']}"
+        )
         result[f"polls_{polls}"] = row
     write_report(args.out, result)
     return 0

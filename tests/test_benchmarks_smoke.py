@@ -1052,11 +1052,32 @@ def test_instructions_a_tick_are_the_difference_of_two_runs_over_their_ticks() -
     # Start-up (1,000) cancels out: 200 ticks more cost 200 * 300 instructions more.
     assert ci.per_tick((1_000 + 100 * 300, 100), (1_000 + 300 * 300, 300)) == 300
     assert ci.per_tick((5, 100), (9, 100)) is None  # no more ticks: no figure
-    err = "==12== Events    : Ir\n==12== Collected : 1840315157\n==12==\n"
-    assert ci.collected(err) == 1_840_315_157
-    with pytest.raises(RuntimeError, match="no callgrind summary"):
+    err = (
+        "==12== I   refs:      1,843,299,318\n==12== I1  misses:        6,741,061\n"
+        "==12== LLi misses:           21,005\n==12== D   refs:        852,751,394  (558 rd)\n"
+        "==12== D1  misses:       12,653,755  (  9,973,806 rd   +   2,679,949 wr)\n"
+    )
+    assert ci.collected(err) == {
+        "instructions": 1_843_299_318,
+        "i1_misses": 6_741_061,
+        "d1_misses": 12_653_755,
+    }
+    with pytest.raises(RuntimeError, match="no cachegrind summary"):
         ci.collected("valgrind: command not found")
     assert ci.ratio(120.0, 100.0) == 1.2 and ci.ratio(None, 100.0) is None
+    assert ci.collected(err, caches=False) == {"instructions": 1_843_299_318}
+
+
+def test_a_child_kept_up_with_its_ticks_its_replies_and_on_time() -> None:
+    import count_instructions as ci
+
+    assert ci.kept_up({"ticks": 598, "replies": 600, "late_ticks": 8, "polls": "tick"}, 6.0)
+    assert ci.kept_up({"ticks": 600, "replies": 0, "late_ticks": None, "polls": "none"}, 6.0)
+    # Saturated: the ticks went out, but late, and a poll in seven was skipped.
+    late = {"ticks": 595, "replies": 512, "late_ticks": 512, "polls": "tick"}
+    assert not ci.kept_up(late, 6.0)
+    assert not ci.kept_up({**late, "replies": 600}, 6.0)  # late alone fails it
+    assert not ci.kept_up({"ticks": 500, "replies": 0, "late_ticks": 0, "polls": "none"}, 6.0)
 
 
 def test_the_instruction_counts_child_runs_one_side_and_prints_its_ticks(
