@@ -25,7 +25,11 @@ includes ``harness.TimerProbe``, ``bench_cpu.py``'s counter of timer arms (a few
 instructions an arm).
 
     python benchmarks/count_instructions.py [--polls none,tick] [--short 2] [--long 6]
-        [--out PATH]
+        [--sides ours,timerfd,minimal] [--out PATH]
+
+``--sides`` may also name ``bench_cpu_parts.py``'s sides (``no_leases``, ``no_stats``,
+``direct_write``, ``without_all``: ours with those guarantees doing nothing), each
+counted and put over (b) and the minimal loop where those are counted too.
 
 Needs ``valgrind`` (Debian: ``apt-get install valgrind``).  Writes
 ``benchmarks/results/instructions.json``: per polls setting and side, the instructions
@@ -49,6 +53,8 @@ from harness import write_report
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "instructions.json"
 SIDES = ("ours", "timerfd", "minimal")
+#: ``bench_cpu_parts.py``'s sides: ours with parts of its work taken out.
+PART_SIDES = ("no_leases", "no_stats", "direct_write", "without_all")
 #: A child kept up under valgrind if it sent this share of its ticks at least, with
 #: polls got as many replies, and had at most ``LATE_SHARE`` of its ticks late.
 KEPT_UP_SHARE = 0.95
@@ -58,13 +64,18 @@ COUNTS = {"instructions": "I   refs", "i1_misses": "I1  misses", "d1_misses": "D
 
 
 def child(side: str, seconds: float, polls: str) -> None:
-    """Run one side of ``bench_cpu.py`` on one bus; print its ticks as JSON."""
+    """Run one side of ``bench_cpu.py`` (or of ``bench_cpu_parts.py``) on one bus;
+    print its ticks as JSON."""
     import bench_cpu
+    import bench_cpu_parts
 
     with tempfile.TemporaryDirectory(prefix="motorbus-instr-") as tmp:
         responder = bench_cpu.Responder(1, Path(tmp) / "rec.json")
         try:
-            out = bench_cpu.run_side(side, responder.paths, seconds, polls, None)
+            if side in PART_SIDES:
+                out = bench_cpu_parts.run_once(side, responder.paths, seconds, polls)
+            else:
+                out = bench_cpu.run_side(side, responder.paths, seconds, polls, None)
         finally:
             responder.stop()
     keys = ("ticks", "replies", "late_ticks")
@@ -135,8 +146,9 @@ def main() -> int:
     parser.add_argument("--polls", default="none,tick", help="bench_cpu.py's polls settings")
     parser.add_argument("--short", type=float, default=2.0, help="seconds of the short run")
     parser.add_argument("--long", type=float, default=6.0, help="seconds of the long run")
+    parser.add_argument("--sides", default=",".join(SIDES), help="the loops to count")
     parser.add_argument("--out", type=Path, default=RESULTS)
-    parser.add_argument("--child", choices=SIDES, help=argparse.SUPPRESS)
+    parser.add_argument("--child", choices=SIDES + PART_SIDES, help=argparse.SUPPRESS)
     parser.add_argument("--seconds", type=float, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -145,15 +157,20 @@ def main() -> int:
     settings = [p for p in args.polls.split(",") if p]
     if not settings or not set(settings) <= {"none", "tick"}:
         parser.error(f"--polls must list none and/or tick, got {args.polls!r}")
+    sides = [x for x in args.sides.split(",") if x]
+    if not sides or not set(sides) <= set(SIDES + PART_SIDES):
+        parser.error(f"--sides must list some of {', '.join(SIDES + PART_SIDES)}")
     if not 0 < args.short < args.long:
         parser.error(f"need 0 < --short < --long, got {args.short} and {args.long}")
     if shutil.which("valgrind") is None:
         raise SystemExit("count_instructions.py needs valgrind (apt-get install valgrind)")
     result: dict[str, Any] = {"short_s": args.short, "long_s": args.long, "buses": 1}
-    print(f"{'polls':6} {'side':8} {'instructions':>12} {'I1 misses':>10} {'D1 misses':>10}  ticks")
+    print(
+        f"{'polls':6} {'side':12} {'instructions':>12} {'I1 misses':>10} {'D1 misses':>10}  ticks"
+    )
     for polls in settings:
         row: dict[str, Any] = {}
-        for side in SIDES:
+        for side in sides:
             caches = True
             (short, short_ok), (long, long_ok) = (
                 count(side, args.short, polls, caches),
@@ -182,19 +199,19 @@ def main() -> int:
             shown = ["-" if v is None else f"{v:,.0f}" for v in figures.values()]
             mark = "" if short_ok and long_ok else "  (fell behind)"
             print(
-                f"{polls:6} {side:8} {shown[0]:>12} {shown[1]:>10} {shown[2]:>10}"
+                f"{polls:6} {side:12} {shown[0]:>12} {shown[1]:>10} {shown[2]:>10}"
                 f"  {short['ticks']}, {long['ticks']}{mark}"
             )
-        for key in COUNTS:
-            ours = row["ours"][f"{key}_per_tick"]
-            for base in ("timerfd", "minimal"):
-                row[f"{key}_ratio_{base}"] = ratio(ours, row[base][f"{key}_per_tick"])
-        print(
-            f"{polls:6} ours / (b): instructions {row['instructions_ratio_timerfd']}, "
-            f"I1 misses {row['i1_misses_ratio_timerfd']}, "
-            f"D1 misses {row['d1_misses_ratio_timerfd']}; "
-            f"instructions / minimal {row['instructions_ratio_minimal']}"
-        )
+        for mine in [x for x in sides if x in ("ours", *PART_SIDES)]:
+            for base in [x for x in ("timerfd", "minimal") if x in sides]:
+                ratios = {
+                    key: ratio(row[mine][f"{key}_per_tick"], row[base][f"{key}_per_tick"])
+                    for key in COUNTS
+                }
+                prefix = "" if mine == "ours" else f"{mine}_"
+                row |= {f"{prefix}{key}_ratio_{base}": r for key, r in ratios.items()}
+                shown = ", ".join(f"{key} {r}" for key, r in ratios.items())
+                print(f"{polls:6} {mine} / {base}: {shown}")
         result[f"polls_{polls}"] = row
     write_report(args.out, result)
     return 0

@@ -1080,11 +1080,12 @@ def test_a_child_kept_up_with_its_ticks_its_replies_and_on_time() -> None:
     assert not ci.kept_up({"ticks": 500, "replies": 0, "late_ticks": 0, "polls": "none"}, 6.0)
 
 
+@pytest.mark.parametrize("side", ["ours", "without_all"])
 def test_the_instruction_counts_child_runs_one_side_and_prints_its_ticks(
-    capsys: pytest.CaptureFixture[str],
+    side: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
     import count_instructions as ci
 
-    ci.child("ours", 0.3, "none")
+    ci.child(side, 0.3, "none")
     ticks = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["ticks"]
     assert ticks >= 15
