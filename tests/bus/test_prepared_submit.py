@@ -24,6 +24,7 @@ from motorbus.errors import (
 )
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
+from motorbus.protocol.safety import motion_keys
 from motorbus.sim.la import LAModel
 from tests.helpers import sim_bus
 
@@ -96,6 +97,36 @@ async def test_the_lease_rule_is_checked_again_for_the_frame_as_refreshed() -> N
         await bus.send_prepared(ready)
         assert written.frames == [follow(1).encode()]
         await rig.release(hold=True)
+        await stream.release(hold=True)
+
+
+async def test_its_write_owes_the_stops_of_the_frame_as_written_not_as_claimed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The claim works out the devices of the frame as prepared and the job keeps them
+    for its write; a refresh that changes the frame drops them, so the write owes stops
+    on the devices the frame it wrote moves, no more and no fewer."""
+    async with sim_bus([LAModel(1), LAModel(2), LAModel(3)]) as (bus, _):
+        stream = bus.lease(["la:1", "la:2", "la:3"], owner="stream", bind=False)
+        table = bus.lease_keeper.table
+        owing: list[tuple[bytes, tuple[str, ...]]] = []
+        real = table.moved
+
+        def moved(cmd: Command[object], keys: tuple[str, ...] | None = None) -> None:
+            owing.append((cmd.encode(), keys if keys is not None else motion_keys(cmd)))
+            real(cmd, keys)
+
+        monkeypatch.setattr(table, "moved", moved)
+        wanted: list[la.Broadcast | None] = [follow(1, 2)]
+        ready = bus.prepare(follow(1, 2), reserved=True, lease=stream, refresh=lambda: wanted[0])
+        assert ready.job.motion_keys == ("la:1", "la:2")
+        wanted[0] = follow(1, 3)  # what the frame moves changed since its claim
+        await bus.send_prepared(ready)
+        assert owing == [(follow(1, 3).encode(), ("la:1", "la:3"))]
+        plain = bus.prepare(follow(2), reserved=True, lease=stream)
+        await bus.send_prepared(plain)  # unchanged: the claim's devices are the write's
+        assert owing[1:] == [(follow(2).encode(), ("la:2",))]
+        assert plain.job.motion_keys == ("la:2",)
         await stream.release(hold=True)
 
 

@@ -498,7 +498,7 @@ class Bus:
             return job.future
         if job.moves and prepared.lease_version != self._lease_keeper.table.version:
             # A lease changed since: the rule again, for the frame as it is now.
-            self._lease_keeper.claim(job.cmd, prepared.lease)
+            job.motion_keys = self._lease_keeper.claim(job.cmd, prepared.lease)
         self._engine.queue(job, None, checked=True)
         return job.future
 
@@ -676,8 +676,7 @@ class Bus:
         loop = asyncio.get_running_loop()
         if loop is not self._loop:
             raise self._wrong_loop_error(cmd)
-        if moves:
-            self._lease_keeper.claim(cmd, lease)
+        keys = self._lease_keeper.claim(cmd, lease) if moves else None
         raw = cmd.encode()
         occ = core.occupancy(cmd, len(raw))
         n_retries = self.config.retries if retries is None else retries
@@ -696,4 +695,5 @@ class Bus:
             answered=occ.answered,
             expects=occ.expects_reply,
             moves=moves,
+            motion_keys=keys,
         )

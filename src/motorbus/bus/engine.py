@@ -257,6 +257,7 @@ class BusEngine:
             return False
         if fresh is not job.cmd:
             job.cmd = fresh
+            job.motion_keys = None  # the claim's: the write works out the fresh frame's
             job.key = fresh.device_key
             job.raw = fresh.encode()
             occ = self.core.occupancy(fresh, len(job.raw))
@@ -298,7 +299,7 @@ class BusEngine:
         if self.observers:
             self._tell(lambda o: o.on_write(cmd, after))
         if job.moves:
-            self._leases.moved(cmd)
+            self._leases.moved(cmd, job.motion_keys)
         elif not expects:
             self._leases.sent(cmd, job.key)
         if expects:

@@ -69,6 +69,10 @@ class BusJob(Job):
     #: (and again if its refresh changes the frame), not at every step of its way.
     expects: bool = False
     moves: bool = False
+    #: The devices its motion moves (``safety.motion_keys``), as its lease claim worked
+    #: them out: its write owes their stops without working them out again.  None for
+    #: a frame that does not move, or whose refresh changed it since.
+    motion_keys: tuple[str, ...] | None = None
     handle: TimerHandle | None = None  # its reply deadline
     refresh: Refresh | None = None
     start_by: float = math.inf

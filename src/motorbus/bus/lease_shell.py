@@ -182,8 +182,9 @@ class LeaseKeeper(SafeStopper):
             _leases.bind(lease)
         return lease
 
-    def claim(self, cmd: Command[object], lease: Lease | None) -> None:
-        """The lease rule of a motion command (raises ``LeaseConflictError``)."""
+    def claim(self, cmd: Command[object], lease: Lease | None) -> tuple[str, ...]:
+        """The lease rule of a motion command (raises ``LeaseConflictError``); returns
+        the devices it moves (``safety.motion_keys``), which its write owes stops on."""
         table = self.table
         keys = safety.motion_keys(cmd)
         table.note_all(keys)
@@ -196,8 +197,9 @@ class LeaseKeeper(SafeStopper):
         if motor is not None and cmd.family is Family.PROJECT_STEPPER:
             key = cmd.device_key
             if key in lease.own_safe:
-                return  # the owner's own safe commands: never rewritten
+                return keys  # the owner's own safe commands: never rewritten
             table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
+        return keys
 
     async def release_implicit(self, keys: Iterable[str] | str | None, hold: bool) -> None:
         """``Bus.release``: end the implicit lease on ``keys`` (all if None)."""

@@ -461,11 +461,13 @@ class LeaseTable:
 
     # -- what the bus wrote ------------------------------------------------------------
 
-    def moved(self, cmd: Command[object]) -> None:
+    def moved(self, cmd: Command[object], keys: tuple[DeviceKey, ...] | None = None) -> None:
         """The motion frame ``cmd`` was written: what ends its motion is owed, on each
         device it moves, besides what was owed already (``safety.motion_stops``; the
-        device's whole safe action where the motion names no smaller stop)."""
-        keys = safety.motion_keys(cmd)
+        device's whole safe action where the motion names no smaller stop).  ``keys``:
+        ``safety.motion_keys(cmd)``, if the caller has them already."""
+        if keys is None:
+            keys = safety.motion_keys(cmd)
         stops = safety.motion_stops(cmd)
         settled = self._settled
         if (
