@@ -106,6 +106,38 @@ async def test_the_stop_of_a_timed_out_run_is_the_lease_keepers() -> None:
         assert not model.motors[1].running
 
 
+@pytest.mark.parametrize(
+    ("failing", "said"),
+    [
+        ({"Stop"}, "stopped it (stop 0x06 to all motors sent)"),
+        ({"Stop", "StopAll"}, "the stop got no answer (no answer): it may still be running"),
+    ],
+)
+async def test_a_timed_out_runs_stop_that_fails_falls_back_to_stop_all_and_says_so(
+    failing: set[str], said: str
+) -> None:
+    model = QuadStepperModel()
+    async with sim_bus([model], baud=115200) as (bus, _):
+        quad = QuadStepper(bus)
+        await _long_move(quad)
+        keeper, asked = bus.lease_keeper, []
+        send_stop = keeper.send_stop
+
+        async def failing_some(commands: Any, *, who: str) -> list[object]:
+            names = [type(c).__name__ for c in commands]
+            asked.append(names)
+            if set(names) <= failing:  # as if the controller did not answer it
+                return [ReplyTimeoutError("no answer") for _ in commands]
+            return await send_stop(commands, who=who)
+
+        keeper.send_stop = failing_some  # type: ignore[method-assign]
+        with pytest.raises(ReplyTimeoutError) as info:
+            await quad.run(1, timeout=0.05)
+        assert str(info.value) == f"motor 1 did not report done within 0.05 s: {said}"
+        assert asked == [["Stop"], ["StopAll"]]
+        assert model.motors[1].running is ("StopAll" in failing)
+
+
 async def test_keep_running_leaves_the_motor_going_and_says_how_to_stop() -> None:
     model = QuadStepperModel()
     async with sim_bus([model], baud=115200) as (bus, _):

@@ -190,11 +190,12 @@ class QuadStepper:
         tried = await keeper.stop_shielded(
             stops, keeper.safe_commands(KEY), who=f"motor {motor}'s run"
         )
-        (result,) = tried[-1]
-        if len(tried) == 1 and not isinstance(result, BaseException):
+        # The last step tried failed only if neither the stop nor the stop all went.
+        failed = next((r for r in tried[-1] if isinstance(r, BaseException)), None)
+        if failed is not None:
+            return f"the stop got no answer ({failed}): it may still be running"
+        if len(tried) == 1:
             return f"stopped it (stop 0x{q.CMD_STOP:02X} to motor {motor} sent)"
-        if isinstance(result, BaseException):
-            return f"the stop got no answer ({result}): it may still be running"
         return f"stopped it (stop 0x{q.CMD_STOP:02X} to all motors sent)"
 
     async def run_all(self) -> None:
