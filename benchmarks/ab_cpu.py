@@ -131,12 +131,16 @@ def count_settime_calls() -> list[int]:
     """Count, from now on, the bus timer's ``timerfd_settime`` calls (arming and
     disarming) in a one-item list; an empty list where the tree has no timerfd timer.
 
-    Through the timer's syscall wrapper, which every tree since the timerfd timer has,
-    so that trees before the timer counted its own ``arms`` compare too.
+    Through the timer's syscall wrapper, which every tree since the timerfd timer has
+    (``motorbus.bus.timerfd.TimerfdApi``; ``motorbus.bus.timer._TimerfdApi`` before
+    2026-12-07), so that trees before the timer counted its own ``arms`` compare too.
     """
-    from motorbus.bus import timer
+    import importlib
 
-    api = getattr(timer, "_TimerfdApi", None)
+    try:
+        api = importlib.import_module("motorbus.bus.timerfd").TimerfdApi
+    except ImportError:
+        api = getattr(importlib.import_module("motorbus.bus.timer"), "_TimerfdApi", None)
     if api is None:
         return []
     calls = [0]

@@ -162,13 +162,20 @@ class RecordingClock:
         self, deadline: float, callback: Callable[[], None], *, precise: bool = True
     ) -> TimerHandle:
         """Delegate to the inner timer, noting how late the callback runs."""
+        return self.inner.call_at(deadline, self._noted(deadline, callback), precise=precise)
+
+    def call_at_lazily(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+        """As :meth:`call_at`, for a reply's deadline (the inner timer's lazy call)."""
+        return self.inner.call_at_lazily(deadline, self._noted(deadline, callback))
+
+    def _noted(self, deadline: float, callback: Callable[[], None]) -> Callable[[], None]:
         inner = self.inner
 
         def run() -> None:
             self.fired.append(inner.now() - deadline)
             callback()
 
-        return inner.call_at(deadline, run, precise=precise)
+        return run
 
     def hold_arming(self) -> None:
         """Delegate to the inner timer (the bus batches its re-arming through these)."""

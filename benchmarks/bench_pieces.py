@@ -73,9 +73,9 @@ def timerfd_pieces(number: int, repeat: int) -> dict[str, float]:
     """``timerfd_settime`` near, far and disarming (empty where there is no timerfd)."""
     if not timerfd_available():
         return {}
-    from motorbus.bus import timer as timer_module
+    from motorbus.bus import timerfd
 
-    api = timer_module._api()  # the bus's own settime path (os or ctypes)
+    api = timerfd.api()  # the bus's own settime path (os or ctypes)
     fd = api.create()
     flip = [0]
 

@@ -81,7 +81,7 @@ class TimerProbe:
 
 
 class _CountedSettime:
-    """A timer's syscall object (``motorbus.bus.timer._TimerfdApi``) whose arming calls
+    """A timer's syscall object (``motorbus.bus.timerfd.TimerfdApi``) whose arming calls
     a ``TimerProbe`` counts."""
 
     def __init__(self, api: Any, probe: TimerProbe) -> None:

@@ -425,6 +425,21 @@ async def test_device_call_refuses_and_sends_nothing(family: str, call: Call, ba
 
 NAN = float("nan")
 INF = float("inf")
+
+
+class _PartTimer:
+    """A clock with ``now`` and ``call_at`` only: a bus also holds and lazily calls."""
+
+    def now(self) -> float:
+        return 0.0
+
+    def call_at(self, deadline: float, callback: Any) -> None:
+        return None
+
+    def __repr__(self) -> str:
+        return "_PartTimer()"
+
+
 BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
     "name": (5, "", b"bus"),
     "families": ([], "la", ["la"], 5, None),
@@ -446,7 +461,7 @@ BUS_OPTIONS: dict[str, tuple[Any, ...]] = {
     "reconnect": ("yes", 1, 0, None),
     "wire_floor": ("yes", 1, 0, None),
     "safe_action": ("stop", "", "PAUSE", 1, None, True),
-    "timer": ("x", 5, []),  # made, and failed only when the bus opened
+    "timer": ("x", 5, [], _PartTimer()),  # made, and failed when the bus opened (or used)
 }
 
 

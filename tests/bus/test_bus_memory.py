@@ -66,6 +66,10 @@ class RecordingClock:
         """Delegate to the inner timer."""
         return self.inner.call_at(deadline, callback, precise=precise)
 
+    def call_at_lazily(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+        """Delegate to the inner timer."""
+        return self.inner.call_at_lazily(deadline, callback)
+
     def hold_arming(self) -> None:
         """Delegate to the inner timer."""
         self.inner.hold_arming()

@@ -1,6 +1,6 @@
 """Both ways of reaching Linux timerfd: ``os.timerfd_*`` (Python 3.13+) and ctypes on libc.
 
-``_TimerfdApi`` picks the os functions when they exist and ctypes otherwise, so on any one
+``TimerfdApi`` picks the os functions when they exist and ctypes otherwise, so on any one
 interpreter only one branch runs by itself. These tests force each branch. On 3.13+ the os
 branch is the real one; before 3.13 the os module has no timerfd, so the os branch is fed
 stand-ins with the 3.13 signatures (keyword-only ``flags``, ``initial``, ``interval``),
@@ -21,7 +21,8 @@ from typing import Any
 
 import pytest
 
-from motorbus.bus import timer as timer_mod
+from motorbus.bus import timerfd as timer_mod
+from motorbus.bus.timer import TimerfdTimer
 
 pytestmark = pytest.mark.skipif(
     not sys.platform.startswith("linux"), reason="timerfd is Linux-only"
@@ -49,7 +50,7 @@ class _LibcTimerfd:
         self, fd: int, /, *, flags: int = 0, initial: int = 0, interval: int = 0
     ) -> tuple[int, int]:
         self.calls.append("settime")
-        spec = timer_mod._ITimerSpec()
+        spec = timer_mod.ITimerSpec()
         spec.it_value.tv_sec, spec.it_value.tv_nsec = divmod(initial, 1_000_000_000)
         spec.it_interval.tv_sec, spec.it_interval.tv_nsec = divmod(interval, 1_000_000_000)
         if (
@@ -63,7 +64,7 @@ class _LibcTimerfd:
 
 
 def force(branch: str, monkeypatch: pytest.MonkeyPatch) -> _LibcTimerfd | None:
-    """Make the next ``_TimerfdApi()`` take ``branch``; returns the stand-in, if any."""
+    """Make the next ``TimerfdApi()`` take ``branch``; returns the stand-in, if any."""
     monkeypatch.setattr(timer_mod, "_timerfd_api", None)
     if branch == "ctypes":
         monkeypatch.delattr(os, "timerfd_create", raising=False)
@@ -83,10 +84,10 @@ BRANCHES = ["os", "ctypes"]
 @pytest.mark.parametrize("branch", BRANCHES)
 def test_the_branch_is_the_one_forced(branch: str, monkeypatch: pytest.MonkeyPatch) -> None:
     force(branch, monkeypatch)
-    api = timer_mod._TimerfdApi()
+    api = timer_mod.TimerfdApi()
     assert (api._libc is None) is (branch == "os")
-    assert timer_mod._api() is not api  # a fresh module-level instance, same branch
-    assert (timer_mod._api()._libc is None) is (branch == "os")
+    assert timer_mod.api() is not api  # a fresh module-level instance, same branch
+    assert (timer_mod.api()._libc is None) is (branch == "os")
 
 
 @pytest.mark.parametrize("branch", BRANCHES)
@@ -94,7 +95,7 @@ def test_an_armed_fd_expires_once_and_never_early(
     branch: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     fake = force(branch, monkeypatch)
-    api = timer_mod._TimerfdApi()
+    api = timer_mod.TimerfdApi()
     fd = api.create()
     try:
         assert os.get_blocking(fd) is False  # TFD_NONBLOCK reached the kernel
@@ -115,7 +116,7 @@ def test_an_armed_fd_expires_once_and_never_early(
 @pytest.mark.parametrize("branch", BRANCHES)
 def test_zero_disarms(branch: str, monkeypatch: pytest.MonkeyPatch) -> None:
     force(branch, monkeypatch)
-    api = timer_mod._TimerfdApi()
+    api = timer_mod.TimerfdApi()
     fd = api.create()
     try:
         api.set_absolute_ns(fd, time.monotonic_ns() + 20_000_000)
@@ -134,7 +135,7 @@ def test_timerfd_timer_runs_on_each_branch(branch: str, monkeypatch: pytest.Monk
     assert timer_mod.timerfd_available()
 
     async def main() -> None:
-        timer = timer_mod.TimerfdTimer()
+        timer = TimerfdTimer()
         try:
             assert (timer._api._libc is None) is (branch == "os")
             loop = asyncio.get_running_loop()

@@ -303,7 +303,9 @@ class BusEngine:
         elif not expects:
             self._leases.sent(cmd, job.key)
         if expects:
-            job.handle = timer.call_at(job.deadline, self._on_deadline)
+            # Usually cancelled by the reply: the wake-up source is armed for it only in
+            # its last stretch (Timer.call_at_lazily), decided as precisely.
+            job.handle = timer.call_at_lazily(job.deadline, self._on_deadline)
         elif not job.future.done():
             job.future.set_result(None)
 

@@ -167,14 +167,22 @@ def check_request_options(timeout: object, retries: object, priority: object) ->
         )
 
 
+#: What a bus calls on its timer (a :class:`Timer` has them all).
+TIMER_METHODS = ("now", "call_at", "call_at_lazily", "hold_arming", "release_arming")
+
+
 def check_timer(value: object) -> Timer | None:
-    """``value`` if it is a timer (a :class:`Timer`, or anything with its ``now`` and
-    ``call_at``) or None; ``LocalProtocolError`` naming it otherwise (a bus given one
-    failed only when it opened)."""
-    if value is not None and not all(
-        callable(getattr(value, method, None)) for method in ("now", "call_at")
-    ):
+    """``value`` if it is a timer (a :class:`Timer`, or anything with its
+    ``TIMER_METHODS``) or None; ``LocalProtocolError`` naming it and what it lacks
+    otherwise (a bus given one failed only when it opened, or at its first request)."""
+    if value is None:
+        return None
+    missing = [m for m in TIMER_METHODS if not callable(getattr(value, m, None))]
+    if missing:
         raise LocalProtocolError(
-            f"timer must be a motorbus Timer or None, got {value!r}", field="timer", value=value
+            f"timer must be a motorbus Timer or None, got {value!r} (without "
+            f"{', '.join(missing)})",
+            field="timer",
+            value=value,
         )
     return value  # type: ignore[return-value]  # a Timer by its methods

@@ -24,8 +24,6 @@ import abc
 import asyncio
 import collections
 import contextvars
-import ctypes
-import ctypes.util
 import heapq
 import logging
 import math
@@ -37,6 +35,8 @@ from collections.abc import Callable
 from typing import Any
 
 from motorbus import lifecycle
+from motorbus.bus.timerfd import api as _api
+from motorbus.bus.timerfd import timerfd_available
 from motorbus.errors import LocalProtocolError
 
 __all__ = [
@@ -51,11 +51,6 @@ __all__ = [
 
 _log = logging.getLogger("motorbus.bus")
 
-# Linux ABI constants, timerfd_create(2) and <linux/time.h>.
-_CLOCK_MONOTONIC = 1  # the clock time.monotonic() reads on Linux
-_TFD_TIMER_ABSTIME = 1  # timerfd_settime(2): new_value is an absolute time
-_TFD_NONBLOCK = os.O_NONBLOCK  # timerfd_create(2): same value as O_NONBLOCK
-_TFD_CLOEXEC = getattr(os, "O_CLOEXEC", 0)  # timerfd_create(2): same value as O_CLOEXEC
 _EXPIRY_COUNT_SIZE = 8  # timerfd read(2) returns a uint64 expiry count
 _NS_PER_S = 1_000_000_000
 #: Asks every ``TimerfdTimer`` to spin before precise deadlines, up to this many us.
@@ -75,7 +70,7 @@ def spin_asked() -> bool:
 class TimerHandle:
     """A scheduled callback; :meth:`cancel` it to stop it from running."""
 
-    __slots__ = ("_callback", "_cancelled", "_done", "_timer", "deadline", "precise")
+    __slots__ = ("_callback", "_cancelled", "_done", "_timer", "_watch", "deadline", "precise")
 
     def __init__(
         self, timer: Timer, deadline: float, callback: Callable[[], None], precise: bool = True
@@ -87,6 +82,8 @@ class TimerHandle:
         self._callback: Callable[[], None] | None = callback
         self._cancelled = False
         self._done = False
+        #: The loop's own handle while the loop's timer watches it (call_at_lazily).
+        self._watch: asyncio.TimerHandle | None = None
 
     def __repr__(self) -> str:
         state = "cancelled" if self._cancelled else "done" if self._done else "pending"
@@ -103,7 +100,14 @@ class TimerHandle:
         self._cancelled = True
         self._callback = None
         timer, self._timer = self._timer, None
-        if timer is not None:
+        if timer is None:
+            return
+        watch = self._watch
+        if watch is not None:  # still the loop's (call_at_lazily): not in the heap
+            self._watch = None
+            timer._watched -= 1
+            watch.cancel()
+        else:
             timer._forget_cancelled(self)
 
 
@@ -119,6 +123,14 @@ class Timer(abc.ABC):
 
     #: "timerfd" or "loop".
     name: str
+    #: How long before a deadline of :meth:`call_at_lazily` the loop's own timer hands it
+    #: to the wake-up source: longer than that timer can be late (the default loop
+    #: sleeps whole milliseconds, rounded up: docs/platform.md section 1), so the
+    #: deadline itself keeps the wake-up source's precision.
+    HANDOVER_S = 1.5e-3
+    #: Whether this timer's clock is the loop's (``time.monotonic``), so that the loop's
+    #: timer may watch the first part of a lazily called deadline.
+    _LAZY = False
 
     def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
         # Weak, so the per-loop cache in default_timer() does not keep a dead loop alive.
@@ -144,6 +156,10 @@ class Timer(abc.ABC):
         asyncio_loop = isinstance(loop, asyncio.BaseEventLoop) and not loop.get_debug()
         self._ready = ready if asyncio_loop and type(ready) is collections.deque else None
         proxy: Any = weakref.proxy(loop)
+        # call_at_lazily: on asyncio's own loops, whose clock is time.monotonic (weakly,
+        # as above: a bound method would keep the loop alive through default_timer's cache).
+        self._lazy_loop = proxy if self._LAZY and self._ready is not None else None
+        self._watched = 0  # lazily called deadlines the loop's timer still watches
         self._flush_handle = asyncio.Handle(self._flush_rearm, (), proxy, self._context)
         if type(self).now is Timer.now:
             # The clock is the C function itself: one call a read, not two (issue 40).
@@ -164,7 +180,9 @@ class Timer(abc.ABC):
     @property
     def pending(self) -> int:
         """Number of scheduled callbacks that have neither run nor been cancelled."""
-        return len(self._heap) - self._cancelled_in_heap
+        if self._closed:  # (lazily called ones the loop still watches will not run)
+            return 0
+        return len(self._heap) - self._cancelled_in_heap + self._watched
 
     def now(self) -> float:
         """Return the current time in seconds, the clock of ``time.monotonic()``."""
@@ -208,6 +226,45 @@ class Timer(abc.ABC):
             elif not self._flush_queued:
                 self._rearm_soon()
         return handle
+
+    def call_at_lazily(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+        """:meth:`call_at` for a deadline that is usually cancelled before it comes (a
+        reply's): as precise, but the wake-up source is armed for it only in its last
+        ``HANDOVER_S``.  Until then the loop's own timer watches it, so a cancel then
+        re-arms nothing (on a VM a ``timerfd_settime`` for the near future costs ~12 us,
+        ``bench_pieces.py``, and a reply deadline cost two).  A plain :meth:`call_at`
+        where that saves nothing (an earlier deadline is pending: the source stays armed
+        for it) or cannot be done (another loop or clock).
+        """
+        loop, heap = self._lazy_loop, self._heap
+        if (
+            loop is None
+            or (heap and heap[0][0] <= deadline)  # the source stays armed for that one
+            or self._closed  # (call_at raises)
+        ):
+            return self.call_at(deadline, callback)
+        # (A handover already past is the loop's next turn: a timeout that short is rare.)
+        handle = TimerHandle(self, deadline, callback)
+        handle._watch = loop.call_at(
+            deadline - self.HANDOVER_S, self._hand_over, handle, context=self._context
+        )
+        self._watched += 1
+        return handle
+
+    def _hand_over(self, handle: TimerHandle) -> None:
+        """A lazily called deadline is ``HANDOVER_S`` away: the wake-up source takes it
+        (as :meth:`call_at` would have).  A cancelled one never gets here."""
+        handle._watch = None
+        self._watched -= 1
+        if self._closed:
+            handle._callback = None
+            handle._cancelled = True
+            return
+        heap = self._heap
+        self._seq += 1
+        heapq.heappush(heap, (handle.deadline, self._seq, handle))
+        if heap[0][2] is handle:
+            self._rearm_soon()
 
     def hold_arming(self) -> None:
         """Defer re-arming the wake-up source until the matching :meth:`release_arming`.
@@ -294,7 +351,8 @@ class Timer(abc.ABC):
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
-            while heap and heap[0][0] <= now:
+            # Due by the last reading, or else by a fresh one (none with nothing pending).
+            while heap and (heap[0][0] <= now or heap[0][0] <= (now := self.now())):
                 handle = heapq.heappop(heap)[2]
                 if handle._cancelled:
                     self._cancelled_in_heap -= 1
@@ -312,7 +370,6 @@ class Timer(abc.ABC):
                     loop.call_exception_handler({**context, "handle": handle})
                 if self._closed:
                     return
-                now = self.now()
         finally:
             self._holds -= 1
         if self._holds:
@@ -425,89 +482,6 @@ class LoopTimer(Timer):
         self._wake()
 
 
-class _TimerfdApi:
-    """``timerfd_create`` / ``timerfd_settime``: the os module (3.13+) or ctypes on libc."""
-
-    def __init__(self) -> None:
-        self._os_create: Any = getattr(os, "timerfd_create", None)
-        self._os_settime_ns: Any = getattr(os, "timerfd_settime_ns", None)
-        self._libc: Any = None
-        if self._os_create is None or self._os_settime_ns is None:
-            libc_name = ctypes.util.find_library("c")
-            self._libc = ctypes.CDLL(libc_name, use_errno=True)
-            self._libc.timerfd_create.argtypes = (ctypes.c_int, ctypes.c_int)
-            self._libc.timerfd_create.restype = ctypes.c_int
-            self._libc.timerfd_settime.argtypes = (
-                ctypes.c_int,
-                ctypes.c_int,
-                ctypes.POINTER(_ITimerSpec),
-                ctypes.c_void_p,
-            )
-            self._libc.timerfd_settime.restype = ctypes.c_int
-            self._settime = self._libc.timerfd_settime
-        self._specs: dict[int, tuple[_ITimerSpec, Any]] = {}
-
-    def create(self) -> int:
-        flags = _TFD_NONBLOCK | _TFD_CLOEXEC
-        if self._libc is None:
-            return int(self._os_create(_CLOCK_MONOTONIC, flags=flags))
-        fd = int(self._libc.timerfd_create(_CLOCK_MONOTONIC, flags))
-        if fd < 0:
-            err = ctypes.get_errno()
-            raise OSError(err, f"timerfd_create: {os.strerror(err)}")
-        return fd
-
-    def set_absolute_ns(self, fd: int, deadline_ns: int) -> None:
-        """Arm ``fd`` to expire once at ``deadline_ns`` (0 disarms it)."""
-        if self._libc is None:
-            self._os_settime_ns(fd, flags=_TFD_TIMER_ABSTIME, initial=deadline_ns, interval=0)
-            return
-        # Called several times a tick: one preallocated struct per fd (each timer, and so
-        # each loop and thread, has its own fd), no per-call objects.
-        try:
-            found = self._specs[fd]
-        except KeyError:
-            spec = _ITimerSpec()
-            found = self._specs[fd] = (spec, ctypes.byref(spec))
-        value = found[0].it_value
-        value.tv_sec = deadline_ns // _NS_PER_S
-        value.tv_nsec = deadline_ns % _NS_PER_S
-        if self._settime(fd, _TFD_TIMER_ABSTIME, found[1], None) < 0:
-            err = ctypes.get_errno()
-            raise OSError(err, f"timerfd_settime: {os.strerror(err)}")
-
-
-class _TimeSpec(ctypes.Structure):
-    # struct timespec: time_t and long are both the C long on Linux's LP64 and ILP32 ABIs.
-    _fields_ = (("tv_sec", ctypes.c_long), ("tv_nsec", ctypes.c_long))
-
-
-class _ITimerSpec(ctypes.Structure):
-    _fields_ = (("it_interval", _TimeSpec), ("it_value", _TimeSpec))
-
-
-_timerfd_api: _TimerfdApi | None = None
-
-
-def _api() -> _TimerfdApi:
-    global _timerfd_api
-    if _timerfd_api is None:
-        _timerfd_api = _TimerfdApi()
-    return _timerfd_api
-
-
-def timerfd_available() -> bool:
-    """Return True if this platform offers Linux ``timerfd``."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        fd = _api().create()
-    except (OSError, AttributeError):
-        return False
-    os.close(fd)
-    return True
-
-
 class TimerfdTimer(Timer):
     """Linux timer: one ``timerfd`` on absolute ``CLOCK_MONOTONIC`` deadlines.
 
@@ -531,6 +505,7 @@ class TimerfdTimer(Timer):
     """
 
     name = "timerfd"
+    _LAZY = True
     #: The longest the fd fires before a deadline, to spin the rest (seconds), where
     #: spinning is asked for (``MOTORBUS_TIMER_SPIN_US`` sets it; see the class).
     SPIN_LEAD_S = float(os.environ.get(SPIN_ENV_VAR) or "500") * 1e-6

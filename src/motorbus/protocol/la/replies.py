@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -222,8 +223,9 @@ def decode_status(raw: bytes, *, checked: bool = False) -> Status:
 #: B3..B20 of the status frame: ID, CMD, param1, param2, target (u16), position (s16),
 #: temperature (s8), current (s16), force low, error flags, force high, internal 1, 2.
 _STATUS_LAYOUT = struct.Struct("<4BHhbhBBBHH")
-#: Builds a Status from decoded fields without re-validating them (see ``Status``).
-_make_status = Status._make
+#: Builds a Status from its 12 decoded fields without re-validating them (see
+#: ``Status``): the tuple's own constructor, one call (``_make`` is three).
+_make_status = functools.partial(tuple.__new__, Status)
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,214 @@
+"""``Timer.call_at_lazily``: a reply's deadline, watched by the loop's own timer until its
+last ``HANDOVER_S`` and by the wake-up source (timerfd) only for that stretch.
+
+What it promises: the same as ``call_at`` (never early, deadline order, cancellable,
+nothing after ``close``), and a deadline cancelled before its handover never arms the
+timerfd.  Behaviour only: how late a callback runs is benchmarks/bench_timer.py's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+from collections.abc import Callable
+
+import pytest
+
+import motorbus
+from motorbus.bus.timer import LoopTimer, Timer, TimerfdTimer, timerfd_available
+from motorbus.devices.la import InspireLA
+from motorbus.sim.la import LAModel
+from motorbus.sim.memory import MemorySim
+from tests.bus.test_timer import LOOPS, TIMERS, run
+from tests.waiting import eventually
+
+needs_timerfd = pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
+
+
+def _record_settimes(timer: TimerfdTimer, monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """The absolute times (ns) ``timer`` arms its timerfd for from now on."""
+    armed: list[int] = []
+    real = timer._api.set_absolute_ns
+    monkeypatch.setattr(
+        timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
+    )
+    return armed
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_lazy_and_plain_deadlines_never_fire_early_and_run_in_deadline_order(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    async def main() -> None:
+        timer = timer_cls()
+        rng = random.Random(7)
+        origin = timer.now()
+        # Distinct deadlines from 1 ms past to 8 ms ahead: some with their handover past
+        # already, most watched by the loop first.  Every other one is lazy.
+        steps = rng.sample(range(-10, 80), 60)
+        fired: list[tuple[float, float]] = []
+        done = asyncio.get_running_loop().create_future()
+
+        def hit(deadline: float) -> Callable[[], None]:
+            def callback() -> None:
+                fired.append((deadline, timer.now()))
+                if len(fired) == len(steps) and not done.done():
+                    done.set_result(None)
+
+            return callback
+
+        for i, step in enumerate(steps):
+            deadline = origin + step * 1e-4
+            schedule = timer.call_at_lazily if i % 2 else timer.call_at
+            schedule(deadline, hit(deadline))
+        assert timer.pending == len(steps)
+        await done
+        assert all(ran >= deadline for deadline, ran in fired), "a callback ran early"
+        assert [d for d, _ in fired] == sorted(d for d, _ in fired)
+        assert timer.pending == 0
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@needs_timerfd
+def test_a_lazy_deadline_cancelled_before_its_handover_never_arms_the_timerfd(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        later = timer.call_at(timer.now() + 1.0, lambda: None)
+        await asyncio.sleep(0)  # the far deadline armed
+        armed = _record_settimes(timer, monkeypatch)
+        ran: list[bool] = []
+        reply_deadline = timer.call_at_lazily(timer.now() + 0.02, lambda: ran.append(True))
+        assert timer.pending == 2
+        await asyncio.sleep(0.005)  # the reply came: well before the handover
+        reply_deadline.cancel()
+        assert reply_deadline.cancelled() and timer.pending == 1
+        await asyncio.sleep(0.03)  # past the cancelled deadline
+        assert armed == [] and ran == []
+        later.cancel()
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+@needs_timerfd
+def test_a_lazy_deadline_left_to_run_is_armed_for_its_last_stretch_only(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        armed = _record_settimes(timer, monkeypatch)
+        fired = asyncio.get_running_loop().create_future()
+        deadline = timer.now() + 0.01
+        timer.call_at_lazily(deadline, lambda: fired.set_result(timer.now()))
+        await asyncio.sleep(0)
+        assert armed == []  # the loop's timer watches it until its handover
+        ran = await fired
+        assert ran >= deadline
+        assert armed == [math.ceil(deadline * 1e9)]  # then the timerfd, at the deadline
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+@needs_timerfd
+def test_a_lazy_deadline_cancelled_after_its_handover_does_not_run() -> None:
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        timer.HANDOVER_S = 0.05  # room to cancel between the handover and the deadline
+        ran: list[bool] = []
+        handle = timer.call_at_lazily(timer.now() + 0.06, lambda: ran.append(True))
+        await eventually(lambda: handle._watch is None, "the handover", poll=0.001)
+        assert timer.pending == 1
+        handle.cancel()
+        assert timer.pending == 0
+        await asyncio.sleep(0.01)
+        assert ran == [] and handle.cancelled()
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+@needs_timerfd
+def test_closing_before_the_handover_drops_a_lazy_deadline() -> None:
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        ran: list[bool] = []
+        timer.call_at_lazily(timer.now() + 0.005, lambda: ran.append(True))
+        timer.close()
+        assert timer.pending == 0
+        await asyncio.sleep(0.02)  # past the handover and the deadline
+        assert ran == []
+
+    run(asyncio.new_event_loop, main())
+
+
+@pytest.mark.parametrize("loop_factory", LOOPS)
+@pytest.mark.parametrize("timer_cls", TIMERS)
+def test_where_the_loop_cannot_watch_it_a_lazy_call_is_a_plain_one(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], timer_cls: type[Timer]
+) -> None:
+    """Only a timerfd timer on asyncio's own loop (whose clock is ``time.monotonic``)
+    hands the first part to the loop."""
+
+    async def main() -> None:
+        timer = timer_cls()
+        far = timer.call_at_lazily(timer.now() + 0.05, lambda: None)
+        on_asyncio = type(asyncio.get_running_loop()).__module__.startswith("asyncio")
+        assert (far._watch is not None) is (timer_cls is TimerfdTimer and on_asyncio)
+        far.cancel()
+        timer.close()
+
+    run(loop_factory, main())
+
+
+@needs_timerfd
+def test_behind_an_earlier_deadline_a_lazy_call_is_a_plain_one(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With an earlier deadline pending, the timerfd stays armed for that one: the
+    deadline goes straight into the heap, and its cancel re-arms nothing either."""
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        tick = timer.call_at(timer.now() + 0.01, lambda: None)
+        await asyncio.sleep(0)
+        armed = _record_settimes(timer, monkeypatch)
+        reply_deadline = timer.call_at_lazily(timer.now() + 0.02, lambda: None)
+        assert reply_deadline._watch is None and timer.pending == 2
+        reply_deadline.cancel()
+        await asyncio.sleep(0)
+        assert armed == []
+        tick.cancel()
+        timer.close()
+
+    run(asyncio.new_event_loop, main())
+
+
+@needs_timerfd
+async def test_requests_answered_in_time_do_not_arm_the_bus_timer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A status request whose reply comes well before its deadline arms nothing: its
+    deadline never reaches the timerfd (two ``timerfd_settime`` a request before)."""
+    timer = TimerfdTimer(spin_lead=0.0)
+    sim_timer = LoopTimer()  # the simulated devices' replies: not the bus's timerfd
+    models = [LAModel(1)]
+    sim_start = MemorySim.start(models, timer=sim_timer)  # type: ignore[arg-type]
+    async with sim_start as sim, motorbus.Bus(
+        sim.transport, families=[motorbus.Family.LA], timer=timer
+    ) as bus:
+        la = InspireLA(bus, 1)
+        await la.status()
+        armed = _record_settimes(timer, monkeypatch)
+        for _ in range(10):
+            await asyncio.sleep(0.003)  # past the 1 ms spacing: no wait for it
+            await la.status()
+        assert armed == [], [n / 1e9 for n in armed]
+    timer.close()
+    sim_timer.close()
