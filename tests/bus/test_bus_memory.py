@@ -66,9 +66,15 @@ class RecordingClock:
         """Delegate to the inner timer."""
         return self.inner.call_at(deadline, callback, precise=precise)
 
-    def call_at_lazily(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+    def call_at_lazily(
+        self, deadline: float, callback: Callable[[], None], now: float | None = None
+    ) -> TimerHandle:
         """Delegate to the inner timer."""
-        return self.inner.call_at_lazily(deadline, callback)
+        return self.inner.call_at_lazily(deadline, callback, now)
+
+    async def sleep_until(self, deadline: float, *, precise: bool = True) -> None:
+        """Delegate to the inner timer."""
+        await self.inner.sleep_until(deadline, precise=precise)
 
     def hold_arming(self) -> None:
         """Delegate to the inner timer."""

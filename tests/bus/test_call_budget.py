@@ -30,7 +30,7 @@ and 149 on the default timer.  Then the LA fast path's checksum asked of the rul
 request 143 on the fake clock and 150 on the default timer.  Then a motion frame's
 devices worked out once, at its lease claim, and reused by its write (2026-12-07): 122
 a tick on the fake clock, 135 on the default timer.  Then a reply's deadline watched
-by the loop's own timer until its last 1.5 ms (``Timer.call_at_lazily``: no timerfd
+by the loop's own timer until its last 2 ms (``Timer.call_at_lazily``: no timerfd
 re-arming for a reply that comes before then, at six calls of asyncio's own), a Status
 made by the tuple's constructor, and a timer wake-up that reads the clock again only
 for a deadline not yet due by the last reading (2026-12-07): a request 141 on the fake

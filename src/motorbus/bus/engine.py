@@ -305,7 +305,7 @@ class BusEngine:
         if expects:
             # Usually cancelled by the reply: the wake-up source is armed for it only in
             # its last stretch (Timer.call_at_lazily), decided as precisely.
-            job.handle = timer.call_at_lazily(job.deadline, self._on_deadline)
+            job.handle = timer.call_at_lazily(job.deadline, self._on_deadline, after)
         elif not job.future.done():
             job.future.set_result(None)
 

@@ -168,7 +168,7 @@ def check_request_options(timeout: object, retries: object, priority: object) ->
 
 
 #: What a bus calls on its timer (a :class:`Timer` has them all).
-TIMER_METHODS = ("now", "call_at", "call_at_lazily", "hold_arming", "release_arming")
+TIMER_METHODS = ("now", "call_at", "call_at_lazily", "hold_arming", "release_arming", "sleep_until")
 
 
 def check_timer(value: object) -> Timer | None:
@@ -180,8 +180,7 @@ def check_timer(value: object) -> Timer | None:
     missing = [m for m in TIMER_METHODS if not callable(getattr(value, m, None))]
     if missing:
         raise LocalProtocolError(
-            f"timer must be a motorbus Timer or None, got {value!r} (without "
-            f"{', '.join(missing)})",
+            f"timer must be a motorbus Timer or None, got {value!r} (without {', '.join(missing)})",
             field="timer",
             value=value,
         )

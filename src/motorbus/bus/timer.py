@@ -100,14 +100,12 @@ class TimerHandle:
         self._cancelled = True
         self._callback = None
         timer, self._timer = self._timer, None
-        if timer is None:
-            return
         watch = self._watch
-        if watch is not None:  # still the loop's (call_at_lazily): not in the heap
+        if timer is not None and watch is not None:  # still the loop's: not in the heap
             self._watch = None
-            timer._watched -= 1
+            del timer._watching[self]
             watch.cancel()
-        else:
+        elif timer is not None:
             timer._forget_cancelled(self)
 
 
@@ -117,17 +115,24 @@ class Timer(abc.ABC):
     Pending callbacks sit in one heap; a subclass only provides a wake-up source armed at
     the earliest deadline.  On every wake-up the callbacks whose deadline has passed run
     in deadline order (ties in scheduling order) and the source is re-armed at the next;
-    a wake-up before the earliest deadline just re-arms.  One timer serves one event
-    loop; get the shared one with :func:`default_timer`.
+    a wake-up before the earliest deadline just re-arms.  (A deadline of
+    :meth:`call_at_lazily` joins the heap only for its last stretch.)  One timer serves
+    one event loop; get the shared one with :func:`default_timer`.
     """
 
     #: "timerfd" or "loop".
     name: str
     #: How long before a deadline of :meth:`call_at_lazily` the loop's own timer hands it
-    #: to the wake-up source: longer than that timer can be late (the default loop
-    #: sleeps whole milliseconds, rounded up: docs/platform.md section 1), so the
-    #: deadline itself keeps the wake-up source's precision.
-    HANDOVER_S = 1.5e-3
+    #: to the wake-up source.  That timer sleeps whole milliseconds, rounded up, so a
+    #: loop that keeps up runs it under 1 ms late plus a wake-up's lateness (0.1-0.5 ms
+    #: here); only for watches of at most ``LAZY_WITHIN_S``, since for some longer ones
+    #: asyncio's rounding adds another millisecond (9 ms: ``9 * 1e-3 > 0.009``;
+    #: ``bench_timer.py``: asyncio.sleep at a 10 ms period, 2.3 ms late at p99).  A loop
+    #: held up past the deadline hands it over at its next wake-up of either kind, in
+    #: deadline order (``_take_watched``): as late as the wake-up source's would be.
+    HANDOVER_S = 2e-3
+    #: The longest watch (from now to the handover) left to the loop's timer.
+    LAZY_WITHIN_S = 8e-3
     #: Whether this timer's clock is the loop's (``time.monotonic``), so that the loop's
     #: timer may watch the first part of a lazily called deadline.
     _LAZY = False
@@ -158,8 +163,13 @@ class Timer(abc.ABC):
         proxy: Any = weakref.proxy(loop)
         # call_at_lazily: on asyncio's own loops, whose clock is time.monotonic (weakly,
         # as above: a bound method would keep the loop alive through default_timer's cache).
-        self._lazy_loop = proxy if self._LAZY and self._ready is not None else None
-        self._watched = 0  # lazily called deadlines the loop's timer still watches
+        own_clock = type(loop).time is asyncio.BaseEventLoop.time
+        lazy = self._LAZY and self._ready is not None and own_clock
+        self._lazy_loop = proxy if lazy else None
+        #: Lazily called deadlines the loop's timer still watches, with their places in
+        #: the scheduling order (ties: a handed-over one keeps its place).
+        self._watching: dict[TimerHandle, int] = {}
+        self._handover_s = self.HANDOVER_S
         self._flush_handle = asyncio.Handle(self._flush_rearm, (), proxy, self._context)
         if type(self).now is Timer.now:
             # The clock is the C function itself: one call a read, not two (issue 40).
@@ -180,9 +190,7 @@ class Timer(abc.ABC):
     @property
     def pending(self) -> int:
         """Number of scheduled callbacks that have neither run nor been cancelled."""
-        if self._closed:  # (lazily called ones the loop still watches will not run)
-            return 0
-        return len(self._heap) - self._cancelled_in_heap + self._watched
+        return len(self._heap) - self._cancelled_in_heap + len(self._watching)
 
     def now(self) -> float:
         """Return the current time in seconds, the clock of ``time.monotonic()``."""
@@ -227,44 +235,60 @@ class Timer(abc.ABC):
                 self._rearm_soon()
         return handle
 
-    def call_at_lazily(self, deadline: float, callback: Callable[[], None]) -> TimerHandle:
+    def call_at_lazily(
+        self, deadline: float, callback: Callable[[], None], now: float | None = None
+    ) -> TimerHandle:
         """:meth:`call_at` for a deadline that is usually cancelled before it comes (a
-        reply's): as precise, but the wake-up source is armed for it only in its last
-        ``HANDOVER_S``.  Until then the loop's own timer watches it, so a cancel then
-        re-arms nothing (on a VM a ``timerfd_settime`` for the near future costs ~12 us,
-        ``bench_pieces.py``, and a reply deadline cost two).  A plain :meth:`call_at`
-        where that saves nothing (an earlier deadline is pending: the source stays armed
-        for it) or cannot be done (another loop or clock).
+        reply's): the wake-up source is armed for it only in its last ``HANDOVER_S``.
+        Until then the loop's own timer watches it, so a cancel then re-arms nothing (on
+        a VM a ``timerfd_settime`` for the near future costs ~12 us, ``bench_pieces.py``,
+        and a reply deadline cost two).  A plain :meth:`call_at` where that saves
+        nothing (an earlier deadline is pending: the source stays armed for it) or
+        cannot be done well (another loop or clock; a handover already past, or further
+        than ``LAZY_WITHIN_S``).  Never early, in deadline order, as :meth:`call_at`.
+        ``now``: the caller's latest reading of :meth:`now`, if it has one (a call fewer).
         """
         loop, heap = self._lazy_loop, self._heap
+        handover = deadline - self._handover_s
         if (
             loop is None
             or (heap and heap[0][0] <= deadline)  # the source stays armed for that one
-            or self._closed  # (call_at raises)
+            or not 0 < handover - (self.now() if now is None else now) <= self.LAZY_WITHIN_S
+            or self._closed  # (call_at raises; as for NaN, which fails the range above)
         ):
             return self.call_at(deadline, callback)
-        # (A handover already past is the loop's next turn: a timeout that short is rare.)
         handle = TimerHandle(self, deadline, callback)
-        handle._watch = loop.call_at(
-            deadline - self.HANDOVER_S, self._hand_over, handle, context=self._context
-        )
-        self._watched += 1
+        self._seq += 1
+        self._watching[handle] = self._seq
+        handle._watch = loop.call_at(handover, self._on_handover, handle, context=self._context)
         return handle
 
     def _hand_over(self, handle: TimerHandle) -> None:
-        """A lazily called deadline is ``HANDOVER_S`` away: the wake-up source takes it
-        (as :meth:`call_at` would have).  A cancelled one never gets here."""
+        """A watched deadline enters the heap, keeping its place among equal ones."""
         handle._watch = None
-        self._watched -= 1
-        if self._closed:
-            handle._callback = None
-            handle._cancelled = True
-            return
+        seq = self._watching.pop(handle)
         heap = self._heap
-        self._seq += 1
-        heapq.heappush(heap, (handle.deadline, self._seq, handle))
+        heapq.heappush(heap, (handle.deadline, seq, handle))
         if heap[0][2] is handle:
             self._rearm_soon()
+
+    def _on_handover(self, handle: TimerHandle) -> None:
+        """The loop's timer: ``handle``'s last stretch has begun.  If the loop was held
+        up past the deadline itself, it runs now (with whatever was due before it)."""
+        if self._closed:
+            return
+        self._hand_over(handle)
+        if handle.deadline <= (now := self.now()) and not self._holds:
+            self._wake(now)
+
+    def _take_watched(self, now: float) -> None:
+        """At a wake-up: hand over the watched deadlines whose last stretch began by
+        ``now`` (their loop timer is late), so that they run in order with the heap's."""
+        late = self._handover_s
+        for handle in [h for h in self._watching if h.deadline - late <= now]:
+            assert handle._watch is not None
+            handle._watch.cancel()
+            self._hand_over(handle)
 
     def hold_arming(self) -> None:
         """Defer re-arming the wake-up source until the matching :meth:`release_arming`.
@@ -324,6 +348,12 @@ class Timer(abc.ABC):
             handle._callback = None
             handle._cancelled = True
         self._heap.clear()
+        for handle in self._watching:
+            assert handle._watch is not None
+            handle._watch.cancel()
+            handle._watch = handle._callback = None
+            handle._cancelled = True
+        self._watching.clear()
         self._cancelled_in_heap = 0
         self._release()
 
@@ -348,6 +378,8 @@ class Timer(abc.ABC):
         if loop is None:
             raise RuntimeError("the event loop of this timer is gone")
         now = self.now() if now is None else now
+        if self._watching:
+            self._take_watched(now)
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
@@ -498,10 +530,9 @@ class TimerfdTimer(Timer):
     deadline (a lead of 60-500 us that follows the recent lateness of precise deadlines'
     wake-ups that the loop's own work did not hold up) and the wake-up spins on the clock
     for the rest: a deadline fires within ~25 us at p99, for at most the lead in CPU per
-    wake-up (bench_wakeups.py: timer callback lateness).  By default it did so until
-    issue 40: that spin alone was 1.4x the least loop's CPU (benchmarks/bench_cpu.py).
-    What it costs is counted from outside: ``wake_observer`` is told each wake-up and
-    its spin (the benchmarks' ``harness.TimerProbe``); the timer keeps no counters.
+    wake-up (bench_wakeups.py: timer callback lateness).  What it costs is counted from
+    outside: ``wake_observer`` is told each wake-up and its spin (the benchmarks'
+    ``harness.TimerProbe``); the timer keeps no counters.
     """
 
     name = "timerfd"
@@ -538,6 +569,8 @@ class TimerfdTimer(Timer):
         if spin_lead is None:
             spin_lead = self.SPIN_LEAD_S if spin_asked() else 0.0
         self._spin_lead = spin_lead
+        # The fd fires up to the spin lead before a precise deadline: the handover too.
+        self._handover_s = self.HANDOVER_S + spin_lead
         self._wake_late = self._spin_lead / 2  # start cautious: assume a slow wake-up
         if not spin_lead and type(self).now is TimerfdTimer.now:
             # Only the spin lead reads ``_seen``: without it, the clock is the C function.
@@ -614,21 +647,14 @@ class TimerfdTimer(Timer):
         woke = self.now()
         armed = self._armed_ns / _NS_PER_S
         # The lead is for the kernel's part of a wake-up's lateness, so it follows only
-        # the wake-ups that show it (and only with a spin):
-        # * armed for a precise deadline: one for a plain deadline (a sleep_until(
-        #   precise=False), a start_by) lands wherever the loop is busy, and with many
-        #   buses those kept the lead at its maximum for the precise ones;
-        # * with the loop idle from the arming on: if motorbus's work ran after the fd was
-        #   armed (the clock was read: another bus's reply, a stream's task), the wake-up
-        #   may have waited for it, a lateness the loop's, not the kernel's.  Counted,
-        #   those held the lead near its maximum with 16 buses whose polls land on other
-        #   buses' ticks: a third of the CPU spun (benchmarks/README.md, "Spin lead").
-        #   Nor may their promptness lower it: a reply handled just after the arming is
-        #   the usual case of a bus waiting out its 1 ms spacing, and a run of those could
-        #   wear the lead to its floor, where the next idle wake-up comes after its deadline.
-        # Clipped at half the longest lead, which already asks for that lead: a wake-up
-        # later than that (the thread descheduled) is no reason to spin longer.
-        # Unclipped, one 30 ms outlier held the lead at its maximum for ~250 wake-ups.
+        # the wake-ups that show it (and only with a spin): armed for a precise deadline
+        # (a plain one lands wherever the loop is busy), with the loop idle from the
+        # arming on (if the clock was read since, motorbus's work ran and the wake-up may
+        # have waited for it: the loop's lateness, neither to raise the lead nor to wear
+        # it down; counted, a third of the CPU spun with 16 buses: benchmarks/README.md,
+        # "Spin lead").  Clipped at half the longest lead: a wake-up later than that (the
+        # thread descheduled; one 30 ms outlier held the lead at its maximum for ~250
+        # wake-ups) is no reason to spin longer.
         if self._spin_lead and self._armed_ns and self._armed_precise and busy_until <= armed:
             late = min(woke - armed, self._spin_lead / 2)
             self._wake_late = max(late, self._wake_late * self.LATENESS_DECAY)
