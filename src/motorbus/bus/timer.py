@@ -123,13 +123,10 @@ class Timer(abc.ABC):
     #: "timerfd" or "loop".
     name: str
     #: How long before a deadline of :meth:`call_at_lazily` the loop's own timer hands it
-    #: to the wake-up source.  That timer sleeps whole milliseconds, rounded up, so a
-    #: loop that keeps up runs it under 1 ms late plus a wake-up's lateness (0.1-0.5 ms
-    #: here); only for watches of at most ``LAZY_WITHIN_S``, since for some longer ones
-    #: asyncio's rounding adds another millisecond (9 ms: ``9 * 1e-3 > 0.009``;
-    #: ``bench_timer.py``: asyncio.sleep at a 10 ms period, 2.3 ms late at p99).  A loop
-    #: held up past the deadline hands it over at its next wake-up of either kind, in
-    #: deadline order (``_take_watched``): as late as the wake-up source's would be.
+    #: to the wake-up source: that timer sleeps whole milliseconds, rounded up (under 1 ms
+    #: late, plus a wake-up's 0.1-0.5 ms), for watches up to ``LAZY_WITHIN_S``; for some
+    #: longer ones asyncio's rounding adds a millisecond (``9 * 1e-3 > 0.009``;
+    #: bench_timer.py: asyncio.sleep at a 10 ms period, 2.3 ms late at p99).
     HANDOVER_S = 2e-3
     #: The longest watch (from now to the handover) left to the loop's timer.
     LAZY_WITHIN_S = 8e-3
@@ -163,7 +160,7 @@ class Timer(abc.ABC):
         proxy: Any = weakref.proxy(loop)
         # call_at_lazily: on asyncio's own loops, whose clock is time.monotonic (weakly,
         # as above: a bound method would keep the loop alive through default_timer's cache).
-        own_clock = type(loop).time is asyncio.BaseEventLoop.time
+        own_clock = getattr(loop.time, "__func__", None) is asyncio.BaseEventLoop.time
         lazy = self._LAZY and self._ready is not None and own_clock
         self._lazy_loop = proxy if lazy else None
         #: Lazily called deadlines the loop's timer still watches, with their places in
@@ -258,9 +255,9 @@ class Timer(abc.ABC):
         ):
             return self.call_at(deadline, callback)
         handle = TimerHandle(self, deadline, callback)
+        handle._watch = loop.call_at(handover, self._on_handover, handle, context=self._context)
         self._seq += 1
         self._watching[handle] = self._seq
-        handle._watch = loop.call_at(handover, self._on_handover, handle, context=self._context)
         return handle
 
     def _hand_over(self, handle: TimerHandle) -> None:
@@ -275,17 +272,14 @@ class Timer(abc.ABC):
     def _on_handover(self, handle: TimerHandle) -> None:
         """The loop's timer: ``handle``'s last stretch has begun.  If the loop was held
         up past the deadline itself, it runs now (with whatever was due before it)."""
-        if self._closed:
-            return
-        self._hand_over(handle)
         if handle.deadline <= (now := self.now()) and not self._holds:
-            self._wake(now)
+            self._wake(now)  # (which hands it over, with any other watched one due)
+        else:
+            self._hand_over(handle)
 
     def _take_watched(self, now: float) -> None:
-        """At a wake-up: hand over the watched deadlines whose last stretch began by
-        ``now`` (their loop timer is late), so that they run in order with the heap's."""
-        late = self._handover_s
-        for handle in [h for h in self._watching if h.deadline - late <= now]:
+        """Hand over the watched deadlines whose last stretch began by ``now`` (late)."""
+        for handle in [h for h in self._watching if h.deadline - self._handover_s <= now]:
             assert handle._watch is not None
             handle._watch.cancel()
             self._hand_over(handle)
@@ -378,13 +372,18 @@ class Timer(abc.ABC):
         if loop is None:
             raise RuntimeError("the event loop of this timer is gone")
         now = self.now() if now is None else now
-        if self._watching:
-            self._take_watched(now)
         # Callbacks that schedule and cancel deadlines re-arm nothing until all have run.
         self._holds += 1
         try:
-            # Due by the last reading, or else by a fresh one (none with nothing pending).
-            while heap and (heap[0][0] <= now or heap[0][0] <= (now := self.now())):
+            if self._watching:  # handed over first, so that they run in deadline order
+                self._take_watched(now)
+            while heap:
+                if heap[0][0] > now:  # not due by the last reading: read the clock again
+                    now = self.now()
+                    if self._watching:
+                        self._take_watched(now)
+                    if heap[0][0] > now:
+                        break
                 handle = heapq.heappop(heap)[2]
                 if handle._cancelled:
                     self._cancelled_in_heap -= 1
