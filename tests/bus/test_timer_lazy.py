@@ -22,20 +22,10 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
-from tests.bus.test_timer import LOOPS, TIMERS, run
+from tests.bus.test_timer import LOOPS, TIMERS, _record_settimes, run
 from tests.waiting import eventually
 
 needs_timerfd = pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
-
-
-def _record_settimes(timer: TimerfdTimer, monkeypatch: pytest.MonkeyPatch) -> list[int]:
-    """The absolute times (ns) ``timer`` arms its timerfd for from now on."""
-    armed: list[int] = []
-    real = timer._api.set_absolute_ns
-    monkeypatch.setattr(
-        timer._api, "set_absolute_ns", lambda fd, ns: (armed.append(ns), real(fd, ns))
-    )
-    return armed
 
 
 @pytest.mark.parametrize("loop_factory", LOOPS)
