@@ -86,23 +86,33 @@ async def test_a_run_that_times_out_is_stopped_and_says_so() -> None:
         assert not model.motors[1].running
 
 
+def _spy_on_stops(bus: Any, failing: frozenset[str] = frozenset()) -> list[list[str]]:
+    """The safe actions ``bus``'s lease keeper is asked to send from now on (each a list
+    of command names); one made only of ``failing`` commands gets no answer."""
+    keeper, asked = bus.lease_keeper, []
+    send_stop = keeper.send_stop
+
+    async def spying(commands: Any, *, who: str) -> list[object]:
+        names = [f"{type(c).__name__}({getattr(c, 'motor', '')})" for c in commands]
+        asked.append(names)
+        if {type(c).__name__ for c in commands} <= failing:  # the controller did not answer
+            return [ReplyTimeoutError("no answer") for _ in commands]
+        return await send_stop(commands, who=who)
+
+    keeper.send_stop = spying
+    return asked
+
+
 async def test_the_stop_of_a_timed_out_run_is_the_lease_keepers() -> None:
     # One sender of safe actions (issue 40): the motor's stop is asked of the keeper.
     model = QuadStepperModel()
     async with sim_bus([model], baud=115200) as (bus, _):
         quad = QuadStepper(bus)
         await _long_move(quad)
-        keeper, asked = bus.lease_keeper, []
-        send_stop = keeper.send_stop
-
-        async def recording(commands: Any, *, who: str) -> list[object]:
-            asked.append(tuple(commands))
-            return await send_stop(commands, who=who)
-
-        keeper.send_stop = recording  # type: ignore[method-assign]
+        asked = _spy_on_stops(bus)
         with pytest.raises(ReplyTimeoutError, match="stopped it"):
             await quad.run(1, timeout=0.05)
-        assert [[(type(c).__name__, c.motor) for c in cmds] for cmds in asked] == [[("Stop", 1)]]
+        assert asked == [["Stop(1)"]]
         assert not model.motors[1].running
 
 
@@ -120,21 +130,11 @@ async def test_a_timed_out_runs_stop_that_fails_falls_back_to_stop_all_and_says_
     async with sim_bus([model], baud=115200) as (bus, _):
         quad = QuadStepper(bus)
         await _long_move(quad)
-        keeper, asked = bus.lease_keeper, []
-        send_stop = keeper.send_stop
-
-        async def failing_some(commands: Any, *, who: str) -> list[object]:
-            names = [type(c).__name__ for c in commands]
-            asked.append(names)
-            if set(names) <= failing:  # as if the controller did not answer it
-                return [ReplyTimeoutError("no answer") for _ in commands]
-            return await send_stop(commands, who=who)
-
-        keeper.send_stop = failing_some  # type: ignore[method-assign]
+        asked = _spy_on_stops(bus, frozenset(failing))
         with pytest.raises(ReplyTimeoutError) as info:
             await quad.run(1, timeout=0.05)
         assert str(info.value) == f"motor 1 did not report done within 0.05 s: {said}"
-        assert asked == [["Stop"], ["StopAll"]]
+        assert asked == [["Stop(1)"], ["StopAll()"]]
         assert model.motors[1].running is ("StopAll" in failing)
 
 

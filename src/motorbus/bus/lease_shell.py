@@ -288,21 +288,15 @@ class LeaseKeeper(SafeStopper):
             return None
         keys = ", ".join(dict.fromkeys(c.device_key for c in commands))
         if state == "closed":
-            log.warning("bus %s is closed: could not send the safe action to %s", self.name, keys)
-            return BusClosedError(
-                f"bus {self.name} is closed: could not send the safe action to {keys}"
+            why = f"bus {self.name} is closed: could not send the safe action to {keys}"
+        else:
+            why = (
+                f"bus {self.name} is {state}: the safe action to {keys} is owed; it goes "
+                "out the moment the port is back"
             )
-        log.warning(
-            "bus %s is %s: the safe action to %s is owed; it goes out the moment the port is back",
-            self.name,
-            state,
-            keys,
-        )
-        self.owed.extend(commands)
-        return BusClosedError(
-            f"bus {self.name} is {state}: the safe action to {keys} is owed; it goes out "
-            "the moment the port is back"
-        )
+            self.owed.extend(commands)
+        log.warning("%s", why)
+        return BusClosedError(why)
 
 
 async def send_together(request: SafeRequest, commands: Sequence[Command[object]]) -> list[object]:
