@@ -24,7 +24,7 @@ def test_a_seized_model_takes_targets_but_never_moves() -> None:
 
 @pytest.mark.asyncio
 async def test_a_dead_actuator_fails_and_the_next_one_is_still_measured() -> None:
-    plan = RigPlan(ids=(1, 2), tests=("step", "latency"), latency_count=4)
+    plan = RigPlan(ids=(1, 2), tests=("step", "latency"), latency_count=4, settle_timeout=1.0)
     async with fake_rig(models=[model(1, seized=True), model(2)]) as r:
         result = await run_rig(r.bus, plan)
     assert not result.passed
@@ -50,7 +50,7 @@ async def test_a_dead_actuator_fails_and_the_next_one_is_still_measured() -> Non
 async def test_a_figure_that_cannot_be_computed_fails_its_test() -> None:
     # A dead band of 30 leaves each move 15 units short: well inside "arrived" (5 % of
     # the 1000-unit step), never within the 1 % (10 units) that defines settling.
-    plan = RigPlan(ids=(1,), tests=("step",), step_start=500, step_end=1500)
+    plan = RigPlan(ids=(1,), tests=("step",), step_start=500, step_end=1500, settle_timeout=1.5)
     async with fake_rig(models=[model(dead_band=30.0)]) as r:
         result = await run_rig(r.bus, plan)
     assert not result.passed
