@@ -146,10 +146,6 @@ def _u16(raw: bytes, at: int) -> int:
     return int.from_bytes(raw[at : at + 2], "little", signed=False)
 
 
-def _s16(raw: bytes, at: int) -> int:
-    return int.from_bytes(raw[at : at + 2], "little", signed=True)
-
-
 def _check_id(value: object, *, allow_broadcast: bool) -> int:
     if allow_broadcast and value == BROADCAST_ID and not isinstance(value, bool):
         return BROADCAST_ID
