@@ -1,11 +1,14 @@
 """No test waits without a bound: a ``while ...: await asyncio.sleep(...)`` loop that
 never ends hangs the run until pytest-timeout; ``tests.waiting.eventually`` fails with
-a message instead."""
+a message instead.  And no property test has a time limit: tests assert behaviour."""
 
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
+
+from hypothesis import HealthCheck, settings
 
 TESTS = Path(__file__).resolve().parent
 
@@ -53,3 +56,19 @@ def test_no_unbounded_sleep_loops() -> None:
         for line in _bare_sleep_loops(ast.parse(path.read_text(encoding="utf-8")))
     ]
     assert found == [], "use tests.waiting.eventually: " + ", ".join(found)
+
+
+def test_property_tests_have_no_time_limit() -> None:
+    """Hypothesis's deadline per example and its "generation too slow" health check are
+    timing assertions, which a loaded shared machine fails (one did: an example took
+    1.1 s to generate).  The suite's profile (tests/conftest.py) turns both off, and no
+    test turns a deadline back on."""
+    assert settings.default.deadline is None
+    assert HealthCheck.too_slow in settings.default.suppress_health_check
+    with_deadline = re.compile(r"@settings\([^)]*deadline\s*=")
+    offenders = [
+        path.relative_to(TESTS).as_posix()
+        for path in TESTS.rglob("*.py")
+        if with_deadline.search(path.read_text(encoding="utf-8"))
+    ]
+    assert offenders == []

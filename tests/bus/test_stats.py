@@ -71,7 +71,7 @@ def test_the_old_bucket_edges_are_gone() -> None:
     assert h.summary()["p50_us"] == pytest.approx(650, rel=0.01)
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(
     st.lists(st.floats(min_value=1e-7, max_value=50.0), min_size=1, max_size=300),
     st.floats(min_value=0, max_value=100),

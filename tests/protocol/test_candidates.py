@@ -245,7 +245,7 @@ def header_positions(buf: bytes, headers: tuple[bytes, ...]) -> list[int]:
     return [p for p in range(len(buf) - 1) if buf[p : p + 2] in headers]
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(buf=streams, setup=st.sampled_from(SETUPS), expected=expectations)
 def test_the_prefilter_never_skips_a_header_the_judge_accepts(
     buf: bytes,
@@ -262,7 +262,7 @@ def test_the_prefilter_never_skips_a_header_the_judge_accepts(
                 assert marks[p] == 1 or buf[p : p + 2] == PROJECT_FINISHED_BYTES
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(buf=streams, ext=junk, setup=st.sampled_from(SETUPS), expected=expectations)
 def test_a_skipped_header_is_refused_whatever_follows(
     buf: bytes,
@@ -276,7 +276,7 @@ def test_a_skipped_header_is_refused_whatever_follows(
             assert judge.parse_at(buf + ext, p, True)[0] == INVALID, (buf.hex(" "), p)
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(
     buf=streams,
     headers=st.sampled_from(
@@ -363,7 +363,7 @@ def test_marks_come_from_the_anchors_only_while_they_are_sparse() -> None:
     assert calls == ["anchors", "c", "c", "c", "too many anchors", "c", "c"]
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=200)
 @given(
     buf=streams,
     setup=st.sampled_from(SETUPS),

@@ -342,7 +342,7 @@ def _check(d: Description) -> None:
     assert "\n" not in line and line.endswith(f"[{d.hex}]")
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(st.binary(max_size=300))
 def test_any_stream_is_described_without_raising(data: bytes) -> None:
     r = Reassembler(direction=None)
@@ -355,7 +355,7 @@ def test_any_stream_is_described_without_raising(data: bytes) -> None:
     assert seen == data
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(
     st.sampled_from(list(Family)),
     st.sampled_from(list(Direction)),

@@ -399,7 +399,7 @@ def assert_every_frame_recovered(
     assert r.buffered == 0
 
 
-@settings(max_examples=400, deadline=None)  # behaviour, not speed: the machine is shared
+@settings(max_examples=400)
 @given(parts=la_with_stray, cuts=st.lists(st.integers(0, 10_000), max_size=12))
 def test_every_la_frame_behind_stray_bytes_is_recovered_with_all_families(
     parts: list[tuple[bytes, bytes]], cuts: list[int]
@@ -474,7 +474,7 @@ expectations: list[list[FrameShape] | None] = [
 ]
 
 
-@settings(max_examples=300, deadline=None)
+@settings(max_examples=300)
 @given(
     parts=st.lists(part, max_size=16),
     with_dump=st.booleans(),

@@ -229,7 +229,7 @@ def test_models_of_another_family_are_not_asked() -> None:
     assert stepper.heard == []
 
 
-@settings(max_examples=60, deadline=None)
+@settings(max_examples=60)
 @given(st.lists(st.integers(min_value=1, max_value=23), max_size=12), st.integers(0, 2**16))
 def test_how_the_host_bytes_are_split_does_not_change_the_outcome(
     cuts: list[int], seed: int

@@ -147,7 +147,7 @@ def test_start_then_ee_dd_once_the_project_ends() -> None:
 # -- memory: RAM, flash, dump -----------------------------------------------------------
 
 
-@settings(max_examples=30, deadline=None)
+@settings(max_examples=30)
 @given(st.integers(1, 4), st.integers(1, 10), st.integers(0, 255), st.data())
 def test_dump_round_trips_what_was_programmed(
     number: int, n: int, repeat: int, data: st.DataObject

@@ -65,7 +65,7 @@ async def test_random_delivery_is_reproducible_from_the_seed() -> None:
     assert cuts[0] == cuts[1]
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=40)
 @given(
     messages=st.lists(st.binary(min_size=1, max_size=30), min_size=1, max_size=8),
     delivery=st.sampled_from(DELIVERY_MODES),
