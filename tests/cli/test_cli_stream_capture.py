@@ -9,7 +9,6 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -17,7 +16,7 @@ from motorbus.cli.stream import ramp_rows, read_trajectory
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
-from tests.helpers import CLI_TIMEOUT_S, cli, json_lines, raw_pty, rx_frames
+from tests.helpers import CLI_TIMEOUT_S, cli, json_lines, raw_pty, rx_frames, stream_summary
 
 #: A 0xF3 broadcast in the simulator's log, from byte 2 on: Len, ID FF, F3.
 F3_AT_BYTE_2 = "FF F3"
@@ -41,17 +40,6 @@ def write_csv(path: Path, rows: int, *, header: bool, period: float = 0.01) -> P
 
 def broadcasts(sim: SimProcess) -> list[str]:
     return [h for h in rx_frames(sim) if h.startswith(F3_AT_BYTE_2, 9)]
-
-
-def stream_summary(r: subprocess.CompletedProcess[str]) -> dict[str, Any]:
-    """``motorbus stream --json``'s summary.  A tick may be skipped on a loaded machine:
-    the exit code is then 1 and one error object follows the summary, naming the skipped
-    ticks (count, do not time)."""
-    summary, *failed = json_lines(r.stdout)
-    skipped = summary["skipped"]
-    assert r.returncode == (0 if skipped == 0 else 1), r.stderr
-    assert [doc["skipped"] for doc in failed] == ([skipped] if skipped else []), r.stdout
-    return summary  # type: ignore[no-any-return]
 
 
 # -- stream -----------------------------------------------------------------------------------

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import asyncio
 import itertools
-import json
 import signal
 import subprocess
 import sys
@@ -26,6 +25,7 @@ from motorbus.serve import keys as k
 from motorbus.serve.streams_client import ServedStream, ServedStreamer
 from motorbus.sim import SimProcess
 from motorbus.streams import StreamGap
+from tests.helpers import stream_summary
 from tests.serve.conftest import Child, client
 from tests.serve.test_served_faults import raw_query
 from tests.waiting import eventually
@@ -304,22 +304,20 @@ def test_bad_stream_queries_are_refused_naming_the_field(
 def test_motorbus_stream_connect_plays_a_csv_through_the_server(
     la_sim: SimProcess, la_server: Child, endpoint: str, tmp_path: Path
 ) -> None:
-    # At 20 ms a tick: the command fails on a skipped tick (as it says it will), and a
-    # loaded run of the suite (six workers on two CPUs) skipped 2 of 40 at 10 ms.
+    # A loaded run of the suite skips a tick now and then (2 of 40 at 20 ms a tick, with
+    # eight workers on two CPUs): the command then fails, naming the skipped ticks, and
+    # what it sent still arrives in order (count, do not time).
     csv = tmp_path / "path.csv"
     csv.write_text(
         "t,1,2\n" + "".join(f"{n * 0.02:.2f},{a},{b}\n" for n, (a, b) in enumerate(ROWS))
     )
     done = subprocess.run(
         [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect", endpoint,
-         "--ramp", "0", "--period", "0.02"],
+         "--ramp", "0", "--period", "0.02", "--json"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
-    if done.returncode != 0:  # which rows reached the actuators: the ticks it lost
-        received = [ROWS.index(r) if r in ROWS else r for r in targets_at_sim(la_sim)]
-        pytest.fail(f"{done.stderr}\nrows at the simulator, by index: {received}")
-    assert "streamed" in done.stdout
-    assert_in_order(targets_at_sim(la_sim), ROWS)
+    summary = stream_summary(done)
+    assert_in_order(targets_at_sim(la_sim), ROWS, summary["skipped"])
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
     # Again, from where the first left them: out and back to where they start.  No poll
     # fits between the server's ticks (its 250 ms host margin), so the command knows
@@ -330,8 +328,7 @@ def test_motorbus_stream_connect_plays_a_csv_through_the_server(
          "--ramp", "0", "--period", "0.02", "--json"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
-    assert again.returncode == 0, again.stderr
-    summary = json.loads(again.stdout)
+    summary = stream_summary(again)
     assert summary["polls"] == 0 and summary["not_following"] == [], summary
 
 
