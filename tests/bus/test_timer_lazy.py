@@ -23,7 +23,6 @@ from motorbus.errors import LocalProtocolError
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from tests.bus.test_timer import LOOPS, TIMERS, _record_settimes, run
-from tests.waiting import eventually
 
 needs_timerfd = pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
 
@@ -99,13 +98,20 @@ def test_a_lazy_deadline_left_to_run_is_armed_for_its_last_stretch_only(
         # A handover 10 ms from now, 50 ms before the deadline: windows a loaded VM keeps.
         timer._handover_s, timer.LAZY_WITHIN_S = 0.05, 0.2
         fired = asyncio.get_running_loop().create_future()
-        deadline = timer.now() + 0.06
-        timer.call_at_lazily(deadline, lambda: fired.set_result(timer.now()))
+        handed_over: list[float] = []
+        on_handover = timer._on_handover
+        timer._on_handover = lambda h: (handed_over.append(timer.now()), on_handover(h))  # type: ignore[method-assign]
+        now = timer.now()
+        deadline = now + 0.06
+        timer.call_at_lazily(deadline, lambda: fired.set_result(timer.now()), now=now)
         await asyncio.sleep(0)
         assert armed == []  # the loop's timer watches it until its handover
         ran = await fired
         assert ran >= deadline
-        assert armed == [math.ceil(deadline * 1e9)]  # then the timerfd, at the deadline
+        if handed_over[0] < deadline:
+            assert armed == [math.ceil(deadline * 1e9)]  # then the timerfd, at the deadline
+        else:  # the loop was held up past the deadline itself: it ran at once, unarmed
+            assert armed == []
         timer.close()
 
     run(asyncio.new_event_loop, main())
@@ -117,10 +123,14 @@ def test_a_lazy_deadline_cancelled_after_its_handover_does_not_run() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
         timer._handover_s = 0.05  # room to cancel between the handover and the deadline
         ran: list[bool] = []
-        handle = timer.call_at_lazily(timer.now() + 0.055, lambda: ran.append(True))
+        now = timer.now()
+        handle = timer.call_at_lazily(now + 0.055, lambda: ran.append(True), now=now)
         assert handle._watch is not None
-        await eventually(lambda: handle._watch is None, "the handover", poll=0.001)
-        assert timer.pending == 1
+        # The handover as the loop's watch (or a wake-up) makes it, not waited for: a
+        # loaded machine can hold the loop past the deadline itself, and the deadline
+        # then rightly runs at once (test_a_loop_held_up_past_the_handover_...).
+        timer._take_watched(now + 0.005)
+        assert handle._watch is None and timer.pending == 1
         handle.cancel()
         assert timer.pending == 0
         await asyncio.sleep(0.06)  # past the deadline
@@ -156,14 +166,15 @@ def test_where_the_loop_cannot_watch_it_a_lazy_call_is_a_plain_one(
 
     async def main() -> None:
         timer = timer_cls()
-        watched = timer.call_at_lazily(timer.now() + 0.006, lambda: None)
+        now = timer.now()
+        watched = timer.call_at_lazily(now + 0.006, lambda: None, now=now)
         on_asyncio = type(asyncio.get_running_loop()).__module__.startswith("asyncio")
         assert (watched._watch is not None) is (timer_cls is TimerfdTimer and on_asyncio)
         # Past the window asyncio's rounding can add a millisecond; within the handover
         # there is nothing to watch: both plain calls.
         window = timer._handover_s + timer.LAZY_WITHIN_S
-        far = timer.call_at_lazily(timer.now() + window + 0.001, lambda: None)
-        near = timer.call_at_lazily(timer.now() + timer._handover_s, lambda: None)
+        far = timer.call_at_lazily(now + window + 0.001, lambda: None, now=now)
+        near = timer.call_at_lazily(now + timer._handover_s, lambda: None, now=now)
         assert far._watch is None and near._watch is None
         watched.cancel()
         far.cancel()
@@ -236,7 +247,7 @@ def test_a_deadline_whose_handover_falls_inside_a_wake_up_runs_in_order() -> Non
         order: list[str] = []
         done = asyncio.get_running_loop().create_future()
         now = timer.now()
-        watched = timer.call_at_lazily(now + 0.005, lambda: order.append("watched"))
+        watched = timer.call_at_lazily(now + 0.005, lambda: order.append("watched"), now=now)
         assert watched._watch is not None
         timer.call_at(now + 0.001, lambda: (order.append("slow"), time.sleep(0.008)))
         timer.call_at(now + 0.0055, lambda: order.append("later"))
@@ -311,9 +322,16 @@ async def test_requests_answered_in_time_do_not_arm_the_bus_timer(
             la = InspireLA(bus, 1)
             await la.status()
             armed = _record_settimes(timer, monkeypatch)
+            answered_in_time = 0
             for _ in range(10):
                 await asyncio.sleep(0.003)  # past the 1 ms spacing: no wait for it
+                before, asked = len(armed), timer.now()
                 await la.status()
-            assert armed == [], [n / 1e9 for n in armed]
+                # A loaded machine can hold the loop past a handover (~50 ms after the
+                # write): that request's deadline is then rightly armed.  Count the rest.
+                if timer.now() - asked < 0.04:
+                    answered_in_time += 1
+                    assert len(armed) == before, [n / 1e9 for n in armed]
+            assert answered_in_time > 0
     timer.close()
     sim_timer.close()

@@ -26,6 +26,10 @@ SLOW = f"stroke_speed={SPEED * 0.8:g},accel=10000,dead_time={DEAD},position=300"
 #: a sample when its reply is read (docs/rig.md), so a busy CI worker only ever adds to
 #: a measured delay: one such run read a 32 ms dead time as 38.9 ms.
 READ_LATE_MS = 10.0
+#: How far a loaded host's samples may move the speed and the rise time (relative): with
+#: eight workers on two CPUs one run read the 1000 units/s actuator as 1059.  The slower
+#: actuator of these runs is 20 % off, and a wrong unit or clock much further.
+LOADED_REL = 0.10
 QUICK = ["--tests", "step,latency,repeat", "--latency-count", "6", "--repeat-count", "2"]
 
 
@@ -65,9 +69,9 @@ def figures(folder: Path) -> dict[str, float]:
 
 def test_the_rig_recovers_the_configured_truth_over_a_pty(runs: dict[str, Path]) -> None:
     f = figures(runs["golden"])
-    assert f["step.speed_units_per_s"] == pytest.approx(SPEED, rel=0.05)
+    assert f["step.speed_units_per_s"] == pytest.approx(SPEED, rel=LOADED_REL)
     # 10 -> 90 % of the 900-unit default step (550 -> 1450), at cruise: 720 units.
-    assert f["step.rise_time_ms"] == pytest.approx(720.0, rel=0.05)
+    assert f["step.rise_time_ms"] == pytest.approx(720.0, rel=LOADED_REL)
     # Dead time as docs/rig.md defines it: the model's, plus the time its profile takes
     # to leave the 2-unit noise band from rest (sqrt(2 * 2 / accel) = 20 ms).
     moved_ms = DEAD * 1e3 + math.sqrt(2 * 2 / 10000) * 1e3
