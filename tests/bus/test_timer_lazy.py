@@ -129,7 +129,7 @@ def test_a_lazy_deadline_cancelled_after_its_handover_does_not_run() -> None:
         # The handover as the loop's watch (or a wake-up) makes it, not waited for: a
         # loaded machine can hold the loop past the deadline itself, and the deadline
         # then rightly runs at once (test_a_loop_held_up_past_the_handover_...).
-        timer._take_watched(now + 0.005)
+        timer._take_watched(now + 0.01)  # past its handover (5 ms), before the deadline
         assert handle._watch is None and timer.pending == 1
         handle.cancel()
         assert timer.pending == 0
