@@ -73,14 +73,16 @@ def test_a_lazy_deadline_cancelled_before_its_handover_never_arms_the_timerfd(
         later = timer.call_at(timer.now() + 1.0, lambda: None)
         await asyncio.sleep(0)  # the far deadline armed
         armed = _record_settimes(timer, monkeypatch)
-        timer._handover_s, timer.LAZY_WITHIN_S = 0.05, 0.2  # windows a loaded VM keeps
+        # A handover 200 ms after the write: a window a loaded VM keeps.
+        timer._handover_s, timer.LAZY_WITHIN_S = 0.05, 0.3
         ran: list[bool] = []
-        reply_deadline = timer.call_at_lazily(timer.now() + 0.1, lambda: ran.append(True))
+        now = timer.now()
+        reply_deadline = timer.call_at_lazily(now + 0.25, lambda: ran.append(True), now=now)
         assert reply_deadline._watch is not None and timer.pending == 2
         await asyncio.sleep(0.002)  # the reply came: well before the handover
         reply_deadline.cancel()
         assert reply_deadline.cancelled() and timer.pending == 1
-        await asyncio.sleep(0.12)  # past the cancelled deadline
+        await asyncio.sleep(0.27)  # past the cancelled deadline
         assert armed == [] and ran == []
         later.cancel()
         timer.close()
@@ -145,7 +147,8 @@ def test_closing_before_the_handover_drops_a_lazy_deadline() -> None:
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
         ran: list[bool] = []
-        handle = timer.call_at_lazily(timer.now() + 0.005, lambda: ran.append(True))
+        now = timer.now()
+        handle = timer.call_at_lazily(now + 0.005, lambda: ran.append(True), now=now)
         watch = handle._watch
         assert watch is not None
         timer.close()
@@ -194,17 +197,19 @@ def test_behind_an_earlier_deadline_a_lazy_call_is_a_plain_one(
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
         timer.LAZY_WITHIN_S = 0.2  # the reply deadline is one the loop would watch...
-        tick = timer.call_at(timer.now() + 0.05, lambda: None)
+        # 150 ms ahead: a loaded VM's loop turn does not reach it.
+        tick = timer.call_at(timer.now() + 0.15, lambda: None)
         await asyncio.sleep(0)
         armed = _record_settimes(timer, monkeypatch)
-        reply_deadline = timer.call_at_lazily(timer.now() + 0.06, lambda: None)
+        reply_deadline = timer.call_at_lazily(timer.now() + 0.16, lambda: None)
         assert reply_deadline._watch is None and timer.pending == 2  # ...but for the tick
         reply_deadline.cancel()
         await asyncio.sleep(0)
         assert armed == []
         tick.cancel()
         await asyncio.sleep(0)
-        alone = timer.call_at_lazily(timer.now() + 0.06, lambda: None)
+        now = timer.now()
+        alone = timer.call_at_lazily(now + 0.16, lambda: None, now=now)
         assert alone._watch is not None  # with nothing earlier: watched
         alone.cancel()
         timer.close()
