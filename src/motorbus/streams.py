@@ -5,7 +5,7 @@ A stream sends one target per actuator every ``period`` seconds (10..50 ms, LA m
 deadlines, ``origin + k * period``, on the bus's high-resolution timer, so a stream
 never drifts; a tick that cannot be served on time is skipped, never burst.
 
-Per bus, one :class:`Streamer` serves every stream in one task:
+Per bus, one :class:`Streamer` serves every stream, from one task and its timer callbacks:
 
 * without feedback, the targets of every actuator whose tick falls due together are
   packed into 0xF3 broadcast frames of at most 15 entries (``la.split_broadcast``),
@@ -53,22 +53,19 @@ import contextlib
 import gc
 import logging
 import math
-from collections.abc import Awaitable, Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.jobs import BusJob
 from motorbus.bus.leases import Lease, lease_for
-from motorbus.bus.timer import Timer
+from motorbus.bus.timer import TimerHandle
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
-from motorbus.lifecycle import deferred_interrupts
-from motorbus.protocol import la
+from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.streaming.budget import stream_budget, tick_cost
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
-    GAP_TICKS,
     LATE_AFTER_S,
     PERIOD_MAX_S,
     PERIOD_MIN_S,
@@ -79,10 +76,30 @@ from motorbus.streaming.model import (
     broadcast_parts,
     check_follow_options,
     hold_flag,
-    while_sending,
 )
-from motorbus.streaming.stream import Stream, StreamGap, actuator_group, earliest_tick
-from motorbus.streaming.targets import TargetSource, ramp_step
+from motorbus.streaming.stream import (
+    Stream,
+    StreamGap,
+    actuator_group,
+    earliest_tick,
+    poll_statuses,
+    round_trips,
+    stop_together,
+)
+from motorbus.streaming.targets import TargetSource
+from motorbus.streaming.tick import (
+    AWAIT,
+    ENDED,
+    FAILED,
+    GAP,
+    Handed,
+    Tick,
+    abandon,
+    accept,
+    plan_tick,
+    record_sent,
+    record_unsent,
+)
 from motorbus.validation import LEAD_MAX_S, PHASE_MAX_S, check_number
 
 __all__ = [
@@ -99,8 +116,6 @@ __all__ = [
 
 log = logging.getLogger("motorbus.streams")
 
-#: Ticks within this of each other are served together (and coalesced).
-COALESCE_WINDOW_S = 200e-6
 #: A tick's targets are computed once the previous tick's frames, feedback and polls are
 #: done, at most this long before its deadline; its frames leave from a timer callback at
 #: the deadline.  One wake-up a tick (180-600 us of CPU here, bench_wakeups.py).
@@ -110,7 +125,8 @@ PREPARE_S = 1e-3
 
 
 class Streamer:
-    """Serves every stream of one bus from one task, on absolute tick deadlines.
+    """Serves every stream of one bus, on absolute tick deadlines: a tick of plain target
+    sources from the timer callback of the tick before it, anything awaited from a task.
 
     Args:
         bus: an open bus carrying LA actuators, or a served one (``motorbus.connect``).
@@ -141,6 +157,11 @@ class Streamer:
         self._tick_cost_s = 0.0
         #: The window of a tick prepared or in progress: (deadline, end of its frames).
         self._active: tuple[float, float] | None = None
+        #: While the task waits for ``_fire``: what it will be handed, the tick armed
+        #: for its deadline and the timer handle of that.
+        self._handback: asyncio.Future[Handed] | None = None
+        self._armed: Tick | None = None
+        self._fire_handle: TimerHandle | None = None
         #: The budget every streamer of this bus shares, held by the bus.
         self.budget = stream_budget(bus)
         #: Streamers of streams started under a lease the calling task held, by lease.
@@ -325,7 +346,7 @@ class Streamer:
                 self.lease.enders.remove(self._lease_ends)
             await self.close(hold=hold)
             return
-        await _stop_together(
+        await stop_together(
             [s for s in self.streams if keys is None or not keys.isdisjoint(s.keys)], hold
         )
 
@@ -393,7 +414,7 @@ class Streamer:
         hold = hold_flag(hold, safe)
         children, self._under = list(self._under.values()), {}
         try:
-            await _stop_together(
+            await stop_together(
                 [s for c in (self, *children) for s in c.streams],
                 hold,
                 *(c.close(hold=hold) for c in children),
@@ -430,269 +451,243 @@ class Streamer:
 
     async def _run(self) -> None:
         timer = self.bus.timer
-        while self.streams:
-            deadline = earliest_tick(self.streams)
-            if deadline - PLAN_AHEAD_S > timer.now():
-                await self._sleep_until(deadline - PLAN_AHEAD_S)
-                continue  # re-check: streams may have changed while asleep
-            due = [
-                s
-                for s in self.streams
-                if s.origin + s.next_tick * s.period <= deadline + COALESCE_WINDOW_S
-            ]
-            await self._serve_tick(due, deadline)
-            if self.streams:
-                # Idle time until the next tick: where real-time mode runs the garbage
-                # collector's full collections (a no-op otherwise; motorbus.lifecycle.idle).
-                upcoming = earliest_tick(self.streams)
-                idle = upcoming - PREPARE_S - timer.now()
-                if idle > 0:
-                    lifecycle.idle(idle)
-
-    async def _serve_tick(self, due: list[Stream], deadline: float) -> None:
-        """Prepare the tick's frames ahead of ``deadline``, send them at it, then
-        do the feedback round trips and polls."""
-        timer = self.bus.timer
-        now = timer.now()
-        feedback: list[tuple[Stream, int, int]] = []
-        served: list[Stream] = []
-        bus_up = self.bus.state is BusState.OPEN
-        for s in due:
-            k = s.next_tick
-            behind = int((now - (s.origin + k * s.period)) // s.period)
-            if behind >= 1:  # overrun: skip to the current slot instead of bursting
-                s.stats.skipped += behind
-                k += behind
-            s.next_tick = k + 1
-            if not bus_up:  # the port is gone: the grid runs on, the ticks are skipped
-                s.stats.skipped += 1
-                continue
-            if not s.sending:
-                continue
-            cause = self._gap_cause(s, behind)
-            if cause is not None:
-                s.stats.skipped += 1  # this tick goes to reading the positions
-                await s.recover_from_gap(cause)
-                continue  # the ramp (or nothing, after a stop) starts next tick
-            try:
-                targets = await s.source.next(k * s.period, s.statuses, k - s.index_base)
-            except Exception as err:  # the user's target source failed: end that stream
-                log.warning("stream to %s: target source failed: %s", list(s.ids), err)
-                await s.end(err)
-                continue
-            if targets is None:  # a normal end: still a safe one
-                await s.end(None)
-                continue
-            if s.ramp is not None:
-                targets = ramp_step(s.ramp, targets, s.max_speed * s.period)
-                if not s.ramp:
-                    s.ramp = None  # every actuator is back on the trajectory
-            s.skipped_mark = s.stats.skipped
-            s.last_targets.update(targets)
-            served.append(s)
-            if s.feedback:
-                feedback.extend((s, i, p) for i, p in targets.items())
-        if not served:
-            return
-        self._active = (deadline, deadline + self._tick_cost_s)
+        tick: Tick | None = None
         try:
-            parts = [(s, s.last_targets) for s in served if not s.feedback]
-            sent_at, frames, slipped = await self._send_at(deadline, parts, timer)
-            for s in served:
+            while self.streams:
+                if tick is None:
+                    deadline = earliest_tick(self.streams)
+                    if deadline - PLAN_AHEAD_S > timer.now():
+                        await self._sleep_until(deadline - PLAN_AHEAD_S)
+                        continue  # re-check: streams may have changed while asleep
+                    tick = self._plan(deadline)
+                if tick.later:
+                    await self._settle(tick)
+                tick = await self._serve_tick(tick)
+                if tick is None:
+                    self._idle()
+        finally:
+            if tick is not None:
+                abandon(tick)
+
+    def _plan(self, deadline: float) -> Tick:
+        bus = self.bus
+        return plan_tick(
+            self.streams,
+            deadline,
+            bus.timer.now(),
+            bus_up=bus.state is BusState.OPEN,
+            disconnects=bus.stats.disconnects,
+        )
+
+    def _idle(self) -> None:
+        """The idle time until the next tick: where real-time mode runs the garbage
+        collector's full collections (a no-op otherwise; ``motorbus.lifecycle.idle``)."""
+        if self.streams:
+            idle = earliest_tick(self.streams) - PREPARE_S - self.bus.timer.now()
+            if idle > 0:
+                lifecycle.idle(idle)
+
+    async def _settle(self, tick: Tick) -> None:
+        """Do what planning ``tick`` left to await (``Tick.later``), stream by stream: a
+        gap's recovery, a stream's end (its safe action), targets still to come."""
+        later, tick.later = tick.later, []
+        for index, (s, kind, value) in enumerate(later):
+            try:
+                if kind == GAP:
+                    await s.recover_from_gap(value)
+                    continue
+                if kind == AWAIT:
+                    try:
+                        targets = await s.source.finish(value)
+                    except Exception as err:
+                        kind, value = FAILED, err
+                    else:
+                        if targets is not None:
+                            accept(tick, s, targets)
+                            continue
+                        kind = ENDED
+                if kind == FAILED:  # the user's target source failed: end that stream
+                    log.warning("stream to %s: target source failed: %s", list(s.ids), value)
+                    await s.end(value)
+                else:  # its targets ran out: a normal end, still a safe one
+                    await s.end(None)
+            except BaseException:
+                tick.later = later[index + 1 :]
+                raise
+
+    async def _serve_tick(self, tick: Tick) -> Tick | None:
+        """Send ``tick``'s frames at its deadline, then its feedback round trips and polls.
+
+        The frames go out from a timer callback at the deadline (``_fire``), which serves
+        the ticks after it too while they need no task.  Returns the tick that callback
+        planned and left to this task, if any.
+        """
+        if not tick.served:
+            return None
+        if tick.prepared is None:
+            self._prepare_tick(tick)
+        self._active = (tick.deadline, tick.deadline + self._tick_cost_s)
+        timer = self.bus.timer
+        try:
+            if not tick.prepared:  # refused (the port away, the bus closing)
+                sent_at, frames, slipped = None, 0, False
+            else:
+                handed = await self._sent_by_timer(tick)
+                if handed.tick is None:
+                    return handed.ahead  # served, with the ticks after it
+                tick = handed.tick  # written (or refused) and left to this task to finish
+                sent_at, frames, slipped = await self._written(handed)
+            for s in tick.served:
                 if not s.feedback:
                     s.stats.frames += frames
-            if feedback and timer.now() < deadline:
+            if tick.feedback:
                 # Feedback frames are round trips, sent one after another from this task:
                 # the first leaves at the deadline (the tick was prepared a period ahead).
-                await timer.sleep_until(deadline)
-            for s, ident, pos in feedback:
+                if timer.now() < tick.deadline:
+                    await timer.sleep_until(tick.deadline)
                 if sent_at is None:
                     sent_at = timer.now()
-                    slipped = sent_at - deadline > LATE_AFTER_S / 10
-                if not s.sending:
-                    continue
-                follow = la.Follow(ident, pos, True)
-                try:
-                    status = await self.bus.submit(
-                        follow,
-                        priority=Priority.HIGH,
-                        reserved=True,
-                        refresh=while_sending(s, follow),
-                        lease=self.lease,
-                    )
-                except MotorbusError:
-                    s.stats.feedback_timeouts += 1
-                    if (ended := s.reply_missed(ident)) is not None:
-                        await s.end(ended)
-                else:
-                    s.answered(ident, status)
-                s.stats.frames += 1
+                    slipped = sent_at - tick.deadline > LATE_AFTER_S / 10
+                await round_trips(self.bus, tick.feedback, self.lease)
         finally:
             self._active = None
         if sent_at is None:  # refused (the port away, the bus closing): nothing left
-            for s in served:
-                if s.sending:
-                    s.stats.skipped += 1
-            return
-        for s in served:
-            lateness = max(0.0, sent_at - (s.origin + (s.next_tick - 1) * s.period))
-            s.stats.ticks += 1
-            s.stats.jitter.record(lateness)
-            if slipped:
-                s.stats.slipped += 1
-            if lateness > LATE_AFTER_S:
-                s.stats.late += 1
-        await self._poll(served)
-
-    def _gap_cause(self, s: Stream, behind: int) -> str | None:
-        """Why ``s`` has a gap to handle before its next targets, or None."""
-        if self.bus.stats.disconnects != s.disconnects_seen:
-            return "outage"
-        if behind >= GAP_TICKS:
-            return "behind"
+            record_unsent(tick)
+            return None
+        record_sent(tick, sent_at, slipped)
+        if tick.polls and self.streams:
+            # The slots left before the next tick, its preparation apart, poll statuses.
+            await poll_statuses(self.bus, tick.served, earliest_tick(self.streams) - PREPARE_S)
         return None
 
-    async def _send_at(
-        self, deadline: float, parts: list[tuple[Stream, dict[int, int]]], timer: Timer
-    ) -> tuple[float | None, int, bool]:
-        """Send the broadcast targets of ``parts`` at ``deadline`` exactly.
+    def _prepare_tick(self, tick: Tick) -> None:
+        """Make ``tick``'s 0xF3 frames bus jobs (``Bus.prepare``), ahead of its deadline.
 
-        The frames are queued from a timer callback at the deadline: a task woken then
-        would send one event-loop step late (~55 us here, bench_wakeups.py).  Each frame
-        is prepared before the deadline (``Bus.prepare(refresh=...)``) and re-checked
-        when written: rebuilt from the streams still sending only if one stopped or
-        paused since, so such a stream sends nothing more, even from a frame that had
-        to wait its turn; one refused when prepared is not sent (no second way).
-        Returns (when the first frame left, or None if nothing left; frames sent; whether
-        the tick slipped: its first frame could not be written at the deadline itself).
+        Built, encoded, checked (the lease rule) and made a job now: at the deadline only
+        the cheap re-checks and the write are left.  Each frame's ``refresh`` rebuilds it
+        then only if one of its streams stopped or paused since, so such a stream sends
+        nothing more, even from a frame that had to wait its turn; a frame refused here
+        is not sent (no second way).  IDs were checked when the streams started (distinct
+        across streams) and every position by the target source, so the frames are built
+        without checking them again.
         """
-        if not parts:
-            return None, 0, False
-        # IDs were checked when the streams started (distinct across streams) and every
-        # position by _position, so the frames are built without re-checking.
-        # Built, encoded, checked (the lease rule) and made a bus job now, ahead of the
-        # deadline (all kept while every stream of a frame still sends, and the leases
-        # do not change): at the deadline only the cheap re-checks and the write are
-        # left.  The frame is rebuilt then only if a stream stopped since.
         prepared: list[PreparedSubmit[Any]] = []
-        prepare = self._prepare
-        for frame_parts in broadcast_parts(parts):
+        prepare, lease, HIGH = self.bus.prepare, self.lease, Priority.HIGH
+        parts = [(s, s.last_targets) for s in tick.served if not s.feedback]
+        for frame_parts in broadcast_parts(parts) if parts else ():
             build = broadcast_builder(frame_parts)
             frame = build()
             if frame is None:
                 continue
             try:
-                prepared.append(prepare(frame, build))
+                job = prepare(frame, priority=HIGH, reserved=True, refresh=build, lease=lease)
+                prepared.append(job)
             except MotorbusError as err:  # refused (the port away, the bus closing)
                 log.debug("stream tick on bus %s not prepared: %s", self.bus.name, err)
-        if not prepared:
-            return None, 0, False  # nothing goes out this tick (the caller counts it)
-        send = self.bus.send_prepared
-        fired: asyncio.Future[list[BusJob]] = asyncio.get_running_loop().create_future()
-        sent: list[float] = []  # when the first frame was issued
+        tick.prepared = prepared
 
-        def fire() -> None:
-            if fired.done():
-                return
-            jobs = []
+    async def _sent_by_timer(self, tick: Tick) -> Handed:
+        """Arm ``_fire`` for ``tick``'s deadline and wait for what it hands back.
+
+        A task woken at the deadline would send one event-loop step late (~55 us here,
+        bench_wakeups.py), so the frames go out from the timer callback itself.
+        """
+        handback: asyncio.Future[Handed] = asyncio.get_running_loop().create_future()
+        self._handback = handback
+        self._arm(tick)
+        try:
+            return await handback
+        except BaseException:
+            if handback.done() and not handback.cancelled() and handback.exception() is None:
+                ahead = handback.result().ahead
+                if ahead is not None:
+                    abandon(ahead)  # cancelled as it was handed over
+            raise
+        finally:
+            self._handback = None
+            self._armed = None
+            if self._fire_handle is not None:
+                self._fire_handle.cancel()
+                self._fire_handle = None
+
+    def _arm(self, tick: Tick) -> None:
+        self._armed = tick
+        self._fire_handle = self.bus.timer.call_at(tick.deadline, self._fire)
+
+    def _fire(self) -> None:
+        """At the armed tick's deadline: write its frames, one path (the bus re-checks
+        each, its ``refresh``, and writes it).
+
+        A tick that went out whole at once and needs nothing more (no feedback round
+        trips, no polls) is counted here, and the next tick planned, prepared and armed,
+        unless it needs the task (something to await, feedback): a steady stream runs
+        from this callback alone.  Anything else is handed back to the task.
+        """
+        handback, tick = self._handback, self._armed
+        self._armed = self._fire_handle = None
+        if handback is None or handback.done() or tick is None:
+            return  # the task stopped waiting (cancelled): nothing goes out
+        try:
+            send = self.bus.send_prepared
+            jobs: list[BusJob] = []
             try:
-                for ready in prepared:
-                    # One path: the bus re-checks the frame (its refresh) and writes it.
+                for ready in tick.prepared or ():
                     future = send(ready)
                     if ready.job.attempts or not future.done():
                         jobs.append(ready.job)  # written, or waiting its turn
             except MotorbusError as err:
-                fired.set_exception(err)
+                handback.set_result(Handed(tick, jobs, None, err))
                 return
-            if jobs and jobs[0].future.done():  # an idle bus wrote it inside send_prepared
-                sent.append(jobs[0].tx_start)  # when issued (see StreamStats)
-            fired.set_result(jobs)
+            first = jobs[0] if jobs else None
+            if first is None or not first.future.done():
+                handback.set_result(Handed(tick, jobs, None))  # dropped, or waiting its turn
+                return
+            future = first.future
+            if (
+                len(jobs) > 1
+                or tick.feedback
+                or tick.polls
+                or future.cancelled()
+                or future.exception() is not None
+            ):
+                handback.set_result(Handed(tick, jobs, first.tx_start))
+                return
+            # Written at the deadline, whole: the tick is done.
+            for s in tick.served:
+                s.stats.frames += 1
+            record_sent(tick, first.tx_start, False)
+            self._active = None
+            ahead = None
+            if self.streams:
+                self._idle()
+                deadline = earliest_tick(self.streams)
+                if deadline - PLAN_AHEAD_S <= self.bus.timer.now():
+                    ahead = self._plan(deadline)
+                    if ahead.served and not ahead.later and not ahead.feedback:
+                        self._prepare_tick(ahead)
+                        if ahead.prepared:
+                            self._active = (deadline, deadline + self._tick_cost_s)
+                            self._arm(ahead)
+                            return
+            handback.set_result(Handed(None, ahead=ahead))
+        except Exception as err:  # a bug: the task raises it rather than wait forever
+            handback.set_exception(err)
 
-        handle = timer.call_at(deadline, fire)
-        slipped = False
+    async def _written(self, handed: Handed) -> tuple[float | None, int, bool]:
+        """When the first frame of a tick ``_fire`` handed back left (None if none did),
+        its frames, and whether it slipped (its first frame waited its turn: a reply
+        owed, or the spacing)."""
+        if handed.error is not None:
+            log.debug("stream tick on bus %s not sent: %s", self.bus.name, handed.error)
+            return None, 0, False
+        sent_at, slipped = handed.sent_at, False
         try:
-            jobs = await fired
-            for job in jobs:
+            for job in handed.jobs:
                 await job.future
-                if not sent:  # it waited its turn (a reply owed, or the spacing)
-                    sent.append(job.tx_start if job.attempts else timer.now())
+                if sent_at is None:
+                    sent_at = job.tx_start if job.attempts else self.bus.timer.now()
                     slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)
             return None, 0, False
-        finally:
-            handle.cancel()
-        return (sent[0] if sent else None), len(jobs), slipped
-
-    def _prepare(
-        self, frame: la.Broadcast, build: Callable[[], la.Broadcast | None]
-    ) -> PreparedSubmit[Any]:
-        """A tick's frame as a bus job (``Bus.prepare``), re-checked by ``build`` at the write."""
-        return self.bus.prepare(
-            frame, priority=Priority.HIGH, reserved=True, refresh=build, lease=self.lease
-        )
-
-    async def _poll(self, due: list[Stream]) -> None:
-        """Use the slots left before the next tick to poll statuses round-robin.
-
-        A poll is queued only if even its timeout would end before the next tick, with
-        a ``start_by`` past which it is dropped unsent: user requests take the slot
-        first (they queue ahead of polls), and a poll that cannot get one is counted in
-        ``polls_skipped``; it never holds the next tick.
-        """
-        pollers = [s for s in due if s.poll_status and s.sending]
-        if not pollers or not self.streams:
-            return
-        timer = self.bus.timer
-        poll = self.bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
-        next_deadline = earliest_tick(self.streams)
-        # A poll starts only if even its timeout, and the spacing after it, would end
-        # before the next tick.
-        worst = poll.worst + poll.spacing
-        start_by = next_deadline - PREPARE_S - worst
-        for s in pollers:
-            polled = 0
-            for _ in range(len(s.ids)):
-                # No room left in this tick (the spacing alone would pass start_by): the
-                # round robin goes on next tick; that is not a skipped poll.
-                if max(timer.now(), self.bus.next_write_at) > start_by or not s.sending:
-                    break
-                ident = s.poll_id
-                try:
-                    status = await self.bus.submit(
-                        la.control_frame(ident, la.ControlAction.QUERY_STATUS),
-                        retries=0,
-                        priority=Priority.BACKGROUND,
-                        start_by=start_by,
-                    )
-                except NotSentError:
-                    s.stats.polls_skipped += 1
-                    polled = -1  # counted already
-                    break
-                except MotorbusError:  # counted; raised only past max_missed
-                    s.poll_done()
-                    s.stats.poll_timeouts += 1
-                    if (ended := s.reply_missed(ident)) is not None:
-                        await s.end(ended)
-                    continue
-                s.poll_done()
-                polled += 1
-                s.answered(ident, status)
-                s.stats.polls += 1
-            if polled == 0:
-                s.stats.polls_skipped += 1
-
-
-async def _stop_together(streams: list[Stream], hold: bool, *more: Awaitable[None]) -> None:
-    """Stop ``streams`` (and await ``more``) together: each stops sending before the
-    first safe action goes, and a silent actuator holds up no other's (the first error
-    is raised after)."""
-    for s in streams:
-        s.stopping = True
-    with deferred_interrupts():
-        stopped = await asyncio.gather(
-            *(s.stop(hold=hold) for s in streams), *more, return_exceptions=True
-        )
-    for outcome in stopped:
-        if isinstance(outcome, BaseException):
-            raise outcome
+        return sent_at, len(handed.jobs), slipped

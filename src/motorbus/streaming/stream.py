@@ -12,15 +12,16 @@ import asyncio
 import itertools
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Awaitable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Protocol
 
 from motorbus.bus.bus import Bus, Priority
 from motorbus.bus.events import BusEvent, Subscription
+from motorbus.bus.leases import Lease
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
+from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.streaming.model import (
@@ -29,10 +30,20 @@ from motorbus.streaming.model import (
     SafeAction,
     StreamStats,
     hold_flag,
+    while_sending,
 )
 from motorbus.streaming.targets import TargetAdapter, TargetSource
 
-__all__ = ["Stream", "StreamGap", "StreamOwner", "actuator_group", "earliest_tick"]
+__all__ = [
+    "Stream",
+    "StreamGap",
+    "StreamOwner",
+    "actuator_group",
+    "earliest_tick",
+    "poll_statuses",
+    "round_trips",
+    "stop_together",
+]
 
 log = logging.getLogger("motorbus.streams")
 
@@ -345,6 +356,95 @@ class Stream:
     def poll_done(self) -> None:
         """Move the round robin on (the poll was answered, or failed on the line)."""
         self._poll_cursor += 1
+
+
+async def round_trips(
+    bus: Bus, feedback: Sequence[tuple[Stream, int, int]], lease: Lease | None
+) -> None:
+    """A tick's 0x20 frames of feedback streams, ``(stream, id, position)``, one after
+    another, each with its status reply; one of a stream no longer sending is dropped."""
+    for s, ident, pos in feedback:
+        if not s.sending:
+            continue
+        follow = la.Follow(ident, pos, True)
+        try:
+            status = await bus.submit(
+                follow,
+                priority=Priority.HIGH,
+                reserved=True,
+                refresh=while_sending(s, follow),
+                lease=lease,
+            )
+        except MotorbusError:
+            s.stats.feedback_timeouts += 1
+            if (ended := s.reply_missed(ident)) is not None:
+                await s.end(ended)
+        else:
+            s.answered(ident, status)
+        s.stats.frames += 1
+
+
+async def poll_statuses(bus: Bus, due: Sequence[Stream], before: float) -> None:
+    """Use the bus's slots left until ``before`` (the next tick's preparation) to poll
+    the statuses of ``due``'s streams that ask for it (``poll_status``), round-robin.
+
+    A poll is queued only if even its timeout, and the spacing after it, would end
+    before then, with a ``start_by`` past which it is dropped unsent: user requests take
+    the slot first (they queue ahead of polls), and a poll that cannot get one is
+    counted in ``polls_skipped``; it never holds the next tick.
+    """
+    pollers = [s for s in due if s.poll_status and s.sending]
+    if not pollers:
+        return
+    timer = bus.timer
+    poll = bus.occupancy(la.control_frame(1, la.ControlAction.QUERY_STATUS))
+    start_by = before - (poll.worst + poll.spacing)
+    for s in pollers:
+        polled = 0
+        for _ in range(len(s.ids)):
+            # No room left in this tick (the spacing alone would pass start_by): the
+            # round robin goes on next tick; that is not a skipped poll.
+            if max(timer.now(), bus.next_write_at) > start_by or not s.sending:
+                break
+            ident = s.poll_id
+            try:
+                status = await bus.submit(
+                    la.control_frame(ident, la.ControlAction.QUERY_STATUS),
+                    retries=0,
+                    priority=Priority.BACKGROUND,
+                    start_by=start_by,
+                )
+            except NotSentError:
+                s.stats.polls_skipped += 1
+                polled = -1  # counted already
+                break
+            except MotorbusError:  # counted; raised only past max_missed
+                s.poll_done()
+                s.stats.poll_timeouts += 1
+                if (ended := s.reply_missed(ident)) is not None:
+                    await s.end(ended)
+                continue
+            s.poll_done()
+            polled += 1
+            s.answered(ident, status)
+            s.stats.polls += 1
+        if polled == 0:
+            s.stats.polls_skipped += 1
+
+
+async def stop_together(streams: list[Stream], hold: bool, *more: Awaitable[None]) -> None:
+    """Stop ``streams`` (and await ``more``) together: each stops sending before the
+    first safe action goes, and a silent actuator holds up no other's (the first error
+    is raised after)."""
+    for s in streams:
+        s.stopping = True
+    with deferred_interrupts():
+        stopped = await asyncio.gather(
+            *(s.stop(hold=hold) for s in streams), *more, return_exceptions=True
+        )
+    for outcome in stopped:
+        if isinstance(outcome, BaseException):
+            raise outcome
 
 
 def earliest_tick(streams: Sequence[Stream]) -> float:

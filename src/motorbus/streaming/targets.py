@@ -8,14 +8,14 @@ to its trajectory after a gap.
 from __future__ import annotations
 
 import inspect
-from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping, Sequence
 from typing import Any, TypeAlias
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
 from motorbus.validation import CheckedRows, is_scalar, target_id, target_position
 
-__all__ = ["EXHAUSTED", "TargetAdapter", "TargetSource", "Targets", "ramp_step"]
+__all__ = ["EXHAUSTED", "Pending", "TargetAdapter", "TargetSource", "Targets", "ramp_step"]
 
 Targets: TypeAlias = Mapping[int, int]
 TargetSource: TypeAlias = Any  # sequence, iterator, async iterator or callable; see Stream
@@ -27,6 +27,16 @@ _PLAIN_NUMBERS = frozenset((int, float))
 #: What a function source returns on every tick, and never awaitable: no awaitable check
 #: (``inspect.isawaitable`` is six calls a tick, an ABC check among them).
 _PLAIN_ITEMS = frozenset((list, tuple, dict, int, float, type(None)))
+
+
+class Pending:
+    """Targets still to be awaited: an async iterator's next item, or the awaitable a
+    target function returned (``TargetAdapter.fetch``; ``finish`` awaits it)."""
+
+    __slots__ = ("awaitable",)
+
+    def __init__(self, awaitable: Awaitable[Any]) -> None:
+        self.awaitable = awaitable
 
 
 class TargetAdapter:
@@ -139,25 +149,42 @@ class TargetAdapter:
             return False
         return bool(rows.min() >= la.POSITION_MIN and rows.max() <= la.POSITION_MAX)
 
-    async def next(self, t: float, statuses: Mapping[int, Any], index: int) -> Targets | None:
+    def fetch(self, t: float, statuses: Mapping[int, Any], index: int) -> Targets | Pending | None:
         """The targets at time ``t`` (a callable's argument, with ``statuses``), or the
-        ``index``-th item of a sequence or iterator; None at the end.  A local stream's
-        ticks and a served stream's client both take their targets here."""
+        ``index``-th item of a sequence or iterator; None at the end; a ``Pending`` when
+        they must be awaited (an async iterator's next item, an awaitable a function
+        returned: ``finish`` it).  Never awaits, so a tick of plain sources needs no
+        task turn."""
         item: Any
         if self.aiterator is not None:
-            try:
-                item = await self.aiterator.__anext__()
-            except StopAsyncIteration:
-                return None
-        elif self.function is not None:
+            return Pending(self.aiterator.__anext__())
+        if self.function is not None:
             item = self.function(t, statuses)
             if type(item) not in _PLAIN_ITEMS and inspect.isawaitable(item):
-                item = await item
+                return Pending(item)
         else:
             item = self.next_item(index)
         if item is None or item is EXHAUSTED:
             return None
         return self.normalise(item)
+
+    async def finish(self, pending: Pending) -> Targets | None:
+        """The targets ``fetch`` left pending, awaited; None at the end."""
+        try:
+            item = await pending.awaitable
+        except StopAsyncIteration:
+            return None
+        if item is None or item is EXHAUSTED:
+            return None
+        return self.normalise(item)
+
+    async def next(self, t: float, statuses: Mapping[int, Any], index: int) -> Targets | None:
+        """``fetch``, awaited where it must be: a served stream's client takes its
+        targets here (a local stream's tick loop calls ``fetch``)."""
+        targets = self.fetch(t, statuses, index)
+        if isinstance(targets, Pending):
+            return await self.finish(targets)
+        return targets
 
     def next_item(self, index: int) -> Any:
         """Item ``index`` of a sequence, or the next of an iterator; ``EXHAUSTED`` at
