@@ -436,13 +436,8 @@ class Streamer:
     async def _sleep_until(self, deadline: float) -> None:
         wake: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._wake = wake
-
-        def ring() -> None:
-            if not wake.done():
-                wake.set_result(None)
-
         # Only the preparation wakes here; the frames go out from a precise callback.
-        handle = self.bus.timer.call_at(deadline, ring, precise=False)
+        handle = self.bus.timer.call_at(deadline, self._ring, precise=False)
         try:
             await wake
         finally:
@@ -565,11 +560,9 @@ class Streamer:
 
         Built, encoded, checked (the lease rule) and made a job now: at the deadline only
         the cheap re-checks and the write are left.  Each frame's ``refresh`` rebuilds it
-        then only if one of its streams stopped or paused since, so such a stream sends
-        nothing more, even from a frame that had to wait its turn; a frame refused here
-        is not sent (no second way).  IDs were checked when the streams started (distinct
-        across streams) and every position by the target source, so the frames are built
-        without checking them again.
+        then only if one of its streams stopped or paused since; a frame refused here is
+        not sent (no second way).  IDs and positions were checked already (at ``follow``,
+        by the target source): the frames are built without checking them again.
         """
         prepared: list[PreparedSubmit[Any]] = []
         prepare, lease, HIGH = self.bus.prepare, self.lease, Priority.HIGH
@@ -616,13 +609,10 @@ class Streamer:
 
     def _fire(self) -> None:
         """At the armed tick's deadline: write its frames, one path (the bus re-checks
-        each, its ``refresh``, and writes it).
-
-        A tick that went out whole at once and needs nothing more (no feedback round
-        trips, no polls) is counted here, and the next tick planned, prepared and armed,
-        unless it needs the task (something to await, feedback): a steady stream runs
-        from this callback alone.  Anything else is handed back to the task.
-        """
+        each, its ``refresh``, and writes it).  A tick written whole at once that needs
+        nothing more (no feedback, no polls) is counted here, and ``_advance`` goes on to
+        the next: a steady stream runs from timer callbacks alone.  Anything else goes
+        back to the task."""
         handback, tick = self._handback, self._armed
         self._armed = self._fire_handle = None
         if handback is None or handback.done() or tick is None:
@@ -657,6 +647,20 @@ class Streamer:
                 s.stats.frames += 1
             record_sent(tick, first.tx_start, False)
             self._active = None
+            # The next tick is planned after the writes of every bus due now (the same
+            # deadline, later in the timer's order): planning is not their lateness.
+            self._fire_handle = self.bus.timer.call_at(tick.deadline, self._advance)
+        except Exception as err:  # a bug: the task raises it rather than wait forever
+            handback.set_exception(err)
+
+    def _advance(self) -> None:
+        """After a tick ``_fire`` served whole: plan the next, prepare and arm it, unless
+        it needs the task (something to await, feedback): then it goes to the task."""
+        handback = self._handback
+        self._fire_handle = None
+        if handback is None or handback.done():
+            return  # the task stopped waiting (cancelled)
+        try:
             ahead = None
             if self.streams:
                 self._idle()

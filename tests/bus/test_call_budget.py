@@ -34,8 +34,11 @@ by the loop's own timer until its last 2 ms (``Timer.call_at_lazily``: no timerf
 re-arming for a reply that comes before then, at six calls of asyncio's own), a Status
 made by the tuple's constructor, and a timer wake-up that reads the clock again only
 for a deadline not yet due by the last reading (2026-12-07): a request 141 on the fake
-clock and 150 on the default timer (156 with the lazy deadline alone).  The fake
-clock's bounds are what the bus reaches now, with a small margin."""
+clock and 150 on the default timer (156 with the lazy deadline alone).  Then a tick
+planned and sent from timer callbacks, without a turn of the streamer's task
+(2026-12-07): 112 a tick on the fake clock; 119 once the planning waits, in a second
+timer callback at the same deadline, for the writes of every bus due then.
+The fake clock's bounds are what the bus reaches now, with a small margin."""
 
 from __future__ import annotations
 

@@ -548,6 +548,59 @@ def test_one_loop_turn_re_arms_the_timerfd_once_for_all_its_changes(
     run(loop_factory, main())
 
 
+@pytest.mark.parametrize("loop_factory", LOOPS)
+def test_a_wake_up_that_leaves_nothing_queued_re_arms_before_it_returns(
+    loop_factory: Callable[[], asyncio.AbstractEventLoop], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A stream's tick callback arms the next tick and leaves nothing else to run: the
+    timerfd is re-armed before the wake-up returns, without a loop turn of its own (an
+    epoll_wait a tick, issue 40).  A wake-up whose callbacks queued work (a task to
+    resume) re-arms after that work, once, as before."""
+    if not timerfd_available():
+        pytest.skip("no timerfd on this platform")
+
+    async def main() -> None:
+        timer = TimerfdTimer(spin_lead=0.0)
+        armed = _record_settimes(timer, monkeypatch)
+        loop = asyncio.get_running_loop()
+        real_wake = timer._wake
+        #: For each wake-up: the loop's queue after it, a re-arm queued, arms during it.
+        wakes: list[tuple[int, bool, int]] = []
+
+        def wake(now: float | None = None) -> None:
+            before = len(armed)
+            real_wake(now)
+            ready = len(timer._ready) if timer._ready is not None else -1
+            wakes.append((ready, timer._flush_queued, len(armed) - before))
+
+        monkeypatch.setattr(timer, "_wake", wake)
+        ticks: list[float] = []
+
+        def tick(queue_work: bool) -> None:
+            ticks.append(timer.now())
+            if len(ticks) % 5:
+                timer.call_at(timer.now() + 0.005, lambda: tick(queue_work))
+            if queue_work:
+                loop.call_soon(lambda: None)
+
+        for queue_work in (False, True):
+            wakes.clear()
+            first = len(ticks)
+            timer.call_at(timer.now() + 0.005, lambda q=queue_work: tick(q))  # type: ignore[misc]
+            await eventually(lambda f=first: len(ticks) >= f + 5, "five ticks", poll=0.1)  # type: ignore[misc]
+            if timer._ready is None:  # another loop: always the queued re-arm
+                assert all(queued for _, queued, _ in wakes), wakes
+            elif not queue_work:
+                clean = [w for w in wakes if w[0] == 0]  # (a poll of eventually may join)
+                assert len(clean) >= 3, wakes
+                assert all(not queued and arms == 1 for _, queued, arms in clean[:-1]), wakes
+            else:
+                assert all(queued and arms == 0 for _, queued, arms in wakes[:-1]), wakes
+        timer.close()
+
+    run(loop_factory, main())
+
+
 @pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
 async def test_the_timerfd_timer_spins_only_where_asked(monkeypatch: pytest.MonkeyPatch) -> None:
     """Issue 40: no spin by default; real-time mode or MOTORBUS_TIMER_SPIN_US asks for it."""

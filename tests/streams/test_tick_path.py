@@ -15,9 +15,12 @@ from typing import Any
 
 import pytest
 
+from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
 from motorbus.protocol import la
+from motorbus.protocol.base import Family
 from motorbus.sim.la import LAModel, PowerState
+from motorbus.sim.memory import MemorySim
 from motorbus.streaming.model import StreamStats
 from motorbus.streaming.targets import Pending, TargetAdapter
 from motorbus.streaming.tick import AWAIT, ENDED, FAILED, GAP, Tick, abandon, plan_tick
@@ -159,7 +162,7 @@ def test_the_planner_leaves_what_must_be_awaited_to_the_task() -> None:
     streams: list[Any] = [plain, ended, failed, pending, behind, outage]
     behind.origin = -0.035  # three and a half ticks behind at deadline 0
     tick = plan_tick(streams, 0.0, 0.0, bus_up=True, disconnects=0)
-    assert tick.served == [plain] and plain.last_targets == {1: 700}
+    assert tick.served == [plain] and plain.last_targets == {1: 700}  # type: ignore[comparison-overlap]
     kinds = {id(s): (kind, value) for s, kind, value in tick.later}
     assert kinds[id(ended)] == (ENDED, None)
     assert kinds[id(failed)][0] == FAILED and str(kinds[id(failed)][1]) == "sensor gone"
@@ -172,10 +175,53 @@ def test_the_planner_leaves_what_must_be_awaited_to_the_task() -> None:
 
 
 def test_the_planner_skips_the_slots_past_and_runs_the_grid_on_while_the_bus_is_down() -> None:
-    s = _Stream([10, 20, 30, 40, 50, 60])
+    s: Any = _Stream([10, 20, 30, 40, 50, 60])
     tick = plan_tick([s], 0.0, 0.025, bus_up=True, disconnects=0)  # two slots past
     assert s.stats.skipped == 2 and s.last_targets == {1: 30} and s.next_tick == 3
     nothing = plan_tick([s], 0.03, 0.03, bus_up=False, disconnects=0)
     assert nothing.served == [] and nothing.later == [] and s.next_tick == 4
     assert s.stats.skipped == 3
     assert isinstance(tick, Tick)
+
+
+async def test_every_bus_due_writes_before_any_plans_its_next_tick() -> None:
+    # Buses of one phase group share a timer and a deadline: each one's tick callback
+    # writes, and the planning of the next tick (targets, frames) waits until every
+    # bus due then has written; else it would make the later buses' writes late.
+    events: list[tuple[str, str, float]] = []
+    async with (
+        rig(models=[LAModel(1)]) as r,
+        MemorySim.start([LAModel(1)], timer=r.timer) as sim,
+        Bus(sim.transport, name="second", families={Family.LA}, timer=r.timer) as second,
+    ):
+        buses = [r.bus, second]
+        for bus in buses:
+            prepare, send = bus.prepare, bus.send_prepared
+
+            def prepared(*args: Any, b: Bus = bus, real: Any = prepare, **kw: Any) -> Any:
+                events.append(("prepare", b.name, r.timer.now()))
+                return real(*args, **kw)
+
+            def sent(ready: Any, b: Bus = bus, real: Any = send) -> Any:
+                events.append(("send", b.name, r.timer.now()))
+                return real(ready)
+
+            bus.prepare = prepared  # type: ignore[method-assign]
+            bus.send_prepared = sent  # type: ignore[method-assign,assignment]
+        streamers = [Streamer(b) for b in buses]
+        streams = [
+            s.follow(InspireLA(b, 1), [700 + k for k in range(10)], period=0.01)
+            for s, b in zip(streamers, buses, strict=True)
+        ]
+        await asyncio.wait_for(asyncio.gather(*(s.wait() for s in streams)), 5)
+        for s in streamers:
+            await s.close()
+    # The sends of one deadline (the first bus's write takes 20 us of the fake clock),
+    # and what came between them.
+    sends = [i for i, (kind, _, _) in enumerate(events) if kind == "send"]
+    groups = [sends[i : i + 2] for i in range(0, len(sends), 2)]
+    assert len(groups) == 10, events
+    for first, last in groups:
+        assert events[last][2] - events[first][2] < 1e-3, events  # one deadline
+        between = [kind for kind, _, _ in events[first:last]]
+        assert "prepare" not in between, events[first : last + 1]

@@ -407,7 +407,9 @@ class Timer(abc.ABC):
             self._rearm_due = True  # woken inside a caller's hold: its release re-arms
         else:
             self._rearm_due = False
-            if not self._flush_queued:
+            if self._ready is not None and not self._ready and not self._flush_queued:
+                self._flush_rearm()  # nothing else runs this loop turn: no turn for it
+            elif not self._flush_queued:
                 self._rearm_soon()
 
     def _flush_rearm(self) -> None:
@@ -451,15 +453,14 @@ class Timer(abc.ABC):
 
     def _rearm_soon(self) -> None:
         """Re-arm after the callbacks the loop has queued so far (or at the end of the
-        current hold): one re-arm for all the changes of a loop turn.
+        current hold): one re-arm for all the changes of a loop turn (``_wake`` re-arms
+        at once when nothing is queued: no loop turn for it).
 
         Never early, never missed: the re-arm is itself a queued callback, and a loop
         with a queued callback does not sleep, so it runs before the loop can wait on
-        the wake-up source; it arms for the earliest deadline then, and a deadline
-        already past fires at the loop's next look.  It can only add to a deadline's
-        lateness the callbacks queued before it, and only for a deadline that falls
-        inside the current loop turn (under a millisecond ahead: a spacing timer, a
-        reply deadline), which those callbacks would have held up anyway.
+        the wake-up source, for the earliest deadline then.  It can only add to a
+        deadline's lateness the callbacks queued before it, for a deadline inside the
+        current loop turn, which those callbacks would have held up anyway.
         """
         if self._holds:
             self._rearm_due = True
