@@ -60,7 +60,7 @@ from motorbus import lifecycle
 from motorbus.bus.bus import Bus, BusState, PreparedSubmit, Priority
 from motorbus.bus.jobs import BusJob
 from motorbus.bus.leases import Lease, lease_for
-from motorbus.bus.timer import TimerHandle
+from motorbus.bus.timer import Timer, TimerHandle
 from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.streaming.budget import stream_budget, tick_cost
@@ -162,6 +162,8 @@ class Streamer:
         self._handback: asyncio.Future[Handed] | None = None
         self._armed: Tick | None = None
         self._fire_handle: TimerHandle | None = None
+        #: The bus's timer, kept when the task starts (``_run``): read a few times a tick.
+        self._timer: Timer
         #: The budget every streamer of this bus shares, held by the bus.
         self.budget = stream_budget(bus)
         #: Streamers of streams started under a lease the calling task held, by lease.
@@ -445,7 +447,7 @@ class Streamer:
             self._wake = None
 
     async def _run(self) -> None:
-        timer = self.bus.timer
+        self._timer = timer = self.bus.timer
         tick: Tick | None = None
         try:
             while self.streams:
@@ -469,18 +471,20 @@ class Streamer:
         return plan_tick(
             self.streams,
             deadline,
-            bus.timer.now(),
+            self._timer.now(),
             bus_up=bus.state is BusState.OPEN,
             disconnects=bus.stats.disconnects,
         )
 
-    def _idle(self) -> None:
+    def _idle(self) -> float:
         """The idle time until the next tick: where real-time mode runs the garbage
-        collector's full collections (a no-op otherwise; ``motorbus.lifecycle.idle``)."""
-        if self.streams:
-            idle = earliest_tick(self.streams) - PREPARE_S - self.bus.timer.now()
-            if idle > 0:
-                lifecycle.idle(idle)
+        collector's full collections (a no-op otherwise; ``motorbus.lifecycle.idle``).
+        Returns the next tick's deadline (infinity without streams)."""
+        deadline = earliest_tick(self.streams)
+        idle = deadline - PREPARE_S - self._timer.now()
+        if 0 < idle < math.inf:
+            lifecycle.idle(idle)
+        return deadline
 
     async def _settle(self, tick: Tick) -> None:
         """Do what planning ``tick`` left to await (``Tick.later``), stream by stream: a
@@ -524,7 +528,7 @@ class Streamer:
         self._active = (tick.deadline, tick.deadline + self._tick_cost_s)
         timer = self.bus.timer
         try:
-            if not tick.prepared:  # refused (the port away, the bus closing)
+            if not tick.prepared:  # feedback frames only; or refused (the port away)
                 sent_at, frames, slipped = None, 0, False
             else:
                 handed = await self._sent_by_timer(tick)
@@ -605,7 +609,7 @@ class Streamer:
 
     def _arm(self, tick: Tick) -> None:
         self._armed = tick
-        self._fire_handle = self.bus.timer.call_at(tick.deadline, self._fire)
+        self._fire_handle = self._timer.call_at(tick.deadline, self._fire)
 
     def _fire(self) -> None:
         """At the armed tick's deadline: write its frames, one path (the bus re-checks
@@ -649,7 +653,7 @@ class Streamer:
             self._active = None
             # The next tick is planned after the writes of every bus due now (the same
             # deadline, later in the timer's order): planning is not their lateness.
-            self._fire_handle = self.bus.timer.call_at(tick.deadline, self._advance)
+            self._fire_handle = self._timer.call_at(tick.deadline, self._advance)
         except Exception as err:  # a bug: the task raises it rather than wait forever
             handback.set_exception(err)
 
@@ -662,17 +666,15 @@ class Streamer:
             return  # the task stopped waiting (cancelled)
         try:
             ahead = None
-            if self.streams:
-                self._idle()
-                deadline = earliest_tick(self.streams)
-                if deadline - PLAN_AHEAD_S <= self.bus.timer.now():
-                    ahead = self._plan(deadline)
-                    if ahead.served and not ahead.later and not ahead.feedback:
-                        self._prepare_tick(ahead)
-                        if ahead.prepared:
-                            self._active = (deadline, deadline + self._tick_cost_s)
-                            self._arm(ahead)
-                            return
+            deadline = self._idle()
+            if deadline - PLAN_AHEAD_S <= self._timer.now():
+                ahead = self._plan(deadline)
+                if ahead.served and not ahead.later and not ahead.feedback:
+                    self._prepare_tick(ahead)
+                    if ahead.prepared:
+                        self._active = (deadline, deadline + self._tick_cost_s)
+                        self._arm(ahead)
+                        return
             handback.set_result(Handed(None, ahead=ahead))
         except Exception as err:  # a bug: the task raises it rather than wait forever
             handback.set_exception(err)

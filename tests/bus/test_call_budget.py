@@ -37,7 +37,8 @@ for a deadline not yet due by the last reading (2026-12-07): a request 141 on th
 clock and 150 on the default timer (156 with the lazy deadline alone).  Then a tick
 planned and sent from timer callbacks, without a turn of the streamer's task
 (2026-12-07): 112 a tick on the fake clock; 119 once the planning waits, in a second
-timer callback at the same deadline, for the writes of every bus due then.
+timer callback at the same deadline, for the writes of every bus due then; 113 with the
+timer kept by the streamer and the next deadline found once a tick.
 The fake clock's bounds are what the bus reaches now, with a small margin."""
 
 from __future__ import annotations
@@ -63,10 +64,10 @@ from tests.fakeclock import rig
 from tests.waiting import eventually
 
 #: Calls of one 10 ms tick of 15 actuators (one 0xF3 broadcast), steady state.
-TICK_BUDGET = 125
+TICK_BUDGET = 118
 #: Calls of one ``bus.request`` of an LA status, from the call to its decoded reply.
 REQUEST_BUDGET = 143
-#: The same on the default timer with default settings: no spin on the clock (136 a
+#: The same on the default timer with default settings: no spin on the clock (126 a
 #: tick, 117-150 a request here, with the requests that wait out the spacing; ~1,100
 #: and ~550 while it spun by default).  The fake clock's bounds above are the exact
 #: guard of the path; real time moves these counts from run to run (a tick or request

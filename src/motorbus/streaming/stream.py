@@ -99,7 +99,13 @@ class Stream:
     * an async iterator: awaited each tick;
     * a callable ``f(t, statuses)``, where ``statuses`` maps ID to the latest
       ``la.Status`` (feedback replies and polls): its return value each tick; return
-      ``None`` to end the stream.
+      ``None`` to end the stream.  An ``async def`` (or one returning an awaitable) is
+      awaited each tick.
+
+    A plain source (not awaited) is asked for tick ``k + 1``'s targets by the bus's timer
+    callback right after tick ``k``'s write, with no task in between: keep it quick
+    (every stream and bus of the event loop waits for it), and make a source that must
+    wait for something async.
 
     An item is a position 0..2000 for a single actuator, a sequence with one position
     per actuator (in the order given), or a mapping ``{id: position}``.
