@@ -548,6 +548,7 @@ def test_one_loop_turn_re_arms_the_timerfd_once_for_all_its_changes(
     run(loop_factory, main())
 
 
+@pytest.mark.skipif(not timerfd_available(), reason="needs Linux timerfd")
 @pytest.mark.parametrize("loop_factory", LOOPS)
 def test_a_wake_up_that_leaves_nothing_queued_re_arms_before_it_returns(
     loop_factory: Callable[[], asyncio.AbstractEventLoop], monkeypatch: pytest.MonkeyPatch
@@ -556,13 +557,11 @@ def test_a_wake_up_that_leaves_nothing_queued_re_arms_before_it_returns(
     timerfd is re-armed before the wake-up returns, without a loop turn of its own (an
     epoll_wait a tick, issue 40).  A wake-up whose callbacks queued work (a task to
     resume) re-arms after that work, once, as before."""
-    if not timerfd_available():
-        pytest.skip("no timerfd on this platform")
 
     async def main() -> None:
         timer = TimerfdTimer(spin_lead=0.0)
-        armed = _record_settimes(timer, monkeypatch)
         loop = asyncio.get_running_loop()
+        armed = _record_settimes(timer, monkeypatch)
         real_wake = timer._wake
         #: For each wake-up: the loop's queue after it, a re-arm queued, arms during it.
         wakes: list[tuple[int, bool, int]] = []

@@ -8,6 +8,7 @@ counts, never on speed."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -110,9 +111,20 @@ def assert_the_sines_arrived_and_each_ended_with_a_pause(
             ticks = round(max(plan["cycles"] / f, 1.0) / period) + 1
             whole = [t for t, _ in runs if 0.95 * ticks <= len(t) <= ticks]
             assert whole, (ident, f, [len(t) for t, _ in runs])
+            # The ticks a loaded server skipped may all fall about a peak of the sine
+            # (seen once in a fresh-clone CI run): it then reaches the peak's value at the
+            # last tick written before them or the first after.
             assert any(
-                min(t) <= center - amplitude + 2 and max(t) >= center + amplitude - 2 for t in whole
-            ), (ident, f)
+                min(t) <= center - amplitude + _reach(amplitude, f, period, ticks - len(t))
+                and max(t) >= center + amplitude - _reach(amplitude, f, period, ticks - len(t))
+                for t in whole
+            ), (ident, f, [(min(t), max(t), len(t)) for t in whole], center, amplitude)
+
+
+def _reach(amplitude: float, f: float, period: float, skipped: int) -> float:
+    """How far short of a peak a sine of ``amplitude`` and ``f`` Hz on ticks of ``period``
+    can stay when ``skipped`` ticks are missing about it (and 2 of rounding)."""
+    return amplitude * (1 - math.cos(math.pi * f * (skipped + 1) * period)) + 2
 
 
 def test_rig_connect_tracks_as_the_local_rig_does_on_the_same_simulator(
