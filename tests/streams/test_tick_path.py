@@ -24,7 +24,7 @@ from motorbus.sim.memory import MemorySim
 from motorbus.streaming.model import StreamStats
 from motorbus.streaming.targets import Pending, TargetAdapter
 from motorbus.streaming.tick import AWAIT, ENDED, FAILED, GAP, Tick, abandon, plan_tick
-from motorbus.streams import Streamer
+from motorbus.streams import StreamEnded, Streamer
 from tests.fakeclock import rig
 from tests.waiting import eventually
 
@@ -225,3 +225,23 @@ async def test_every_bus_due_writes_before_any_plans_its_next_tick() -> None:
         assert events[last][2] - events[first][2] < 1e-3, events  # one deadline
         between = [kind for kind, _, _ in events[first:last]]
         assert "prepare" not in between, events[first : last + 1]
+
+
+async def test_a_target_function_raising_stop_async_iteration_fails_its_stream() -> None:
+    # An async iterator's StopAsyncIteration is its end; a target function's is an error
+    # (as any other exception it raises): the stream ends with it, and its safe action.
+    async def targets(t: float, statuses: object) -> int:
+        if t >= 0.03:
+            raise StopAsyncIteration
+        return 800
+
+    model = LAModel(1)
+    async with rig(models=[model]) as r:
+        streamer = Streamer(r.bus)
+        stream = streamer.follow(InspireLA(r.bus, 1), targets, period=0.01, safe_action="pause")
+        with pytest.raises(StreamEnded):
+            await asyncio.wait_for(stream.wait(), 5)
+        await streamer.close()
+    assert type(stream.error) is StopAsyncIteration
+    assert _follow_targets(model) == [800, 800, 800]
+    assert model.power_state is PowerState.PAUSED

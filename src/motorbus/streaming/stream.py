@@ -104,8 +104,8 @@ class Stream:
 
     A plain source (not awaited) is asked for tick ``k + 1``'s targets by the bus's timer
     callback right after tick ``k``'s write, with no task in between: keep it quick
-    (every stream and bus of the event loop waits for it), and make a source that must
-    wait for something async.
+    (every stream and bus of the event loop waits for it), and write a source that must
+    wait for something as an async one.
 
     An item is a position 0..2000 for a single actuator, a sequence with one position
     per actuator (in the order given), or a mapping ``{id: position}``.

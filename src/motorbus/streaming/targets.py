@@ -173,6 +173,8 @@ class TargetAdapter:
         try:
             item = await pending.awaitable
         except StopAsyncIteration:
+            if self.aiterator is None:
+                raise  # from a target function: a failure, not the end
             return None
         if item is None or item is EXHAUSTED:
             return None
