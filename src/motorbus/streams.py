@@ -439,7 +439,7 @@ class Streamer:
         wake: asyncio.Future[None] = asyncio.get_running_loop().create_future()
         self._wake = wake
         # Only the preparation wakes here; the frames go out from a precise callback.
-        handle = self.bus.timer.call_at(deadline, self._ring, precise=False)
+        handle = self._timer.call_at(deadline, self._ring, precise=False)
         try:
             await wake
         finally:
@@ -526,7 +526,7 @@ class Streamer:
         if tick.prepared is None:
             self._prepare_tick(tick)
         self._active = (tick.deadline, tick.deadline + self._tick_cost_s)
-        timer = self.bus.timer
+        timer = self._timer
         try:
             if not tick.prepared:  # feedback frames only; or refused (the port away)
                 sent_at, frames, slipped = None, 0, False
@@ -536,9 +536,6 @@ class Streamer:
                     return handed.ahead  # served, with the ticks after it
                 tick = handed.tick  # written (or refused) and left to this task to finish
                 sent_at, frames, slipped = await self._written(handed)
-            for s in tick.served:
-                if not s.feedback:
-                    s.stats.frames += frames
             if tick.feedback:
                 # Feedback frames are round trips, sent one after another from this task:
                 # the first leaves at the deadline (the tick was prepared a period ahead).
@@ -553,7 +550,7 @@ class Streamer:
         if sent_at is None:  # refused (the port away, the bus closing): nothing left
             record_unsent(tick)
             return None
-        record_sent(tick, sent_at, slipped)
+        record_sent(tick, sent_at, slipped, frames)
         if tick.polls and self.streams:
             # The slots left before the next tick, its preparation apart, poll statuses.
             await poll_statuses(self.bus, tick.served, earliest_tick(self.streams) - PREPARE_S)
@@ -647,9 +644,7 @@ class Streamer:
                 handback.set_result(Handed(tick, jobs, first.tx_start))
                 return
             # Written at the deadline, whole: the tick is done.
-            for s in tick.served:
-                s.stats.frames += 1
-            record_sent(tick, first.tx_start, False)
+            record_sent(tick, first.tx_start, False, 1)
             self._active = None
             # The next tick is planned after the writes of every bus due now (the same
             # deadline, later in the timer's order): planning is not their lateness.
@@ -691,7 +686,7 @@ class Streamer:
             for job in handed.jobs:
                 await job.future
                 if sent_at is None:
-                    sent_at = job.tx_start if job.attempts else self.bus.timer.now()
+                    sent_at = job.tx_start if job.attempts else self._timer.now()
                     slipped = True
         except MotorbusError as err:
             log.debug("stream tick on bus %s not sent: %s", self.bus.name, err)

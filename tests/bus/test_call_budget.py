@@ -38,7 +38,8 @@ clock and 150 on the default timer (156 with the lazy deadline alone).  Then a t
 planned and sent from timer callbacks, without a turn of the streamer's task
 (2026-12-07): 112 a tick on the fake clock; 119 once the planning waits, in a second
 timer callback at the same deadline, for the writes of every bus due then; 113 with the
-timer kept by the streamer and the next deadline found once a tick.
+timer kept by the streamer and the next deadline found once a tick; 114 with one place
+that serves a stream's targets (an ``isinstance`` for the awaited ones).
 The fake clock's bounds are what the bus reaches now, with a small margin."""
 
 from __future__ import annotations

@@ -77,7 +77,7 @@ class Handed:
     def __init__(
         self,
         tick: Tick | None,
-        jobs: list[Any] = [],  # noqa: B006 (never changed)
+        jobs: Sequence[Any] = (),
         sent_at: float | None = None,
         error: Exception | None = None,
         *,
@@ -123,9 +123,7 @@ def plan_tick(
         except Exception as err:  # the user's target source failed: the task ends it
             tick.later.append((s, FAILED, err))
             continue
-        if type(targets) is dict:  # what ``normalise`` makes: the common case first
-            accept(tick, s, targets)
-        elif targets is None:  # a normal end: still a safe one (the task's)
+        if targets is None:  # a normal end: still a safe one (the task's)
             tick.later.append((s, ENDED, None))
         elif isinstance(targets, Pending):
             tick.later.append((s, AWAIT, targets))
@@ -149,10 +147,13 @@ def accept(tick: Tick, s: Stream, targets: Targets) -> None:
         tick.feedback.extend([(s, i, p) for i, p in targets.items()])
 
 
-def record_sent(tick: Tick, sent_at: float, slipped: bool) -> None:
+def record_sent(tick: Tick, sent_at: float, slipped: bool, frames: int) -> None:
     """Count a tick whose first frame went out at ``sent_at`` (``slipped``: it could not
-    be written at the deadline itself) in each served stream's statistics."""
+    be written at the deadline itself), of ``frames`` broadcast frames, in each served
+    stream's statistics (a feedback stream counts its own frames)."""
     for s in tick.served:
+        if not s.feedback:
+            s.stats.frames += frames
         lateness = s.origin + (s.next_tick - 1) * s.period
         lateness = sent_at - lateness if sent_at > lateness else 0.0
         s.stats.ticks += 1
