@@ -5,6 +5,7 @@ Wall time of a fresh ``python -m motorbus ...`` process, measured from this proc
 
 * ``python -c pass``: the interpreter alone, the floor every command pays;
 * ``motorbus --version``, ``motorbus --help``, ``motorbus la status --help``;
+* ``motorbus serve --help``: the served stack's imports (the manager, the bus file);
 * ``motorbus la status 1 --port PTY``: a real status query to ``motorbus sim``
   (one LA actuator on a pseudo-terminal, started once and shared by every run).
 
@@ -61,6 +62,8 @@ COMMANDS: dict[str, list[str]] = {
     "motorbus --help": ["--help"],
     "motorbus la status --help": ["la", "status", "--help"],
     "motorbus la status 1 --port PTY": ["la", "status", "1", "--port", "{port}"],
+    # The served stack's imports (the manager, the bus file, the server and client):
+    "motorbus serve --help": ["serve", "--help"],
 }
 #: Commands with a start-up goal.
 GOALS = ("motorbus --version", "motorbus la status 1 --port PTY")

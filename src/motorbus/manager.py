@@ -22,7 +22,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import anyio
 
@@ -39,8 +39,6 @@ from motorbus.busfile import (
 )
 from motorbus.devices.calibration import FULL_STROKE, limited_targets
 from motorbus.devices.la import InspireLA
-from motorbus.devices.project_stepper import ProjectStepper
-from motorbus.devices.quad_stepper import QuadStepper
 from motorbus.errors import LocalProtocolError, MotorbusError
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command, check_flag
@@ -51,6 +49,10 @@ from motorbus.runtime.shutdown import deferred_interrupts
 from motorbus.streams import SafeAction, Stream, Streamer
 from motorbus.transport.base import Transport, check_transport
 from motorbus.transport.serial import open_transport
+
+if TYPE_CHECKING:  # loaded on first use: a manager of LA actuators never builds them
+    from motorbus.devices.project_stepper import ProjectStepper
+    from motorbus.devices.quad_stepper import QuadStepper
 
 __all__ = [
     "BusManager",
@@ -519,6 +521,8 @@ class BusManager:
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
+        from motorbus.devices.project_stepper import ProjectStepper
+
         handle = self.bus(bus)  # a bus that is not there is named first
         motor = next(
             (d.motor for d in self.specs[bus].devices if d.kind == "project_stepper"),
@@ -528,6 +532,8 @@ class BusManager:
 
     def quad_stepper(self, bus: str) -> QuadStepper:
         """The quad stepper on bus ``bus``."""
+        from motorbus.devices.quad_stepper import QuadStepper
+
         return QuadStepper(self.bus(bus))
 
     def streamer(self, bus: str) -> Streamer:

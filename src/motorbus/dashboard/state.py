@@ -30,9 +30,8 @@ from motorbus.bus.events import (
     QuadDone,
 )
 from motorbus.protocol import la
-from motorbus.protocol import project_stepper as ps
-from motorbus.protocol import quad_stepper as quad
-from motorbus.protocol.base import Command
+from motorbus.protocol import project_stepper as ps  # (its names load on first use)
+from motorbus.protocol.base import Command, Family
 
 __all__ = [
     "EVENTS_KEPT",
@@ -218,11 +217,11 @@ class DashboardState:
         elif isinstance(cmd, la.MoveTo | la.Follow) and cmd.id in view.la:
             # A position command drives an actuator in work (or resumes it from pause).
             self._la(view, cmd.id).mode = "work"
-        elif isinstance(cmd, ps.StartProject) and view.project is not None:
+        elif view.project is not None and isinstance(cmd, ps.StartProject):
             view.project["running"] = cmd.project
-        elif isinstance(cmd, ps.StopProject) and view.project is not None:
+        elif view.project is not None and isinstance(cmd, ps.StopProject):
             view.project["running"] = None
-        elif isinstance(cmd, quad.QuadCommand) and view.quad is not None:
+        elif view.quad is not None and cmd.family is Family.QUAD_STEPPER:
             motor = getattr(cmd, "motor", None)
             if motor is not None:
                 axis = view.quad["axes"].setdefault(str(motor), {})
@@ -238,7 +237,7 @@ class DashboardState:
         view.reply_times.add((replied_at - written_at) * 1e3)
         if isinstance(value, la.Status) and value.id != 0:
             self.on_status(bus, value, replied_at)
-        elif isinstance(value, ps.ProjectDump) and view.project is not None:
+        elif view.project is not None and isinstance(value, ps.ProjectDump):
             view.project["projects"][str(value.project)] = {
                 "steps": value.number_of_steps,
                 "repeat_count": value.repeat_count,

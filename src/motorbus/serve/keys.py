@@ -31,6 +31,7 @@ This module builds and checks those payloads; ``motorbus.serve.server`` and
 
 from __future__ import annotations
 
+import importlib
 import json
 import logging
 import math
@@ -55,7 +56,7 @@ from motorbus.errors import (
     RemoteProtocolError,
     ReplyTimeoutError,
 )
-from motorbus.protocol import la, project_stepper, quad_stepper
+from motorbus.protocol import la
 from motorbus.protocol.base import Command, Family, format_hex
 
 _log = logging.getLogger("motorbus.serve")
@@ -117,10 +118,12 @@ ERROR_KINDS = (
 #: One key chunk: no ``/``, no Zenoh wildcard or selector characters.
 _CHUNK = re.compile(r"^[A-Za-z0-9_.\-:@+=]{1,128}$")
 
-_DECODERS: dict[Family, Any] = {
-    Family.LA: la.decode_request,
-    Family.PROJECT_STEPPER: project_stepper.decode_request,
-    Family.QUAD_STEPPER: quad_stepper.decode_request,
+#: The module of each family's ``decode_request``, loaded when a bus carrying that family
+#: is asked to decode (a served bus of LA actuators never loads the stepper protocols).
+_DECODERS = {
+    Family.LA: "motorbus.protocol.la",
+    Family.PROJECT_STEPPER: "motorbus.protocol.project_stepper",
+    Family.QUAD_STEPPER: "motorbus.protocol.quad_stepper",
 }
 
 
@@ -213,7 +216,8 @@ def decode_frame(raw: bytes, families: Sequence[Family], field: str = "frame") -
     errors = []
     for family in families:
         try:
-            cmd: Command[object] = _DECODERS[family](raw)
+            decode = importlib.import_module(_DECODERS[family]).decode_request
+            cmd: Command[object] = decode(raw)
         except (LocalProtocolError, ValueError, IndexError) as err:
             errors.append(f"{family.value}: {err}")
             continue
