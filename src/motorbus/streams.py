@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import contextvars
 import gc
 import logging
 import math
@@ -164,6 +165,9 @@ class Streamer:
         self._fire_handle: TimerHandle | None = None
         #: The bus's timer, kept when the task starts (``_run``): read a few times a tick.
         self._timer: Timer
+        #: The task's context (copied where it started): target functions are called in
+        #: it from the timer callbacks too, as they were in the task.
+        self._context = contextvars.Context()
         #: The budget every streamer of this bus shares, held by the bus.
         self.budget = stream_budget(bus)
         #: Streamers of streams started under a lease the calling task held, by lease.
@@ -391,8 +395,9 @@ class Streamer:
         self.streams.append(stream)
         self._update_tick_cost()
         if starting:
+            self._context = contextvars.copy_context()
             self._task = asyncio.get_running_loop().create_task(
-                self._run(), name=f"motorbus streams {self.bus.name}"
+                self._run(), name=f"motorbus streams {self.bus.name}", context=self._context
             )
         else:
             self._ring()
@@ -663,7 +668,7 @@ class Streamer:
             ahead = None
             deadline = self._idle()
             if deadline - PLAN_AHEAD_S <= self._timer.now():
-                ahead = self._plan(deadline)
+                ahead = self._context.run(self._plan, deadline)  # (the target functions)
                 if ahead.served and not ahead.later and not ahead.feedback:
                     self._prepare_tick(ahead)
                     if ahead.prepared:

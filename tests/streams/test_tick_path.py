@@ -9,6 +9,7 @@ back to the task, before the tick it belongs to is sent.  On the fake clock.
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import inspect
 from collections.abc import AsyncIterator
 from typing import Any
@@ -245,3 +246,28 @@ async def test_a_target_function_raising_stop_async_iteration_fails_its_stream()
     assert type(stream.error) is StopAsyncIteration
     assert _follow_targets(model) == [800, 800, 800]
     assert model.power_state is PowerState.PAUSED
+
+
+REQUEST_ID: contextvars.ContextVar[str] = contextvars.ContextVar("request_id", default="unset")
+
+
+async def test_a_target_function_sees_the_context_it_was_started_in_on_every_path() -> None:
+    """As in a task: a target function reads the context variables set where its stream
+    was started, on the ticks the timer callback plans and on those the task does (the
+    first, and the one after a source that must be awaited)."""
+    seen: list[str] = []
+
+    def target(t: float, _status: object) -> list[int] | None:
+        seen.append(REQUEST_ID.get())
+        return None if len(seen) > TICKS else [500 + len(seen)]
+
+    async with rig(models=[LAModel(1)]) as r:
+        token = REQUEST_ID.set("arm-7")
+        try:
+            streamer = Streamer(r.bus)
+            stream = streamer.follow([InspireLA(r.bus, 1)], target, period=0.01)
+        finally:
+            REQUEST_ID.reset(token)
+        await asyncio.wait_for(stream.wait(), 5)
+        await streamer.close()
+    assert len(seen) == TICKS + 1 and set(seen) == {"arm-7"}, seen
