@@ -61,8 +61,12 @@ def test_an_la_program_loads_no_stepper_protocol() -> None:
     dataclasses were ~40 ms of every such program's start-up)."""
     code = (
         "import sys, motorbus, motorbus.busfile, motorbus.manager, motorbus.serve.server, "
-        "motorbus.serve.client\n"
+        "motorbus.serve.client, motorbus.dashboard.state\n"
+        "from motorbus.protocol import la\n"
+        "from motorbus.protocol.base import Family\n"
+        "from motorbus.serve.keys import decode_frame\n"
         "motorbus.busfile.parse_devices(['la:1-3'])\n"
+        "assert decode_frame(la.MoveTo(1, 500).encode(), [Family.LA]) == la.MoveTo(1, 500)\n"
         "print(sorted(m for m in sys.modules if 'stepper' in m))"
     )
     out = subprocess.run(

@@ -21,9 +21,9 @@ The package: ``wire`` (sizes, opcodes, enums, framing, ``Ack``), ``commands``,
 ``project`` (``StepSpec``, ``Project``, ``ProjectDump`` and the dump codec), ``upload``
 (the commands that write a project, A.6) and ``decode``; the public names
 (``__all__``) are importable from here; the rest from their modules.  Each public name
-loads its module on first use: a program that drives LA actuators only (``motorbus
-serve`` of actuators, ``motorbus la``) never builds this protocol's command classes
-(~40 ms of start-up, benchmarks/bench_startup.py).
+loads its module on first use: a program of LA actuators only (a served bus, its
+clients, the dashboard) never builds this protocol's command classes (with the quad
+stepper's, ~40 ms of start-up: benchmarks/bench_startup.py, ``motorbus serve --help``).
 """
 
 from __future__ import annotations
