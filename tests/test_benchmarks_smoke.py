@@ -19,7 +19,6 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 sys.path.insert(0, str(BENCHMARKS))
 
 import bench_cpu  # noqa: E402
-import report_plots  # noqa: E402
 import run  # noqa: E402
 import run_report  # noqa: E402
 import run_results  # noqa: E402
@@ -605,6 +604,9 @@ def test_fmt(value: Any, unit: str, text: str) -> None:
 
 
 def test_plots_are_written(tmp_path: Path) -> None:
+    # Here, not at the top: matplotlib was 0.4 s of every worker's collection.
+    import report_plots
+
     results = build()
     samples = {
         "bus-fast-asyncio": {
