@@ -1,7 +1,9 @@
-"""Lint and type checks run with the tests, so CI and README's test command cover them."""
+"""Lint and type checks run with the tests, so CI and README's test command cover them; and
+the rules that keep the code and the suite lean (module size, cheap collection)."""
 
 from __future__ import annotations
 
+import ast
 import subprocess
 import sys
 from pathlib import Path
@@ -39,3 +41,27 @@ def test_no_module_in_src_is_over_700_lines() -> None:
         if (n := len(p.read_text(encoding="utf-8").splitlines())) > MODULE_LINES_MAX
     }
     assert not long, f"split these modules by concern (lines): {long}"
+
+
+#: Imported by no test module at its top level: every process that collects the suite
+#: (the four workers, and the two that warm the bytecode first) would pay for them,
+#: whether it runs the test or not (matplotlib was 0.4 s of each collection).
+HEAVY_AT_COLLECTION = ("matplotlib", "report_plots")
+
+
+def test_no_test_module_imports_a_heavy_module_at_its_top_level() -> None:
+    found = []
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+                names = [node.module]
+            else:
+                continue
+            found += [
+                f"{path.relative_to(ROOT)}:{node.lineno} {name}"
+                for name in names
+                if name.split(".")[0] in HEAVY_AT_COLLECTION
+            ]
+    assert not found, f"import these inside the tests that use them: {found}"
