@@ -12,6 +12,7 @@ the test in progress ends with :class:`RigAborted`.
 from __future__ import annotations
 
 import asyncio
+import bisect
 from collections.abc import Sequence
 from typing import Any
 
@@ -148,12 +149,21 @@ class Sampler:
             await timer.sleep_until(min(end, now + 0.01))
 
     def since(self, ident: int, t: float) -> list[Sample]:
-        """The samples of ``ident`` whose replies arrived at or after ``t``."""
-        return [s for s in self.samples[ident] if s.t >= t]
+        """The samples of ``ident`` whose replies arrived at or after ``t``.
+
+        Found by bisection: the samples are in arrival order (the bus takes replies one
+        at a time, on a monotonic clock), and the settle loop asks every 10 ms, so a
+        scan of the whole run grew with its length."""
+        samples = self.samples[ident]
+        return samples[bisect.bisect_left(samples, t, key=_arrival) :]
 
     def last_write(self, ident: int) -> float:
         """When the last target frame to ``ident`` was written."""
         return self.targets[ident][-1][0]
+
+
+def _arrival(sample: Sample) -> float:
+    return sample.t
 
 
 def _ignore_result(fut: asyncio.Future[Any]) -> None:
