@@ -199,10 +199,9 @@ class Streamer:
         active = self._active
         if active is not None and active[1] > now:
             return active
-        sending = [s for s in self.streams if s.sending]  # a paused stream needs no slot
-        if not sending:
+        deadline = earliest_tick(self.streams, sending=True)
+        if deadline == math.inf:
             return None
-        deadline = min(s.origin + s.next_tick * s.period for s in sending)
         return deadline, deadline + self._tick_cost_s
 
     def _update_tick_cost(self) -> None:

@@ -271,3 +271,22 @@ async def test_a_target_function_sees_the_context_it_was_started_in_on_every_pat
         await asyncio.wait_for(stream.wait(), 5)
         await streamer.close()
     assert len(seen) == TICKS + 1 and set(seen) == {"arm-7"}, seen
+
+
+async def test_a_paused_stream_reserves_no_window_on_the_bus() -> None:
+    """The window the streamer asks the bus to keep free (its reservation source) is the
+    next tick of a stream that sends: a paused one needs no slot, so user requests are
+    not held for it."""
+    async with rig(models=[LAModel(1), LAModel(2)]) as r:
+        streamer = Streamer(r.bus)
+        fast = streamer.follow([InspireLA(r.bus, 1)], lambda t, s: 500, period=0.01)
+        slow = streamer.follow([InspireLA(r.bus, 2)], lambda t, s: 600, period=0.05)
+        await eventually(lambda: fast.stats.ticks >= 3, "three ticks")
+        now = r.bus.timer.now()
+        assert streamer._reservation(now) is not None
+        fast.pause()
+        window = streamer._reservation(now + 0.02)  # past the tick in progress, if any
+        assert window is not None and window[0] == slow.origin + slow.next_tick * slow.period
+        slow.pause()
+        assert streamer._reservation(now + 0.06) is None
+        await streamer.close()

@@ -455,13 +455,14 @@ async def stop_together(streams: list[Stream], hold: bool, *more: Awaitable[None
             raise outcome
 
 
-def earliest_tick(streams: Sequence[Stream]) -> float:
-    """The earliest next tick deadline of ``streams`` (a loop: no list and no ``min``
-    call on every tick; issue 40 counts the calls of a tick)."""
+def earliest_tick(streams: Sequence[Stream], *, sending: bool = False) -> float:
+    """The earliest next tick deadline of ``streams`` (of those sending, with
+    ``sending``: a paused stream needs no slot); infinity if none.  A loop: no list and
+    no ``min`` call on every tick (issue 40 counts the calls of a tick)."""
     earliest = math.inf
     for s in streams:
         at = s.origin + s.next_tick * s.period
-        if at < earliest:
+        if at < earliest and (not sending or s.sending):
             earliest = at
     return earliest
 
