@@ -103,11 +103,12 @@ class Stream:
       awaited each tick.
 
     A plain source (not awaited) is asked for tick ``k + 1``'s targets by the bus's timer
-    callback right after tick ``k``'s write, with no task in between: keep it quick
-    (every stream and bus of the event loop waits for it), and write a source that must
-    wait for something as an async one.  Every source runs in the context of the bus's
-    streamer task (``contextvars``, copied where its first stream started), from the
-    task or its timer callbacks alike.
+    callback right after tick ``k``'s write, with no task in between (there
+    ``asyncio.current_task()`` is None): keep it quick (every stream and bus of the
+    event loop waits for it), and write a source that must wait for something as an
+    async one.  Every source runs in the context of the bus's streamer task
+    (``contextvars``, copied where its first stream started), from the task or its timer
+    callbacks alike.
 
     An item is a position 0..2000 for a single actuator, a sequence with one position
     per actuator (in the order given), or a mapping ``{id: position}``.
