@@ -18,7 +18,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "motorbus"
 
 
 #: The packages whose public names load on first use, each from one ``_EXPORTS`` list.
-LAZY_PACKAGES = ("motorbus", "motorbus.protocol.project_stepper")
+LAZY_PACKAGES = ("motorbus", "motorbus.rig", "motorbus.protocol.project_stepper")
 
 
 def _package(name: str) -> Any:

@@ -9,7 +9,7 @@ simulators in ``motorbus.sim``.  The command line (``motorbus.cli``) uses nothin
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
@@ -22,6 +22,7 @@ def _load_runtime() -> None:
 
 
 from motorbus import lifecycle as _lifecycle  # noqa: E402 (after the loader it is given)
+from motorbus.protocol.exports import lazy_names  # noqa: E402
 
 _lifecycle.set_loader(_load_runtime)
 
@@ -143,19 +144,5 @@ if TYPE_CHECKING:
     from motorbus.transport.usb import list_serial_ports as list_serial_ports
     from motorbus.transport.usb import resolve_port as resolve_port
 
-_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted([*_LAZY, "__version__"])
-
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'motorbus' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+if not TYPE_CHECKING:  # (type checkers read the imports above: a misspelt name is caught)
+    __all__, __getattr__, __dir__ = lazy_names(__name__, _EXPORTS, also=["__version__"])

@@ -9,8 +9,9 @@ package (the command line does, to build its help) costs nothing until a rig run
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from motorbus.protocol.exports import lazy_names
 
 _EXPORTS = {
     "motorbus.rig.compare": (
@@ -43,19 +44,5 @@ if TYPE_CHECKING:
     from motorbus.rig.runner import RigResult as RigResult
     from motorbus.rig.runner import run_rig as run_rig
 
-_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = sorted(_LAZY)
-
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'motorbus.rig' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted({*globals(), *__all__})
+if not TYPE_CHECKING:  # (type checkers read the imports above: a misspelt name is caught)
+    __all__, __getattr__, __dir__ = lazy_names(__name__, _EXPORTS)

@@ -28,8 +28,9 @@ stepper's, ~40 ms of start-up: benchmarks/bench_startup.py, ``motorbus serve --h
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from motorbus.protocol.exports import lazy_names
 
 #: The public names and the module each is loaded from on first use.  The one list:
 #: ``__all__`` is made from it, and tests/test_public_api.py checks that the
@@ -235,19 +236,5 @@ if TYPE_CHECKING:
     from motorbus.protocol.project_stepper.wire import dump_offset as dump_offset
     from motorbus.protocol.project_stepper.wire import request_is_valid as request_is_valid
 
-_LAZY = {name: module for module, names in _EXPORTS.items() for name in names}
-
-__all__ = list(_LAZY)
-
-if not TYPE_CHECKING:  # (type checkers read the imports above, and so catch a misspelt name)
-
-    def __getattr__(name: str) -> Any:
-        module = _LAZY.get(name)
-        if module is None:
-            raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-        value = getattr(importlib.import_module(module), name)
-        globals()[name] = value
-        return value
-
-    def __dir__() -> list[str]:
-        return sorted({*globals(), *__all__})
+if not TYPE_CHECKING:  # (type checkers read the imports above: a misspelt name is caught)
+    __all__, __getattr__, __dir__ = lazy_names(__name__, _EXPORTS)
