@@ -23,7 +23,7 @@ from tests.helpers import sim_bus as sim_bus
 ROOT = Path(__file__).resolve().parents[1]
 
 # The property tests assert behaviour, never speed: on this shared 2-core machine with
-# the suite's four workers, one example took 1.1 s to generate (a data-generation health
+# the suite's workers, one example took 1.1 s to generate (a data-generation health
 # check failed CI) and Hypothesis's default 200 ms deadline per example is a timing
 # assertion.  Neither applies here; each test still sets its own ``max_examples``.
 settings.register_profile("motorbus", deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -124,10 +124,13 @@ def _test_files(path: Path) -> list[Path]:
 
 @pytest.hookimpl(optionalhook=True)  # xdist's hook: pytest without xdist runs too
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: two workers a CPU.  Half of the suite's time is waiting (simulated
-    motion in real time, child processes starting, replies paced at the baud), so one
-    worker a CPU leaves the CPUs idle half the time."""
-    return 2 * _cpus()
+    """``-n auto``: three workers a CPU.  Much of a test's time is waiting (simulated
+    motion in real time, child processes starting, replies paced at the baud): with one
+    worker a CPU the CPUs stood idle half the time, with two still a tenth of it (vmstat,
+    2 CPUs).  Three filled that (README's test line took 170, 156 and 177 s against 179,
+    175 and 190 s with two, in runs one after the other on this shared machine); four
+    were slower again and failed the timing of a rig run."""
+    return 3 * _cpus()
 
 
 def _cpus() -> int:

@@ -44,7 +44,7 @@ def test_no_module_in_src_is_over_700_lines() -> None:
 
 
 #: Imported by no test module at its top level: every process that collects the suite
-#: (the four workers, and the two that warm the bytecode first) would pay for them,
+#: (the six workers here, and the two that warm the bytecode first) would pay for them,
 #: whether it runs the test or not (matplotlib was 0.4 s of each collection).
 HEAVY_AT_COLLECTION = ("matplotlib", "report_plots")
 

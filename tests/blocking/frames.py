@@ -9,7 +9,7 @@ from tests.helpers import LOADED_HOST_MARGIN_MS
 #: The simulated bus of these tests: the LA's fastest documented rate.
 BAUD = 921600
 #: The reply allowance of these tests' buses: the simulator is another process, which a
-#: loaded machine (CI: four workers on two CPUs) can hold for tens of ms; these tests
+#: loaded machine (CI: six workers on two CPUs) can hold for tens of ms; these tests
 #: judge frames and safe ends, not timing, and none waits for a timeout over a pty.
 HOST_MARGIN_S = LOADED_HOST_MARGIN_MS / 1e3
 
