@@ -6,6 +6,8 @@ Wall time of a fresh ``python -m motorbus ...`` process, measured from this proc
 * ``python -c pass``: the interpreter alone, the floor every command pays;
 * ``motorbus --version``, ``motorbus --help``, ``motorbus la status --help``;
 * ``motorbus serve --help``: the served stack's imports (the manager, the bus file);
+* ``import motorbus.blocking`` and the names of an LA program (``Bus``, ``InspireLA``,
+  ``Streamer``): what the first line of a blocking script costs;
 * ``motorbus la status 1 --port PTY``: a real status query to ``motorbus sim``
   (one LA actuator on a pseudo-terminal, started once and shared by every run).
 
@@ -56,14 +58,20 @@ from harness import write_report
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "startup.json"
 GOAL_S = 0.3
-#: Commands measured (the port is filled in once the simulator runs).
+#: Commands measured: the interpreter's arguments (the port is filled in once the
+#: simulator runs).
 COMMANDS: dict[str, list[str]] = {
-    "motorbus --version": ["--version"],
-    "motorbus --help": ["--help"],
-    "motorbus la status --help": ["la", "status", "--help"],
-    "motorbus la status 1 --port PTY": ["la", "status", "1", "--port", "{port}"],
+    "motorbus --version": ["-m", "motorbus", "--version"],
+    "motorbus --help": ["-m", "motorbus", "--help"],
+    "motorbus la status --help": ["-m", "motorbus", "la", "status", "--help"],
+    "motorbus la status 1 --port PTY": ["-m", "motorbus", "la", "status", "1", "--port", "{port}"],
     # The served stack's imports (the manager, the bus file, the server and client):
-    "motorbus serve --help": ["serve", "--help"],
+    "motorbus serve --help": ["-m", "motorbus", "serve", "--help"],
+    # A blocking LA program's first line and the names it uses:
+    "import motorbus.blocking (LA)": [
+        "-c",
+        "import motorbus.blocking as mb; mb.Bus, mb.InspireLA, mb.Streamer",
+    ],
 }
 #: Commands with a start-up goal.
 GOALS = ("motorbus --version", "motorbus la status 1 --port PTY")
@@ -122,7 +130,7 @@ def measure(trees: dict[str, Path], port: str, runs: int, pycache: Path | None) 
     envs = {t: clean_env(src, None if pycache is None else pycache / t) for t, src in trees.items()}
     floor_env = clean_env(None, None if pycache is None else pycache / "floor")
     argvs = {
-        command: [sys.executable, "-m", "motorbus", *(a.format(port=port) for a in args)]
+        command: [sys.executable, *(a.format(port=port) for a in args)]
         for command, args in COMMANDS.items()
     }
     wall([sys.executable, "-c", "pass"], floor_env)  # warm-up: fill the bytecode caches

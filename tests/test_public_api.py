@@ -18,7 +18,12 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "motorbus"
 
 
 #: The packages whose public names load on first use, each from one ``_EXPORTS`` list.
-LAZY_PACKAGES = ("motorbus", "motorbus.rig", "motorbus.protocol.project_stepper")
+LAZY_PACKAGES = (
+    "motorbus",
+    "motorbus.blocking",
+    "motorbus.rig",
+    "motorbus.protocol.project_stepper",
+)
 
 
 def _package(name: str) -> Any:
@@ -77,6 +82,30 @@ def test_an_la_program_loads_no_stepper_protocol() -> None:
         "['motorbus.protocol.project_stepper',",
         "'motorbus.protocol.project_stepper.wire']",
     ]
+
+
+def test_a_blocking_la_program_loads_no_stepper_and_no_zenoh() -> None:
+    """The blocking API's names load on first use too: a script of LA actuators and a
+    stream leaves the stepper devices and the served bus's client (and Zenoh) unloaded;
+    asking for a stepper loads it then."""
+    code = (
+        "import sys, motorbus.blocking as mb\n"
+        "mb.Bus, mb.BusManager, mb.InspireLA, mb.Streamer, mb.Setpoint, mb.read_statuses\n"
+        "def loaded():\n"
+        "    return sorted(m for m in sys.modules if 'stepper' in m or m.startswith("
+        "('zenoh', 'motorbus.serve')))\n"
+        "print(*loaded())\n"
+        "mb.ProjectStepper, mb.QuadStepper\n"
+        "print(*loaded())\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=CLI_TIMEOUT_S
+    )
+    assert out.returncode == 0, out.stderr
+    before, after = (line.split() for line in out.stdout.splitlines())
+    assert before == ["motorbus.protocol.project_stepper", "motorbus.protocol.project_stepper.wire"]
+    assert {"motorbus.devices.project_stepper", "motorbus.devices.quad_stepper"} <= set(after)
+    assert not [m for m in after if m.startswith(("zenoh", "motorbus.serve"))]
 
 
 #: What the command line may import: the package itself, its public modules and,

@@ -5,6 +5,7 @@ through it against simulator processes."""
 from __future__ import annotations
 
 import inspect
+import sys
 import threading
 from pathlib import Path
 
@@ -40,7 +41,8 @@ def test_every_coroutine_method_has_a_blocking_twin(aio: type, blocking: type) -
         assert twin.__doc__ == member.__doc__, name
         if hasattr(twin, "__wrapped__"):
             assert inspect.signature(twin) == inspect.signature(member), name
-    assert missing == [], "add to motorbus/blocking/_devices.py: " + ", ".join(
+    where = sys.modules[blocking.__module__].__file__
+    assert missing == [], f"add to {where}: " + ", ".join(
         f"{n} = coroutine({aio.__name__}.{n})" for n in missing
     )
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
-from typing import Any, Literal, TypeVar, overload
+from typing import TYPE_CHECKING, Any, Literal, TypeVar, overload
 
 from motorbus import manager as _manager
-from motorbus.blocking._devices import InspireLA, ProjectStepper, QuadStepper
+from motorbus.blocking._devices import InspireLA
 from motorbus.blocking._events import EventHub
 from motorbus.blocking._proxy import Closing, Proxy, coroutine
 from motorbus.blocking._runner import runner
@@ -21,6 +21,9 @@ from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
 from motorbus.protocol.base import Command
 from motorbus.transport.base import Transport
+
+if TYPE_CHECKING:
+    from motorbus.blocking._steppers import ProjectStepper, QuadStepper
 
 __all__ = ["Bus", "BusManager", "BusView", "Lease", "read_statuses"]
 
@@ -108,10 +111,14 @@ class BusView(Closing, Proxy[B]):
 
     def project_stepper(self, *, motor: int = ps.DEFAULT_MOTOR) -> ProjectStepper:
         """The project stepper controller on this bus."""
+        from motorbus.blocking._steppers import ProjectStepper
+
         return ProjectStepper(self, motor=motor)
 
     def quad_stepper(self) -> QuadStepper:
         """The 4-axis stepper controller on this bus."""
+        from motorbus.blocking._steppers import QuadStepper
+
         return QuadStepper(self)
 
     def streamer(self, *, phase: float = 0.0, lead: float | None = None) -> Streamer:
@@ -318,10 +325,14 @@ class BusManager(Closing, Proxy[_manager.BusManager]):
 
     def project_stepper(self, bus: str) -> ProjectStepper:
         """The project stepper on bus ``bus`` (its motor byte from the bus spec)."""
+        from motorbus.blocking._steppers import ProjectStepper
+
         return ProjectStepper(self.bus(bus), motor=self._aio.project_stepper(bus).motor)
 
     def quad_stepper(self, bus: str) -> QuadStepper:
         """The quad stepper on bus ``bus``."""
+        from motorbus.blocking._steppers import QuadStepper
+
         return QuadStepper(self.bus(bus))
 
     def streamer(self, bus: str) -> Streamer:

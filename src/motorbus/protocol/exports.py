@@ -4,9 +4,9 @@ A package whose ``__init__`` would otherwise import everything it exports lists 
 names by module in one ``_EXPORTS`` table and asks :func:`lazy_names` for its
 ``__all__``, ``__getattr__`` and ``__dir__``; type checkers read the package's
 ``TYPE_CHECKING`` imports of the same names (tests/test_public_api.py checks that the
-two agree).  ``motorbus``, ``motorbus.rig`` and ``motorbus.protocol.project_stepper`` do
-this.  It lives in the protocol layer, the lowest any of them may import, and imports
-nothing of motorbus.
+two agree).  ``motorbus``, ``motorbus.blocking``, ``motorbus.rig`` and
+``motorbus.protocol.project_stepper`` do this.  It lives in the protocol layer, the
+lowest any of them may import, and imports nothing of motorbus.
 """
 
 from __future__ import annotations
