@@ -3,9 +3,11 @@ steppers run to their end (``EE DD``, the quad's done); the command needs its ex
 
 from __future__ import annotations
 
+import asyncio
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -14,12 +16,14 @@ pytest.importorskip("zenoh")
 import zenoh
 
 import motorbus
-from motorbus import InspireLA, ProjectStepper, QuadStepper
+from motorbus import InspireLA, ProjectStepper, QuadStepper, ReplyTimeoutError
 from motorbus.protocol import la
 from motorbus.protocol import project_stepper as ps
+from motorbus.protocol import quad_stepper as q
 from motorbus.serve import keys as k
 from motorbus.sim import SimProcess
-from tests.serve.conftest import Child
+from tests.serve.conftest import Child, free_endpoint, serve
+from tests.waiting import eventually
 
 ERR = "bad_payload"
 STATUS_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
@@ -131,6 +135,53 @@ async def test_served_project_upload_and_run_to_ee_dd_and_quad_run_to_done(
             speed_rpm=600,
         )  # fmt: skip
         await quad.run(2, timeout=10)  # returns on the served done reply
+
+
+async def test_a_served_run_that_times_out_or_is_cancelled_is_stopped(tmp_path: Path) -> None:
+    # The stop of an abandoned run goes through the served bus's sender of safe actions
+    # as through a local bus's lease keeper (before: an AttributeError on a served bus,
+    # and the motor or project ran on).
+    endpoint = free_endpoint()
+    log = tmp_path / "sim.jsonl"
+    with SimProcess(["project-stepper", "quad-stepper"], baud=9600, log_file=log) as sim:
+
+        def requests() -> list[bytes]:
+            records = sim.log_records()
+            return [bytes.fromhex(r["hex"]) for r in records if r["direction"] == "request"]
+
+        server = serve(sim.path, 9600, "project-stepper,quad-stepper", endpoint)
+        try:
+            async with motorbus.connect(endpoint) as site:
+                bus = site.bus()
+                quad = QuadStepper(bus)
+                # A move of hours: 16777215 pulses at 1 RPM.
+                await quad.configure(
+                    1, subdivision=8, step_angle_x100=180, pulses=16_777_215, start_hz=10,
+                    accel_hz=0, speed_rpm=1,
+                )  # fmt: skip
+                with pytest.raises(ReplyTimeoutError) as info:
+                    await quad.run(1, timeout=0.5)
+                assert str(info.value).endswith("stopped it (stop 0x06 to motor 1 sent)")
+                assert q.Stop(1).encode() in requests()
+
+                stepper = ProjectStepper(bus)
+                step = ps.StepSpec(run_distance=1, start_hz=1000, speed_rpm=600, delay_ms=20)
+                looping = ps.Project(
+                    number=1, subdivision=8, step_angle_x100=180, distance_per_rev=1,
+                    steps=(step, step), repeat_count=255,
+                )  # fmt: skip
+                await stepper.upload(looping, verify=False, save=False)
+                start = ps.StartProject(1).encode()
+                run = asyncio.create_task(stepper.run_project(1, timeout=60))
+                await eventually(lambda: start in requests(), "the run started")
+                run.cancel()
+                with pytest.raises(asyncio.CancelledError):
+                    await run
+                stop = ps.StopProject().encode()
+                sent = requests()
+                assert stop in sent[sent.index(start) :]
+        finally:
+            server.finish()
 
 
 def test_serve_without_zenoh_names_the_extra_and_exits_2() -> None:

@@ -55,7 +55,8 @@ class SafeRequest(Protocol):
 
 class SafeStopper:
     """The sending of safe actions on one bus: the commands of an action for a device
-    (``motorbus.protocol.safety``) and their sending, all at once (``send_together``).
+    (``motorbus.protocol.safety``) and their sending, all at once (``send_together``),
+    or in steps that no cancellation cuts short (``stop_shielded``).
     ``LeaseKeeper`` is one; a served bus (``motorbus.serve.client``) has one of its own,
     whose requests go through the server.
 
@@ -133,6 +134,42 @@ class SafeStopper:
                     result,
                 )
         return results
+
+    async def stop_shielded(
+        self, *steps: Sequence[Command[object]], who: str
+    ) -> list[list[object]]:
+        """A safe stop (a lease's end, a run abandoned, timed out or cancelled):
+        ``steps`` sent in turn, each only if a command of the step before failed (a
+        motor's stop, then the controller's stop all).  It runs to its end however often
+        the caller is cancelled meanwhile (the cancellation is delivered after), and
+        Ctrl-C waits for it.  While the port is lost, the step due is owed instead
+        (``_owe_unless_open``), and its results say so.  Returns each tried step's results
+        (a result or the exception, per command); an unexpected error (a bug) is raised
+        once all went."""
+        tried: list[list[object]] = []
+
+        async def send() -> None:
+            for commands in steps:
+                refused = self._owe_unless_open(commands)
+                if refused is not None:
+                    tried.append([refused] * len(commands))
+                    return
+                results = await self.send_stop(commands, who=who)
+                tried.append(results)
+                if not any(isinstance(r, BaseException) for r in results):
+                    return
+
+        with lifecycle.deferred_interrupts():
+            await finish_shielded(asyncio.ensure_future(send()))
+        for results in tried:
+            raise_unexpected(results)
+        return tried
+
+    def _owe_unless_open(self, commands: Sequence[Command[object]]) -> BusClosedError | None:
+        """Why ``commands`` are not sent now, or None.  A served bus's requests go
+        through its server, which keeps what its own port owes: nothing is owed here
+        (``LeaseKeeper`` owes while the port is lost)."""
+        return None
 
 
 class LeaseKeeper(SafeStopper):
@@ -248,36 +285,6 @@ class LeaseKeeper(SafeStopper):
         """
         if commands and self._owe_unless_open(commands) is None:
             await self.stop_shielded(commands, who="a lease ended")
-
-    async def stop_shielded(
-        self, *steps: Sequence[Command[object]], who: str
-    ) -> list[list[object]]:
-        """A safe stop (a lease's end, a run abandoned, timed out or cancelled):
-        ``steps`` sent in turn, each only if a command of the step before failed (a
-        motor's stop, then the controller's stop all).  It runs to its end however often
-        the caller is cancelled meanwhile (the cancellation is delivered after), and
-        Ctrl-C waits for it.  While the port is lost, the step due is owed instead
-        (``_owe_unless_open``), and its results say so.  Returns each tried step's results
-        (a result or the exception, per command); an unexpected error (a bug) is raised
-        once all went."""
-        tried: list[list[object]] = []
-
-        async def send() -> None:
-            for commands in steps:
-                refused = self._owe_unless_open(commands)
-                if refused is not None:
-                    tried.append([refused] * len(commands))
-                    return
-                results = await self.send_stop(commands, who=who)
-                tried.append(results)
-                if not any(isinstance(r, BaseException) for r in results):
-                    return
-
-        with lifecycle.deferred_interrupts():
-            await finish_shielded(asyncio.ensure_future(send()))
-        for results in tried:
-            raise_unexpected(results)
-        return tried
 
     def _owe_unless_open(self, commands: Sequence[Command[object]]) -> BusClosedError | None:
         """None while the bus is open.  Else why ``commands`` are not sent now, logged:

@@ -165,7 +165,8 @@ class ServedBus:
         # Events travel apart from replies: put back in the server's order around them.
         self._order = EventOrder(self.events.publish)
         #: The one sender of safe actions, as ``Bus.lease_keeper`` (``stop``,
-        #: ``stop_soon``, ``safe_commands``): emergency requests through the server.
+        #: ``stop_soon``, ``stop_shielded``, ``safe_commands``): emergency requests
+        #: through the server.
         self.lease_keeper = SafeStopper(name, self.families, self.request)
 
     def __repr__(self) -> str:
