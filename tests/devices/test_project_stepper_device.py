@@ -11,11 +11,14 @@ from typing import Any
 
 import pytest
 
+from motorbus.bus.bus import Bus
 from motorbus.devices.project_stepper import ProjectStepper, ProjectStopped
 from motorbus.errors import LocalProtocolError, ReplyTimeoutError
 from motorbus.protocol import project_stepper as ps
+from motorbus.protocol.base import Family
 from motorbus.sim.bus import Pacing
 from motorbus.sim.project_stepper import ProjectStepperModel
+from motorbus.transport.memory import memory_pair
 from tests.devices.variants import PROJECT_VARIANTS
 from tests.helpers import PACINGS, sim_bus
 from tests.waiting import eventually
@@ -130,6 +133,36 @@ async def test_the_stop_of_a_timed_out_run_is_the_lease_keepers() -> None:
             await stepper.run_project(1, timeout=0.05)
         assert asked == [("StopProject",)]
         assert not model.running
+
+
+@pytest.mark.parametrize("stale_first", [False, True], ids=["ee-dd-after", "ee-dd-before"])
+async def test_an_ee_dd_read_with_the_start_acknowledgement_is_judged_by_its_place(
+    stale_first: bool,
+) -> None:
+    # A short project's EE DD follows the start's acknowledgement closely: a loaded host
+    # reads both in one chunk, and the EE DD behind the acknowledgement is the run's end
+    # (it was taken for one from before the start, and the run waited out its timeout).
+    # One in front of the acknowledgement is from before the start: the run waits on.
+    host, peer = memory_pair(baudrate=115200)
+    model = ProjectStepperModel()
+    start = ps.StartProject(1).encode()
+
+    def answer(data: bytes) -> None:
+        replies = b"".join(model.handle(data, 0.0))
+        if data == start:
+            replies = (
+                ps.PROJECT_FINISHED + replies if stale_first else replies + ps.PROJECT_FINISHED
+            )
+        peer.send(replies)
+
+    peer.set_receiver(answer)
+    async with Bus(host, families=[Family.PROJECT_STEPPER]) as bus:
+        run = asyncio.create_task(ProjectStepper(bus).run_project(1, timeout=5))
+        if stale_first:
+            await asyncio.sleep(0.05)
+            assert not run.done()  # the EE DD in front was not taken for the run's end
+            peer.send(ps.PROJECT_FINISHED)
+        await asyncio.wait_for(run, 5)
 
 
 async def test_keep_running_leaves_a_timed_out_run_going_and_says_how_to_stop() -> None:

@@ -345,14 +345,29 @@ class ProjectStepper:
         settle = self._last_stop + STOP_SETTLE_S - time.monotonic()
         if settle > 0:
             await asyncio.sleep(settle)
-        with self.bus.events.subscribe(ProjectFinished) as sub:
+        # An EE DD is this run's only if it was read after the start's acknowledgement:
+        # one read before it came from before the start (a stop's, another program's).
+        # Judged as each is published, in the order read: a loaded host reads the ack
+        # and a short project's EE DD in one chunk, and its task resumes after both.
+        acknowledged: list[asyncio.Future[object]] = []
+        before_start = [0]
+
+        def after_the_start(_: ProjectFinished) -> bool:
+            if acknowledged and acknowledged[0].done():
+                return True
+            before_start[0] += 1
+            return False
+
+        with self.bus.events.subscribe(ProjectFinished, after_the_start) as sub:
             self._run_sub = sub
             try:
-                await self.bus.request(start)
-                stale = sub.pending()  # came before the start was acknowledged: not ours
-                if stale:
+                acknowledged.append(self.bus.submit(start))
+                await acknowledged[0]
+                if before_start[0]:
                     log.debug(
-                        "project %d: ignored %d EE DD from before its start", number, len(stale)
+                        "project %d: ignored %d EE DD from before its start",
+                        number,
+                        before_start[0],
                     )
                 try:
                     await sub.next(limit)
