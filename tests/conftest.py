@@ -126,10 +126,10 @@ def _test_files(path: Path) -> list[Path]:
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: three workers a CPU.  Much of a test's time is waiting (simulated
     motion in real time, child processes starting, replies paced at the baud): with one
-    worker a CPU the CPUs stood idle half the time, with two still a tenth of it (vmstat,
-    2 CPUs).  Three filled that (README's test line took 170, 156 and 177 s against 179,
-    175 and 190 s with two, in runs one after the other on this shared machine); four
-    were slower again and failed the timing of a rig run."""
+    worker a CPU the CPUs stood idle half the time, with two still a tenth of it, with
+    three a twentieth (vmstat, 2 CPUs).  The suite took 156 to 193 s with three (mean
+    177 s of 5 runs) and 180 to 198 s with two (mean 186 s of 3), in runs one after the
+    other on this shared machine; four were slower again and broke a rig run's timing."""
     return 3 * _cpus()
 
 
