@@ -60,6 +60,16 @@ def test_all_is_made_from_the_exports_and_every_name_loads(name: str) -> None:
         package.NoSuchName  # noqa: B018
 
 
+def run_python(code: str) -> subprocess.CompletedProcess[str]:
+    """``code`` run by a fresh interpreter (what it imports is all its own), which must
+    succeed."""
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=CLI_TIMEOUT_S
+    )
+    assert out.returncode == 0, out.stderr
+    return out
+
+
 def test_an_la_program_loads_no_stepper_protocol() -> None:
     """What the lazy names are for: a bus file, a manager and a served bus of LA
     actuators leave the project stepper's commands and the quad stepper unloaded (their
@@ -74,10 +84,7 @@ def test_an_la_program_loads_no_stepper_protocol() -> None:
         "assert decode_frame(la.MoveTo(1, 500).encode(), [Family.LA]) == la.MoveTo(1, 500)\n"
         "print(sorted(m for m in sys.modules if 'stepper' in m))"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=CLI_TIMEOUT_S
-    )
-    assert out.returncode == 0, out.stderr
+    out = run_python(code)
     assert out.stdout.split() == [
         "['motorbus.protocol.project_stepper',",
         "'motorbus.protocol.project_stepper.wire']",
@@ -98,10 +105,7 @@ def test_a_blocking_la_program_loads_no_stepper_and_no_zenoh() -> None:
         "mb.ProjectStepper, mb.QuadStepper\n"
         "print(*loaded())\n"
     )
-    out = subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, timeout=CLI_TIMEOUT_S
-    )
-    assert out.returncode == 0, out.stderr
+    out = run_python(code)
     before, after = (line.split() for line in out.stdout.splitlines())
     assert before == ["motorbus.protocol.project_stepper", "motorbus.protocol.project_stepper.wire"]
     assert {"motorbus.devices.project_stepper", "motorbus.devices.quad_stepper"} <= set(after)
