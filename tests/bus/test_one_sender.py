@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from motorbus.bus.lease_shell import LeaseKeeper
+from motorbus.bus.lease_shell import LeaseKeeper, SafeStopper
 from motorbus.devices.la import InspireLA
 from motorbus.errors import BusClosedError, LocalProtocolError, ReplyTimeoutError
 from motorbus.manager import BusManager
@@ -238,6 +238,40 @@ def test_no_module_but_the_lease_table_sends_safe_stops() -> None:
             if func.endswith("safety.safe_stop_commands") and not rel.startswith("devices/"):
                 bad.append(f"{rel}: {text}")
     assert bad == []
+
+
+#: Where ``bus.lease_keeper`` is a local bus's ``LeaseKeeper`` only: the bus itself, and
+#: the local streamer (a served bus's ``Streamer(bus)`` is its own, ``served_streamer``).
+LOCAL_ONLY = ("bus/", "streams.py")
+
+
+def _lease_keeper_uses(path: Path) -> Iterator[str]:
+    """The names read off ``<something>.lease_keeper`` in ``path``, and off a local
+    ``keeper`` (``keeper = self.bus.lease_keeper``)."""
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if not isinstance(node, ast.Attribute):
+            continue
+        owner = node.value
+        if (isinstance(owner, ast.Attribute) and owner.attr == "lease_keeper") or (
+            isinstance(owner, ast.Name) and owner.id == "keeper"
+        ):
+            yield node.attr
+
+
+def test_what_the_devices_and_tools_ask_of_the_sender_a_served_bus_has_too() -> None:
+    # A served bus's sender of safe actions is a SafeStopper, not a LeaseKeeper: a
+    # device that asked the local keeper for more (stop_shielded, once) raised
+    # AttributeError on a served bus instead of stopping the motion.
+    missing = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC).as_posix()
+        if rel.startswith(LOCAL_ONLY):
+            continue
+        for name in _lease_keeper_uses(path):
+            if not hasattr(SafeStopper, name):
+                missing.append(f"{rel}: lease_keeper.{name}")
+    assert missing == []
+    assert list(_lease_keeper_uses(SRC / "devices" / "quad_stepper.py"))  # it sees them
 
 
 #: Stop frames of the steppers (and the upload's clear), by constructor name.
