@@ -6,9 +6,10 @@ of a later one.  The server numbers each bus's events (``seq``: 1, 2, ...) and s
 every reply how many came before it (``events``; docs/serve.md).  :class:`EventOrder`
 uses both: while a request is in flight its events are held; once its reply has come,
 the client waits (briefly) for the events the reply counts, publishes those before its
-caller resumes, and the later ones a few loop turns after, once the caller has run on:
-``run_project`` takes what came before its start's reply as stale, and must never take
-its own run's ``EE DD`` for one.  Runs on the client's event loop; no Zenoh here.
+caller resumes, and the later ones a few loop turns after, once the request's task
+has ended: ``run_project`` takes an ``EE DD`` published before its start's reply is
+done for one from before the start, and must never take its own run's for one.  Runs
+on the client's event loop; no Zenoh here.
 """
 
 from __future__ import annotations
