@@ -5,8 +5,8 @@ runs in, and imports none of the code that provides them:
 
 * a bus that opens or closes says so: before its port opens (``bus_opening``: the
   runtime applies real-time mode if it was asked for), once it is open
-  (``bus_opened``: the runtime protects it against SIGTERM and SIGHUP and lets a
-  running guard process follow it) and once it is closed (``bus_closed``);
+  (``bus_opened``: the runtime protects it against SIGTERM, SIGHUP and a second
+  Ctrl-C and lets a running guard process follow it) and once it is closed (``bus_closed``);
 * a safe stop runs inside ``deferred_interrupts()``, so a second Ctrl-C cannot cut it
   short;
 * a timer asks whether real-time mode is on or asked for (``realtime_wanted``);

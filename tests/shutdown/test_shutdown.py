@@ -121,6 +121,53 @@ def _signals_in_teardown(times: int) -> Any:
     return main()
 
 
+#: A plain ``asyncio.run`` program whose bus gets Ctrl-C twice before its main task has
+#: been given the first one's cancellation (what a loaded machine does to two Ctrl-C a few
+#: ms apart); ``asyncio.run``'s handler raised ``KeyboardInterrupt`` for the second at
+#: once, into whatever ran, the bus's own stop included.
+TWO_CTRL_C_AT_ONCE = """
+import asyncio, signal
+from motorbus.bus.bus import Bus
+from motorbus.protocol.base import Family
+from motorbus.transport.memory import memory_pair
+
+def handler_name():
+    return type(signal.getsignal(signal.SIGINT)).__name__
+
+async def main():
+    host, peer = memory_pair(baudrate=921600)
+    try:
+        async with Bus(host, families=[Family.LA]):
+            print("open:", handler_name(), flush=True)
+            ctrl_c = signal.getsignal(signal.SIGINT)
+            ctrl_c(signal.SIGINT, None)  # the first: asyncio cancels main
+            ctrl_c(signal.SIGINT, None)  # the second, before main has run on
+            print("the second was held", flush=True)
+            await asyncio.sleep(5)  # the cancellation comes here
+    finally:
+        print("closed:", handler_name(), flush=True)
+
+try:
+    asyncio.run(main())
+except KeyboardInterrupt:
+    print("KeyboardInterrupt", flush=True)
+"""
+
+
+def test_a_second_ctrl_c_before_main_runs_on_is_held_while_the_bus_closes() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", TWO_CTRL_C_AT_ONCE], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:-1] == [
+        "open: method",  # motorbus's guard in front of asyncio's handler
+        "the second was held",
+        "closed: partial",  # asyncio's own handler back once the bus closed
+        "KeyboardInterrupt",  # the program ends as Ctrl-C ends an asyncio.run program
+    ], out.stderr
+    assert "SIGINT again: still stopping the motion safely" in out.stderr
+
+
 def test_a_repeated_ctrl_c_after_the_stop_still_exits_with_the_first_signals_status() -> None:
     """Once the stop is done, asyncio.run still tears down (cancels what is left, closes
     async generators and its executor).  A second Ctrl-C there used to escape as a

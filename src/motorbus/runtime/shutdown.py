@@ -19,12 +19,15 @@ process (``motorbus.runtime.guard``, Linux) that then sends the leased devices' 
   ``asyncio.run`` still tears down, is absorbed as well (one more after that goes to the
   signal's usual disposition, for a teardown that hangs).
 * ``install_signal_handlers()`` does the same inside a loop you run yourself.
-* Without either, motorbus still protects the two ways a plain ``asyncio.run`` program
+* Without either, motorbus still protects the ways a plain ``asyncio.run`` program
   would lose its safe stop: while a bus is open, SIGTERM and SIGHUP (if the program has
   not set handlers of its own) close every open bus safely and then end the process as
-  the signal would have (status 143 / 129); and the stop paths defer Ctrl-C
-  (``deferred_interrupts``), so a second Ctrl-C cannot cut a safe stop short - it is
-  delivered when the stop is done.
+  the signal would have (status 143 / 129); a second Ctrl-C, which ``asyncio.run``
+  raises as ``KeyboardInterrupt`` into whatever runs, is logged and dropped while the
+  buses close (the first already ends the program; one more than
+  ``STOP_EVERYTHING_TIMEOUT_S`` after it goes through, for a program that ignored the
+  cancellation); and the stop paths defer Ctrl-C (``deferred_interrupts``), so one
+  that comes during a stop cannot cut it short - it is delivered when the stop is done.
 
 Set ``MOTORBUS_SIGNALS=0`` to keep motorbus from touching signal dispositions at all.
 """
@@ -38,6 +41,7 @@ import os
 import signal
 import sys
 import threading
+import time
 import weakref
 from collections.abc import Awaitable, Callable, Coroutine, Iterator
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
@@ -121,14 +125,28 @@ async def stop_everything() -> None:
 # -- automatic protection while a bus is open -----------------------------------------------
 
 
+def _is_asyncio_sigint(handler: object) -> bool:
+    """``asyncio.run``'s own Ctrl-C handler (``Runner._on_sigint``, bound in a partial):
+    the first Ctrl-C cancels ``main``, a second raises ``KeyboardInterrupt`` at once."""
+    func = getattr(handler, "func", None)
+    return getattr(func, "__name__", "") == "_on_sigint" and isinstance(
+        getattr(func, "__self__", None), asyncio.Runner
+    )
+
+
 class _AutoGuard:
-    """SIGTERM/SIGHUP handlers installed while buses are open (see the module docstring)."""
+    """SIGTERM/SIGHUP handlers installed while buses are open, and around ``asyncio.run``'s
+    Ctrl-C handler a guard against a second Ctrl-C (see the module docstring)."""
 
     def __init__(self) -> None:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.installed: list[signal.Signals] = []
         self.open_count = 0
         self.stopping = False
+        #: ``asyncio.run``'s Ctrl-C handler, while ``_on_sigint`` stands in front of it.
+        self.asyncio_sigint: Any = None
+        #: When the first Ctrl-C went to it (``time.monotonic``), or None.
+        self.first_sigint: float | None = None
 
     def bus_opened(self) -> None:
         loop = asyncio.get_running_loop()
@@ -136,7 +154,13 @@ class _AutoGuard:
             # A new loop (a later asyncio.run): the old one took its handlers with it.
             self.loop, self.installed, self.open_count, self.stopping = loop, [], 0, False
         self.open_count += 1
-        if self.installed or not _enabled() or not _in_main_thread():
+        if not _enabled() or not _in_main_thread():
+            return
+        if self.asyncio_sigint is None and _is_asyncio_sigint(signal.getsignal(signal.SIGINT)):
+            self.asyncio_sigint = signal.getsignal(signal.SIGINT)
+            self.first_sigint = None
+            signal.signal(signal.SIGINT, self._on_sigint)
+        if self.installed:
             return
         for sig in _AUTO_SIGNALS:
             if signal.getsignal(sig) is not signal.SIG_DFL:
@@ -154,6 +178,10 @@ class _AutoGuard:
         self.uninstall()
 
     def uninstall(self) -> None:
+        if self.asyncio_sigint is not None and _in_main_thread():
+            if signal.getsignal(signal.SIGINT) == self._on_sigint:
+                signal.signal(signal.SIGINT, self.asyncio_sigint)
+            self.asyncio_sigint = None
         loop, installed = self.loop, self.installed
         self.installed = []
         if loop is None or loop.is_closed():
@@ -161,6 +189,24 @@ class _AutoGuard:
         for sig in installed:
             with contextlib.suppress(Exception):
                 loop.remove_signal_handler(sig)
+
+    def _on_sigint(self, signum: int, frame: Any) -> None:
+        """Ctrl-C while a bus is open.  The first goes to ``asyncio.run`` (it cancels
+        ``main``, whose ``async with`` blocks stop the motion).  A repeat raised
+        ``KeyboardInterrupt`` into whatever ran, which could be the stop's own first
+        steps, before ``deferred_interrupts`` held it (a second Ctrl-C 3 ms after the
+        first left a stream's actuators unpaused): while the buses close it is logged
+        and dropped - the program is ending already.  One that comes more than
+        ``STOP_EVERYTHING_TIMEOUT_S`` after the first goes to asyncio: a program that
+        ignored the cancellation can still be interrupted."""
+        first = self.first_sigint
+        now = time.monotonic()
+        if first is not None and now - first < STOP_EVERYTHING_TIMEOUT_S:
+            log.warning("SIGINT again: still stopping the motion safely")
+            return
+        if first is None:
+            self.first_sigint = now
+        self.asyncio_sigint(signum, frame)
 
     def _on_signal(self, sig: signal.Signals) -> None:
         if self.stopping:
