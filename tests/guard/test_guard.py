@@ -158,6 +158,34 @@ def test_each_safe_frame_waits_for_a_quiet_line_on_a_half_duplex_bus() -> None:
     assert writes[0][1] + 7 + gap <= writes[1][1] < writes[0][1] + 7 + gap + 0.5
 
 
+def test_a_network_port_closes_only_after_the_last_frames_answer() -> None:
+    """Behind ser2net the frame can still be on its way when the guard is done: a close
+    within the device's turnaround overtook it on a loaded machine (the last pause never
+    reached the device).  The guard waits to hear the answer, however late."""
+
+    class ClosingPort(TalkingPort):
+        closed_at: float | None = None
+
+        def close(self) -> None:
+            super().close()
+            self.closed_at = self.now
+
+    fake = ClosingPort([], reply_after=0.200)  # a loaded ser2net: 200 ms, not 40
+    port = GuardPort(
+        "socket://127.0.0.1:9", 9600, {"quiet_s": 0.040}, (GuardDevice("p", "o", (b"\x01",)),)
+    )
+    result = send_safe_frames(port, opener=lambda p: fake, clock=fake.clock, sleep=fake.sleep)
+    assert result.error is None and result.frames == 1
+    ((_, at),) = fake.writes
+    assert fake.closed_at is not None and fake.closed_at * 1e3 >= at + 200
+    # A local port still closes after its quiet time (tcdrain put the frame on the line).
+    local = ClosingPort([], reply_after=0.200)
+    port = GuardPort("/dev/ttyX", 9600, {"quiet_s": 0.040}, (GuardDevice("p", "o", (b"\x01",)),))
+    send_safe_frames(port, opener=lambda p: local, clock=local.clock, sleep=local.sleep)
+    ((_, at),) = local.writes
+    assert local.closed_at is not None and local.closed_at * 1e3 < at + 200
+
+
 def test_a_silent_line_is_quiet_after_the_turnaround_time() -> None:
     fake = TalkingPort([], reply_after=1.0)  # nothing answers in time
     port = GuardPort("/dev/ttyX", 9600, {"quiet_s": 0.040}, (GuardDevice("p", "o", (b"\x01",)),))

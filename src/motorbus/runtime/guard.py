@@ -73,6 +73,11 @@ GAP_AFTER_REPLY_S = 0.002
 #: Longest wait for a quiet line before one frame: a line that never falls silent gets
 #: the frame anyway.
 QUIET_LIMIT_S = 0.5
+#: A network port (``socket://``, ``rfc2217://``: ser2net) closes only once the last
+#: frame's answer was heard, or after this long: its server may still hold the frame when
+#: the guard is done writing, and on a loaded machine a close within the device's
+#: turnaround overtook it (the device never got the last pause).
+NETWORK_CLOSE_WAIT_S = QUIET_LIMIT_S
 #: How often the guard looks at the line while it waits for quiet.
 QUIET_POLL_S = 0.0002
 #: The host's share of a device's answer time: a USB adapter holds received bytes up to
@@ -295,9 +300,10 @@ def send_safe_frames(
         if quiet and port.frames:
             # Close only once the last frame's answer is over: a ``socket://`` port
             # (ser2net) cannot drain to the line, and its close must not overtake the
-            # frame on its way to the device.
+            # frame on its way to the device: there, wait to hear the answer.
             own = wire_time(len(port.frames[-1]), port.baud)
-            wait_for_quiet(ser, quiet + own, GAP_AFTER_REPLY_S + own, clock=clock, sleep=sleep)
+            silent = NETWORK_CLOSE_WAIT_S if "://" in port.url else quiet + own
+            wait_for_quiet(ser, silent, GAP_AFTER_REPLY_S + own, clock=clock, sleep=sleep)
     except Exception as err:
         result.error = f"writing to {port.url} failed after {result.frames} frames: {err}"
     finally:
