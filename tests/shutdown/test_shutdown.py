@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import os
 import signal
 import subprocess
@@ -160,12 +161,72 @@ def test_a_second_ctrl_c_before_main_runs_on_is_held_while_the_bus_closes() -> N
     )
     assert out.returncode == 0, out.stderr
     assert out.stdout.split("\n")[:-1] == [
-        "open: method",  # motorbus's guard in front of asyncio's handler
+        "open: _SigintGuard",  # motorbus's guard in front of asyncio's handler
         "the second was held",
         "closed: partial",  # asyncio's own handler back once the bus closed
         "KeyboardInterrupt",  # the program ends as Ctrl-C ends an asyncio.run program
     ], out.stderr
     assert "SIGINT again: still stopping the motion safely" in out.stderr
+
+
+#: The last bus closes inside an outer ``deferred_interrupts`` block (a manager's close):
+#: the guard can only be given back when the block ends.
+CLOSED_INSIDE_A_DEFERRAL = """
+import asyncio, signal
+from motorbus.bus.bus import Bus
+from motorbus.protocol.base import Family
+from motorbus.runtime.shutdown import deferred_interrupts
+from motorbus.transport.memory import memory_pair
+
+def handler_name():
+    return type(signal.getsignal(signal.SIGINT)).__name__
+
+async def main():
+    host, peer = memory_pair(baudrate=921600)
+    bus = Bus(host, families=[Family.LA])
+    await bus.open()
+    print("open:", handler_name())
+    with deferred_interrupts():
+        await bus.close()
+        print("inside:", handler_name())
+    print("after:", handler_name())
+
+asyncio.run(main())
+"""
+
+
+def test_the_ctrl_c_guard_is_given_back_after_a_deferral_the_last_bus_closed_in() -> None:
+    # Left in place with nothing behind it, the guard broke every later Ctrl-C of the
+    # process (a TypeError in place of KeyboardInterrupt: seen in a test worker).
+    out = subprocess.run(
+        [sys.executable, "-c", CLOSED_INSIDE_A_DEFERRAL], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split("\n")[:-1] == [
+        "open: _SigintGuard",
+        "inside: function",  # the deferral's recorder
+        "after: partial",  # asyncio.run's own handler again
+    ], out.stderr
+
+
+def test_the_guard_holds_repeats_only_while_its_asyncio_run_runs() -> None:
+    loop = asyncio.new_event_loop()
+    try:
+        for done, passed in ((False, [2]), (True, [2, 2])):
+            main = loop.create_future()
+            if done:
+                main.set_result(None)
+            calls: list[int] = []
+
+            def handler(signum: int, frame: Any, main_task: Any, calls: list[int]) -> None:
+                calls.append(signum)
+
+            guard = shutdown._SigintGuard(functools.partial(handler, main_task=main, calls=calls))
+            guard(signal.SIGINT, None)
+            guard(signal.SIGINT, None)
+            assert calls == passed, done
+    finally:
+        loop.close()
 
 
 def test_a_repeated_ctrl_c_after_the_stop_still_exits_with_the_first_signals_status() -> None:

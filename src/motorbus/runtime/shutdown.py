@@ -134,19 +134,45 @@ def _is_asyncio_sigint(handler: object) -> bool:
     )
 
 
+class _SigintGuard:
+    """Stands in front of ``asyncio.run``'s Ctrl-C handler (``wrapped``) while a bus is
+    open.  The first Ctrl-C goes to it (it cancels ``main``, whose ``async with`` blocks
+    stop the motion).  A repeat raised ``KeyboardInterrupt`` into whatever ran, which
+    could be the stop's own first steps, before ``deferred_interrupts`` held it (a second
+    Ctrl-C 3 ms after the first left a stream's actuators unpaused): while the buses
+    close it is logged and dropped - the program is ending already.  One that comes more
+    than ``STOP_EVERYTHING_TIMEOUT_S`` after the first goes through: a program that
+    ignored the cancellation can still be interrupted."""
+
+    def __init__(self, wrapped: Callable[[int, Any], Any]) -> None:
+        self.wrapped = wrapped
+        self.first: float | None = None  # when the first Ctrl-C came (time.monotonic)
+
+    def __call__(self, signum: int, frame: Any) -> None:
+        main = getattr(self.wrapped, "keywords", {}).get("main_task")
+        if main is not None and main.done():  # its asyncio.run is over: not ours to hold
+            self.wrapped(signum, frame)
+            return
+        now = time.monotonic()
+        if self.first is not None and now - self.first < STOP_EVERYTHING_TIMEOUT_S:
+            log.warning("SIGINT again: still stopping the motion safely")
+            return
+        if self.first is None:
+            self.first = now
+        self.wrapped(signum, frame)
+
+
 class _AutoGuard:
-    """SIGTERM/SIGHUP handlers installed while buses are open, and around ``asyncio.run``'s
-    Ctrl-C handler a guard against a second Ctrl-C (see the module docstring)."""
+    """SIGTERM/SIGHUP handlers installed while buses are open, and a ``_SigintGuard`` in
+    front of ``asyncio.run``'s Ctrl-C handler (see the module docstring)."""
 
     def __init__(self) -> None:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.installed: list[signal.Signals] = []
         self.open_count = 0
         self.stopping = False
-        #: ``asyncio.run``'s Ctrl-C handler, while ``_on_sigint`` stands in front of it.
-        self.asyncio_sigint: Any = None
-        #: When the first Ctrl-C went to it (``time.monotonic``), or None.
-        self.first_sigint: float | None = None
+        #: The guard in front of ``asyncio.run``'s Ctrl-C handler, until given back.
+        self.sigint: _SigintGuard | None = None
 
     def bus_opened(self) -> None:
         loop = asyncio.get_running_loop()
@@ -156,10 +182,10 @@ class _AutoGuard:
         self.open_count += 1
         if not _enabled() or not _in_main_thread():
             return
-        if self.asyncio_sigint is None and _is_asyncio_sigint(signal.getsignal(signal.SIGINT)):
-            self.asyncio_sigint = signal.getsignal(signal.SIGINT)
-            self.first_sigint = None
-            signal.signal(signal.SIGINT, self._on_sigint)
+        handler = signal.getsignal(signal.SIGINT)
+        if self.sigint is None and _is_asyncio_sigint(handler):
+            self.sigint = _SigintGuard(handler)  # type: ignore[arg-type]
+            signal.signal(signal.SIGINT, self.sigint)
         if self.installed:
             return
         for sig in _AUTO_SIGNALS:
@@ -177,11 +203,20 @@ class _AutoGuard:
             return
         self.uninstall()
 
+    def give_back_sigint(self) -> None:
+        """No bus is open any more: ``asyncio.run``'s Ctrl-C handler is its own again.
+        While a ``deferred_interrupts`` block holds the signals the guard stays, and the
+        block's end gives it back (in the main thread only, where handlers are set)."""
+        guard = self.sigint
+        if guard is None or self.open_count or not _in_main_thread():
+            return
+        wrapped = guard.wrapped
+        if signal.getsignal(signal.SIGINT) is guard:
+            signal.signal(signal.SIGINT, wrapped)
+            self.sigint = None
+
     def uninstall(self) -> None:
-        if self.asyncio_sigint is not None and _in_main_thread():
-            if signal.getsignal(signal.SIGINT) == self._on_sigint:
-                signal.signal(signal.SIGINT, self.asyncio_sigint)
-            self.asyncio_sigint = None
+        self.give_back_sigint()
         loop, installed = self.loop, self.installed
         self.installed = []
         if loop is None or loop.is_closed():
@@ -189,24 +224,6 @@ class _AutoGuard:
         for sig in installed:
             with contextlib.suppress(Exception):
                 loop.remove_signal_handler(sig)
-
-    def _on_sigint(self, signum: int, frame: Any) -> None:
-        """Ctrl-C while a bus is open.  The first goes to ``asyncio.run`` (it cancels
-        ``main``, whose ``async with`` blocks stop the motion).  A repeat raised
-        ``KeyboardInterrupt`` into whatever ran, which could be the stop's own first
-        steps, before ``deferred_interrupts`` held it (a second Ctrl-C 3 ms after the
-        first left a stream's actuators unpaused): while the buses close it is logged
-        and dropped - the program is ending already.  One that comes more than
-        ``STOP_EVERYTHING_TIMEOUT_S`` after the first goes to asyncio: a program that
-        ignored the cancellation can still be interrupted."""
-        first = self.first_sigint
-        now = time.monotonic()
-        if first is not None and now - first < STOP_EVERYTHING_TIMEOUT_S:
-            log.warning("SIGINT again: still stopping the motion safely")
-            return
-        if first is None:
-            self.first_sigint = now
-        self.asyncio_sigint(signum, frame)
 
     def _on_signal(self, sig: signal.Signals) -> None:
         if self.stopping:
@@ -305,6 +322,7 @@ def deferred_interrupts() -> Iterator[None]:
         if _defer_depth == 0:
             for saved_sig, handler in saved.items():
                 signal.signal(saved_sig, handler)
+            _guard.give_back_sigint()  # the last bus closed inside this block
             pending = list(dict.fromkeys(_deferred))
             _deferred.clear()
             for signum in pending:
