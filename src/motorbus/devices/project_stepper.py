@@ -349,25 +349,24 @@ class ProjectStepper:
         # one read before it came from before the start (a stop's, another program's).
         # Judged as each is published, in the order read: a loaded host reads the ack
         # and a short project's EE DD in one chunk, and its task resumes after both.
-        acknowledged: list[asyncio.Future[object]] = []
-        before_start = [0]
+        acknowledged: asyncio.Future[object] | None = None  # the start's reply
+        before_start = 0
 
         def after_the_start(_: ProjectFinished) -> bool:
-            if acknowledged and acknowledged[0].done():
+            nonlocal before_start
+            if acknowledged is not None and acknowledged.done():
                 return True
-            before_start[0] += 1
+            before_start += 1
             return False
 
         with self.bus.events.subscribe(ProjectFinished, after_the_start) as sub:
             self._run_sub = sub
             try:
-                acknowledged.append(self.bus.submit(start))
-                await acknowledged[0]
-                if before_start[0]:
+                acknowledged = self.bus.submit(start)
+                await acknowledged
+                if before_start:
                     log.debug(
-                        "project %d: ignored %d EE DD from before its start",
-                        number,
-                        before_start[0],
+                        "project %d: ignored %d EE DD from before its start", number, before_start
                     )
                 try:
                     await sub.next(limit)

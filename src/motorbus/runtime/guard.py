@@ -302,6 +302,8 @@ def send_safe_frames(
             # (ser2net) cannot drain to the line, and its close must not overtake the
             # frame on its way to the device: there, wait to hear the answer.
             own = wire_time(len(port.frames[-1]), port.baud)
+            # (A URL is a network port: transport.serial.is_device_path's rule; that
+            # module would cost the guard its import.)
             silent = NETWORK_CLOSE_WAIT_S if "://" in port.url else quiet + own
             wait_for_quiet(ser, silent, GAP_AFTER_REPLY_S + own, clock=clock, sleep=sleep)
     except Exception as err:
