@@ -3,12 +3,15 @@ rows by tick, replacement, the end, and what a silent client gets."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from motorbus import StreamEnded
 from motorbus.serve.keys import PayloadError
 from motorbus.serve.streams_server import TargetFeed
 from motorbus.streaming.model import GAP_TICKS, GapPolicy
+from motorbus.streaming.targets import ramp_step
 
 P = 0.01
 
@@ -69,6 +72,25 @@ def test_a_silent_client_is_held_then_gets_its_gap_policy(policy: GapPolicy) -> 
     feed.put(10, [feed.row(500, "r")], end=False)
     assert tick(feed, 10) == {1: 500}
     assert (feed.missed, feed.held) == (0, 9)
+
+
+def test_a_gap_during_the_ramp_of_an_earlier_one_ramps_on_from_where_it_got() -> None:
+    # The ramp is applied to the rows as the tick serves them (``ramp_step``); a second
+    # gap while it ran started a new ramp from the last row itself, so the actuators
+    # jumped to their targets (CI: 500, 520, then 1500 at a ramp of 20 a tick).
+    stream = SimpleNamespace(ramp=None)
+    feed = TargetFeed((1,), P, GapPolicy.RAMP)
+    feed.stream = stream  # type: ignore[assignment]
+    feed.put(0, [feed.row(500, "r")], end=False)
+    assert tick(feed, 0) == {1: 500}
+    sent = []
+    for k in (2, 4):  # a tick missed before each row: each a (short) gap
+        assert tick(feed, k - 1) == {}
+        feed.put(k, [feed.row(1500, "r")], end=False)
+        row = tick(feed, k)
+        assert stream.ramp is not None
+        sent.append(ramp_step(stream.ramp, row, 20)[1])  # what the tick then writes
+    assert sent == [520, 540]
 
 
 @pytest.mark.parametrize("row", [[1, 2], "100", True, {"x": 5}, 2001, [None]])

@@ -189,11 +189,22 @@ class TargetFeed:
         if len(self.unwritten) < MAX_ROWS:
             self.unwritten.append(tick)
 
+    def _last_sent(self) -> dict[int, float]:
+        """Where each actuator was last sent: its last row's target, but for an actuator
+        still ramping after an earlier gap, where the ramp had brought it (its rows were
+        not sent as such)."""
+        last = {i: float(p) for i, p in self.sent.items()}
+        if self.stream is not None and self.stream.ramp:
+            last.update(self.stream.ramp)
+        return last
+
     def _resume(self) -> None:
-        """Rows again after missing ones: ramp from the last targets sent."""
+        """Rows again after missing ones: ramp from the positions last sent.  (From the
+        last rows instead, a gap during a ramp made the actuators jump to their targets:
+        500, 520, then 1500 at a ramp of 20 a tick.)"""
         stream = self.stream
         if self.missed and stream is not None and self.sent:
-            stream.ramp = {i: float(p) for i, p in self.sent.items()}
+            stream.ramp = self._last_sent()
             if self.missed >= GAP_TICKS:
                 self._publish(self.missed, "ramp")
         self.missed = 0
@@ -207,7 +218,7 @@ class TargetFeed:
         bus.events.publish(
             StreamGap(
                 bus.name, bus.timer.now(), stream.number, stream.ids, "client", missed,
-                dict(self.sent), action,
+                {i: round(p) for i, p in self._last_sent().items()}, action,
             )
         )  # fmt: skip
 
