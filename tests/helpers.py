@@ -14,7 +14,6 @@ import json
 import os
 import re
 import subprocess
-import sys
 import tty
 from collections.abc import AsyncIterator, Iterator, Sequence
 from contextlib import asynccontextmanager, contextmanager
@@ -32,6 +31,7 @@ from motorbus.sim.memory import MemorySim
 from motorbus.sim.model import DeviceModel
 from motorbus.sim.process import SimProcess
 from tests.waiting import eventually
+from tests.zygote import run_motorbus
 
 __all__ = [
     "CLI_TIMEOUT_S",
@@ -106,13 +106,7 @@ def cli(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedPr
     no user bus file unless ``env`` sets them."""
     base = {k: v for k, v in os.environ.items() if k not in ENV_VARS}
     base["XDG_CONFIG_HOME"] = NO_CONFIG_DIR
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", *args],
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
-        env={**base, **(env or {})},
-    )
+    return run_motorbus(args, {**base, **(env or {})}, CLI_TIMEOUT_S)
 
 
 #: Host margin (ms) for a command-line run whose test never waits for a timeout: with the

@@ -15,8 +15,6 @@ import asyncio
 import dataclasses
 import inspect
 import os
-import subprocess
-import sys
 from collections.abc import Awaitable, Callable
 from typing import Any
 
@@ -45,6 +43,7 @@ from motorbus.transport.memory import memory_pair
 from motorbus.transport.serial import SerialTransport
 from tests.helpers import sim_bus
 from tests.waiting import eventually
+from tests.zygote import run_motorbus
 
 #: Wrong types for an integer (or enum) argument.  ``True`` is refused: it is not a number.
 WRONG_INT = ("1", 1.5, None, True)
@@ -763,13 +762,7 @@ def test_manager_refuses_bad_device_lists(devices: list[str]) -> None:
     ids=["decode-ZZ", "demo-seconds-0"],
 )
 def test_cli_usage_errors_exit_2_with_one_line(argv: list[str]) -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "motorbus", *argv],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
+    done = run_motorbus(argv)
     assert done.returncode == 2, done
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1, done.stderr
@@ -793,13 +786,9 @@ def test_a_bad_host_margin_in_the_environment_is_refused_naming_the_variable(tex
 
 
 def test_the_command_line_names_a_bad_host_margin_in_one_line() -> None:
-    done = subprocess.run(
-        [sys.executable, "-m", "motorbus", "la", "status", "1", "--port", "/dev/null"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-        env={**os.environ, "MOTORBUS_HOST_MARGIN_MS": "abc"},
+    done = run_motorbus(
+        ["la", "status", "1", "--port", "/dev/null"],
+        {**os.environ, "MOTORBUS_HOST_MARGIN_MS": "abc"},
     )
     assert done.returncode == 2, done
     assert done.stderr.strip().splitlines() == [

@@ -13,6 +13,7 @@ import pytest
 from motorbus.cli.main import EXIT_USAGE, main
 from motorbus.protocol.base import parse_hex
 from tests.vectors import load_vectors
+from tests.zygote import run_motorbus
 
 FAMILY_OF_KIND = {
     "inspire_la_55aa": "la",
@@ -31,13 +32,7 @@ def decode(capsys: pytest.CaptureFixture[str], *args: str) -> list[dict[str, Any
 
 
 def run_module(*args: str, stdin: str = "") -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", "decode", *args],
-        input=stdin,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    return run_motorbus(["decode", *args], input=stdin)
 
 
 def vector_frames() -> list[tuple[str, str, str, dict[str, Any]]]:

@@ -19,6 +19,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la
 from motorbus.sim.process import SimProcess
 from tests.helpers import CLI_TIMEOUT_S, json_lines
+from tests.zygote import run_motorbus
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 QUERY_2 = la.Control(2, la.ControlAction.QUERY_STATUS).encode()
@@ -32,14 +33,7 @@ def hexof(raw: bytes) -> str:
 def run(*args: str) -> subprocess.CompletedProcess[str]:
     """``python -m motorbus ARGS`` with no terminal on standard input."""
     env = {k: v for k, v in os.environ.items() if k != PORT_ENV}
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", *args],
-        capture_output=True,
-        text=True,
-        stdin=subprocess.DEVNULL,
-        timeout=CLI_TIMEOUT_S,
-        env=env,
-    )
+    return run_motorbus(args, env, CLI_TIMEOUT_S)
 
 
 def write_log(path: Path, lines: list[dict[str, Any]]) -> Path:

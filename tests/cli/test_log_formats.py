@@ -20,6 +20,7 @@ from motorbus.errors import LocalProtocolError
 from motorbus.protocol import framelog, la, logview
 from motorbus.sim.process import SimProcess
 from tests.helpers import CLI_TIMEOUT_S, LOADED_HOST_MARGIN_MS, raw_pty
+from tests.zygote import run_motorbus
 
 QUERY_1 = la.Control(1, la.ControlAction.QUERY_STATUS).encode()
 STATUS_1 = la.Status(1, target=100, position=90).encode()
@@ -201,11 +202,11 @@ def test_replay_loops_at_speed_through_a_simulator(tmp_path: Path) -> None:
     # once came more than the command line's 50 ms late in a fresh-clone run).
     env = {**os.environ, "MOTORBUS_HOST_MARGIN_MS": str(LOADED_HOST_MARGIN_MS)}
     with SimProcess(["la:1-2"], baud=921600, log_file=tmp_path / "sim.jsonl") as sim:
-        r = subprocess.run(
-            [sys.executable, "-m", "motorbus", "replay", str(path), "--to", sim.path,
-             "--loop", "3", "--speed", "2", "--wait", "0.1"],
-            capture_output=True, text=True, timeout=CLI_TIMEOUT_S, env=env,
-        )  # fmt: skip
+        r = run_motorbus(
+            ["replay", str(path), "--to", sim.path, "--loop", "3", "--speed", "2", "--wait", "0.1"],
+            env,
+            CLI_TIMEOUT_S,
+        )
         heard = [x["hex"] for x in sim.log_records() if x["direction"] == "request"]
     assert r.returncode == 0, r.stderr
     assert heard == [q.hex(" ").upper() for q in queries] * 3

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 
 import pytest
 
@@ -12,6 +10,7 @@ from motorbus.cli.plot import render
 from motorbus.protocol import la
 from motorbus.sim.process import SimProcess
 from tests.helpers import CLI_TIMEOUT_S, cli
+from tests.zygote import run_motorbus
 
 
 def status(position: int, target: int, force: int) -> la.Status:
@@ -54,15 +53,11 @@ def test_a_timeout_marks_its_column_and_a_still_actuator_draws_a_flat_line() -> 
 
 def test_monitor_refuses_a_window_without_a_display_and_plot_with_json() -> None:
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
-    base = [sys.executable, "-m", "motorbus", "monitor", "--port", "/nonexistent", "--ids", "1"]
-    r = subprocess.run(
-        [*base, "--plot", "window"], capture_output=True, text=True, env=env, timeout=CLI_TIMEOUT_S
-    )
+    base = ["monitor", "--port", "/nonexistent", "--ids", "1"]
+    r = run_motorbus([*base, "--plot", "window"], env, CLI_TIMEOUT_S)
     assert r.returncode == 2
     assert r.stderr.startswith("motorbus monitor: --plot window needs a display")
-    r = subprocess.run(
-        [*base, "--plot", "--json"], capture_output=True, text=True, env=env, timeout=CLI_TIMEOUT_S
-    )
+    r = run_motorbus([*base, "--plot", "--json"], env, CLI_TIMEOUT_S)
     assert r.returncode == 2
     assert r.stderr == "motorbus monitor: --plot and --json do not go together: choose one\n"
 

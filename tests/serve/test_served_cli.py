@@ -13,12 +13,11 @@ pytest.importorskip("zenoh")
 from motorbus.protocol import la
 from motorbus.sim import SimProcess
 from tests.serve.conftest import Child
+from tests.zygote import run_motorbus
 
 
 def motorbus_cli(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", *args], capture_output=True, text=True, timeout=60
-    )
+    return run_motorbus(args)
 
 
 def test_la_status_and_move_through_a_served_bus(

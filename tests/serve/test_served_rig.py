@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +20,7 @@ pytest.importorskip("zenoh")
 from motorbus.protocol import la
 from motorbus.sim import SimProcess
 from tests.serve.conftest import Child
+from tests.zygote import run_motorbus
 
 #: The sine frequencies of these runs (Hz): one the simulated actuator follows (ratio
 #: ~1), one it cannot (ratio ~0.45, phase ~-60 degrees): both are told apart from a run
@@ -38,12 +38,7 @@ PHASE_TOLERANCE_DEG = 20.0
 
 
 def rig(*args: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", "rig", *args],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    return run_motorbus(["rig", *args], timeout=300)
 
 
 def results(out: Path) -> dict[str, Any]:

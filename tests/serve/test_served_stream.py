@@ -8,8 +8,6 @@ from __future__ import annotations
 import asyncio
 import itertools
 import signal
-import subprocess
-import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -29,6 +27,7 @@ from tests.helpers import stream_summary
 from tests.serve.conftest import Child, client
 from tests.serve.test_served_faults import raw_query
 from tests.waiting import eventually
+from tests.zygote import run_motorbus
 
 PAUSES = {la.Control(i, la.ControlAction.PAUSE).encode() for i in (1, 2)}
 
@@ -329,11 +328,9 @@ def test_motorbus_stream_connect_plays_a_csv_through_the_server(
     csv.write_text(
         "t,1,2\n" + "".join(f"{n * 0.02:.2f},{a},{b}\n" for n, (a, b) in enumerate(ROWS))
     )
-    done = subprocess.run(
-        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect", endpoint,
-         "--ramp", "0", "--period", "0.02", "--json"],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    done = run_motorbus(
+        ["stream", str(csv), "--connect", endpoint, "--ramp", "0", "--period", "0.02", "--json"]
+    )
     summary = stream_summary(done)
     assert_in_order(targets_at_sim(la_sim), ROWS, summary["skipped"], summary["gaps"])
     assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}
@@ -341,11 +338,9 @@ def test_motorbus_stream_connect_plays_a_csv_through_the_server(
     # fits between the server's ticks (its 250 ms host margin), so the command knows
     # only the final positions, which are the last targets: they followed (it said
     # "did not follow" before).
-    again = subprocess.run(
-        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect", endpoint,
-         "--ramp", "0", "--period", "0.02", "--json"],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    again = run_motorbus(
+        ["stream", str(csv), "--connect", endpoint, "--ramp", "0", "--period", "0.02", "--json"]
+    )
     summary = stream_summary(again)
     assert summary["polls"] == 0 and summary["not_following"] == [], summary
 
@@ -378,11 +373,7 @@ async def test_a_stream_owns_its_actuators_for_its_client_and_a_hold_end_passes_
 def test_motorbus_stream_connect_refuses_the_servers_own_options(tmp_path: Path) -> None:
     csv = tmp_path / "path.csv"
     csv.write_text("t,1\n0,100\n0.01,110\n")
-    done = subprocess.run(
-        [sys.executable, "-m", "motorbus", "stream", str(csv), "--connect",
-         "tcp/127.0.0.1:9", "--guard"],
-        capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    done = run_motorbus(["stream", str(csv), "--connect", "tcp/127.0.0.1:9", "--guard"])
     assert done.returncode == 2
     assert "--connect" in done.stderr and "--guard" in done.stderr
 

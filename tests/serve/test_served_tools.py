@@ -29,6 +29,7 @@ from motorbus.sim import SimProcess
 from motorbus.sim.la import LAModel
 from motorbus.sim.memory import MemorySim
 from tests.serve.conftest import Child, client, free_endpoint, serve
+from tests.zygote import run_motorbus
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 #: Longest wait for a capture child to say it listens.
@@ -36,9 +37,7 @@ LISTEN_TIMEOUT_S = 30.0
 
 
 def motorbus_cli(*args: str, timeout: float = 120) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "motorbus", *args], capture_output=True, text=True, timeout=timeout
-    )
+    return run_motorbus(args, timeout=timeout)
 
 
 def requests_of(sim: SimProcess, since: int = 0) -> list[bytes]:

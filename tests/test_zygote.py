@@ -1,0 +1,99 @@
+"""The suite's forked command runs (tests/zygote.py) end as ``python -m motorbus`` does.
+
+Each case runs once in a fresh interpreter and once forked from the zygote: the two
+must agree on the exit status and on every character of output.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+
+from motorbus.protocol import framelog, la
+from tests.zygote import FRESH_ENV, run_motorbus
+
+QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
+
+
+def both(
+    args: list[str], env: dict[str, str] | None = None, stdin: str | None = None
+) -> tuple[subprocess.CompletedProcess[str], subprocess.CompletedProcess[str]]:
+    env = dict(os.environ if env is None else env)
+    fresh = run_motorbus(args, {**env, FRESH_ENV: "1"}, 60, stdin)
+    return fresh, run_motorbus(args, env, 60, stdin)
+
+
+def same(fresh: subprocess.CompletedProcess[str], forked: subprocess.CompletedProcess[str]) -> None:
+    assert (forked.returncode, forked.stdout, forked.stderr) == (
+        fresh.returncode,
+        fresh.stdout,
+        fresh.stderr,
+    )
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--help"],
+        ["la", "status", "1", "--port", "/nonexistent"],  # 1: the port cannot open
+        ["la", "move", "1"],  # 2: a usage error
+        ["decode", "55 AA 03 01 04 00 22 2A", "ZZ"],  # 2: bad hex, named
+    ],
+    ids=["help", "no-port", "usage", "bad-hex"],
+)
+def test_a_forked_run_says_and_ends_as_a_fresh_one(args: list[str]) -> None:
+    fresh, forked = both(args)
+    assert fresh.returncode in (0, 1, 2)
+    same(fresh, forked)
+
+
+def test_standard_input_reaches_the_command() -> None:
+    fresh, forked = both(["decode", "--json"], stdin=f"{QUERY}\n")
+    assert fresh.returncode == 0 and json.loads(fresh.stdout.splitlines()[0])
+    same(fresh, forked)
+
+
+def test_an_environment_read_at_import_is_the_callers() -> None:
+    """``MOTORBUS_HOST_MARGIN_MS`` is read when ``motorbus.bus`` is imported: a run with
+    a bad value must fail as a fresh interpreter does, not run with the value a zygote
+    imported with."""
+    env = {**os.environ, "MOTORBUS_HOST_MARGIN_MS": "abc"}
+    fresh, forked = both(["la", "status", "1", "--port", "/dev/null"], env)
+    assert fresh.returncode == 2 and "MOTORBUS_HOST_MARGIN_MS" in fresh.stderr
+    same(fresh, forked)
+
+
+def test_a_relative_path_is_read_from_the_callers_folder(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    header = json.dumps(
+        framelog.header("capture", started_utc="2026-01-01T00:00:00Z", families=["la"])
+    )
+    frame = {"kind": "frame", "family": "la", "direction": "request", "hex": QUERY}
+    lines = [header] + [json.dumps({"t": t, **frame}) for t in (0, 0.25)]
+    (tmp_path / "here.jsonl").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    monkeypatch.chdir(tmp_path)
+    fresh, forked = both(["replay", "here.jsonl", "--to", "/nonexistent", "--dry-run"])
+    assert fresh.returncode == 0 and fresh.stdout.count("would send") == 2, fresh.stderr
+    same(fresh, forked)
+
+
+def test_a_run_past_its_timeout_is_killed_and_says_so_as_subprocess_run_does() -> None:
+    """The zygote's child is killed at the timeout, and ``TimeoutExpired`` raised."""
+    started = time.monotonic()
+    with pytest.raises(subprocess.TimeoutExpired) as info:
+        # Waits for frames on a port that never sends any (a pty nobody writes to).
+        master, slave = os.openpty()
+        try:
+            args = ["capture", "--family", "la", "--port", os.ttyname(slave)]
+            run_motorbus(args, None, 1.0)
+        finally:
+            os.close(master)
+            os.close(slave)
+    assert info.value.timeout == 1.0
+    assert time.monotonic() - started < 30

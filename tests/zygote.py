@@ -1,0 +1,366 @@
+"""Run ``python -m motorbus ARGS`` as a fork of a process that has already imported it.
+
+The suite runs the command line about 350 times, and each fresh interpreter spent
+~140 ms of CPU starting and importing before the command did anything: with the
+simulators and servers, start-up was the largest part of the suite's CPU.  Here one
+*zygote* per worker and environment imports the command line once (``python -c``, with
+exactly the environment the command is to see, so that what modules read from it at
+import is what a fresh ``python -m motorbus`` would read), then forks a child per run.
+
+The child is a real process of its own: its own PID (signals, the guard's watch of its
+parent), the caller's working directory, standard input from ``/dev/null`` and its
+output into pipes, the ``sys.argv`` of ``python -m motorbus``, and it ends as the
+interpreter would (``SystemExit`` codes, a traceback and 1 for an uncaught exception,
+death by SIGINT after an uncaught ``KeyboardInterrupt``; threads joined, ``atexit``
+run, output flushed).  What it does not repeat is the interpreter's start and the
+imports: tests of start-up itself (what a command imports, how long it takes) start
+their own interpreters, and ``MOTORBUS_TESTS_FRESH=1`` runs every command fresh.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import json
+import locale
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+#: Set to 1 to run every command in a fresh interpreter (what a user's shell does).
+FRESH_ENV = "MOTORBUS_TESTS_FRESH"
+#: Imported by the zygote ahead of any command: the command line, and what its commands
+#: import when they run.  A module that fails to import (an extra hidden by a test's
+#: environment) is left for the command to fail on, as it would.
+PRELOAD = (
+    "motorbus.cli.main",
+    "motorbus.cli.la",
+    "motorbus.cli.project",
+    "motorbus.cli.quad",
+    "motorbus.cli.scan",
+    "motorbus.cli.stream",
+    "motorbus.cli.capture",
+    "motorbus.cli.replay",
+    "motorbus.cli.monitor",
+    "motorbus.cli.decode",
+    "motorbus.cli.rig",
+    "motorbus.cli.la_setup",
+    "motorbus.cli.doctor",
+    "motorbus.bus.bus",
+    "motorbus.manager",
+    "motorbus.devices.la",
+    "motorbus.devices.project_stepper",
+    "motorbus.devices.quad_stepper",
+    "motorbus.rig",
+    "motorbus.streams",
+    "motorbus.cli.served",
+    "motorbus.serve.client",
+)
+
+
+def run_motorbus(
+    args: Sequence[str],
+    env: Mapping[str, str] | None = None,
+    timeout: float = 60,
+    input: str | None = None,
+) -> subprocess.CompletedProcess[str]:
+    """``subprocess.run([python, -m, motorbus, *args], env=env, input=input,
+    capture_output=True, text=True, timeout=timeout)``, forked from the zygote of
+    ``env`` (default: this process's environment); standard input is ``input``, or
+    empty (``/dev/null``, as under the suite's workers)."""
+    command = [sys.executable, "-m", "motorbus", *args]
+    env = dict(os.environ if env is None else env)
+    forkable = hasattr(os, "pidfd_open") and hasattr(socket, "send_fds")
+    if env.get(FRESH_ENV) == "1" or not forkable:
+        return subprocess.run(
+            command,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=env,
+            input=input,
+            stdin=None if input is not None else subprocess.DEVNULL,
+        )
+    return _zygote(env).run(command, list(args), env, timeout, input)
+
+
+#: What pytest changes for every test: left out of a zygote's key (no module reads it at
+#: import), and given to each child as the caller has it.
+VOLATILE = ("PYTEST_CURRENT_TEST",)
+
+_ZYGOTES: dict[frozenset[tuple[str, str]], _Zygote] = {}
+_LOCK = threading.Lock()
+
+
+def _zygote(env: Mapping[str, str]) -> _Zygote:
+    steady = {k: v for k, v in env.items() if k not in VOLATILE}
+    key = frozenset(steady.items())
+    with _LOCK:
+        zygote = _ZYGOTES.get(key)
+        if zygote is None or zygote.proc.poll() is not None:
+            zygote = _ZYGOTES[key] = _Zygote(steady)
+        return zygote
+
+
+@atexit.register
+def _end_zygotes() -> None:
+    for zygote in _ZYGOTES.values():
+        zygote.close()
+
+
+class _Zygote:
+    def __init__(self, env: dict[str, str]) -> None:
+        self.folder = tempfile.mkdtemp(prefix="motorbus-zygote-")
+        self.path = os.path.join(self.folder, "socket")
+        code = (
+            "import sys\n"
+            f"sys.path.insert(1, {str(ROOT)!r})\n"
+            "from tests.zygote import serve\n"
+            "serve(sys.argv[1])\n"
+        )
+        # stdin: a pipe whose end at the caller closes with it, so the zygote ends too.
+        self.proc = subprocess.Popen(
+            [sys.executable, "-c", code, self.path],
+            env=env,
+            cwd=ROOT,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+        )
+        assert self.proc.stderr is not None
+        ready = self.proc.stderr.readline()
+        if ready != b"ready\n":
+            rest = self.proc.stderr.read().decode(errors="replace")
+            raise RuntimeError(f"the zygote did not start: {ready!r}{rest}")
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
+        for stream in (self.proc.stdin, self.proc.stderr):
+            if stream is not None:
+                stream.close()
+        try:
+            os.unlink(self.path)
+            os.rmdir(self.folder)
+        except OSError:
+            pass
+
+    def run(
+        self,
+        command: list[str],
+        args: list[str],
+        env: dict[str, str],
+        timeout: float,
+        input: str | None,
+    ) -> subprocess.CompletedProcess[str]:
+        out_r, out_w = os.pipe()
+        err_r, err_w = os.pipe()
+        if input is None:
+            stdin_fd = os.open(os.devnull, os.O_RDONLY)
+        else:  # a file, read from its start: no writer to keep up with the reader
+            with tempfile.TemporaryFile() as f:
+                f.write(input.encode(locale.getpreferredencoding(False)))
+                f.flush()
+                stdin_fd = os.dup(f.fileno())
+            os.lseek(stdin_fd, 0, os.SEEK_SET)
+        conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            conn.connect(self.path)
+            request = json.dumps({"args": args, "cwd": os.getcwd(), "env": env}).encode()
+            socket.send_fds(conn, [request], [stdin_fd, out_w, err_w])
+        finally:
+            for fd in (stdin_fd, out_w, err_w):
+                os.close(fd)
+        return _collect(conn, out_r, err_r, command, timeout)
+
+
+def _collect(
+    conn: socket.socket, out_r: int, err_r: int, command: list[str], timeout: float
+) -> subprocess.CompletedProcess[str]:
+    """Read the child's output to its end and its status, as ``subprocess.run`` does."""
+    deadline = time.monotonic() + timeout
+    #: After a timeout's kill, how long to wait for the output's end: a process the
+    #: command started may hold its pipes (``subprocess.run`` would wait for ever).
+    drain_s = 5.0
+    chunks: dict[object, list[bytes]] = {out_r: [], err_r: [], conn: []}
+    pid: int | None = None
+    status: int | None = None
+    timed_out = False
+    with selectors.DefaultSelector() as sel:
+        sel.register(out_r, selectors.EVENT_READ)
+        sel.register(err_r, selectors.EVENT_READ)
+        sel.register(conn, selectors.EVENT_READ)
+        while sel.get_map():
+            left = deadline - time.monotonic()
+            if left <= 0 and not timed_out:
+                timed_out = True
+                deadline += drain_s
+                left = drain_s
+                if pid is not None:
+                    _kill(pid)
+            elif left <= 0:
+                break
+            for key, _ in sel.select(left):
+                source = key.fileobj
+                data = conn.recv(4096) if source is conn else os.read(key.fd, 65536)
+                if not data:
+                    sel.unregister(source)
+                    continue
+                chunks[source].append(data)
+                if source is conn:
+                    lines = b"".join(chunks[conn]).split(b"\n")
+                    if pid is None and len(lines) > 1:
+                        pid = int(lines[0])
+                        if timed_out:
+                            _kill(pid)
+                    if len(lines) > 2:
+                        status = int(lines[1])
+    conn.close()
+    os.close(out_r)
+    os.close(err_r)
+    stdout, stderr = (_text(b"".join(chunks[fd])) for fd in (out_r, err_r))
+    if timed_out:
+        raise subprocess.TimeoutExpired(command, timeout, stdout, stderr)
+    if status is None:
+        raise RuntimeError(f"the zygote gave no status for {command}: {stderr[-2000:]}")
+    return subprocess.CompletedProcess(command, status, stdout, stderr)
+
+
+def _kill(pid: int) -> None:
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+
+
+def _text(data: bytes) -> str:
+    """As ``subprocess.run(text=True)`` decodes: the locale's encoding, newlines
+    translated."""
+    text = data.decode(locale.getpreferredencoding(False))
+    return text.replace("\r\n", "\n").replace("\r", "\n")
+
+
+# -- the zygote ---------------------------------------------------------------------------
+
+
+def serve(path: str) -> None:
+    """The zygote's loop: fork a child per request, report its PID and its status."""
+    import importlib
+
+    clean_path = [p for p in sys.path if p != str(ROOT)]
+    for name in PRELOAD:
+        with contextlib.suppress(Exception):  # the command meets it, as it would
+            importlib.import_module(name)
+    # A fork keeps only the thread that forks: nothing imported may have started one
+    # (Zenoh's runtime starts its threads with a session, not at import).
+    assert len(os.listdir("/proc/self/task")) == 1, os.listdir("/proc/self/task")
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(path)
+    listener.listen(64)
+    sys.stderr.write("ready\n")
+    sys.stderr.flush()
+    running: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, connection)
+    with selectors.DefaultSelector() as sel:
+        sel.register(listener, selectors.EVENT_READ, "accept")
+        sel.register(sys.stdin.fileno(), selectors.EVENT_READ, "caller")
+        while True:
+            for key, _ in sel.select():
+                if key.data == "caller":  # the caller has gone: so does the zygote
+                    for pid, _conn in running.values():
+                        _kill(pid)
+                    os._exit(0)
+                if key.data == "accept":
+                    conn, _ = listener.accept()
+                    message, fds, _flags, _addr = socket.recv_fds(conn, 1 << 16, 3)
+                    request = json.loads(message)
+                    pid = os.fork()
+                    if pid == 0:
+                        sel.close()
+                        listener.close()
+                        conn.close()
+                        _child(request, fds, clean_path)  # never returns
+                    for fd in fds:
+                        os.close(fd)
+                    with contextlib.suppress(OSError):  # a caller gone: its run still ends
+                        conn.sendall(b"%d\n" % pid)
+                    pidfd = os.pidfd_open(pid)
+                    running[pidfd] = (pid, conn)
+                    sel.register(pidfd, selectors.EVENT_READ, "child")
+                else:
+                    pid, conn = running.pop(key.fd)
+                    sel.unregister(key.fd)
+                    os.close(key.fd)
+                    _, wait_status = os.waitpid(pid, 0)
+                    with contextlib.suppress(OSError):
+                        conn.sendall(b"%d\n" % _returncode(wait_status))
+                    conn.close()
+
+
+def _returncode(wait_status: int) -> int:
+    if os.WIFSIGNALED(wait_status):
+        return -os.WTERMSIG(wait_status)
+    return os.WEXITSTATUS(wait_status)
+
+
+def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) -> None:
+    """Become ``python -m motorbus ARGS`` in the caller's directory, and end as it would."""
+    import runpy
+    import traceback
+
+    stdin, stdout, stderr = fds
+    for fd, target in ((stdin, 0), (stdout, 1), (stderr, 2)):
+        os.dup2(fd, target)
+    # Nothing else open, as in a fresh interpreter: above all not the connections of
+    # the other runs, whose callers wait for them to close.
+    os.closerange(3, os.sysconf("SC_OPEN_MAX"))
+    env = request["env"]
+    assert isinstance(env, dict)
+    os.environ.clear()
+    os.environ.update(env)
+    cwd = str(request["cwd"])
+    os.chdir(cwd)
+    sys.path[:] = [cwd, *clean_path[1:]]
+    args = request["args"]
+    assert isinstance(args, list)
+    code = 0
+    interrupted = False
+    try:
+        sys.argv = ["-m", *args]  # runpy sets sys.argv[0] to motorbus/__main__.py
+        runpy.run_module("motorbus", run_name="__main__", alter_sys=True)
+    except SystemExit as end:
+        code = _exit_code(end)
+    except KeyboardInterrupt:
+        traceback.print_exc()
+        interrupted = True
+    except BaseException:
+        traceback.print_exc()
+        code = 1
+    try:
+        threading._shutdown()  # type: ignore[attr-defined]  # the interpreter's own order
+        atexit._run_exitfuncs()
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+    finally:
+        if interrupted:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            os.kill(os.getpid(), signal.SIGINT)
+        os._exit(code)
+
+
+def _exit_code(end: SystemExit) -> int:
+    """The status ``SystemExit(end.code)`` gives, printing what the interpreter prints."""
+    value = end.code
+    if value is None:
+        return 0
+    if isinstance(value, int):
+        return value & 0xFF
+    print(value, file=sys.stderr)
+    return 1
