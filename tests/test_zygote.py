@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -15,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from motorbus.protocol import framelog, la
-from tests.zygote import FRESH_ENV, run_motorbus
+from tests.zygote import FRESH_ENV, run_motorbus, spawn_motorbus
 
 QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
 
@@ -97,3 +98,26 @@ def test_a_run_past_its_timeout_is_killed_and_says_so_as_subprocess_run_does() -
             os.close(slave)
     assert info.value.timeout == 1.0
     assert time.monotonic() - started < 30
+
+
+@pytest.mark.parametrize("fresh", [True, False], ids=["fresh", "forked"])
+def test_a_spawned_command_is_its_own_session_and_ends_on_sigterm(
+    fresh: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``spawn_motorbus``: the first line as the command prints it, a session of its
+    own (``start_new_session``), and the status and summary that SIGTERM gives."""
+    if fresh:
+        monkeypatch.setenv(FRESH_ENV, "1")
+    proc = spawn_motorbus(["sim", "la:1"], new_session=True)
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().startswith("/dev/pts/")
+        assert os.getsid(proc.pid) == proc.pid != os.getpid()
+        assert proc.poll() is None
+        os.kill(proc.pid, signal.SIGTERM)
+        rest = proc.stdout.read()
+        _, err = proc.communicate(timeout=30)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0, err
+    assert rest.startswith("motorbus sim: 0 requests, 0 replies"), rest

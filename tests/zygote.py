@@ -24,6 +24,7 @@ import contextlib
 import json
 import locale
 import os
+import select
 import selectors
 import signal
 import socket
@@ -34,6 +35,7 @@ import threading
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
+from subprocess import Popen
 
 ROOT = Path(__file__).resolve().parents[1]
 #: Set to 1 to run every command in a fresh interpreter (what a user's shell does).
@@ -79,8 +81,7 @@ def run_motorbus(
     empty (``/dev/null``, as under the suite's workers)."""
     command = [sys.executable, "-m", "motorbus", *args]
     env = dict(os.environ if env is None else env)
-    forkable = hasattr(os, "pidfd_open") and hasattr(socket, "send_fds")
-    if env.get(FRESH_ENV) == "1" or not forkable:
+    if env.get(FRESH_ENV) == "1" or not _forkable():
         return subprocess.run(
             command,
             capture_output=True,
@@ -91,6 +92,29 @@ def run_motorbus(
             stdin=None if input is not None else subprocess.DEVNULL,
         )
     return _zygote(env).run(command, list(args), env, timeout, input)
+
+
+def _forkable() -> bool:
+    return hasattr(os, "pidfd_open") and hasattr(socket, "send_fds")
+
+
+def spawn_motorbus(args: Sequence[str], *, new_session: bool = False) -> Popen[str] | ForkedProcess:
+    """``subprocess.Popen([python, -m, motorbus, *args], stdout=PIPE, stderr=PIPE,
+    text=True, start_new_session=new_session)`` in this process's environment, forked
+    from its zygote: a process to talk to, signal and end (what the suite does with
+    ``motorbus serve``)."""
+    command = [sys.executable, "-m", "motorbus", *args]
+    env = dict(os.environ)
+    if env.get(FRESH_ENV) == "1" or not _forkable():
+        return subprocess.Popen(
+            command,
+            stdin=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            start_new_session=new_session,
+        )
+    return ForkedProcess(_zygote(env), command, env, new_session)
 
 
 #: What pytest changes for every test: left out of a zygote's key (no module reads it at
@@ -163,8 +187,6 @@ class _Zygote:
         timeout: float,
         input: str | None,
     ) -> subprocess.CompletedProcess[str]:
-        out_r, out_w = os.pipe()
-        err_r, err_w = os.pipe()
         if input is None:
             stdin_fd = os.open(os.devnull, os.O_RDONLY)
         else:  # a file, read from its start: no writer to keep up with the reader
@@ -173,15 +195,93 @@ class _Zygote:
                 f.flush()
                 stdin_fd = os.dup(f.fileno())
             os.lseek(stdin_fd, 0, os.SEEK_SET)
+        conn, out_r, err_r = self.start(args, env, stdin_fd, new_session=False)
+        return _collect(conn, out_r, err_r, command, timeout)
+
+    def start(
+        self, args: list[str], env: dict[str, str], stdin_fd: int, *, new_session: bool
+    ) -> tuple[socket.socket, int, int]:
+        """Fork a child with ``stdin_fd`` (closed here) as its standard input: the
+        connection that gives its PID and then its status, and its output's pipes."""
+        out_r, out_w = os.pipe()
+        err_r, err_w = os.pipe()
         conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             conn.connect(self.path)
-            request = json.dumps({"args": args, "cwd": os.getcwd(), "env": env}).encode()
-            socket.send_fds(conn, [request], [stdin_fd, out_w, err_w])
+            request = {"args": args, "cwd": os.getcwd(), "env": env, "session": new_session}
+            socket.send_fds(conn, [json.dumps(request).encode()], [stdin_fd, out_w, err_w])
         finally:
             for fd in (stdin_fd, out_w, err_w):
                 os.close(fd)
-        return _collect(conn, out_r, err_r, command, timeout)
+        return conn, out_r, err_r
+
+
+class ForkedProcess:
+    """What the suite uses of a ``Popen`` (``pid``, ``stdout``, ``poll``, ``wait``,
+    ``kill``, ``communicate``) for a child forked by a zygote."""
+
+    def __init__(
+        self, zygote: _Zygote, command: list[str], env: dict[str, str], new_session: bool
+    ) -> None:
+        self.args = command
+        stdin_fd = os.open(os.devnull, os.O_RDONLY)
+        self._conn, out_r, self._err_r = zygote.start(
+            command[3:], env, stdin_fd, new_session=new_session
+        )
+        self.stdout = open(out_r, encoding=locale.getpreferredencoding(False))  # noqa: SIM115
+        self._status = b""
+        self._err: list[bytes] = []
+        self.returncode: int | None = None
+        self.pid = int(self._read_line())
+
+    def _read_line(self, timeout: float | None = None) -> bytes:
+        """The next line from the zygote (the PID, then the status); b"" at a timeout."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while b"\n" not in self._status:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not select.select([self._conn], [], [], left)[0]:
+                return b""
+            data = self._conn.recv(64)
+            if not data:
+                raise RuntimeError(f"the zygote of {self.args} ended")
+            self._status += data
+        line, self._status = self._status.split(b"\n", 1)
+        return line
+
+    def poll(self) -> int | None:
+        return self.wait(0) if self.returncode is None else self.returncode
+
+    def wait(self, timeout: float | None = None) -> int | None:
+        if self.returncode is None:
+            line = self._read_line(timeout)
+            if line:
+                self.returncode = int(line)
+                self._conn.close()
+            elif timeout != 0:
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+        return self.returncode
+
+    def kill(self) -> None:
+        if self.returncode is None:
+            _kill(self.pid)
+
+    def communicate(self, timeout: float | None = None) -> tuple[None, str]:
+        """Wait for the end; its standard error (standard output is the caller's to
+        read, from ``stdout``)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self._err_r >= 0:
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            if not select.select([self._err_r], [], [], left)[0]:
+                raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
+            data = os.read(self._err_r, 65536)
+            if data:
+                self._err.append(data)
+            else:
+                os.close(self._err_r)
+                self._err_r = -1
+        left = None if deadline is None else max(0.0, deadline - time.monotonic())
+        self.wait(left)
+        return None, _text(b"".join(self._err))
 
 
 def _collect(
@@ -325,6 +425,8 @@ def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) ->
     assert isinstance(env, dict)
     os.environ.clear()
     os.environ.update(env)
+    if request.get("session"):
+        os.setsid()
     cwd = str(request["cwd"])
     os.chdir(cwd)
     sys.path[:] = [cwd, *clean_path[1:]]

@@ -22,6 +22,7 @@ pytest.importorskip("zenoh")
 from motorbus.dashboard.served import free_loopback_endpoint
 from motorbus.sim import SimProcess
 from tests.helpers import LOADED_HOST_MARGIN_MS
+from tests.zygote import ForkedProcess, spawn_motorbus
 
 #: Longest wait for a child process to say it is ready.
 READY_TIMEOUT_S = 30.0
@@ -36,13 +37,17 @@ class Child:
 
     def __init__(self, args: list[str]) -> None:
         self.args = args
-        self.proc = subprocess.Popen(
-            args,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            start_new_session=True,
-        )
+        self.proc: subprocess.Popen[str] | ForkedProcess
+        if args[:3] == [sys.executable, "-m", "motorbus"]:  # forked: tests/zygote.py
+            self.proc = spawn_motorbus(args[3:], new_session=True)
+        else:
+            self.proc = subprocess.Popen(
+                args,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                start_new_session=True,
+            )
         self.lines: queue.Queue[str] = queue.Queue()
         self.stderr = ""
         threading.Thread(target=self._read, daemon=True).start()
