@@ -19,6 +19,10 @@ from hypothesis import HealthCheck, settings
 
 from tests.helpers import PACINGS as PACINGS
 from tests.helpers import sim_bus as sim_bus
+from tests.zygote import fork_simulators
+
+# Simulator processes fork from a zygote that has imported them (tests/zygote.py).
+fork_simulators()
 
 ROOT = Path(__file__).resolve().parents[1]
 

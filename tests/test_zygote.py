@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 
 from motorbus.protocol import framelog, la
+from tests.waiting import eventually
 from tests.zygote import FRESH_ENV, run_motorbus, spawn_motorbus
 
 QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
@@ -121,3 +122,21 @@ def test_a_spawned_command_is_its_own_session_and_ends_on_sigterm(
         proc.kill()
     assert proc.returncode == 0, err
     assert rest.startswith("motorbus sim: 0 requests, 0 replies"), rest
+
+
+@pytest.mark.parametrize("fresh", [True, False], ids=["fresh", "forked"])
+async def test_an_ended_child_keeps_its_pid_until_it_is_waited_for(
+    fresh: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """As a ``Popen`` child stays a zombie until ``wait``, a forked one is reaped only
+    once its status is read: a signal sent just after it ended is not an error (a
+    served test's teardown sent SIGTERM then SIGCONT, and the zygote had reaped it)."""
+    if fresh:
+        monkeypatch.setenv(FRESH_ENV, "1")
+    proc = spawn_motorbus(["sim", "la:1"])
+    assert proc.stdout is not None and proc.stdout.readline()
+    os.kill(proc.pid, signal.SIGKILL)
+    stat = Path(f"/proc/{proc.pid}/stat")
+    await eventually(lambda: stat.read_text().split()[2] == "Z", "the child to be a zombie")
+    os.kill(proc.pid, signal.SIGCONT)  # a zombie: no ProcessLookupError
+    assert proc.wait(timeout=30) == -signal.SIGKILL

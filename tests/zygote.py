@@ -1,8 +1,9 @@
 """Run ``python -m motorbus ARGS`` as a fork of a process that has already imported it.
 
-The suite runs the command line about 350 times, and each fresh interpreter spent
-~140 ms of CPU starting and importing before the command did anything: with the
-simulators and servers, start-up was the largest part of the suite's CPU.  Here one
+The suite runs the command line about 350 times, ``motorbus serve`` about 100 and
+simulators (``SimProcess``) about 240, and each fresh interpreter spent ~100-150 ms of
+CPU starting and importing before it did anything: the largest part of the suite's
+CPU.  Here one
 *zygote* per worker and environment imports the command line once (``python -c``, with
 exactly the environment the command is to see, so that what modules read from it at
 import is what a fresh ``python -m motorbus`` would read), then forks a child per run.
@@ -66,6 +67,8 @@ PRELOAD = (
     "motorbus.streams",
     "motorbus.cli.served",
     "motorbus.serve.client",
+    "motorbus.cli.sim",
+    "motorbus.sim.pty",
 )
 
 
@@ -217,20 +220,21 @@ class _Zygote:
 
 
 class ForkedProcess:
-    """What the suite uses of a ``Popen`` (``pid``, ``stdout``, ``poll``, ``wait``,
-    ``kill``, ``communicate``) for a child forked by a zygote."""
+    """A ``Popen(..., stdin=DEVNULL, stdout=PIPE, stderr=PIPE, text=True)`` whose child a
+    zygote forked: ``pid``, ``stdout``, ``stderr``, ``poll``, ``wait``, ``send_signal``,
+    ``kill`` and ``communicate`` as ``Popen`` has them."""
 
     def __init__(
         self, zygote: _Zygote, command: list[str], env: dict[str, str], new_session: bool
     ) -> None:
         self.args = command
         stdin_fd = os.open(os.devnull, os.O_RDONLY)
-        self._conn, out_r, self._err_r = zygote.start(
-            command[3:], env, stdin_fd, new_session=new_session
-        )
-        self.stdout = open(out_r, encoding=locale.getpreferredencoding(False))  # noqa: SIM115
+        self._conn, out_r, err_r = zygote.start(command[3:], env, stdin_fd, new_session=new_session)
+        encoding = locale.getpreferredencoding(False)
+        self.stdout = open(out_r, encoding=encoding)  # noqa: SIM115 - closed as Popen's are
+        self.stderr = open(err_r, encoding=encoding)  # noqa: SIM115
         self._status = b""
-        self._err: list[bytes] = []
+        self._unread: dict[int, list[bytes]] = {out_r: [], err_r: []}  # communicate() read
         self.returncode: int | None = None
         self.pid = int(self._read_line())
 
@@ -261,27 +265,66 @@ class ForkedProcess:
                 raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
         return self.returncode
 
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            os.kill(self.pid, sig)
+
     def kill(self) -> None:
         if self.returncode is None:
             _kill(self.pid)
 
-    def communicate(self, timeout: float | None = None) -> tuple[None, str]:
-        """Wait for the end; its standard error (standard output is the caller's to
-        read, from ``stdout``)."""
+    def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+        """Read both outputs to their ends (from the pipes, as ``Popen`` does: what a
+        file object already buffered stays there) and wait for the status."""
         deadline = None if timeout is None else time.monotonic() + timeout
-        while self._err_r >= 0:
+        open_fds = [fd for fd in self._unread if not self._ended(fd)]
+        while open_fds:
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            if not select.select([self._err_r], [], [], left)[0]:
+            ready = select.select(open_fds, [], [], left)[0]
+            if not ready:
                 raise subprocess.TimeoutExpired(self.args, timeout or 0.0)
-            data = os.read(self._err_r, 65536)
-            if data:
-                self._err.append(data)
-            else:
-                os.close(self._err_r)
-                self._err_r = -1
+            for fd in ready:
+                data = os.read(fd, 65536)
+                self._unread[fd].append(data)
+                if not data:
+                    open_fds.remove(fd)
         left = None if deadline is None else max(0.0, deadline - time.monotonic())
         self.wait(left)
-        return None, _text(b"".join(self._err))
+        out, err = (_text(b"".join(chunks)) for chunks in self._unread.values())
+        return out, err
+
+    def _ended(self, fd: int) -> bool:
+        return bool(self._unread[fd]) and self._unread[fd][-1] == b""
+
+
+class SubprocessForkingSimulators:
+    """``subprocess`` as ``motorbus.sim.process`` sees it in the suite: ``SimProcess``'s
+    ``python -m motorbus sim`` forks from the zygote (the suite starts about 240
+    simulators); everything else is ``subprocess``'s own."""
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(subprocess, name)
+
+    @staticmethod
+    def Popen(args: Sequence[str], **options: object) -> object:
+        simulator = [sys.executable, "-m", "motorbus", "sim"]
+        expected = {
+            "stdout": subprocess.PIPE,
+            "stderr": subprocess.PIPE,
+            "text": True,
+            "start_new_session": True,
+        }
+        fresh = os.environ.get(FRESH_ENV) == "1" or not _forkable()
+        if not fresh and list(args[:4]) == simulator and options == expected:
+            return spawn_motorbus(args[3:], new_session=True)
+        return subprocess.Popen(args, **options)  # type: ignore[call-overload]
+
+
+def fork_simulators() -> None:
+    """From now on, ``SimProcess`` forks its simulator from the zygote."""
+    import motorbus.sim.process
+
+    motorbus.sim.process.subprocess = SubprocessForkingSimulators()  # type: ignore[assignment,attr-defined]
 
 
 def _collect(
@@ -323,8 +366,9 @@ def _collect(
                         pid = int(lines[0])
                         if timed_out:
                             _kill(pid)
-                    if len(lines) > 2:
+                    if len(lines) > 2:  # the status: the zygote reaps it once we close
                         status = int(lines[1])
+                        sel.unregister(conn)
     conn.close()
     os.close(out_r)
     os.close(err_r)
@@ -394,20 +438,31 @@ def serve(path: str) -> None:
                     pidfd = os.pidfd_open(pid)
                     running[pidfd] = (pid, conn)
                     sel.register(pidfd, selectors.EVENT_READ, "child")
-                else:
+                elif key.data == "child":  # ended: its status, but not reaped yet
                     pid, conn = running.pop(key.fd)
                     sel.unregister(key.fd)
                     os.close(key.fd)
-                    _, wait_status = os.waitpid(pid, 0)
+                    ended = os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)
+                    assert ended is not None  # (None only with WNOHANG)
                     with contextlib.suppress(OSError):
-                        conn.sendall(b"%d\n" % _returncode(wait_status))
-                    conn.close()
+                        conn.sendall(b"%d\n" % _returncode(ended))
+                    sel.register(conn, selectors.EVENT_READ, pid)
+                else:  # the caller has its status: the PID may go (Popen.wait reaps)
+                    caller = key.fileobj
+                    assert isinstance(caller, socket.socket)
+                    with contextlib.suppress(OSError):
+                        if caller.recv(64):
+                            continue
+                    sel.unregister(caller)
+                    caller.close()
+                    os.waitpid(key.data, 0)
 
 
-def _returncode(wait_status: int) -> int:
-    if os.WIFSIGNALED(wait_status):
-        return -os.WTERMSIG(wait_status)
-    return os.WEXITSTATUS(wait_status)
+def _returncode(ended: os.waitid_result) -> int:
+    """As ``Popen.returncode``: the exit status, or minus the signal that killed it."""
+    if ended.si_code == os.CLD_EXITED:
+        return ended.si_status
+    return -ended.si_status
 
 
 def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) -> None:
