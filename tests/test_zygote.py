@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import subprocess
 import time
@@ -17,7 +18,7 @@ import pytest
 
 from motorbus.protocol import framelog, la
 from tests.waiting import eventually
-from tests.zygote import FRESH_ENV, run_motorbus, spawn_motorbus
+from tests.zygote import FRESH_ENV, ForkedProcess, run_motorbus, spawn_motorbus
 
 QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
 
@@ -138,5 +139,7 @@ async def test_an_ended_child_keeps_its_pid_until_it_is_waited_for(
     os.kill(proc.pid, signal.SIGKILL)
     stat = Path(f"/proc/{proc.pid}/stat")
     await eventually(lambda: stat.read_text().split()[2] == "Z", "the child to be a zombie")
+    if isinstance(proc, ForkedProcess):  # and the zygote has seen it end
+        await eventually(lambda: select.select([proc._conn], [], [], 0)[0], "its status")
     os.kill(proc.pid, signal.SIGCONT)  # a zombie: no ProcessLookupError
     assert proc.wait(timeout=30) == -signal.SIGKILL
