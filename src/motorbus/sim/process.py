@@ -159,8 +159,12 @@ class SimProcess:
         """
         if self.log_file is None or not self.log_file.exists():
             return []
+        # One read to the end, then the whole lines: iterating the file read on past
+        # an end of file met mid-record, and took the rest of the record, written
+        # meanwhile, for a line of its own.
         with self.log_file.open(encoding="utf-8") as fh:
-            lines = [line for line in fh if line.endswith("\n")]
+            pieces = fh.read().split("\n")
+        lines = [piece + "\n" for piece in pieces[:-1]]  # the last one is unfinished
         return framelog.read_frame_log(lines, str(self.log_file)).records
 
     def __enter__(self) -> SimProcess:
