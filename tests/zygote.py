@@ -94,7 +94,18 @@ def run_motorbus(
             input=input,
             stdin=None if input is not None else subprocess.DEVNULL,
         )
-    return _zygote(env).run(command, list(args), env, timeout, input)
+    zygote = _zygote(env)
+    if zygote is None:
+        return subprocess.run(
+            command,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=env,
+            input=input,
+            stdin=None if input is not None else subprocess.DEVNULL,
+        )
+    return zygote.run(command, list(args), env, timeout, input)
 
 
 def _forkable() -> bool:
@@ -108,7 +119,8 @@ def spawn_motorbus(args: Sequence[str], *, new_session: bool = False) -> Popen[s
     ``motorbus serve``)."""
     command = [sys.executable, "-m", "motorbus", *args]
     env = dict(os.environ)
-    if env.get(FRESH_ENV) == "1" or not _forkable():
+    zygote = None if env.get(FRESH_ENV) == "1" or not _forkable() else _zygote(env)
+    if zygote is None:
         return subprocess.Popen(
             command,
             stdin=subprocess.DEVNULL,
@@ -117,30 +129,54 @@ def spawn_motorbus(args: Sequence[str], *, new_session: bool = False) -> Popen[s
             text=True,
             start_new_session=new_session,
         )
-    return ForkedProcess(_zygote(env), command, env, new_session)
+    return ForkedProcess(zygote, command, env, new_session)
 
 
 #: What pytest changes for every test: left out of a zygote's key (no module reads it at
 #: import), and given to each child as the caller has it.
 VOLATILE = ("PYTEST_CURRENT_TEST",)
 
+#: Zygotes a worker keeps, the least recently used ended first (environments that
+#: name a test's temporary folder come and go).
+ZYGOTES_MAX = 4
+#: Children forked so far by this process's zygotes (tests/test_zygote.py checks that a
+#: run it compares was forked).
+forks = 0
+
 _ZYGOTES: dict[frozenset[tuple[str, str]], _Zygote] = {}
+_SEEN: set[frozenset[tuple[str, str]]] = set()
+_RETIRED: list[_Zygote] = []
 _LOCK = threading.Lock()
 
 
-def _zygote(env: Mapping[str, str]) -> _Zygote:
+def _zygote(env: Mapping[str, str]) -> _Zygote | None:
+    """The zygote of ``env``; None the first time ``env`` is asked for (a zygote pays
+    for itself from its second run: it imports more than one command needs)."""
     steady = {k: v for k, v in env.items() if k not in VOLATILE}
     key = frozenset(steady.items())
     with _LOCK:
-        zygote = _ZYGOTES.get(key)
+        if key not in _SEEN:
+            _SEEN.add(key)
+            return None
+        zygote = _ZYGOTES.pop(key, None)
         if zygote is None or zygote.proc.poll() is not None:
-            zygote = _ZYGOTES[key] = _Zygote(steady)
+            zygote = _Zygote(steady)
+        _ZYGOTES[key] = zygote  # the most recently used last
+        while len(_ZYGOTES) > ZYGOTES_MAX:
+            _ZYGOTES.pop(next(iter(_ZYGOTES))).retire()
         return zygote
+
+
+def warm(env: Mapping[str, str]) -> None:
+    """Have the zygote of ``env`` running now, so that the next run in ``env`` forks
+    (tests/test_zygote.py compares forked runs with fresh ones)."""
+    while _zygote(env) is None:
+        pass
 
 
 @atexit.register
 def _end_zygotes() -> None:
-    for zygote in _ZYGOTES.values():
+    for zygote in [*_ZYGOTES.values(), *_RETIRED]:
         zygote.close()
 
 
@@ -150,32 +186,46 @@ class _Zygote:
         self.path = os.path.join(self.folder, "socket")
         code = (
             "import sys\n"
+            "path = list(sys.path)\n"
             f"sys.path.insert(1, {str(ROOT)!r})\n"
             "from tests.zygote import serve\n"
-            "serve(sys.argv[1])\n"
+            "serve(sys.argv[1], path)\n"
         )
-        # stdin: a pipe whose end at the caller closes with it, so the zygote ends too.
+        # stdin: a pipe whose end at the caller closes with it, so the zygote ends too
+        # (and kills the children still running); "ready" on stdout; stderr is its own.
         self.proc = subprocess.Popen(
             [sys.executable, "-c", code, self.path],
             env=env,
             cwd=ROOT,
             stdin=subprocess.PIPE,
-            stdout=subprocess.DEVNULL,
+            stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
         )
-        assert self.proc.stderr is not None
-        ready = self.proc.stderr.readline()
+        assert self.proc.stdout is not None and self.proc.stderr is not None
+        ready = self.proc.stdout.readline()
         if ready != b"ready\n":
-            rest = self.proc.stderr.read().decode(errors="replace")
-            raise RuntimeError(f"the zygote did not start: {ready!r}{rest}")
+            self.proc.kill()
+            _, err = self.proc.communicate()
+            raise RuntimeError(f"the zygote did not start: {ready!r}{err.decode()[-3000:]}")
+
+    def retire(self) -> None:
+        """Fork no more: the zygote ends once its last child has ended and been waited
+        for (its children keep running, each test ends its own)."""
+        with (
+            socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn,
+            contextlib.suppress(OSError),
+        ):
+            conn.connect(self.path)
+            conn.sendall(json.dumps({"retire": True}).encode())
+        _RETIRED.append(self)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
+        """End the zygote and the children it still runs (its caller's end does)."""
+        try:
+            self.proc.communicate(timeout=10)  # which closes its standard input first
+        except subprocess.TimeoutExpired:
             self.proc.kill()
-            self.proc.wait()
-        for stream in (self.proc.stdin, self.proc.stderr):
-            if stream is not None:
-                stream.close()
+            self.proc.communicate()
         try:
             os.unlink(self.path)
             os.rmdir(self.folder)
@@ -206,17 +256,28 @@ class _Zygote:
     ) -> tuple[socket.socket, int, int]:
         """Fork a child with ``stdin_fd`` (closed here) as its standard input: the
         connection that gives its PID and then its status, and its output's pipes."""
+        global forks
         out_r, out_w = os.pipe()
         err_r, err_w = os.pipe()
         conn = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
-            conn.connect(self.path)
             request = {"args": args, "cwd": os.getcwd(), "env": env, "session": new_session}
+            conn.connect(self.path)
             socket.send_fds(conn, [json.dumps(request).encode()], [stdin_fd, out_w, err_w])
+        except BaseException:
+            conn.close()
+            os.close(out_r)
+            os.close(err_r)
+            raise
         finally:
             for fd in (stdin_fd, out_w, err_w):
                 os.close(fd)
+        forks += 1
         return conn, out_r, err_r
+
+
+#: Longest wait for the zygote to say a child's PID (it forks at once).
+PID_TIMEOUT_S = 60.0
 
 
 class ForkedProcess:
@@ -236,7 +297,10 @@ class ForkedProcess:
         self._status = b""
         self._unread: dict[int, list[bytes]] = {out_r: [], err_r: []}  # communicate() read
         self.returncode: int | None = None
-        self.pid = int(self._read_line())
+        line = self._read_line(PID_TIMEOUT_S)
+        if not line:
+            raise RuntimeError(f"the zygote gave no PID for {command} in {PID_TIMEOUT_S} s")
+        self.pid = int(line)
 
     def _read_line(self, timeout: float | None = None) -> bytes:
         """The next line from the zygote (the PID, then the status); b"" at a timeout."""
@@ -331,10 +395,20 @@ def fork_simulators() -> None:
     motorbus.sim.process.subprocess = SubprocessForkingSimulators()  # type: ignore[assignment,attr-defined]
 
 
+class ForkedTimeout(subprocess.TimeoutExpired):
+    """``TimeoutExpired`` of a forked run, with the PID of the child it killed."""
+
+    def __init__(self, pid: int | None, *args: object) -> None:
+        super().__init__(*args)  # type: ignore[arg-type]
+        self.pid = pid
+
+
 def _collect(
     conn: socket.socket, out_r: int, err_r: int, command: list[str], timeout: float
 ) -> subprocess.CompletedProcess[str]:
-    """Read the child's output to its end and its status, as ``subprocess.run`` does."""
+    """Read the child's output to its end and its status, as ``subprocess.run`` does
+    (which kills its child whatever ends the wait: a timeout, or an exception such as
+    pytest-timeout's)."""
     deadline = time.monotonic() + timeout
     #: After a timeout's kill, how long to wait for the output's end: a process the
     #: command started may hold its pipes (``subprocess.run`` would wait for ever).
@@ -343,42 +417,46 @@ def _collect(
     pid: int | None = None
     status: int | None = None
     timed_out = False
-    with selectors.DefaultSelector() as sel:
-        sel.register(out_r, selectors.EVENT_READ)
-        sel.register(err_r, selectors.EVENT_READ)
-        sel.register(conn, selectors.EVENT_READ)
-        while sel.get_map():
-            left = deadline - time.monotonic()
-            if left <= 0 and not timed_out:
-                timed_out = True
-                deadline += drain_s
-                left = drain_s
-                if pid is not None:
-                    _kill(pid)
-            elif left <= 0:
-                break
-            for key, _ in sel.select(left):
-                source = key.fileobj
-                data = conn.recv(4096) if source is conn else os.read(key.fd, 65536)
-                if not data:
-                    sel.unregister(source)
-                    continue
-                chunks[source].append(data)
-                if source is conn:
-                    lines = b"".join(chunks[conn]).split(b"\n")
-                    if pid is None and len(lines) > 1:
-                        pid = int(lines[0])
-                        if timed_out:
-                            _kill(pid)
-                    if len(lines) > 2:  # the status: the zygote reaps it once we close
-                        status = int(lines[1])
-                        sel.unregister(conn)
-    conn.close()
-    os.close(out_r)
-    os.close(err_r)
+    try:
+        with selectors.DefaultSelector() as sel:
+            sel.register(out_r, selectors.EVENT_READ)
+            sel.register(err_r, selectors.EVENT_READ)
+            sel.register(conn, selectors.EVENT_READ)
+            while sel.get_map():
+                left = deadline - time.monotonic()
+                if left <= 0 and not timed_out:
+                    timed_out = True
+                    deadline += drain_s
+                    left = drain_s
+                    if pid is not None:
+                        _kill(pid)
+                elif left <= 0:
+                    break
+                for key, _ in sel.select(left):
+                    source = key.fileobj
+                    data = conn.recv(4096) if source is conn else os.read(key.fd, 65536)
+                    if not data:
+                        sel.unregister(source)
+                        continue
+                    chunks[source].append(data)
+                    if source is conn:
+                        lines = b"".join(chunks[conn]).split(b"\n")
+                        if pid is None and len(lines) > 1:
+                            pid = int(lines[0])
+                            if timed_out:
+                                _kill(pid)
+                        if len(lines) > 2:  # the status: the zygote reaps once we close
+                            status = int(lines[1])
+                            sel.unregister(conn)
+    finally:
+        if status is None and pid is not None:
+            _kill(pid)
+        conn.close()
+        os.close(out_r)
+        os.close(err_r)
     stdout, stderr = (_text(b"".join(chunks[fd])) for fd in (out_r, err_r))
     if timed_out:
-        raise subprocess.TimeoutExpired(command, timeout, stdout, stderr)
+        raise ForkedTimeout(pid, command, timeout, stdout, stderr)
     if status is None:
         raise RuntimeError(f"the zygote gave no status for {command}: {stderr[-2000:]}")
     return subprocess.CompletedProcess(command, status, stdout, stderr)
@@ -399,27 +477,37 @@ def _text(data: bytes) -> str:
 # -- the zygote ---------------------------------------------------------------------------
 
 
-def serve(path: str) -> None:
-    """The zygote's loop: fork a child per request, report its PID and its status."""
+def serve(path: str, sys_path: list[str]) -> None:
+    """The zygote's loop: fork a child per request, report its PID and its status.
+
+    ``sys_path``: the interpreter's own path, before this module's folder was added.
+    It ends when its caller goes (standard input at its end), killing the children it
+    still runs; or, retired, once the last of them has ended and been waited for.
+    """
+    import gc
     import importlib
 
-    clean_path = [p for p in sys.path if p != str(ROOT)]
     for name in PRELOAD:
         with contextlib.suppress(Exception):  # the command meets it, as it would
             importlib.import_module(name)
+    # What is loaded now stays: a child's collections leave it alone.
+    gc.collect()
+    gc.freeze()
     # A fork keeps only the thread that forks: nothing imported may have started one
     # (Zenoh's runtime starts its threads with a session, not at import).
     assert len(os.listdir("/proc/self/task")) == 1, os.listdir("/proc/self/task")
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     listener.bind(path)
     listener.listen(64)
-    sys.stderr.write("ready\n")
-    sys.stderr.flush()
+    sys.stdout.write("ready\n")
+    sys.stdout.flush()
     running: dict[int, tuple[int, socket.socket]] = {}  # pidfd -> (pid, connection)
+    ended: dict[socket.socket, int] = {}  # connection -> PID, not yet reaped
+    retired = False
     with selectors.DefaultSelector() as sel:
         sel.register(listener, selectors.EVENT_READ, "accept")
         sel.register(sys.stdin.fileno(), selectors.EVENT_READ, "caller")
-        while True:
+        while not (retired and not running and not ended):
             for key, _ in sel.select():
                 if key.data == "caller":  # the caller has gone: so does the zygote
                     for pid, _conn in running.values():
@@ -427,14 +515,19 @@ def serve(path: str) -> None:
                     os._exit(0)
                 if key.data == "accept":
                     conn, _ = listener.accept()
-                    message, fds, _flags, _addr = socket.recv_fds(conn, 1 << 16, 3)
-                    request = json.loads(message)
+                    request, fds = _request(conn)
+                    if request is None or request.get("retire"):
+                        retired = retired or request is not None
+                        if retired:
+                            sel.unregister(listener)
+                            listener.close()
+                        for fd in fds:
+                            os.close(fd)
+                        conn.close()
+                        continue
                     pid = os.fork()
                     if pid == 0:
-                        sel.close()
-                        listener.close()
-                        conn.close()
-                        _child(request, fds, clean_path)  # never returns
+                        _child(request, fds, sys_path)  # never returns
                     for fd in fds:
                         os.close(fd)
                     with contextlib.suppress(OSError):  # a caller gone: its run still ends
@@ -446,11 +539,12 @@ def serve(path: str) -> None:
                     pid, conn = running.pop(key.fd)
                     sel.unregister(key.fd)
                     os.close(key.fd)
-                    ended = os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)
-                    assert ended is not None  # (None only with WNOHANG)
+                    status = os.waitid(os.P_PID, pid, os.WEXITED | os.WNOWAIT)
+                    assert status is not None  # (None only with WNOHANG)
                     with contextlib.suppress(OSError):
-                        conn.sendall(b"%d\n" % _returncode(ended))
-                    sel.register(conn, selectors.EVENT_READ, pid)
+                        conn.sendall(b"%d\n" % _returncode(status))
+                    ended[conn] = pid
+                    sel.register(conn, selectors.EVENT_READ, "ended")
                 else:  # the caller has its status: the PID may go (Popen.wait reaps)
                     caller = key.fileobj
                     assert isinstance(caller, socket.socket)
@@ -459,7 +553,23 @@ def serve(path: str) -> None:
                             continue
                     sel.unregister(caller)
                     caller.close()
-                    os.waitpid(key.data, 0)
+                    os.waitpid(ended.pop(caller), 0)
+
+
+def _request(conn: socket.socket) -> tuple[dict[str, object] | None, list[int]]:
+    """A caller's request and the descriptors it sent; None for one that is not (a
+    caller that connected and then failed): the zygote goes on for the others."""
+    conn.settimeout(10)
+    fds: list[int] = []
+    try:
+        message, fds, _flags, _addr = socket.recv_fds(conn, 1 << 20, 3)
+        request = json.loads(message)
+    except (OSError, ValueError):
+        return None, fds
+    if not isinstance(request, dict) or (len(fds) != 3 and not request.get("retire")):
+        return None, fds
+    conn.settimeout(None)
+    return request, fds
 
 
 def _returncode(ended: os.waitid_result) -> int:
@@ -469,8 +579,9 @@ def _returncode(ended: os.waitid_result) -> int:
     return -ended.si_status
 
 
-def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) -> None:
+def _child(request: dict[str, object], fds: list[int], sys_path: list[str]) -> None:
     """Become ``python -m motorbus ARGS`` in the caller's directory, and end as it would."""
+    import gc
     import runpy
     import traceback
 
@@ -480,15 +591,15 @@ def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) ->
     # Nothing else open, as in a fresh interpreter: above all not the connections of
     # the other runs, whose callers wait for them to close.
     os.closerange(3, os.sysconf("SC_OPEN_MAX"))
+    if request.get("session"):
+        os.setsid()
     env = request["env"]
     assert isinstance(env, dict)
     os.environ.clear()
     os.environ.update(env)
-    if request.get("session"):
-        os.setsid()
     cwd = str(request["cwd"])
     os.chdir(cwd)
-    sys.path[:] = [cwd, *clean_path[1:]]
+    sys.path[:] = [cwd, *sys_path[1:]]  # python -m: the working folder first
     args = request["args"]
     assert isinstance(args, list)
     code = 0
@@ -504,15 +615,23 @@ def _child(request: dict[str, object], fds: list[int], clean_path: list[str]) ->
     except BaseException:
         traceback.print_exc()
         code = 1
+    # The interpreter's end, in its order: threads joined, atexit, what is left
+    # collected (a task destroyed while pending says so), the output flushed.
     try:
-        threading._shutdown()  # type: ignore[attr-defined]  # the interpreter's own order
+        threading._shutdown()  # type: ignore[attr-defined]
         atexit._run_exitfuncs()
-        for stream in (sys.stdout, sys.stderr):
-            stream.flush()
+        gc.collect()
     finally:
-        if interrupted:
+        try:
+            sys.stdout.flush()
+        except Exception:
+            code = 120
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        if interrupted:  # as the interpreter: die of SIGINT, or 130 if it cannot
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             os.kill(os.getpid(), signal.SIGINT)
+            code = 130
         os._exit(code)
 
 
