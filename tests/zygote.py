@@ -3,19 +3,24 @@
 The suite runs the command line about 350 times, ``motorbus serve`` about 100 and
 simulators (``SimProcess``) about 240, and each fresh interpreter spent ~100-150 ms of
 CPU starting and importing before it did anything: the largest part of the suite's
-CPU.  Here one
-*zygote* per worker and environment imports the command line once (``python -c``, with
-exactly the environment the command is to see, so that what modules read from it at
-import is what a fresh ``python -m motorbus`` would read), then forks a child per run.
+CPU.  Here a *zygote* per worker and environment imports the command line once
+(``python -c``, with exactly the environment the command is to see, so that what
+modules read from it at import is what a fresh ``python -m motorbus`` would read), then
+forks a child per run.  An environment's first run starts fresh, its second starts the
+zygote (environments that name a test's temporary folder are often used once); a
+worker keeps four, and retires the least recently used.
 
 The child is a real process of its own: its own PID (signals, the guard's watch of its
-parent), the caller's working directory, standard input from ``/dev/null`` and its
-output into pipes, the ``sys.argv`` of ``python -m motorbus``, and it ends as the
-interpreter would (``SystemExit`` codes, a traceback and 1 for an uncaught exception,
-death by SIGINT after an uncaught ``KeyboardInterrupt``; threads joined, ``atexit``
-run, output flushed).  What it does not repeat is the interpreter's start and the
-imports: tests of start-up itself (what a command imports, how long it takes) start
-their own interpreters, and ``MOTORBUS_TESTS_FRESH=1`` runs every command fresh.
+parent), a zombie until its status is read, a session of its own if asked, the
+caller's working directory and environment, standard input from ``/dev/null`` or the
+given text, its output into pipes, the ``sys.argv`` and ``sys.path`` of ``python -m
+motorbus``, and it ends as the interpreter would (``SystemExit`` codes, a traceback and
+1 for an uncaught exception, death by SIGINT after an uncaught ``KeyboardInterrupt``;
+threads joined, ``atexit`` run, garbage collected, output flushed).  What differs: it
+does not repeat the interpreter's start and the imports (tests of start-up itself
+start their own interpreters), a traceback shows the zygote's frames, and what an
+import prints or warns once is the zygote's.  ``MOTORBUS_TESTS_FRESH=1`` runs every
+command fresh.
 """
 
 from __future__ import annotations
