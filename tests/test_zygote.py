@@ -21,6 +21,10 @@ from tests import zygote
 from tests.waiting import eventually
 from tests.zygote import FRESH_ENV, ForkedProcess, ForkedTimeout, run_motorbus, spawn_motorbus
 
+#: The tests of forked runs, where this run forks none.
+needs_forks = pytest.mark.skipif(
+    os.environ.get(FRESH_ENV) == "1", reason=f"{FRESH_ENV}=1: every command runs fresh"
+)
 QUERY = la.Control(1, la.ControlAction.QUERY_STATUS).encode().hex(" ").upper()
 
 
@@ -44,6 +48,7 @@ def same(fresh: subprocess.CompletedProcess[str], forked: subprocess.CompletedPr
     )
 
 
+@needs_forks
 @pytest.mark.parametrize(
     "args",
     [
@@ -60,12 +65,14 @@ def test_a_forked_run_says_and_ends_as_a_fresh_one(args: list[str]) -> None:
     same(fresh, forked)
 
 
+@needs_forks
 def test_standard_input_reaches_the_command() -> None:
     fresh, forked = both(["decode", "--json"], stdin=f"{QUERY}\n")
     assert fresh.returncode == 0 and json.loads(fresh.stdout.splitlines()[0])
     same(fresh, forked)
 
 
+@needs_forks
 def test_an_environment_read_at_import_is_the_callers() -> None:
     """``MOTORBUS_HOST_MARGIN_MS`` is read when ``motorbus.bus`` is imported: a run with
     a bad value must fail as a fresh interpreter does, not run with the value a zygote
@@ -76,6 +83,7 @@ def test_an_environment_read_at_import_is_the_callers() -> None:
     same(fresh, forked)
 
 
+@needs_forks
 def test_a_relative_path_is_read_from_the_callers_folder(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -91,6 +99,7 @@ def test_a_relative_path_is_read_from_the_callers_folder(
     same(fresh, forked)
 
 
+@needs_forks
 async def test_a_run_past_its_timeout_is_killed_and_says_so_as_subprocess_run_does() -> None:
     """The zygote's child is killed at the timeout, and ``TimeoutExpired`` raised."""
     zygote.warm(os.environ)
@@ -116,6 +125,7 @@ async def test_a_run_past_its_timeout_is_killed_and_says_so_as_subprocess_run_do
     await eventually(gone, "the timed-out child to be killed")
 
 
+@needs_forks
 @pytest.mark.parametrize("fresh", [True, False], ids=["fresh", "forked"])
 def test_a_spawned_command_is_its_own_session_and_ends_on_sigterm(
     fresh: bool, monkeypatch: pytest.MonkeyPatch
@@ -142,6 +152,7 @@ def test_a_spawned_command_is_its_own_session_and_ends_on_sigterm(
     assert rest.startswith("motorbus sim: 0 requests, 0 replies"), rest
 
 
+@needs_forks
 @pytest.mark.parametrize("fresh", [True, False], ids=["fresh", "forked"])
 async def test_an_ended_child_keeps_its_pid_until_it_is_waited_for(
     fresh: bool, monkeypatch: pytest.MonkeyPatch
