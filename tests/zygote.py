@@ -89,17 +89,7 @@ def run_motorbus(
     empty (``/dev/null``, as under the suite's workers)."""
     command = [sys.executable, "-m", "motorbus", *args]
     env = dict(os.environ if env is None else env)
-    if env.get(FRESH_ENV) == "1" or not _forkable():
-        return subprocess.run(
-            command,
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-            env=env,
-            input=input,
-            stdin=None if input is not None else subprocess.DEVNULL,
-        )
-    zygote = _zygote(env)
+    zygote = None if env.get(FRESH_ENV) == "1" or not _forkable() else _zygote(env)
     if zygote is None:
         return subprocess.run(
             command,
