@@ -46,23 +46,10 @@ from subprocess import Popen
 ROOT = Path(__file__).resolve().parents[1]
 #: Set to 1 to run every command in a fresh interpreter (what a user's shell does).
 FRESH_ENV = "MOTORBUS_TESTS_FRESH"
-#: Imported by the zygote ahead of any command: the command line, and what its commands
-#: import when they run.  A module that fails to import (an extra hidden by a test's
-#: environment) is left for the command to fail on, as it would.
+#: Imported by the zygote ahead of any command, after every module of ``motorbus.cli``:
+#: what the commands import when they run.  A module that fails to import (an extra
+#: hidden by a test's environment) is left for the command to fail on, as it would.
 PRELOAD = (
-    "motorbus.cli.main",
-    "motorbus.cli.la",
-    "motorbus.cli.project",
-    "motorbus.cli.quad",
-    "motorbus.cli.scan",
-    "motorbus.cli.stream",
-    "motorbus.cli.capture",
-    "motorbus.cli.replay",
-    "motorbus.cli.monitor",
-    "motorbus.cli.decode",
-    "motorbus.cli.rig",
-    "motorbus.cli.la_setup",
-    "motorbus.cli.doctor",
     "motorbus.bus.bus",
     "motorbus.manager",
     "motorbus.devices.la",
@@ -70,9 +57,7 @@ PRELOAD = (
     "motorbus.devices.quad_stepper",
     "motorbus.rig",
     "motorbus.streams",
-    "motorbus.cli.served",
     "motorbus.serve.client",
-    "motorbus.cli.sim",
     "motorbus.sim.pty",
 )
 
@@ -481,8 +466,13 @@ def serve(path: str, sys_path: list[str]) -> None:
     """
     import gc
     import importlib
+    import pkgutil
 
-    for name in PRELOAD:
+    commands: list[str] = []
+    with contextlib.suppress(Exception):
+        found = pkgutil.iter_modules(importlib.import_module("motorbus.cli").__path__)
+        commands = [f"motorbus.cli.{m.name}" for m in found]
+    for name in [*PRELOAD, *commands]:
         with contextlib.suppress(Exception):  # the command meets it, as it would
             importlib.import_module(name)
     # What is loaded now stays: a child's collections leave it alone.
