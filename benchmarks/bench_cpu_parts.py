@@ -15,7 +15,14 @@ doing nothing, and the least loop (``timerfd``, issue 23's baseline (b)) beside 
   reply owed, goes from ``BusEngine.queue`` straight to its write (``_transmit``, with
   everything it records) without asking the scheduler whether it may start (no
   spacing rule, no reservations, no sequence number);
-* ``without_all``: the three together.
+* ``without_all``: the three together;
+* ``bare_write``: the tick's frames prepared through the bus as ever (``Bus.prepare``:
+  the checks, the lease rule, the job), but written by the streamer's timer callback
+  itself with ``os.write`` on the port's file descriptor: no ``send_prepared``, no
+  engine, no scheduler, no transport, nothing recorded of the write;
+* ``bare_tick``: the bus's path taken out whole: the streamer encodes each tick's 0xF3
+  frame itself (the same builder) and writes it with ``os.write``.  What is left is the
+  streamer, its timer and the target source: the stream's own structure.
 
 What a variant saves is what that part costs, whatever a profiler would say.  The
 variants break the bus's guarantees (that is the point): they exist only in this
@@ -35,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import statistics
 import tempfile
 from collections.abc import Callable, Iterator
@@ -48,10 +56,15 @@ from motorbus.bus.engine import BusEngine
 from motorbus.bus.lease_shell import LeaseKeeper
 from motorbus.bus.leases import LeaseTable
 from motorbus.bus.stats import LatencyHistogram
+from motorbus.streaming.model import broadcast_builder, broadcast_parts
+from motorbus.streaming.tick import record_sent
+from motorbus.streams import Streamer
 
 RESULTS = Path(__file__).resolve().parent / "results" / "cpu_parts.json"
 PARTS = ("no_leases", "no_stats", "direct_write")
-SIDES = ("ours", *PARTS, "without_all", "timerfd")
+#: Sides that take the bus's path for a stream frame out, in part or whole.
+BARE = ("bare_write", "bare_tick")
+SIDES = ("ours", *PARTS, "without_all", *BARE, "timerfd")
 
 
 def _nothing(*_args: Any, **_kwargs: Any) -> None:
@@ -68,10 +81,43 @@ def _direct_queue(real: Callable[..., None]) -> Callable[..., None]:
     return queue
 
 
+def _port_fd(streamer: Streamer) -> int:
+    """The file descriptor of the streamer's port (pyserial's, under the backend)."""
+    fd: int = streamer.bus._engine.transport._transport._serial.fd  # type: ignore[attr-defined]
+    return fd
+
+
+def _bare_prepare(self: Streamer, tick: Any) -> None:
+    """``Streamer._prepare_tick`` without the bus: the tick's 0xF3 frames, encoded."""
+    parts = [(s, s.last_targets) for s in tick.served if not s.feedback]
+    frames = [broadcast_builder(p)() for p in broadcast_parts(parts)] if parts else []
+    tick.prepared = [f.encode() for f in frames if f is not None]
+
+
+def _bare_fire(self: Streamer) -> None:
+    """``Streamer._fire`` for a steady tick, each frame written with ``os.write``:
+    ``job.raw`` of a job ``Bus.prepare`` made (``bare_write``), or the bytes
+    themselves (``bare_tick``).  Counted as ``_fire`` counts a tick written whole."""
+    handback, tick = self._handback, self._armed
+    self._armed = self._fire_handle = None
+    if handback is None or handback.done() or tick is None:
+        return
+    fd = _port_fd(self)
+    for ready in tick.prepared or ():
+        os.write(fd, ready if type(ready) is bytes else ready.job.raw)
+    record_sent(tick, self._timer.now(), False, 1)
+    self._active = None
+    self._fire_handle = self._timer.call_at(tick.deadline, self._advance)
+
+
 @contextlib.contextmanager
 def without(parts: tuple[str, ...]) -> Iterator[None]:
-    """The bus with ``parts`` (``PARTS``) doing nothing, until the block ends."""
+    """The bus with ``parts`` (``PARTS``, ``BARE``) doing nothing, until the block ends."""
     patches: list[tuple[type, str, Any]] = []
+    if "bare_write" in parts or "bare_tick" in parts:
+        patches.append((Streamer, "_fire", _bare_fire))
+    if "bare_tick" in parts:
+        patches.append((Streamer, "_prepare_tick", _bare_prepare))
     if "no_leases" in parts:
         patches += [(LeaseKeeper, "claim", _nothing), (LeaseTable, "moved", _nothing)]
     if "no_stats" in parts:
@@ -92,7 +138,7 @@ def without(parts: tuple[str, ...]) -> Iterator[None]:
 def run_once(side: str, paths: list[str], seconds: float, polls: str) -> dict[str, Any]:
     if side == "timerfd":
         return bench_cpu.run_side("timerfd", paths, seconds, polls, None)
-    parts = PARTS if side == "without_all" else tuple(p for p in PARTS if p == side)
+    parts = PARTS if side == "without_all" else tuple(p for p in PARTS + BARE if p == side)
     with without(parts):
         return bench_cpu.run_side("ours", paths, seconds, polls, None)
 

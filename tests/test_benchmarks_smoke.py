@@ -999,6 +999,28 @@ def test_the_parts_taken_out_come_back_and_the_stream_still_ticks(tmp_path: Path
     assert (LeaseKeeper.__dict__["claim"], BusEngine.__dict__["queue"]) == (claim, queue)
 
 
+@pytest.mark.parametrize("side", ["bare_write", "bare_tick"])
+def test_a_bare_side_writes_every_tick_itself_and_gives_the_streamer_back(
+    side: str, tmp_path: Path
+) -> None:
+    """``bench_cpu_parts.py``'s bare sides write each tick's 0xF3 frame from the
+    streamer's callback with ``os.write``; the frames reach the port (the responder
+    records them) and the streamer's own methods come back after the run."""
+    import bench_cpu_parts as parts
+    from motorbus.streams import Streamer
+
+    fire, prepare = Streamer.__dict__["_fire"], Streamer.__dict__["_prepare_tick"]
+    responder = bench_cpu.Responder(1, tmp_path / "rec.json")
+    try:
+        out = parts.run_once(side, responder.paths, 0.2, "none")
+    finally:
+        responder.stop()
+    assert out["stream_errors"] == 0 and out["ticks"] >= 15
+    assert (Streamer.__dict__["_fire"], Streamer.__dict__["_prepare_tick"]) == (fire, prepare)
+    (frames,) = json.loads((tmp_path / "rec.json").read_text())["frames"]
+    assert sum(1 for _t, cmd in frames if cmd == 0xF3) >= out["ticks"]
+
+
 #: benchmarks/*.py that are not scripts writing a report of their own: the harness, the
 #: full run and its parts, and modules or children the scripts use.
 NOT_REPORTING = {
