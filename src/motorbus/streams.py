@@ -27,7 +27,9 @@ block, an error), nothing more of it is written.  Its frames are prepared ahead 
 deadline (``Bus.prepare(refresh=...)``) and re-checked at the write, rebuilt from the
 streams still running only if one stopped, so a tick queued or prepared when the stop
 began is dropped, not sent after the safe action's pause (a follow target would resume
-a paused actuator, LA manual 3.5.4).
+a paused actuator, LA manual 3.5.4).  A pause or an e-stop of a streamed actuator from
+anyone (another client, a dashboard, the program's own code: ``Lease.stopped``) ends its
+stream the same way, with an error; the stream sends no safe action the stop covers.
 
 Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
 of its ``async with`` block, an error, a gap it was told to stop on, the bus closing),
@@ -35,15 +37,9 @@ its safe action (``safe_action``: "pause" or "estop") goes to its actuators, unl
 owner ends it explicitly with ``stop(hold=True)`` (the actuators then hold their last
 target).
 
-After a gap (the port lost and back, or ``GAP_TICKS`` ticks behind), a ramp: with
-``on_gap="ramp"`` (the default) the stream ramps at ``max_speed`` from where each
-actuator is to the trajectory (``Stream.recover_from_gap``); with ``on_gap="stop"`` it
-applies its safe action and ends with an error.  Either way the gap is a ``StreamGap``
-event (``stream.gaps``, or ``bus.events``) and a count (``stats.gaps``).
-
-All the streamers of one bus share one time budget: a set of streams that cannot fit
-the bus is refused when it starts, with an error that says what would fit, and an
-actuator can be streamed by one stream at a time.
+After a gap (the port lost and back, or ``GAP_TICKS`` ticks behind), a ramp or an end
+(``follow``'s ``on_gap``), a ``StreamGap`` event and a count (``stats.gaps``).  The
+streamers of a bus share one time budget (``follow`` refuses what would not fit).
 """
 
 from __future__ import annotations
@@ -93,6 +89,7 @@ from motorbus.streaming.tick import (
     ENDED,
     FAILED,
     GAP,
+    STOPPED,
     Handed,
     Tick,
     abandon,
@@ -324,9 +321,8 @@ class Streamer:
         ``follow`` comes here when the calling task holds an explicit lease on its
         actuators (``bus.lease``, bound to the task): the stream runs under that lease,
         which must hold every actuator of it, in frames of its own.  Ending the lease
-        (``release``, the end of its ``async with`` block) stops such streams first, so
-        nothing of them follows the lease's safe action; a stream that ends leaves its
-        actuators in the lease.
+        (``release``, its ``async with`` block's end) stops such streams first: nothing of
+        them follows its safe action.  A stream that ends leaves its actuators in it.
         """
         self._under = {i: c for i, c in self._under.items() if c.lease and c.lease.active}
         child = self._under.get(id(lease))
@@ -376,6 +372,8 @@ class Streamer:
         try:  # one owner per motion: another's lease is refused here, nothing sent
             taken = self._take(keys)
             self.budget.admit(self.bus.timing, stream)
+            if self.lease is not None:  # a stop before this stream does not end it
+                self.lease.forget_stops(keys)
         except BaseException:
             stream.gaps.close()
             if taken and self.lease is not None:
@@ -413,9 +411,8 @@ class Streamer:
     async def close(self, *, hold: bool = False, safe: bool | None = None) -> None:
         """End every stream with its safe action (none with ``hold``) and stop the task.
 
-        Every stream stops sending at once, before the first safe action is sent; they
-        stop together, so a silent actuator in one holds up no other's safe action (the
-        first error is raised after).  ``safe=False`` is the older ``hold=True``.
+        All stop sending at once, then stop together: a silent actuator holds up no other's
+        safe action (the first error is raised after).  ``safe=False``: ``hold=True``.
         """
         hold = hold_flag(hold, safe)
         children, self._under = list(self._under.values()), {}
@@ -471,13 +468,14 @@ class Streamer:
                 abandon(tick)
 
     def _plan(self, deadline: float) -> Tick:
-        bus = self.bus
+        bus, lease = self.bus, self.lease
         return plan_tick(
             self.streams,
             deadline,
             self._timer.now(),
             bus_up=bus.state is BusState.OPEN,
             disconnects=bus.stats.disconnects,
+            stopped=lease.stopped if lease is not None else {},
         )
 
     def _idle(self) -> float:
@@ -498,6 +496,10 @@ class Streamer:
             try:
                 if kind == GAP:
                     await s.recover_from_gap(value)
+                    continue
+                if kind == STOPPED:  # a pause or an e-stop from anyone: no target after it
+                    log.warning("stream to %s ended: %s", list(s.ids), err := s.stop_error())
+                    await s.end(err)
                     continue
                 if kind == AWAIT:
                     try:

@@ -406,3 +406,29 @@ async def test_a_stream_started_under_the_tasks_lease_runs_under_it_and_ends_wit
         await asyncio.wait_for(second.wait(), 10)
         assert pause in after_last_broadcast(la_sim)
         assert list(other.bus().leases) == []
+
+
+async def test_an_estop_from_another_program_ends_the_served_stream_and_sticks(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    """A new user's report: an e-stop from outside left the served stream running (its
+    ``wait()`` returned normally), and its own pause at the end would undo the latch."""
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        stream = Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)],
+            lambda t, s: (800, 1200),
+            period=0.01,
+            safe_action="pause",
+        )
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "5 ticks at the simulator")
+        done = run_motorbus(["la", "estop", "1", "--connect", endpoint])
+        assert done.returncode == 0, done.stderr
+        with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
+            await asyncio.wait_for(stream.wait(), 30)
+    seen = frames(la_sim)
+    estop = la.Control(1, la.ControlAction.ESTOP)
+    after = seen[max(n for n, f in enumerate(seen) if f == estop) + 1 :]
+    assert not any(isinstance(f, la.Broadcast) for f in after), after
+    assert la.Control(1, la.ControlAction.PAUSE) not in after  # the latch holds
+    assert la.Control(2, la.ControlAction.PAUSE) in after  # the stream's own end

@@ -388,10 +388,10 @@ class BusEngine:
                 elif what is Verdict.DONE:
                     rest = safety.at_rest_after_done(about.cmd)
                     if rest is not None:
-                        self._leases.sent(rest)  # the run is over: its stop is not owed
+                        self._leases.sent(rest, written=False)  # the run is over: not owed
                     self._publish(QuadDone(self.name, now, about.kind, raw[2], about.led, raw))
                 elif what is ProjectFinishedMarker:
-                    self._leases.sent(safety.AT_REST_AFTER_PROJECT_END)  # the run is over
+                    self._leases.sent(safety.AT_REST_AFTER_PROJECT_END, written=False)
                     self._publish(ProjectFinished(self.name, now))
                 elif log.isEnabledFor(logging.DEBUG):  # Discarded, counted by the reassembler
                     log.debug("%s discarded %s (%s)", self.name, format_hex(raw), about.reason)

@@ -144,6 +144,11 @@ class Lease:
         #: (``keys`` None: all of them): a stream running under this lease stops there,
         #: so nothing of it follows the lease's safe action.
         self.enders: list[Callable[[frozenset[DeviceKey] | None, bool], Any]] = []
+        #: The stops written to its devices while it held them (a pause or an e-stop,
+        #: by anyone: another client, a dashboard, the owner's own code), by device:
+        #: a stream under this lease ends on one (``motorbus.streams``), and sends no
+        #: safe action of its own that the stop already covers.
+        self.stopped: dict[DeviceKey, Command[object]] = {}
 
     def __repr__(self) -> str:
         state = "held" if self.active else "released"
@@ -190,6 +195,11 @@ class Lease:
                 self.table.release(self, hold=hold, keys=wanted)
         if failed is not None:
             raise failed
+
+    def forget_stops(self, keys: Iterable[DeviceKey]) -> None:
+        """Forget the stops noted on ``keys`` (``stopped``): a new stream drives them."""
+        for key in keys:
+            self.stopped.pop(key, None)
 
     async def __aenter__(self) -> Lease:
         return self
@@ -500,20 +510,28 @@ class LeaseTable:
         if memo[3] == self._owed_epoch:
             self._settled = memo  # nothing changed: the same motion again is a no-op
 
-    def sent(self, cmd: Command[object], key: DeviceKey | None = None) -> None:
+    def sent(
+        self, cmd: Command[object], key: DeviceKey | None = None, *, written: bool = True
+    ) -> None:
         """``cmd`` was written (and answered, if it expects a reply): what it covers of
-        the safe actions owed is paid.  ``key``: its ``device_key``, if known."""
+        the safe actions owed is paid, and a stop is noted on the lease of each device
+        it stops (``Lease.stopped``).  ``key``: its ``device_key``, if known.
+        ``written=False``: not a frame but what a device's own end counts as (a
+        project's ``EE DD``, a quad run's done): it pays, and is no stop of anyone's."""
         if key is None:
             key = cmd.device_key
         if key in _WILDCARDS:
             prefix = _WILDCARDS[key]
-            entries = [e for k, e in self._entries.items() if k.startswith(prefix)]
+            held = [(k, e) for k, e in self._entries.items() if k.startswith(prefix)]
         else:
             entry = self._entries.get(key)
             if entry is None:
                 return
-            entries = [entry]
-        for entry in entries:
+            held = [(key, entry)]
+        if written and safety.is_stop(cmd):
+            for k, entry in held:
+                entry.lease.stopped[k] = cmd
+        for _, entry in held:
             owed = entry.owed
             if owed:
                 left = safety.pending_after(cmd, owed)

@@ -41,6 +41,7 @@ __all__ = [
     "check_safe_action",
     "covers",
     "family_of_key",
+    "is_stop",
     "motion_keys",
     "motion_stops",
     "pending_after",
@@ -272,6 +273,22 @@ def covers(sent: Command[object], safe: Command[object]) -> bool:
         return (sent.id in (safe.id, la.BROADCAST_ID)) and safe.action in _LA_STOPS.get(
             sent.action, frozenset()
         )
+    return False
+
+
+def is_stop(cmd: Command[object]) -> bool:
+    """True for a command that stops its device: an LA pause or e-stop, a project
+    stop or manual stop, a quad motor's stop or stop all."""
+    if isinstance(cmd, la.Control):  # (a served bus's tapped copy too: a subclass)
+        return cmd.action in _LA_STOPS
+    if cmd.family is Family.PROJECT_STEPPER:
+        from motorbus.protocol import project_stepper as ps
+
+        return isinstance(cmd, ps.StopProject | ps.ManualStop)
+    if cmd.family is Family.QUAD_STEPPER:
+        from motorbus.protocol import quad_stepper as q
+
+        return isinstance(cmd, q.Stop | q.StopAll)
     return False
 
 

@@ -24,6 +24,8 @@ from motorbus.devices.la import InspireLA
 from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, StreamEnded
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
+from motorbus.protocol.base import Command
+from motorbus.protocol.safety import covers
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GapPolicy,
@@ -48,11 +50,21 @@ __all__ = [
 log = logging.getLogger("motorbus.streams")
 
 
+def _stop_name(cmd: Command[object]) -> str:
+    """``Control(3, PAUSE)`` as ``"PAUSE"``; another stop by its class's name."""
+    action = getattr(cmd, "action", None)
+    return action.name if isinstance(action, la.ControlAction) else type(cmd).__name__
+
+
 class StreamOwner(Protocol):
     """What a stream needs of the streamer that serves it."""
 
     @property
     def bus(self) -> Bus: ...
+
+    @property
+    def lease(self) -> Lease | None:
+        """The lease the stream's actuators are held by (its ``stopped`` ends it)."""
 
     def discard(self, stream: Stream) -> None:
         """Forget ``stream``: it has ended."""
@@ -256,8 +268,30 @@ class Stream:
 
     @property
     def sending(self) -> bool:
-        """True while the stream may still write targets (not paused, stopping or done)."""
-        return not (self.paused or self.stopping or self.done)
+        """True while the stream may still write targets: not paused, stopping or done,
+        and none of its actuators stopped since it started (``Lease.stopped``: a frame
+        built before the stop, written after it, is dropped at its write)."""
+        if self.paused or self.stopping or self.done:
+            return False
+        lease = self.streamer.lease
+        return lease is None or not lease.stopped or self.keys.isdisjoint(lease.stopped)
+
+    def stopped_by(self) -> dict[str, Command[object]]:
+        """The stops written to this stream's actuators while it drove them, by device
+        (``Lease.stopped``): a pause or an e-stop from anyone."""
+        lease = self.streamer.lease
+        if lease is None or not lease.stopped:
+            return {}
+        return {k: c for k, c in lease.stopped.items() if k in self.keys}
+
+    def stop_error(self) -> MotorbusError:
+        """What the stream ends with when its actuators were stopped (``stopped_by``)."""
+        stops = self.stopped_by()
+        what = ", ".join(f"{k} ({_stop_name(stops[k])})" for k in sorted(stops))
+        return MotorbusError(
+            f"{what or 'an actuator'} stopped while the stream drove it; no target "
+            "follows a stop (start a new stream to go on)"
+        )
 
     async def stop(self, *, hold: bool = False, safe: bool | None = None) -> None:
         """End the stream and apply its safe action; with ``hold``, send none.  Idempotent.
@@ -300,7 +334,21 @@ class Stream:
             return
         keys = [f"la:{i}" for i in self.ids]
         bus = self.streamer.bus
-        await bus.lease_keeper.stop(keys, self.safe_action.value, who=f"stream to {keys}")
+        keeper, action = bus.lease_keeper, self.safe_action.value
+        stopped = self.stopped_by()
+        if stopped:
+            # Stopped since (a pause or an e-stop from anyone), with nothing of the stream
+            # written after (``sending``): a safe action the stop covers is not sent,
+            # since a pause after an e-stop would undo its latch.
+            keys = [
+                k
+                for k in keys
+                if k not in stopped
+                or not all(covers(stopped[k], c) for c in keeper.safe_commands(k, action))
+            ]
+            if not keys:
+                return
+        await keeper.stop(keys, action, who=f"stream to {keys}")
 
     def answered(self, ident: int, status: la.Status | None) -> None:
         """``ident``'s status reply came (None: its frame was dropped unsent)."""

@@ -10,7 +10,8 @@ counted from the timer callback of the tick before it, without a task turn.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any
 
 from motorbus.streaming.model import GAP_TICKS, LATE_AFTER_S
@@ -25,6 +26,7 @@ __all__ = [
     "ENDED",
     "FAILED",
     "GAP",
+    "STOPPED",
     "Handed",
     "Tick",
     "abandon",
@@ -36,6 +38,8 @@ __all__ = [
 
 #: Ticks within this of each other are served together (and coalesced).
 COALESCE_WINDOW_S = 200e-6
+#: ``plan_tick``'s ``stopped`` when nothing was stopped.
+_NONE_STOPPED: Mapping[str, object] = MappingProxyType({})
 
 #: What ``Tick.later`` asks of the task, for one stream: recover from a gap (the cause),
 GAP = "gap"
@@ -43,8 +47,10 @@ GAP = "gap"
 FAILED = "failed"
 #: end it normally (its targets ran out),
 ENDED = "ended"
-#: or await its targets (a ``Pending``) and then serve it.
+#: or await its targets (a ``Pending``) and then serve it,
 AWAIT = "await"
+#: or end it: one of its actuators was stopped (a pause or an e-stop, ``Lease.stopped``).
+STOPPED = "stopped"
 
 
 class Tick:
@@ -88,14 +94,22 @@ class Handed:
 
 
 def plan_tick(
-    streams: Sequence[Stream], deadline: float, now: float, *, bus_up: bool, disconnects: int
+    streams: Sequence[Stream],
+    deadline: float,
+    now: float,
+    *,
+    bus_up: bool,
+    disconnects: int,
+    stopped: Mapping[str, object] = _NONE_STOPPED,
 ) -> Tick:
     """Plan the tick at ``deadline`` of the ``streams`` due then (within
     ``COALESCE_WINDOW_S``), at ``now``: move each on to its next slot (skipping, never
     bursting, the slots already past), and take its targets.
 
     ``bus_up``: the bus is open (else the grid runs on and the ticks are skipped);
-    ``disconnects``: the bus's outage count (a stream that has not seen it has a gap).
+    ``disconnects``: the bus's outage count (a stream that has not seen it has a gap);
+    ``stopped``: the devices stopped while the streams' lease held them
+    (``Lease.stopped``): a stream driving one of them ends, with no target after the stop.
     """
     tick = Tick(deadline)
     window = deadline + COALESCE_WINDOW_S
@@ -111,6 +125,9 @@ def plan_tick(
         s.next_tick = k + 1
         if not bus_up:  # the port is gone: the grid runs on, the ticks are skipped
             s.stats.skipped += 1
+            continue
+        if stopped and not s.stopping and not s.keys.isdisjoint(stopped):
+            tick.later.append((s, STOPPED, None))  # (its ``sending`` is False from the stop)
             continue
         if not s.sending:
             continue
