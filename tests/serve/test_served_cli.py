@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -77,3 +78,32 @@ def test_serve_on_port_0_prints_the_port_it_was_given(la_sim: SimProcess) -> Non
         assert json.loads(out.stdout)["id"] == 1
     finally:
         server.finish()
+
+
+@pytest.mark.parametrize(
+    ("option", "message"),
+    [
+        (["--liveness", "0"], "liveness=0.0 is out of range: allowed 0.1..60 s"),
+        (["--liveness", "100"], "liveness=100.0 is out of range"),
+        (["--zenoh-config", "/nonexistent/server.json5"], "--zenoh-config /nonexistent"),
+        (["--zenoh-config", "BROKEN"], "--zenoh-config "),
+    ],
+)
+def test_a_bad_server_option_is_refused_before_the_port_opens(
+    la_sim: SimProcess, endpoint: str, tmp_path: Path, option: list[str], message: str
+) -> None:
+    """A new user's report: these were found only after the buses opened, so the
+    manager's close paused every device on the way out, and a bad Zenoh configuration
+    file ended in a 37-line traceback from Zenoh's Rust source."""
+    if option[-1] == "BROKEN":
+        broken = tmp_path / "broken.json5"
+        broken.write_text("{ mode: 'peer', listen: ")
+        option = [option[0], str(broken)]
+    out = motorbus_cli(
+        "serve", "--port", la_sim.path, "--baud", "921600", "--devices", "la:1-2",
+        "--listen", endpoint, *option,
+    )  # fmt: skip
+    assert out.returncode == 2, (out.returncode, out.stderr)
+    assert message in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and ".rs:" not in out.stderr, out.stderr
+    assert not [r for r in la_sim.log_records() if r["direction"] == "request"]

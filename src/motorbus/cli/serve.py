@@ -32,7 +32,7 @@ from typing import Any
 from motorbus import BusManager, load_bus_file
 from motorbus import run as run_safely
 from motorbus.cli.realtime_option import add_realtime_option
-from motorbus.errors import UsageError
+from motorbus.errors import LocalProtocolError, UsageError
 
 __all__ = ["EXTRA_MESSAGE", "register", "run"]
 
@@ -164,9 +164,18 @@ def run(args: argparse.Namespace) -> int:
         print(EXTRA_MESSAGE, file=sys.stderr)
         return 2
     from motorbus.serve import BusServer
-    from motorbus.serve.zconf import check_endpoint
+    from motorbus.serve.keys import check_liveness
+    from motorbus.serve.zconf import check_endpoint, server_config
 
+    # Every server option is checked before a port opens: a bad one sends nothing (the
+    # manager's close would pause the devices of a bus that opened).
     check_endpoint("--listen", args.listen)
+    check_liveness(args.liveness)
+    if args.zenoh_config is not None:
+        try:
+            server_config(args.listen, args.zenoh_config)
+        except LocalProtocolError as err:  # no such file, not JSON5, an unknown key
+            raise UsageError(f"--zenoh-config {args.zenoh_config}: {err}") from None
     manager = _manager(args)
     manager.safe_stop = not args.stop_leased_only
     if args.guard:

@@ -51,7 +51,7 @@ from motorbus.protocol import safety
 from motorbus.protocol.base import Command, Family, check_flag
 from motorbus.serve import keys as k
 from motorbus.serve.event_order import EventOrder
-from motorbus.serve.zconf import client_config, on_zenoh_thread, zenoh
+from motorbus.serve.zconf import client_config, on_zenoh_thread, zenoh, zenoh_error_text
 
 if TYPE_CHECKING:
     from motorbus.serve.tools_client import ServedDevices, ServedScan
@@ -444,7 +444,7 @@ class ServedSite:
             self._session = await asyncio.to_thread(z.open, config)
         except Exception as err:
             raise BusClosedError(
-                f"cannot reach a motorbus server at {self.endpoint}: {err}"
+                f"cannot reach a motorbus server at {self.endpoint}: {zenoh_error_text(err)}"
             ) from None
         try:
             info = await self._query(f"{k.PREFIX}/info", {}, CONTACT_TIMEOUT_S)

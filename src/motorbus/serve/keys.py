@@ -73,6 +73,7 @@ __all__ = [
     "PayloadError",
     "bus_key",
     "check_chunk",
+    "check_liveness",
     "client_key",
     "decode_frame",
     "decode_json",
@@ -136,6 +137,21 @@ def check_chunk(field: str, value: object) -> str:
             value=value,
         )
     return value
+
+
+def check_liveness(value: object) -> float:
+    """A server's ``liveness`` in seconds (``LIVENESS_MIN_S``..``LIVENESS_MAX_S``)."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not LIVENESS_MIN_S <= value <= LIVENESS_MAX_S
+    ):
+        raise LocalProtocolError(
+            f"liveness={value!r} is out of range: allowed {LIVENESS_MIN_S:g}..{LIVENESS_MAX_S:g} s",
+            field="liveness",
+            value=value,
+        )
+    return float(value)
 
 
 def bus_key(bus: str, what: str) -> str:

@@ -126,22 +126,11 @@ class BusServer:
             raise LocalProtocolError("a server needs at least one bus", field="buses")
         for name in buses:
             k.check_chunk("bus", name)
-        if (
-            isinstance(liveness, bool)
-            or not isinstance(liveness, int | float)
-            or not k.LIVENESS_MIN_S <= liveness <= k.LIVENESS_MAX_S
-        ):
-            raise LocalProtocolError(
-                f"liveness={liveness!r} is out of range: allowed "
-                f"{k.LIVENESS_MIN_S:g}..{k.LIVENESS_MAX_S:g} s",
-                field="liveness",
-                value=liveness,
-            )
+        self.liveness = k.check_liveness(liveness)
         self.buses = dict(buses)
         self.listen = listen
         #: Where clients connect: ``listen``, with the port it was given once started.
         self.endpoint = listen
-        self.liveness = float(liveness)
         self.watch_only = watch_only
         self.instance = uuid.uuid4().hex[:12]
         self._config = server_config(listen, zenoh_config)

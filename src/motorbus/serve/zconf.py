@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +22,7 @@ __all__ = [
     "on_zenoh_thread",
     "server_config",
     "zenoh",
+    "zenoh_error_text",
 ]
 
 #: Where ``motorbus serve`` listens unless told: loopback only.
@@ -96,11 +98,30 @@ def check_config_file(config_file: object) -> str | None:
 
 def _base(config_file: str | None) -> Any:
     z = zenoh()
-    config = z.Config.from_file(config_file) if config_file else z.Config()
+    try:
+        config = z.Config.from_file(config_file) if config_file else z.Config()
+    except Exception as err:  # zenoh.ZError: no such file, not JSON5, an unknown key
+        raise LocalProtocolError(
+            f"config_file={config_file!r}: {zenoh_error_text(err)}",
+            field="config_file",
+            value=config_file,
+        ) from None
     if not config_file:
         # Hermetic unless a configuration file asks for discovery: no multicast.
         config.insert_json5("scouting/multicast/enabled", "false")
     return config
+
+
+def zenoh_error_text(err: BaseException) -> str:
+    """Zenoh's message on one line, without the Rust source location it ends with
+    (``... at /root/.cargo/.../lib.rs:1507.``); a JSON5 parse error's drawing of the
+    line becomes ``line L, column C: what was expected``."""
+    text = re.sub(r"\s+at /\S+\.rs:\d+\.?$", "", str(err).strip())
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    said = re.search(r"^\s*=\s*(.+)$", text, re.MULTILINE)
+    if where and said:
+        return f"line {where[1]}, column {where[2]}: {said[1].strip()}"
+    return " ".join(text.split())
 
 
 def any_port(endpoint: str) -> bool:
