@@ -566,7 +566,8 @@ def buses_and_groups(
         )
     tables = data.get("bus")
     if not isinstance(tables, list) or not tables:
-        raise LocalProtocolError("the bus file needs at least one [[bus]] table", field="bus")
+        one = " (it has [bus]: write [[bus]], a list of buses)" if isinstance(tables, dict) else ""
+        raise LocalProtocolError(f"the bus file needs at least one [[bus]] table{one}", field="bus")
     specs: list[BusSpec] = []
     for i, table in enumerate(tables):
         spec = BusSpec.from_mapping(table, i)

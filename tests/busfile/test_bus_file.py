@@ -296,7 +296,7 @@ devices = ["quad-stepper", "project-stepper:motor=0x05"]
     [
         ({}, "at least one"),
         ({"bus": []}, "at least one"),
-        ({"bus": {"url": "x", "baud": 9600}}, "at least one"),
+        ({"bus": {"url": "x", "baud": 9600}}, "[[bus]] table (it has [bus]: write [[bus]]"),
         ({"bus": ["x"]}, "bus #1 must be a table"),
         ({"bus": [VALID], "buss": [VALID]}, "unknown top-level keys ['buss']"),
         ({"bus": [{"url": "x"}]}, "'baud' is required"),

@@ -181,6 +181,7 @@ def check_follow_options(
         raise LocalProtocolError(
             f"safe_action={safe_action!r} is not allowed: choose hold, pause or estop",
             field="safe_action",
+            value=safe_action,
         ) from None
     try:
         policy = GapPolicy(on_gap)
