@@ -432,3 +432,23 @@ async def test_an_estop_from_another_program_ends_the_served_stream_and_sticks(
     assert not any(isinstance(f, la.Broadcast) for f in after), after
     assert la.Control(1, la.ControlAction.PAUSE) not in after  # the latch holds
     assert la.Control(2, la.ControlAction.PAUSE) in after  # the stream's own end
+
+
+async def test_a_server_closing_mid_stream_ends_it_with_an_error_the_client_sees(
+    la_sim: SimProcess, la_server: Child, endpoint: str
+) -> None:
+    """A new user's report: a served stream the server's SIGTERM cut short ended as if
+    its targets had run out (``wait()`` returned); now ``wait()`` says why."""
+    async with motorbus.connect(endpoint) as site:
+        bus = site.bus()
+        stream = Streamer(bus).follow(
+            [InspireLA(bus, 1), InspireLA(bus, 2)],
+            lambda t, s: (800, 1200),
+            period=0.01,
+            safe_action="pause",
+        )
+        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "5 ticks at the simulator")
+        la_server.finish(signal.SIGTERM)
+        with pytest.raises(StreamEnded, match="the server is closing"):
+            await asyncio.wait_for(stream.wait(), 30)
+    assert set(after_last_broadcast(la_sim)) >= {la.decode_request(p) for p in PAUSES}

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Any
 
 from motorbus.bus.bus import Bus
 from motorbus.devices.la import InspireLA
-from motorbus.errors import LocalProtocolError, MotorbusError, StreamEnded
+from motorbus.errors import BusClosedError, LocalProtocolError, MotorbusError, StreamEnded
 from motorbus.protocol import la
 from motorbus.protocol.base import Family
 from motorbus.serve import keys as k
@@ -281,8 +281,8 @@ class StreamService:
                 log.warning(
                     "client %s: %s; stopping stream %d", client.id, why, served.stream.number
                 )
-                try:
-                    await served.stream.stop()
+                try:  # with its safe action, and why: the client's wait() raises it
+                    await served.stream.end(BusClosedError(why))
                 except MotorbusError as err:
                     log.error("client %s: a stream's safe action failed: %s", client.id, err)
             await self._finished(served)
