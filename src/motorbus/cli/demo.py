@@ -312,16 +312,26 @@ async def _quad_job(mgr: BusManager, log: DemoLog) -> None:
 async def _live_table(
     mgr: BusManager, stream: Stream, log: DemoLog, started: float, out: TextIO
 ) -> None:
+    # On a terminal the table redraws in place; elsewhere (a log, a pipe) a line every
+    # 2 s says how far it is, and the whole table comes once, at the end.
+    brief = not out.isatty()
     while True:
-        await asyncio.sleep(0.5)
-        _draw(mgr, stream, log, started, out, final=False)
+        await asyncio.sleep(2.0 if brief else 0.5)
+        _draw(mgr, stream, log, started, out, final=False, brief=brief)
 
 
 _drawn_lines = 0
 
 
 def _draw(
-    mgr: BusManager, stream: Stream, log: DemoLog, started: float, out: TextIO, *, final: bool
+    mgr: BusManager,
+    stream: Stream,
+    log: DemoLog,
+    started: float,
+    out: TextIO,
+    *,
+    final: bool,
+    brief: bool = False,
 ) -> None:
     global _drawn_lines
     lines = []
@@ -332,6 +342,10 @@ def _draw(
         f"{st['skipped']} skipped, jitter p99 {st['jitter_p99_us']:.0f} µs (host)  "
         f"LA bus: {la_bus.stats.requests} frames, {la_bus.stats.timeouts} timeouts"
     )
+    if brief:  # the first line alone
+        out.write(lines[0] + "\n")
+        out.flush()
+        return
     lines.append("  id  target  position  temp  current  errors")
     for ident in (1, 2, 3, 8, 15):
         s = stream.statuses.get(ident)
