@@ -29,7 +29,7 @@ streams still running only if one stopped, so a tick queued or prepared when the
 began is dropped, not sent after the safe action's pause (a follow target would resume
 a paused actuator, LA manual 3.5.4).  A pause or an e-stop of a streamed actuator from
 anyone (another client, a dashboard, the program's own code: ``Lease.stopped``) ends its
-stream the same way, with an error; the stream sends no safe action the stop covers.
+stream the same way, with an error, and the stream's safe action after it.
 
 Every end is a safe end: however a stream ends (its targets run out, ``stop()``, the end
 of its ``async with`` block, an error, a gap it was told to stop on, the bus closing),

@@ -146,8 +146,7 @@ class Lease:
         self.enders: list[Callable[[frozenset[DeviceKey] | None, bool], Any]] = []
         #: The stops written to its devices while it held them (a pause or an e-stop,
         #: by anyone: another client, a dashboard, the owner's own code), by device:
-        #: a stream under this lease ends on one (``motorbus.streams``), and sends no
-        #: safe action of its own that the stop already covers.
+        #: a stream under this lease ends on one (``motorbus.streams``).
         self.stopped: dict[DeviceKey, Command[object]] = {}
 
     def __repr__(self) -> str:

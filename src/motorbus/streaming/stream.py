@@ -25,7 +25,6 @@ from motorbus.errors import LocalProtocolError, MotorbusError, NotSentError, Str
 from motorbus.lifecycle import deferred_interrupts
 from motorbus.protocol import la
 from motorbus.protocol.base import Command
-from motorbus.protocol.safety import covers
 from motorbus.streaming.model import (
     DEFAULT_MAX_SPEED,
     GapPolicy,
@@ -334,21 +333,9 @@ class Stream:
             return
         keys = [f"la:{i}" for i in self.ids]
         bus = self.streamer.bus
-        keeper, action = bus.lease_keeper, self.safe_action.value
-        stopped = self.stopped_by()
-        if stopped:
-            # Stopped since (a pause or an e-stop from anyone), with nothing of the stream
-            # written after (``sending``): a safe action the stop covers is not sent,
-            # since a pause after an e-stop would undo its latch.
-            keys = [
-                k
-                for k in keys
-                if k not in stopped
-                or not all(covers(stopped[k], c) for c in keeper.safe_commands(k, action))
-            ]
-            if not keys:
-                return
-        await keeper.stop(keys, action, who=f"stream to {keys}")
+        # (Also after a stop from outside, which ended the stream: the device may have
+        # been enabled again since, so the safe action goes out whatever came before.)
+        await bus.lease_keeper.stop(keys, self.safe_action.value, who=f"stream to {keys}")
 
     def answered(self, ident: int, status: la.Status | None) -> None:
         """``ident``'s status reply came (None: its frame was dropped unsent)."""
