@@ -39,7 +39,10 @@ planned and sent from timer callbacks, without a turn of the streamer's task
 (2026-12-07): 112 a tick on the fake clock; 119 once the planning waits, in a second
 timer callback at the same deadline, for the writes of every bus due then; 113 with the
 timer kept by the streamer and the next deadline found once a tick; 114 with one place
-that serves a stream's targets (an ``isinstance`` for the awaited ones).
+that serves a stream's targets (an ``isinstance`` for the awaited ones).  Then the
+e-stop latch (2026-12-08): every answered command asks whether it sets or clears an
+LA's latch (``safety.latch_change``), so that a safe action never lifts one: 143 a
+request on the fake clock.
 The fake clock's bounds are what the bus reaches now, with a small margin."""
 
 from __future__ import annotations
@@ -67,7 +70,7 @@ from tests.waiting import eventually
 #: Calls of one 10 ms tick of 15 actuators (one 0xF3 broadcast), steady state.
 TICK_BUDGET = 118
 #: Calls of one ``bus.request`` of an LA status, from the call to its decoded reply.
-REQUEST_BUDGET = 143
+REQUEST_BUDGET = 145
 #: The same on the default timer with default settings: no spin on the clock (126 a
 #: tick, 117-150 a request here, with the requests that wait out the spacing; ~1,100
 #: and ~550 while it spun by default).  The fake clock's bounds above are the exact

@@ -84,22 +84,42 @@ async def test_a_pause_from_another_task_ends_the_stream_and_no_target_follows_i
         await streamer.close()
 
 
-async def test_an_estop_from_outside_ends_the_stream_and_every_actuator_ends_stopped() -> None:
+async def test_an_estop_from_outside_ends_the_stream_and_its_latch_holds() -> None:
     async with rig(range(1, 4)) as r:
         streamer, stream = await _started(r, "pause")
         await InspireLA(r.bus, 1).estop()
         with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
             await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
         frames = _frames(r)
-        stop = max(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
+        stop = min(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
         after = frames[stop + 1 :]
         assert not any(_is_follow(f) for f in after), "a target after the e-stop"
-        assert all(any(_control(f, i, la.ControlAction.PAUSE) for f in after) for i in IDS)
-        # Stopped, every one: the power stage off.  (The stream's pause after the e-stop
-        # lifts its latch: a position command would resume la:1 without a "work".)
+        # The stream's safe action, a pause, goes to la:1 as an e-stop: a pause would lift
+        # the latch (a position command would then move it without a "work").
+        assert not any(_control(f, 1, la.ControlAction.PAUSE) for f in after)
+        assert any(_control(f, 1, la.ControlAction.ESTOP) for f in after)
+        assert all(any(_control(f, i, la.ControlAction.PAUSE) for f in after) for i in (2, 3))
         states = [m.power_state for m in r.sim.models]  # type: ignore[attr-defined]
-        assert PowerState.WORKING not in states, states
+        assert states == [PowerState.ESTOPPED, PowerState.PAUSED, PowerState.PAUSED], states
         await streamer.close()
+
+
+async def test_a_hold_stream_estopped_from_outside_keeps_the_latch_at_the_bus_close() -> None:
+    """A "hold" stream (the default) passes its actuators to the bus's implicit lease,
+    which pauses them at the close: la:1, e-stopped from outside, gets an e-stop there
+    (a reviewer's finding: the pause lifted the latch)."""
+    async with rig(range(1, 4)) as r:
+        streamer, stream = await _started(r, "hold")
+        await InspireLA(r.bus, 1).estop()
+        with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
+            await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
+        await streamer.close()
+        estop = len(_frames(r))
+        await r.bus.close()
+        after = _frames(r)[estop:]
+        assert not any(_control(f, 1, la.ControlAction.PAUSE) for f in after), after
+        states = [m.power_state for m in r.sim.models]  # type: ignore[attr-defined]
+        assert states == [PowerState.ESTOPPED, PowerState.PAUSED, PowerState.PAUSED], states
 
 
 async def test_a_stop_then_an_enable_from_outside_still_ends_on_the_streams_pause() -> None:

@@ -238,6 +238,14 @@ class LeaseKeeper(SafeStopper):
             table.set_safe(key, safety.safe_stop_commands(key, lease.safe_action, motor=motor))
         return keys
 
+    async def send_stop(self, commands: Sequence[Command[object]], *, who: str) -> list[object]:
+        """``SafeStopper.send_stop``, each command as it must go to its device now: an
+        e-stop where a pause would lift an e-stop's latch (``LeaseTable.latched``)."""
+        latched = self.table.latched
+        if latched:
+            commands = [safety.escalated(c, latched) for c in commands]
+        return await super().send_stop(commands, who=who)
+
     async def release_implicit(self, keys: Iterable[str] | str | None, hold: bool) -> None:
         """``Bus.release``: end the implicit lease on ``keys`` (all if None)."""
         check_flag("hold", hold)

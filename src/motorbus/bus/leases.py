@@ -240,6 +240,10 @@ class LeaseTable:
         #: every tick): a memo of the same keys at the same dates still holds.
         self._owed_epoch = 0
         self._claimed: tuple[Any, ...] = ()  # (keys, lease, version) of a claim that held
+        #: The devices whose e-stop latch is set: an e-stop was written to them and no
+        #: "work" since (``safety.latch_change``).  A safe action sent to one is an
+        #: e-stop, never a pause that would lift the latch (``LeaseKeeper``).
+        self.latched: set[DeviceKey] = set()
         self._settled: tuple[Any, ...] = ()  # (keys, stops, version, epoch) of a no-op moved
 
     # -- reading ---------------------------------------------------------------------
@@ -519,6 +523,14 @@ class LeaseTable:
         project's ``EE DD``, a quad run's done): it pays, and is no stop of anyone's."""
         if key is None:
             key = cmd.device_key
+        if written:
+            latch = safety.latch_change(cmd)
+            if latch is not None:
+                keys = self.expand((key,)) if key in _WILDCARDS else (key,)
+                if latch:
+                    self.latched.update(keys)
+                else:
+                    self.latched.difference_update(keys)
         if key in _WILDCARDS:
             prefix = _WILDCARDS[key]
             held = [(k, e) for k, e in self._entries.items() if k.startswith(prefix)]

@@ -19,7 +19,7 @@ the same frames:
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Container, Iterable
 
 from motorbus.errors import LocalProtocolError
 from motorbus.protocol import la
@@ -40,8 +40,10 @@ __all__ = [
     "check_lease_keys",
     "check_safe_action",
     "covers",
+    "escalated",
     "family_of_key",
     "is_stop",
+    "latch_change",
     "motion_keys",
     "motion_stops",
     "pending_after",
@@ -290,6 +292,31 @@ def is_stop(cmd: Command[object]) -> bool:
 
         return isinstance(cmd, q.Stop | q.StopAll)
     return False
+
+
+def latch_change(cmd: Command[object]) -> bool | None:
+    """What ``cmd`` does to an LA's e-stop latch (manual 3.5.4: after an e-stop, position
+    commands are ignored until "work"; a pause would lift it): True sets it (an e-stop),
+    False clears it (a "work"), None leaves it (anything else)."""
+    if isinstance(cmd, la.Control):
+        if cmd.action is la.ControlAction.ESTOP:
+            return True
+        if cmd.action is la.ControlAction.WORK:
+            return False
+    return None
+
+
+def escalated(cmd: Command[object], latched: Container[str]) -> Command[object]:
+    """A safe command as it must go to a device whose e-stop latch is set (``latched``
+    holds its key): an LA pause becomes an e-stop, which keeps the latch where the pause
+    would lift it.  Any other command is returned as it is."""
+    if (
+        isinstance(cmd, la.Control)
+        and cmd.action is la.ControlAction.PAUSE
+        and cmd.device_key in latched
+    ):
+        return la.Control(cmd.id, la.ControlAction.ESTOP)
+    return cmd
 
 
 def pending_after(
