@@ -408,6 +408,18 @@ async def test_a_stream_started_under_the_tasks_lease_runs_under_it_and_ends_wit
         assert list(other.bus().leases) == []
 
 
+async def _steady_stream(bus: Any, la_sim: SimProcess) -> Any:
+    """A stream holding la:1 and la:2 still ("pause" at its end), five ticks in."""
+    stream = Streamer(bus).follow(
+        [InspireLA(bus, 1), InspireLA(bus, 2)],
+        lambda t, s: (800, 1200),
+        period=0.01,
+        safe_action="pause",
+    )
+    await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "5 ticks at the simulator")
+    return stream
+
+
 async def test_an_estop_from_another_program_ends_the_served_stream(
     la_sim: SimProcess, la_server: Child, endpoint: str
 ) -> None:
@@ -416,13 +428,7 @@ async def test_an_estop_from_another_program_ends_the_served_stream(
     pause at its end lifted the e-stop's latch."""
     async with motorbus.connect(endpoint) as site:
         bus = site.bus()
-        stream = Streamer(bus).follow(
-            [InspireLA(bus, 1), InspireLA(bus, 2)],
-            lambda t, s: (800, 1200),
-            period=0.01,
-            safe_action="pause",
-        )
-        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "5 ticks at the simulator")
+        stream = await _steady_stream(bus, la_sim)
         done = run_motorbus(["la", "estop", "1", "--connect", endpoint])
         assert done.returncode == 0, done.stderr
         with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
@@ -443,13 +449,7 @@ async def test_a_server_closing_mid_stream_ends_it_with_an_error_the_client_sees
     its targets had run out (``wait()`` returned); now ``wait()`` says why."""
     async with motorbus.connect(endpoint) as site:
         bus = site.bus()
-        stream = Streamer(bus).follow(
-            [InspireLA(bus, 1), InspireLA(bus, 2)],
-            lambda t, s: (800, 1200),
-            period=0.01,
-            safe_action="pause",
-        )
-        await eventually(lambda: len(targets_at_sim(la_sim)) >= 5, "5 ticks at the simulator")
+        stream = await _steady_stream(bus, la_sim)
         la_server.finish(signal.SIGTERM)
         with pytest.raises(StreamEnded, match="the server is closing"):
             await asyncio.wait_for(stream.wait(), 30)
