@@ -42,7 +42,7 @@ timer kept by the streamer and the next deadline found once a tick; 114 with one
 that serves a stream's targets (an ``isinstance`` for the awaited ones).  Then the
 e-stop latch (2026-12-08): every answered command asks whether it sets or clears an
 LA's latch (``safety.latch_change``), so that a safe action never lifts one: 143 a
-request on the fake clock.
+request on the fake clock; 144 with the noting shared with an unanswered request's.
 The fake clock's bounds are what the bus reaches now, with a small margin."""
 
 from __future__ import annotations

@@ -406,3 +406,27 @@ def test_the_same_motion_every_tick_owes_again_whatever_changed_in_between() -> 
     assert table.release(other, hold=True) == []
     lease_keys_released = table.release(lease, hold=False)
     assert sorted(map(repr, lease_keys_released)) == sorted(map(repr, [pause1, pause2]))
+
+
+def test_the_latch_is_set_by_an_estop_and_cleared_only_by_an_answered_work() -> None:
+    """``LeaseTable.latched``: an e-stop written (answered, or its answer overdue: it may
+    have arrived) sets it; a "work" clears it only once answered, since one that did
+    not arrive leaves the device latched; a pause after it is no "work"."""
+    table = LeaseTable()
+    estop, work = la.Control(1, la.ControlAction.ESTOP), la.Control(1, la.ControlAction.WORK)
+    table.unanswered(estop, "la:1")
+    assert table.latched == {"la:1"}
+    table.unanswered(work, "la:1")
+    table.sent(la.Control(1, la.ControlAction.PAUSE), "la:1")
+    assert table.latched == {"la:1"}
+    assert safety.escalated(la.Control(1, la.ControlAction.PAUSE), table.latched) == estop
+    assert safety.escalated(la.Control(2, la.ControlAction.PAUSE), table.latched) == (
+        la.Control(2, la.ControlAction.PAUSE)
+    )
+    table.sent(work, "la:1")
+    assert table.latched == set()
+    table.sent(la.Control(la.BROADCAST_ID, la.ControlAction.ESTOP), "la:255")
+    assert table.latched == {"la:255"}  # nothing seen yet: the wildcard stands for them
+    assert safety.escalated(la.Control(2, la.ControlAction.PAUSE), table.latched) == (
+        la.Control(2, la.ControlAction.ESTOP)
+    )

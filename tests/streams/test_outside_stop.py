@@ -19,8 +19,9 @@ import math
 import pytest
 
 from motorbus.devices.la import InspireLA
+from motorbus.errors import ReplyTimeoutError
 from motorbus.protocol import la
-from motorbus.sim.la import PowerState
+from motorbus.sim.la import LAModel, PowerState
 from motorbus.streams import StreamEnded, Streamer
 from tests.fakeclock import Rig, rig
 from tests.waiting import eventually
@@ -175,4 +176,25 @@ async def test_a_status_query_or_an_enable_does_not_end_a_stream() -> None:
         await asyncio.sleep(0.1)
         assert not stream.done, stream.error  # type: ignore[attr-defined]
         assert sum(map(_is_follow, _frames(r))) >= count + 5
+        await streamer.close()
+
+
+async def test_an_estop_whose_answer_never_came_still_ends_the_stream_and_keeps_the_latch() -> None:
+    """The device heard the e-stop but its answer was lost (a reviewer's probe): the
+    stop may have taken effect, so it counts; before, the stream ran on and its pause at
+    the end lifted the latch."""
+    models = [LAModel(i, turnaround_typical=120e-6, turnaround_max=120e-6) for i in IDS]
+    async with rig(models=models) as r:
+        streamer, stream = await _started(r, "pause")
+        models[0]._silent_left = 10  # it hears from here on, and answers nothing
+        with pytest.raises(ReplyTimeoutError):
+            await InspireLA(r.bus, 1).estop()
+        with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
+            await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
+        frames = _frames(r)
+        stop = min(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
+        after = frames[stop + 1 :]
+        assert not any(_is_follow(f) for f in after), "a target after the e-stop"
+        assert not any(_control(f, 1, la.ControlAction.PAUSE) for f in after)
+        assert models[0].power_state is PowerState.ESTOPPED
         await streamer.close()

@@ -349,6 +349,8 @@ class BusEngine:
         if job.handle is not None:
             job.handle.cancel()
             job.handle = None
+        if not job.moves:  # a stop unanswered may still have stopped its device
+            self._leases.unanswered(job.cmd, job.key)
         # A caller that cancelled while its request was on the wire awaits no retry.
         retried, stalled = self.core.timed_out(job, now)
         log.debug(

@@ -144,9 +144,8 @@ class Lease:
         #: (``keys`` None: all of them): a stream running under this lease stops there,
         #: so nothing of it follows the lease's safe action.
         self.enders: list[Callable[[frozenset[DeviceKey] | None, bool], Any]] = []
-        #: The stops written to its devices while it held them (a pause or an e-stop,
-        #: by anyone: another client, a dashboard, the owner's own code), by device:
-        #: a stream under this lease ends on one (``motorbus.streams``).
+        #: Stops written to its devices while it held them, by anyone, by device: a
+        #: stream under this lease ends on one (``motorbus.streams``).
         self.stopped: dict[DeviceKey, Command[object]] = {}
 
     def __repr__(self) -> str:
@@ -240,9 +239,8 @@ class LeaseTable:
         #: every tick): a memo of the same keys at the same dates still holds.
         self._owed_epoch = 0
         self._claimed: tuple[Any, ...] = ()  # (keys, lease, version) of a claim that held
-        #: The devices whose e-stop latch is set: an e-stop was written to them and no
-        #: "work" since (``safety.latch_change``).  A safe action sent to one is an
-        #: e-stop, never a pause that would lift the latch (``LeaseKeeper``).
+        #: LAs e-stopped (an e-stop written, no "work" since: ``safety.latch_change``):
+        #: a safe action to one is an e-stop, not a pause that lifts it (``LeaseKeeper``).
         self.latched: set[DeviceKey] = set()
         self._settled: tuple[Any, ...] = ()  # (keys, stops, version, epoch) of a no-op moved
 
@@ -523,25 +521,13 @@ class LeaseTable:
         project's ``EE DD``, a quad run's done): it pays, and is no stop of anyone's."""
         if key is None:
             key = cmd.device_key
-        if written:
-            latch = safety.latch_change(cmd)
-            if latch is not None:
-                keys = self.expand((key,)) if key in _WILDCARDS else (key,)
-                if latch:
-                    self.latched.update(keys)
-                else:
-                    self.latched.difference_update(keys)
         if key in _WILDCARDS:
-            prefix = _WILDCARDS[key]
-            held = [(k, e) for k, e in self._entries.items() if k.startswith(prefix)]
-        else:
+            held = self._held(key)
+        else:  # (``_held`` inline: every answered request comes here)
             entry = self._entries.get(key)
-            if entry is None:
-                return
-            held = [(key, entry)]
-        if written and safety.is_stop(cmd):
-            for k, entry in held:
-                entry.lease.stopped[k] = cmd
+            held = [] if entry is None else [(key, entry)]
+        if written:
+            self._note(cmd, key, held)
         for _, entry in held:
             owed = entry.owed
             if owed:
@@ -549,6 +535,35 @@ class LeaseTable:
                 if len(left) != len(owed):  # something was paid (a status read pays nothing)
                     entry.owed = left
                     self._owed_epoch += 1
+
+    def unanswered(self, cmd: Command[object], key: DeviceKey) -> None:
+        """``cmd`` was written, its answer never came: noted as ``sent`` notes it (a stop
+        may have taken effect), but it pays nothing owed; an unanswered "work" clears
+        no latch."""
+        if safety.latch_change(cmd) is not False:
+            self._note(cmd, key, self._held(key))
+
+    def _held(self, key: DeviceKey) -> list[tuple[DeviceKey, _Entry]]:
+        """The entries ``key`` names (each of its family's for a wildcard), by key."""
+        if key in _WILDCARDS:
+            return [(k, e) for k, e in self._entries.items() if k.startswith(_WILDCARDS[key])]
+        return [(key, self._entries[key])] if key in self._entries else []
+
+    def _note(
+        self, cmd: Command[object], key: DeviceKey, held: list[tuple[DeviceKey, _Entry]]
+    ) -> None:
+        """``cmd`` written to ``key`` (``held``: its entries): a latch set or cleared
+        (``latched``), a stop noted on the lease of each device (``Lease.stopped``)."""
+        latch = safety.latch_change(cmd)
+        if latch is not None:
+            keys = self.expand((key,)) if key in _WILDCARDS else (key,)
+            if latch:
+                self.latched.update(keys)
+            else:
+                self.latched.difference_update(keys)
+        if held and safety.is_stop(cmd):
+            for k, entry in held:
+                entry.lease.stopped[k] = cmd
 
     # -- releasing -------------------------------------------------------------------
 

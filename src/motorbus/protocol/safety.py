@@ -308,12 +308,13 @@ def latch_change(cmd: Command[object]) -> bool | None:
 
 def escalated(cmd: Command[object], latched: Container[str]) -> Command[object]:
     """A safe command as it must go to a device whose e-stop latch is set (``latched``
-    holds its key): an LA pause becomes an e-stop, which keeps the latch where the pause
-    would lift it.  Any other command is returned as it is."""
+    holds its key, or ``"la:255"``: an e-stop to every LA before any was known): an LA
+    pause becomes an e-stop, which keeps the latch where the pause would lift it.  Any
+    other command is returned as it is."""
     if (
         isinstance(cmd, la.Control)
         and cmd.action is la.ControlAction.PAUSE
-        and cmd.device_key in latched
+        and (cmd.device_key in latched or _LA_KEYS[la.BROADCAST_ID] in latched)
     ):
         return la.Control(cmd.id, la.ControlAction.ESTOP)
     return cmd
