@@ -56,6 +56,18 @@ async def _started(r: Rig, safe_action: str) -> tuple[Streamer, object]:
     return streamer, stream
 
 
+async def _ended_by_the_estop_of_la1(r: Rig, stream: object) -> list[bytes]:
+    """The stream ended on la:1's e-stop, and no target of it followed: the frames after
+    the first e-stop to la:1."""
+    with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
+        await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
+    frames = _frames(r)
+    stop = min(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
+    after = frames[stop + 1 :]
+    assert not any(_is_follow(f) for f in after), "a target after the e-stop"
+    return after
+
+
 @pytest.mark.parametrize("safe_action", ["hold", "pause", "estop"])
 async def test_a_pause_from_another_task_ends_the_stream_and_no_target_follows_it(
     safe_action: str,
@@ -89,12 +101,7 @@ async def test_an_estop_from_outside_ends_the_stream_and_its_latch_holds() -> No
     async with rig(range(1, 4)) as r:
         streamer, stream = await _started(r, "pause")
         await InspireLA(r.bus, 1).estop()
-        with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
-            await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
-        frames = _frames(r)
-        stop = min(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
-        after = frames[stop + 1 :]
-        assert not any(_is_follow(f) for f in after), "a target after the e-stop"
+        after = await _ended_by_the_estop_of_la1(r, stream)
         # The stream's safe action, a pause, goes to la:1 as an e-stop: a pause would lift
         # the latch (a position command would then move it without a "work").
         assert not any(_control(f, 1, la.ControlAction.PAUSE) for f in after)
@@ -189,12 +196,7 @@ async def test_an_estop_whose_answer_never_came_still_ends_the_stream_and_keeps_
         models[0]._silent_left = 10  # it hears from here on, and answers nothing
         with pytest.raises(ReplyTimeoutError):
             await InspireLA(r.bus, 1).estop()
-        with pytest.raises(StreamEnded, match=r"la:1 \(ESTOP\) stopped"):
-            await asyncio.wait_for(stream.wait(), 5)  # type: ignore[attr-defined]
-        frames = _frames(r)
-        stop = min(n for n, f in enumerate(frames) if _control(f, 1, la.ControlAction.ESTOP))
-        after = frames[stop + 1 :]
-        assert not any(_is_follow(f) for f in after), "a target after the e-stop"
+        after = await _ended_by_the_estop_of_la1(r, stream)
         assert not any(_control(f, 1, la.ControlAction.PAUSE) for f in after)
         assert models[0].power_state is PowerState.ESTOPPED
         await streamer.close()
