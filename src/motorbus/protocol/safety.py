@@ -229,24 +229,17 @@ def watch_allowed(cmd: Command[object]) -> bool:
     stepper: stop project, manual stop, project and input reads; quad: stop, stop all."""
     if cmd.starts_motion:
         return False
+    if is_stop(cmd):
+        return True
     if isinstance(cmd, la.Control):
-        return cmd.action in _WATCH_ACTIONS
+        return cmd.action is la.ControlAction.QUERY_STATUS
     if isinstance(cmd, la.ReadTable | la.ReadRegister):
         return True
     if cmd.family is Family.PROJECT_STEPPER:
         from motorbus.protocol import project_stepper as ps
 
-        return isinstance(cmd, ps.StopProject | ps.ManualStop | ps.ReadProject | ps.ReadInput)
-    if cmd.family is Family.QUAD_STEPPER:
-        from motorbus.protocol import quad_stepper as q
-
-        return isinstance(cmd, q.Stop | q.StopAll)
+        return isinstance(cmd, ps.ReadProject | ps.ReadInput)
     return False
-
-
-_WATCH_ACTIONS = frozenset(
-    {la.ControlAction.QUERY_STATUS, la.ControlAction.PAUSE, la.ControlAction.ESTOP}
-)
 
 
 def motion_keys(cmd: Command[object]) -> tuple[str, ...]:
